@@ -1,0 +1,46 @@
+"""ament_python package ``soft_arm`` (also installable with pip: ``pip install -e ".[test]"``)."""
+from glob import glob
+
+from setuptools import find_packages, setup
+
+PACKAGE = "soft_arm"
+
+setup(
+    name=PACKAGE,
+    version="0.1.0",
+    packages=find_packages(include=["soft_arm_model", "soft_arm_model.*", "soft_arm_control",
+                                    "soft_arm_control.*", "soft_arm_drivers", "soft_arm_drivers.*"]),
+    data_files=[
+        ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
+        (f"share/{PACKAGE}", ["package.xml"]),
+        (f"share/{PACKAGE}/config", glob("config/*.yaml")),
+        (f"share/{PACKAGE}/launch", glob("launch/*.py")),
+    ],
+    python_requires=">=3.10",
+    install_requires=[
+        "numpy>=1.26,<3",
+        "scipy>=1.11",
+        "numba>=0.60",
+        "PyYAML>=6",
+        "matplotlib>=3.8",
+        "python-can>=4.3",
+        # Real ROS 2 Jazzy rclpy from PyPI; without the RMW implementation rclpy cannot start.
+        "ros-jazzy-rclpy==7.1.6",
+        "ros-jazzy-common-interfaces==5.3.6",
+        "ros-jazzy-rmw-fastrtps-cpp==8.4.3",
+    ],
+    extras_require={
+        "test": ["pytest>=8", "hypothesis>=6"],
+        "bench": ["pyelastica==1.0.0"],
+    },
+    zip_safe=True,
+    maintainer="soft_arm maintainers",
+    maintainer_email="soft-arm@example.org",
+    description="ROS 2 control stack for a soft tendon-driven continuum arm",
+    license="Apache-2.0",
+    entry_points={
+        "console_scripts": [
+            "soft-arm-model = soft_arm_model.cli:main",
+        ],
+    },
+)

@@ -1,0 +1,338 @@
+"""Loading and validation of the arm description (``config/arm.yaml``, ROS parameter layout).
+
+The file holds ``<node>: {ros__parameters: {arm: {...}}}``; ``/**`` applies to every node. Every key is
+required: a value is never silently defaulted. Every value is checked, and a bad one raises
+:class:`ConfigError` naming the dotted key, the value and what is allowed.
+
+Overrides use dotted keys relative to ``arm`` (``material.youngs_modulus=2e5``) and are applied before
+validation, so an override is checked like a value from the file.
+"""
+from __future__ import annotations
+
+import copy
+import difflib
+import math
+import os
+import re
+import sys
+from dataclasses import dataclass
+from typing import Any, Mapping
+
+import yaml
+
+NAMESPACE = "arm"
+STRAIN_MODES = ("torsion", "bending_y", "bending_z", "axial", "shear_y", "shear_z")
+AXIAL_LAWS = ("linear", "neo_hookean")
+
+
+class _RosYamlLoader(yaml.SafeLoader):
+    """Safe YAML loader that reads ``1.5e5`` as a float, as ROS 2's parameter parser does
+    (PyYAML's YAML 1.1 resolver would read it as a string)."""
+
+
+_RosYamlLoader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"^[-+]?(?:[0-9][0-9_]*)(?:\.[0-9_]*)?[eE][-+]?[0-9]+$"),
+    list("-+0123456789"))
+
+
+def parse_yaml(text):
+    """Parse YAML text with ROS 2's number rules."""
+    return yaml.load(text, Loader=_RosYamlLoader)  # noqa: S506 - a SafeLoader subclass
+
+
+class ConfigError(ValueError):
+    """A configuration value is missing, unknown or out of range."""
+
+
+@dataclass(frozen=True)
+class Geometry:
+    """Cone geometry [m]: arc length ``length``, radii at the base and at the tip."""
+    length: float
+    base_radius: float
+    tip_radius: float
+
+
+@dataclass(frozen=True)
+class Material:
+    """Material: density [kg/m^3], Young's modulus [Pa], Poisson ratio [-], Kelvin-Voigt viscosity
+    [Pa s], and the axial constitutive law (``linear`` or incompressible ``neo_hookean``)."""
+    density: float
+    youngs_modulus: float
+    poisson_ratio: float
+    viscosity: float
+    axial_law: str
+
+
+@dataclass(frozen=True)
+class Tendon:
+    """One tendon, attached at the base (X = 0) and ending at ``end`` [m].
+
+    Its section angle [rad] varies linearly from ``start_angle`` (X = 0) to ``end_angle`` (X = end),
+    measured about the arm axis from +x towards +y of ``arm_base``; its distance from the axis is
+    ``offset_fraction`` times the local radius. ``friction`` is the paper's mubar [-].
+    """
+    name: str
+    start_angle: float
+    end_angle: float
+    end: float
+    offset_fraction: float
+    friction: float
+
+
+@dataclass(frozen=True)
+class Discretisation:
+    """Strain basis: divisions ending at ``division_ends`` [m], a Legendre order and a number of Gauss
+    points per division, the enabled strain modes (ordered as ``STRAIN_MODES``)."""
+    division_ends: tuple
+    legendre_order: tuple
+    gauss_points: tuple
+    modes: tuple
+    allow_tendon_end_inside_division: bool
+
+
+@dataclass(frozen=True)
+class ArmConfig:
+    """The validated arm description; ``gravity`` [m/s^2] in ``arm_base``, ``marker_positions`` [m]
+    are arc lengths of the tracked markers (base to tip), ``friction_smoothing`` [rad/m] smooths the
+    norm in the friction integrand near zero turning rate."""
+    geometry: Geometry
+    material: Material
+    tendons: tuple
+    discretisation: Discretisation
+    gravity: tuple
+    marker_positions: tuple
+    friction_smoothing: float
+
+    @property
+    def enabled_modes(self) -> tuple:
+        return tuple(m for m, on in zip(STRAIN_MODES, self.discretisation.modes) if on)
+
+
+# ---------------------------------------------------------------------------------------------------
+# Schema: dotted key -> (kind, check). Kinds: float, int, bool, str, floats, ints, strs.
+
+def _finite(v):
+    return math.isfinite(v)
+
+
+_SCHEMA: dict[str, tuple[str, Any, str]] = {
+    "geometry.length": ("float", lambda v: 0 < v <= 10, "a length in (0, 10] m"),
+    "geometry.base_radius": ("float", lambda v: 0 < v <= 1, "a radius in (0, 1] m"),
+    "geometry.tip_radius": ("float", lambda v: 0 < v <= 1, "a radius in (0, 1] m"),
+    "material.density": ("float", lambda v: 0 < v <= 1e5, "a density in (0, 1e5] kg/m^3"),
+    "material.youngs_modulus": ("float", lambda v: 0 < v <= 1e12, "a modulus in (0, 1e12] Pa"),
+    "material.poisson_ratio": ("float", lambda v: 0 <= v <= 0.5, "a ratio in [0, 0.5]"),
+    "material.viscosity": ("float", lambda v: 0 <= v <= 1e9, "a viscosity in [0, 1e9] Pa s"),
+    "material.axial_law": ("str", lambda v: v in AXIAL_LAWS, f"one of {list(AXIAL_LAWS)}"),
+    "tendons.names": ("strs", lambda v: len(v) >= 1 and len(set(v)) == len(v) and all(v),
+                      "one or more distinct, non-empty names"),
+    "tendons.start_angle_deg": ("floats", lambda v: all(-360 <= a <= 360 for a in v),
+                                "angles in [-360, 360] deg, one per tendon"),
+    "tendons.end_angle_deg": ("floats", lambda v: all(-360 <= a <= 360 for a in v),
+                              "angles in [-360, 360] deg, one per tendon"),
+    "tendons.end": ("floats", lambda v: all(a > 0 for a in v), "arc lengths > 0 m, one per tendon"),
+    "tendons.offset_fraction": ("floats", lambda v: all(0 <= a < 1 for a in v),
+                                "fractions of the local radius in [0, 1), one per tendon"),
+    "tendons.friction": ("floats", lambda v: all(0 <= a <= 10 for a in v),
+                         "friction coefficients in [0, 10], one per tendon"),
+    "tendons.friction_smoothing": ("float", lambda v: 0 < v <= 1e3, "a rate in (0, 1e3] rad/m"),
+    "discretisation.division_ends": ("floats", lambda v: len(v) >= 1 and all(
+        b > a for a, b in zip([0.0] + list(v[:-1]), v)), "strictly increasing arc lengths > 0 m"),
+    "discretisation.legendre_order": ("ints", lambda v: all(0 <= a <= 12 for a in v),
+                                      "orders in [0, 12], one per division"),
+    "discretisation.gauss_points": ("ints", lambda v: all(1 <= a <= 40 for a in v),
+                                    "counts in [1, 40], one per division"),
+    "discretisation.allow_tendon_end_inside_division": ("bool", None, "true or false"),
+    "gravity": ("floats", lambda v: len(v) == 3 and math.sqrt(sum(a * a for a in v)) <= 100,
+                "three components [m/s^2] with norm <= 100"),
+    "markers.positions": ("floats", lambda v: all(b > a for a, b in zip([0.0] + list(v[:-1]), v)),
+                          "strictly increasing arc lengths > 0 m"),
+}
+for _mode in STRAIN_MODES:
+    _SCHEMA[f"discretisation.modes.{_mode}"] = ("bool", None, "true or false")
+
+
+def _flatten(tree: Mapping, prefix: str = "") -> dict:
+    flat = {}
+    for k, v in tree.items():
+        key = f"{prefix}{k}"
+        if isinstance(v, Mapping):
+            flat.update(_flatten(v, key + "."))
+        else:
+            flat[key] = v
+    return flat
+
+
+def _coerce(key: str, value: Any, kind: str, allowed: str):
+    def bad():
+        return ConfigError(f"{NAMESPACE}.{key} = {value!r} is not valid: expected {allowed}")
+
+    def scalar(v, k):
+        if k == "float":
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not _finite(float(v)):
+                raise bad()
+            return float(v)
+        if k == "int":
+            if isinstance(v, bool) or not isinstance(v, int):
+                raise bad()
+            return int(v)
+        if k == "bool":
+            if not isinstance(v, bool):
+                raise bad()
+            return v
+        if not isinstance(v, str):
+            raise bad()
+        return v
+
+    if kind in ("floats", "ints", "strs"):
+        if not isinstance(value, (list, tuple)):
+            raise bad()
+        return tuple(scalar(v, kind[:-1]) for v in value)
+    return scalar(value, kind)
+
+
+def apply_overrides(params: dict, overrides: Mapping[str, Any] | None) -> dict:
+    """Return a copy of the ``arm`` parameter tree with dotted-key overrides applied.
+
+    String values are parsed as YAML (``"2e5"`` -> 200000.0, ``"[1, 2]"`` -> list). An unknown key
+    raises :class:`ConfigError` with the closest known keys.
+    """
+    out = copy.deepcopy(params)
+    for key, value in (overrides or {}).items():
+        key = key[len(NAMESPACE) + 1:] if key.startswith(NAMESPACE + ".") else key
+        if key not in _SCHEMA:
+            close = difflib.get_close_matches(key, list(_SCHEMA), n=3)
+            hint = f"; did you mean {', '.join(close)}?" if close else ""
+            raise ConfigError(f"unknown key {NAMESPACE}.{key}{hint}")
+        if isinstance(value, str):
+            try:
+                value = parse_yaml(value)
+            except yaml.YAMLError as exc:
+                raise ConfigError(f"{NAMESPACE}.{key}: cannot parse {value!r}: {exc}") from None
+        node = out
+        *parents, leaf = key.split(".")
+        for part in parents:
+            node = node.setdefault(part, {})
+        node[leaf] = value
+    return out
+
+
+def parse_arm_config(params: Mapping) -> ArmConfig:
+    """Validate an ``arm`` parameter tree (the mapping under ``ros__parameters.arm``)."""
+    flat = _flatten(params)
+    unknown = sorted(set(flat) - set(_SCHEMA))
+    if unknown:
+        close = difflib.get_close_matches(unknown[0], list(_SCHEMA), n=3)
+        hint = f"; did you mean {', '.join(close)}?" if close else ""
+        raise ConfigError(f"unknown key {NAMESPACE}.{unknown[0]}{hint}")
+    missing = [k for k in _SCHEMA if k not in flat]
+    if missing:
+        raise ConfigError(f"missing key {NAMESPACE}.{missing[0]} (expected {_SCHEMA[missing[0]][2]})")
+    v = {}
+    for key, (kind, check, allowed) in _SCHEMA.items():
+        v[key] = _coerce(key, flat[key], kind, allowed)
+        if check is not None and not check(v[key]):
+            raise ConfigError(f"{NAMESPACE}.{key} = {flat[key]!r} is not valid: expected {allowed}")
+
+    def require(ok, key, allowed):
+        if not ok:
+            raise ConfigError(f"{NAMESPACE}.{key} = {flat[key]!r} is not valid: expected {allowed}")
+
+    length = v["geometry.length"]
+    require(v["geometry.tip_radius"] <= v["geometry.base_radius"], "geometry.tip_radius",
+            f"a radius no larger than geometry.base_radius ({v['geometry.base_radius']})")
+    require(v["geometry.base_radius"] < 0.5 * length, "geometry.base_radius",
+            f"a slender rod: radius < half of geometry.length ({length})")
+    n_t = len(v["tendons.names"])
+    for key in ("tendons.start_angle_deg", "tendons.end_angle_deg", "tendons.end",
+                "tendons.offset_fraction", "tendons.friction"):
+        require(len(v[key]) == n_t, key, f"{n_t} values, one per tendon in tendons.names")
+    require(all(e <= length + 1e-12 for e in v["tendons.end"]), "tendons.end",
+            f"arc lengths within geometry.length ({length})")
+    ends = v["discretisation.division_ends"]
+    require(abs(ends[-1] - length) <= 1e-9, "discretisation.division_ends",
+            f"a list whose last value is geometry.length ({length})")
+    n_d = len(ends)
+    require(len(v["discretisation.legendre_order"]) == n_d, "discretisation.legendre_order",
+            f"{n_d} values, one per division")
+    require(len(v["discretisation.gauss_points"]) == n_d, "discretisation.gauss_points",
+            f"{n_d} values, one per division")
+    for i, (order, pts) in enumerate(zip(v["discretisation.legendre_order"],
+                                         v["discretisation.gauss_points"])):
+        require(pts >= order + 1, "discretisation.gauss_points",
+                f"at least legendre_order + 1 points per division (division {i + 1} has order {order})")
+    modes = tuple(v[f"discretisation.modes.{m}"] for m in STRAIN_MODES)
+    require(any(modes), "discretisation.modes.torsion", "at least one enabled strain mode")
+    if not v["discretisation.allow_tendon_end_inside_division"]:
+        for name, end in zip(v["tendons.names"], v["tendons.end"]):
+            require(any(abs(end - e) <= 1e-9 for e in ends), "discretisation.division_ends",
+                    f"a division boundary at the end of {name} ({end} m): the strain jumps there "
+                    "(set discretisation.allow_tendon_end_inside_division only for convergence studies)")
+    require(all(p <= length + 1e-12 for p in v["markers.positions"]), "markers.positions",
+            f"arc lengths within geometry.length ({length})")
+
+    tendons = tuple(
+        Tendon(name=v["tendons.names"][i],
+               start_angle=math.radians(v["tendons.start_angle_deg"][i]),
+               end_angle=math.radians(v["tendons.end_angle_deg"][i]),
+               end=v["tendons.end"][i],
+               offset_fraction=v["tendons.offset_fraction"][i],
+               friction=v["tendons.friction"][i])
+        for i in range(n_t))
+    return ArmConfig(
+        geometry=Geometry(length, v["geometry.base_radius"], v["geometry.tip_radius"]),
+        material=Material(v["material.density"], v["material.youngs_modulus"],
+                          v["material.poisson_ratio"], v["material.viscosity"],
+                          v["material.axial_law"]),
+        tendons=tendons,
+        discretisation=Discretisation(ends, v["discretisation.legendre_order"],
+                                      v["discretisation.gauss_points"], modes,
+                                      v["discretisation.allow_tendon_end_inside_division"]),
+        gravity=v["gravity"],
+        marker_positions=v["markers.positions"],
+        friction_smoothing=v["tendons.friction_smoothing"],
+    )
+
+
+def default_config_dir() -> str:
+    """The package's ``config/`` directory: the source tree, or ``share/soft_arm/config`` once installed."""
+    here = os.path.dirname(os.path.abspath(__file__))
+    candidates = [os.path.join(os.path.dirname(here), "config"),
+                  os.path.join(sys.prefix, "share", "soft_arm", "config")]
+    try:  # a sourced ROS 2 installation (colcon install space)
+        from ament_index_python.packages import get_package_share_directory
+        candidates.insert(0, os.path.join(get_package_share_directory("soft_arm"), "config"))
+    except Exception:  # noqa: BLE001 - ament_index is optional outside a ROS installation
+        pass
+    for path in candidates:
+        if os.path.isfile(os.path.join(path, "arm.yaml")):
+            return path
+    raise ConfigError("cannot find the soft_arm config directory (looked in: " + ", ".join(candidates) + ")")
+
+
+def read_parameters(path: str, node: str = "/**") -> dict:
+    """Return the ``ros__parameters`` mapping of ``node`` in a ROS 2 parameter file."""
+    try:
+        with open(path, encoding="utf-8") as fh:
+            doc = parse_yaml(fh)
+    except OSError as exc:
+        raise ConfigError(f"cannot read config file {path}: {exc.strerror}") from None
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{path} is not valid YAML: {exc}") from None
+    if not isinstance(doc, dict) or node not in doc or "ros__parameters" not in (doc[node] or {}):
+        raise ConfigError(f"{path}: expected '{node}: {{ros__parameters: ...}}' (ROS 2 parameter layout)")
+    return doc[node]["ros__parameters"]
+
+
+def load_arm_config(path: str | None = None, overrides: Mapping[str, Any] | None = None,
+                    node: str = "/**") -> ArmConfig:
+    """Load, override and validate the arm description (default: the package's ``arm.yaml``)."""
+    path = path or os.path.join(default_config_dir(), "arm.yaml")
+    params = read_parameters(path, node)
+    if NAMESPACE not in params or not isinstance(params[NAMESPACE], dict):
+        raise ConfigError(f"{path}: no '{NAMESPACE}' parameters under {node}.ros__parameters")
+    try:
+        return parse_arm_config(apply_overrides(params[NAMESPACE], overrides))
+    except ConfigError as exc:
+        raise ConfigError(f"{path}: {exc}") from None

@@ -1,0 +1,325 @@
+"""The immutable arm model and its scratch workspace (Pinocchio style: ``ArmModel`` + ``ArmData``).
+
+``build_model(config)`` discretises the arm once: divisions, Legendre strain basis, Gauss points and
+Magnus intervals, cross-section properties, tendon routing, friction quadrature, K and D. Algorithms
+are free functions of ``(model, data, q, ...)`` in :mod:`soft_arm_model.dynamics`,
+:mod:`~soft_arm_model.statics` and :mod:`~soft_arm_model.integrators`.
+
+Generalised coordinates ``q`` (length ``model.n``) are ordered by division, then strain mode
+(``config.STRAIN_MODES`` order), then Legendre order. Angular basis rows are divided by the division
+length, so an angular coordinate is an angle [rad] and an axial/shear coordinate a strain [-].
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.polynomial import legendre as npleg
+
+from .config import STRAIN_MODES, ArmConfig, load_arm_config
+
+# arm_base <- section frame at the clamp: the section's x axis (the arm axis) points along -z,
+# its y axis along +y and its z axis along +x.
+R_BASE = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])
+XI_STAR = np.array([0.0, 0.0, 0.0, 1.0, 0.0, 0.0])
+_ZANNA_OFFSETS = (0.5 - np.sqrt(3.0) / 6.0, 0.5 + np.sqrt(3.0) / 6.0)
+
+
+def _frozen(a):
+    a = np.ascontiguousarray(a, dtype=float)
+    a.setflags(write=False)
+    return a
+
+
+@dataclass(frozen=True, eq=False)
+class ArmModel:
+    """Discretised arm. Arrays are read-only; ``P`` points, ``n`` coordinates, ``n_tendons`` tendons.
+
+    Attributes (units SI, vectors in the section frame unless noted):
+      X, w: point abscissae [m] and quadrature weights [m] (zero at division ends).
+      B, Bd: strain basis and its X-derivative at the points, (P, 6, n).
+      h, B1, B2: Magnus interval lengths [m] and bases at the two Zanna points, (P-1,), (P-1, 6, n).
+      mass_diag: rho [Jp, I, I, A, A, A]; stiff_diag: [G Jp, E I, E I, E A, G A, G A];
+      visc_diag: eta [Jp, 3I, 3I, 3A, A, A] per point, (P, 6).
+      K, D: stiffness at the reference and damping matrices, (n, n).
+      tendon_d, tendon_dp, tendon_dpp: tendon offset and its first two X-derivatives, (n_t, P, 3) [m].
+      tendon_active: 1 where the tendon runs through a point; friction_mu: mubar per tendon.
+      friction_Q: cumulative quadrature, wrap(X_p) = sum_j Q[p, j] phi(X_j), (P, P).
+      gravity: in arm_base [m/s^2]; marker_*: one Magnus sub-step from a point to each marker.
+    """
+    config: ArmConfig
+    n: int
+    X: np.ndarray
+    w: np.ndarray
+    B: np.ndarray
+    Bd: np.ndarray
+    h: np.ndarray
+    B1: np.ndarray
+    B2: np.ndarray
+    mass_diag: np.ndarray
+    stiff_diag: np.ndarray
+    visc_diag: np.ndarray
+    K: np.ndarray
+    D: np.ndarray
+    tendon_d: np.ndarray
+    tendon_dp: np.ndarray
+    tendon_dpp: np.ndarray
+    tendon_active: np.ndarray
+    friction_mu: np.ndarray
+    friction_Q: np.ndarray
+    gravity: np.ndarray
+    marker_X: np.ndarray
+    marker_point: np.ndarray
+    marker_h: np.ndarray
+    marker_B1: np.ndarray
+    marker_B2: np.ndarray
+    coordinate_labels: tuple
+    kernel_args: tuple = field(repr=False)
+
+    @property
+    def n_tendons(self) -> int:
+        return self.tendon_d.shape[0]
+
+    @property
+    def tendon_names(self) -> tuple:
+        return tuple(t.name for t in self.config.tendons)
+
+    @property
+    def length(self) -> float:
+        return self.config.geometry.length
+
+    def radius(self, X):
+        """Cross-section radius [m] at arc length X [m]."""
+        g = self.config.geometry
+        return g.base_radius + (g.tip_radius - g.base_radius) * np.asarray(X) / g.length
+
+    def basis(self, X: float, division: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Strain basis B(X) (6, n) and its derivative; ``division`` picks the side at a boundary."""
+        return _basis_at(self.config, self.n, X, division)
+
+
+class ArmData:
+    """Scratch workspace for one model: every kernel output lives here (see kernels.evaluate)."""
+
+    def __init__(self, model: ArmModel):
+        P, n, nt, nm = model.X.size, model.n, model.n_tendons, model.marker_X.size
+        self.xi = np.zeros((P, 6))
+        self.R = np.zeros((P, 3, 3))
+        self.p = np.zeros((P, 3))
+        self.J = np.zeros((P, 6, n))
+        self.eta = np.zeros((P, 6))
+        self.psi = np.zeros((P, 6))
+        self.Jd = np.zeros((P, 6, n))
+        self.marker_R = np.zeros((nm, 3, 3))
+        self.marker_p = np.zeros((nm, 3))
+        self.marker_J = np.zeros((nm, 6, n))
+        self.M = np.zeros((n, n))
+        self.C = np.zeros((n, n))
+        self.Cqd = np.zeros(n)
+        self.Fg = np.zeros(n)
+        self.Fel = np.zeros(n)
+        self.Kt = np.zeros((n, n))
+        self.A = np.zeros((n, nt))
+        self.A0 = np.zeros((n, nt))
+        self.Lc = np.zeros(nt)
+        self.theta = np.zeros(nt)
+        self.wrap = np.zeros((nt, P))
+        self.phi = np.zeros((nt, P))
+        self.energies = np.zeros(3)  # kinetic, elastic, gravitational [J]
+        self.kernel_args = (self.xi, self.R, self.p, self.J, self.eta, self.psi, self.Jd,
+                            self.marker_R, self.marker_p, self.marker_J, self.M, self.C, self.Cqd,
+                            self.Fg, self.Fel, self.Kt,
+                            self.A, self.A0, self.Lc, self.theta, self.wrap, self.phi, self.energies)
+
+
+# ---------------------------------------------------------------------------------------------------
+
+def _division_bounds(config: ArmConfig):
+    ends = config.discretisation.division_ends
+    starts = (0.0,) + tuple(ends[:-1])
+    return list(zip(starts, ends))
+
+
+def _division_of(config: ArmConfig, X: float) -> int:
+    for i, (a, b) in enumerate(_division_bounds(config)):
+        if X < b or i == len(config.discretisation.division_ends) - 1:
+            return i
+    raise AssertionError("unreachable")
+
+
+def _coordinate_layout(config: ArmConfig):
+    """(division, mode row, Legendre order) per coordinate, and the column offset per division."""
+    labels, offsets = [], []
+    modes = [r for r, on in enumerate(config.discretisation.modes) if on]
+    for d, order in enumerate(config.discretisation.legendre_order):
+        offsets.append(len(labels))
+        for r in modes:
+            for j in range(order + 1):
+                labels.append((d, r, j))
+    return labels, offsets
+
+
+def _basis_at(config: ArmConfig, n: int, X: float, division: int | None = None):
+    labels, offsets = _coordinate_layout(config)
+    d = _division_of(config, X) if division is None else division
+    a, b = _division_bounds(config)[d]
+    L = b - a
+    s = 2.0 * (X - a) / L - 1.0
+    B = np.zeros((6, n))
+    Bd = np.zeros((6, n))
+    for col, (dd, r, j) in enumerate(labels):
+        if dd != d:
+            continue
+        c = np.zeros(j + 1)
+        c[j] = 1.0
+        scale = 1.0 / L if r < 3 else 1.0
+        B[r, col] = scale * npleg.legval(s, c)
+        Bd[r, col] = scale * npleg.legval(s, npleg.legder(c)) * 2.0 / L
+    return B, Bd
+
+
+def _substep(config: ArmConfig, n: int, X0: float, X1: float):
+    """Magnus sub-step data (h, B1, B2) from X0 to X1 (both in one division)."""
+    h = X1 - X0
+    d = _division_of(config, 0.5 * (X0 + X1)) if h > 0 else _division_of(config, X0)
+    B1, _ = _basis_at(config, n, X0 + _ZANNA_OFFSETS[0] * h, d)
+    B2, _ = _basis_at(config, n, X0 + _ZANNA_OFFSETS[1] * h, d)
+    return h, B1, B2
+
+
+def _points(config: ArmConfig):
+    """Point abscissae, weights, owning division (-1 at division ends)."""
+    X, w, div = [0.0], [0.0], [-1]
+    for d, ((a, b), m) in enumerate(zip(_division_bounds(config), config.discretisation.gauss_points)):
+        s, ws = npleg.leggauss(m)
+        X += list(a + 0.5 * (s + 1.0) * (b - a))
+        w += list(0.5 * ws * (b - a))
+        div += [d] * m
+        X.append(b)
+        w.append(0.0)
+        div.append(-1)
+    return np.array(X), np.array(w), np.array(div)
+
+
+def _friction_quadrature(config: ArmConfig, X, div):
+    """Q with wrap(X_p) = int_0^{X_p} phi = sum_j Q[p, j] phi(X_j), exact for phi polynomial of degree
+    < gauss points in each division (Lagrange interpolation on the Gauss nodes)."""
+    P = X.size
+    Q = np.zeros((P, P))
+    carry = np.zeros(P)  # full-division weights of the divisions already passed
+    for d, ((a, b), m) in enumerate(zip(_division_bounds(config), config.discretisation.gauss_points)):
+        idx = np.flatnonzero(div == d)
+        s, ws = npleg.leggauss(m)
+        V = npleg.legvander(s, m - 1)             # V[j, i] = P_i(s_j)
+        Cinv = np.linalg.inv(V)                   # Lagrange basis coefficients, column k -> l_k
+        integ = np.zeros((m, m))                  # integ[j, i] = int_{-1}^{s_j} P_i
+        for i in range(m):
+            c = np.zeros(i + 1)
+            c[i] = 1.0
+            integ[:, i] = npleg.legval(s, npleg.legint(c, lbnd=-1.0))
+        local = 0.5 * (b - a) * integ @ Cinv     # local[j, k] = int_a^{X_j} l_k
+        for jj, pj in enumerate(idx):
+            Q[pj] = carry
+            Q[pj, idx] = local[jj]
+        end_point = idx[-1] + 1
+        carry = carry.copy()
+        carry[idx] = 0.5 * ws * (b - a)
+        Q[end_point] = carry
+    return Q
+
+
+def _tendon_arrays(config: ArmConfig, X, w):
+    g = config.geometry
+    P = X.size
+    nt = len(config.tendons)
+    d = np.zeros((nt, P, 3))
+    dp = np.zeros((nt, P, 3))
+    dpp = np.zeros((nt, P, 3))
+    active = np.zeros((nt, P))
+    dr = (g.tip_radius - g.base_radius) / g.length
+    for k, t in enumerate(config.tendons):
+        on = (w > 0) & (X < t.end)
+        active[k, on] = 1.0
+        x = X[on]
+        r = g.base_radius + dr * x
+        rho, rho_p = t.offset_fraction * r, t.offset_fraction * dr
+        th_p = (t.end_angle - t.start_angle) / t.end
+        th = t.start_angle + th_p * x
+        s, c = np.sin(th), np.cos(th)
+        z = np.zeros_like(x)
+        # d = rho (0, sin th, cos th) in the section frame (see R_BASE)
+        d[k, on] = np.stack([z, rho * s, rho * c], axis=1)
+        dp[k, on] = np.stack([z, rho_p * s + rho * th_p * c, rho_p * c - rho * th_p * s], axis=1)
+        dpp[k, on] = np.stack([z, 2 * rho_p * th_p * c - rho * th_p ** 2 * s,
+                               -2 * rho_p * th_p * s - rho * th_p ** 2 * c], axis=1)
+    return d, dp, dpp, active
+
+
+def build_model(config: ArmConfig | None = None, overrides: dict | None = None) -> ArmModel:
+    """Discretise the arm described by ``config`` (default: the package's ``arm.yaml``).
+
+    ``overrides`` are dotted keys relative to ``arm`` (``{"material.youngs_modulus": 2e5}``) applied
+    to the default file when ``config`` is None.
+    """
+    if config is None:
+        config = load_arm_config(overrides=overrides)
+    elif overrides:
+        raise ValueError("pass overrides to load_arm_config, or config=None to use the default file")
+    labels, _ = _coordinate_layout(config)
+    n = len(labels)
+    X, w, div = _points(config)
+    P = X.size
+    B = np.zeros((P, 6, n))
+    Bd = np.zeros((P, 6, n))
+    for i in range(P):
+        if div[i] >= 0:
+            B[i], Bd[i] = _basis_at(config, n, X[i], int(div[i]))
+    h = np.diff(X)
+    B1 = np.zeros((P - 1, 6, n))
+    B2 = np.zeros((P - 1, 6, n))
+    for i in range(P - 1):
+        _, B1[i], B2[i] = _substep(config, n, X[i], X[i + 1])
+
+    g, mat = config.geometry, config.material
+    r = g.base_radius + (g.tip_radius - g.base_radius) * X / g.length
+    area, inertia = np.pi * r ** 2, np.pi * r ** 4 / 4.0
+    polar = 2.0 * inertia
+    E = mat.youngs_modulus
+    G = E / (2.0 * (1.0 + mat.poisson_ratio))
+    mass_diag = mat.density * np.stack([polar, inertia, inertia, area, area, area], axis=1)
+    stiff_diag = np.stack([G * polar, E * inertia, E * inertia, E * area, G * area, G * area], axis=1)
+    visc_diag = mat.viscosity * np.stack([polar, 3 * inertia, 3 * inertia, 3 * area, area, area], axis=1)
+    K = np.einsum("p,pra,pr,prb->ab", w, B, stiff_diag, B)
+    D = np.einsum("p,pra,pr,prb->ab", w, B, visc_diag, B)
+
+    t_d, t_dp, t_dpp, active = _tendon_arrays(config, X, w)
+    mu = np.array([t.friction for t in config.tendons])
+    Q = _friction_quadrature(config, X, div)
+
+    mX = np.array(config.marker_positions, dtype=float)
+    m_point = np.array([int(np.flatnonzero(X <= x + 1e-15)[-1]) for x in mX], dtype=np.int64)
+    m_h = np.zeros(mX.size)
+    m_B1 = np.zeros((mX.size, 6, n))
+    m_B2 = np.zeros((mX.size, 6, n))
+    for m, (x, pt) in enumerate(zip(mX, m_point)):
+        m_h[m], m_B1[m], m_B2[m] = _substep(config, n, X[pt], min(x, g.length))
+        if m_h[m] < 0:
+            m_h[m] = 0.0
+    arrays = dict(X=X, w=w, B=B, Bd=Bd, h=h, B1=B1, B2=B2, mass_diag=mass_diag,
+                  stiff_diag=stiff_diag, visc_diag=visc_diag, K=K, D=D, tendon_d=t_d,
+                  tendon_dp=t_dp, tendon_dpp=t_dpp, tendon_active=active, friction_mu=mu,
+                  friction_Q=Q, gravity=np.array(config.gravity, dtype=float), marker_X=mX,
+                  marker_h=m_h, marker_B1=m_B1, marker_B2=m_B2)
+    arrays = {k: _frozen(v) for k, v in arrays.items()}
+    m_point.setflags(write=False)
+    neo = config.material.axial_law == "neo_hookean"
+    a = arrays
+    kernel_args = (a["w"], a["B"], a["Bd"], a["h"], a["B1"], a["B2"], _frozen(XI_STAR),
+                   a["mass_diag"], a["stiff_diag"], neo, _frozen(R_BASE), a["gravity"], a["tendon_d"],
+                   a["tendon_dp"], a["tendon_dpp"], a["tendon_active"], a["friction_mu"],
+                   a["friction_Q"], float(config.friction_smoothing), m_point, a["marker_h"],
+                   a["marker_B1"], a["marker_B2"])
+    mode_names = STRAIN_MODES
+    coordinate_labels = tuple(f"div{d + 1}.{mode_names[r]}.P{j}" for d, r, j in labels)
+    return ArmModel(config=config, n=n, marker_point=m_point, coordinate_labels=coordinate_labels,
+                    kernel_args=kernel_args, **arrays)
