@@ -203,7 +203,7 @@ def apply_overrides(params: dict, overrides: Mapping[str, Any] | None) -> dict:
         key = key[len(NAMESPACE) + 1:] if key.startswith(NAMESPACE + ".") else key
         if key not in _SCHEMA:
             close = difflib.get_close_matches(key, list(_SCHEMA), n=3)
-            hint = f"; did you mean {', '.join(close)}?" if close else ""
+            hint = f"; did you mean {', '.join(NAMESPACE + '.' + c for c in close)}?" if close else ""
             raise ConfigError(f"unknown key {NAMESPACE}.{key}{hint}")
         if isinstance(value, str):
             try:
@@ -224,7 +224,7 @@ def parse_arm_config(params: Mapping) -> ArmConfig:
     unknown = sorted(set(flat) - set(_SCHEMA))
     if unknown:
         close = difflib.get_close_matches(unknown[0], list(_SCHEMA), n=3)
-        hint = f"; did you mean {', '.join(close)}?" if close else ""
+        hint = f"; did you mean {', '.join(NAMESPACE + '.' + c for c in close)}?" if close else ""
         raise ConfigError(f"unknown key {NAMESPACE}.{unknown[0]}{hint}")
     missing = [k for k in _SCHEMA if k not in flat]
     if missing:

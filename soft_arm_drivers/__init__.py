@@ -1,0 +1,1 @@
+"""Drivers of the rig and their stand-ins (simulator, CAN motors, motion capture, recorder)."""

@@ -1,0 +1,37 @@
+"""Shared fixtures. Every rclpy process in the suite stays on loopback with its own domain id."""
+import os
+
+import numpy as np
+import pytest
+
+os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+os.environ.setdefault("ROS_DOMAIN_ID", str(100 + os.getpid() % 100))
+
+from soft_arm_model import build_model, load_arm_config  # noqa: E402
+
+
+def make_model(**overrides):
+    """A model of the default arm with dotted-key overrides (``**{"material.viscosity": 0.0}``)."""
+    return build_model(load_arm_config(overrides=overrides))
+
+
+@pytest.fixture(scope="session")
+def model_factory():
+    return make_model
+
+
+@pytest.fixture(scope="session")
+def paper_model():
+    return build_model()
+
+
+@pytest.fixture(scope="session")
+def full_model():
+    """All six strain modes, two divisions, orders 2 and 1: exercises every row of the kernels."""
+    return make_model(**{"discretisation.modes.shear_y": True, "discretisation.modes.shear_z": True,
+                         "discretisation.legendre_order": [2, 1]})
+
+
+@pytest.fixture
+def rng():
+    return np.random.default_rng(1234)

@@ -1,0 +1,100 @@
+"""Finite-difference checks of every derivative the model computes."""
+import numpy as np
+import pytest
+
+from soft_arm_model import ArmData, evaluate
+from soft_arm_model.dynamics import CORIOLIS, STATICS
+
+EPS = 1e-6
+
+
+def _state(model, rng, scale=0.3):
+    return rng.normal(size=model.n) * scale, rng.normal(size=model.n)
+
+
+def _vee(S):
+    return np.array([S[2, 1], S[0, 2], S[1, 0]])
+
+
+@pytest.fixture(params=["paper_model", "full_model"])
+def model(request):
+    return request.getfixturevalue(request.param)
+
+
+def test_body_jacobian_matches_finite_differences(model, rng):
+    q, v = _state(model, rng)
+    d0 = evaluate(model, ArmData(model), q, level=0, markers=True)
+    dp = evaluate(model, ArmData(model), q + EPS * v, level=0, markers=True)
+    dm = evaluate(model, ArmData(model), q - EPS * v, level=0, markers=True)
+    for R, p, J, Rp, pp, Rm, pm in [(d0.R, d0.p, d0.J, dp.R, dp.p, dm.R, dm.p),
+                                    (d0.marker_R, d0.marker_p, d0.marker_J, dp.marker_R, dp.marker_p,
+                                     dm.marker_R, dm.marker_p)]:
+        for i in range(R.shape[0]):
+            w = _vee(R[i].T @ (Rp[i] - Rm[i]) / (2 * EPS))
+            lin = R[i].T @ (pp[i] - pm[i]) / (2 * EPS)
+            np.testing.assert_allclose(J[i] @ v, np.concatenate([w, lin]), atol=1e-7)
+
+
+def test_twist_and_jacobian_rate(model, rng):
+    q, qd = _state(model, rng)
+    d = evaluate(model, ArmData(model), q, qd, level=CORIOLIS)
+    Jp = evaluate(model, ArmData(model), q + EPS * qd, level=0).J
+    Jm = evaluate(model, ArmData(model), q - EPS * qd, level=0).J
+    np.testing.assert_allclose(d.Jd, (Jp - Jm) / (2 * EPS), atol=1e-7)
+    np.testing.assert_allclose(d.eta, np.einsum("pij,j->pi", d.J, qd), atol=1e-12)
+    np.testing.assert_allclose(d.psi, np.einsum("pij,j->pi", d.Jd, qd), atol=1e-10)
+    np.testing.assert_allclose(d.Cqd, d.C @ qd, atol=1e-12 * np.abs(d.Cqd).max() + 1e-15)
+
+
+def test_mass_matrix_spd_and_mdot_equals_c_plus_ct(model, rng):
+    q, qd = _state(model, rng)
+    d = evaluate(model, ArmData(model), q, qd, level=CORIOLIS)
+    np.testing.assert_allclose(d.M, d.M.T, rtol=0, atol=1e-14 * np.abs(d.M).max())
+    assert np.linalg.eigvalsh(d.M).min() > 0
+    Mp = evaluate(model, ArmData(model), q + EPS * qd, level=2).M.copy()
+    Mm = evaluate(model, ArmData(model), q - EPS * qd, level=2).M.copy()
+    Mdot = (Mp - Mm) / (2 * EPS)
+    np.testing.assert_allclose(d.C + d.C.T, Mdot, atol=1e-7 * np.abs(Mdot).max())
+    assert np.abs(Mdot).max() > 1e-6  # the check is not vacuous
+
+
+def test_forces_are_gradients_of_energies(model, rng):
+    q, _ = _state(model, rng)
+    d = evaluate(model, ArmData(model), q, level=STATICS)
+    Fg, Fel, Kt = d.Fg.copy(), d.Fel.copy(), d.Kt.copy()
+    grad_g = np.zeros(model.n)
+    grad_e = np.zeros(model.n)
+    dFel = np.zeros((model.n, model.n))
+    for b in range(model.n):
+        e = np.zeros(model.n)
+        e[b] = EPS
+        dp = evaluate(model, ArmData(model), q + e, level=STATICS)
+        dm = evaluate(model, ArmData(model), q - e, level=STATICS)
+        grad_e[b] = (dp.energies[1] - dm.energies[1]) / (2 * EPS)
+        grad_g[b] = (dp.energies[2] - dm.energies[2]) / (2 * EPS)
+        dFel[:, b] = (dp.Fel - dm.Fel) / (2 * EPS)
+    np.testing.assert_allclose(Fg, -grad_g, atol=1e-8 * np.abs(Fg).max())
+    np.testing.assert_allclose(Fel, grad_e, atol=1e-8 * np.abs(Fel).max())
+    np.testing.assert_allclose(Kt, dFel, atol=1e-6 * np.abs(Kt).max())
+
+
+def test_actuation_matrix_is_tendon_length_gradient_without_friction(model, rng):
+    q, _ = _state(model, rng)
+    d = evaluate(model, ArmData(model), q, level=STATICS)
+    A0 = d.A0.copy()
+    grad = np.zeros_like(A0)
+    for b in range(model.n):
+        e = np.zeros(model.n)
+        e[b] = EPS
+        grad[b] = (evaluate(model, ArmData(model), q + e, level=STATICS).Lc
+                   - evaluate(model, ArmData(model), q - e, level=STATICS).Lc) / (2 * EPS)
+    np.testing.assert_allclose(A0, grad, atol=1e-8 * np.abs(A0).max())
+    # with friction the matrix differs (the friction weight is not a gradient)
+    assert np.abs(d.A - A0).max() > 1e-4 * np.abs(A0).max()
+
+
+def test_damping_proportional_to_stiffness_for_incompressible_material(paper_model):
+    m = paper_model
+    mat = m.config.material
+    np.testing.assert_allclose(m.D, 3 * mat.viscosity / mat.youngs_modulus * m.K,
+                               atol=1e-12 * np.abs(m.D).max())
