@@ -141,7 +141,7 @@ def _cross(a, b, out):
 
 
 @njit(cache=True, fastmath=True, error_model="numpy")
-def _elastic(w, B, xi, stiff_diag, neo_axial, Fel, Kt, energies):
+def _elastic(w, B, xi, stiff_diag, neo_axial, col_lo, col_hi, Fel, Kt, energies):
     """Elastic force F_el = sum w B^T sigma(xi - xi*), tangent K_t, energy; False if stretch <= 0."""
     n = Fel.shape[0]
     P = w.shape[0]
@@ -167,12 +167,12 @@ def _elastic(w, B, xi, stiff_diag, neo_axial, Fel, Kt, energies):
                 energy += w[pt] * k3 * (0.5 * lam * lam + 1.0 / lam - 1.5)
             else:
                 energy += w[pt] * 0.5 * stiff_diag[pt, r] * e * e
-        for a in range(n):
+        for a in range(col_lo[pt], col_hi[pt]):  # B is zero outside the point's division
             acc = 0.0
             for r in range(6):
                 acc += B[pt, r, a] * sig[r]
             Fel[a] += w[pt] * acc
-            for b in range(a, n):
+            for b in range(a, col_hi[pt]):
                 acc = 0.0
                 for r in range(6):
                     acc += B[pt, r, a] * dsig[r] * B[pt, r, b]
@@ -203,7 +203,7 @@ def _gravity(w, mass_diag, gravity, R, p, J, Fg, energies):
 
 
 @njit(cache=True, fastmath=True, error_model="numpy")
-def _tendons(w, B, Bd, xi, q, t_d, t_dp, t_dpp, t_active, t_mu, Q, smoothing,
+def _tendons(w, B, Bd, xi, q, t_d, t_dp, t_dpp, t_active, t_mu, Q, smoothing, col_lo, col_hi,
              A, A0, Lc, theta, wrap, phi):
     """Tendon columns with and without friction, lengths and friction-aware integrals."""
     n_t = t_d.shape[0]
@@ -266,7 +266,7 @@ def _tendons(w, B, Bd, xi, q, t_d, t_dp, t_dpp, t_active, t_mu, Q, smoothing,
                 phi_w[r] = tmp[r]
                 phi_w[3 + r] = t[r]
             wa = w[pt] * t_active[k, pt]
-            for a in range(n):
+            for a in range(col_lo[pt], col_hi[pt]):
                 acc = 0.0
                 for r in range(6):
                     acc += B[pt, r, a] * phi_w[r]
@@ -291,7 +291,7 @@ def _ad_transpose_apply(x, y, out):
 
 
 @njit(cache=True, fastmath=True, error_model="numpy")
-def _mass_bias(w, mass_diag, J, eta, psi, M, Cqd, energies):
+def _mass_bias(w, mass_diag, J, eta, psi, col_hi, M, Cqd, energies):
     """M = sum w J^T Mc J; C qd = sum w J^T [Mc psi - ad_eta^T Mc eta]; kinetic energy."""
     n = M.shape[0]
     M[:, :] = 0.0
@@ -312,12 +312,12 @@ def _mass_bias(w, mass_diag, J, eta, psi, M, Cqd, energies):
         _ad_transpose_apply(et, y, f)
         for r in range(6):
             f[r] = mc[r] * psi[pt, r] - f[r]
-        for a in range(n):
+        for a in range(col_hi[pt]):  # J is zero beyond the point's division
             acc = 0.0
             for r in range(6):
                 acc += Jp[r, a] * f[r]
             Cqd[a] += wt * acc
-            for b in range(a, n):
+            for b in range(a, col_hi[pt]):
                 accm = 0.0
                 for r in range(6):
                     accm += Jp[r, a] * mc[r] * Jp[r, b]
@@ -360,7 +360,7 @@ def _coriolis_matrix(w, mass_diag, J, eta, Jd, C):
 
 @njit(cache=True, fastmath=True, error_model="numpy")
 def evaluate(w, B, Bd, h, B1, B2, xi_star, mass_diag, stiff_diag, neo_axial, R0, gravity,
-             t_d, t_dp, t_dpp, t_active, t_mu, Q, smoothing,
+             t_d, t_dp, t_dpp, t_active, t_mu, Q, smoothing, col_lo, col_hi,
              m_point, m_h, m_B1, m_B2,
              q, qd, level, markers,
              xi, R, p, J, eta, psi, Jd, mR, mp, mJ,
@@ -395,14 +395,14 @@ def evaluate(w, B, Bd, h, B1, B2, xi_star, mass_diag, stiff_diag, neo_axial, R0,
                              scratch)
     if level < 1:
         return True
-    if not _elastic(w, B, xi, stiff_diag, neo_axial, Fel, Kt, energies):
+    if not _elastic(w, B, xi, stiff_diag, neo_axial, col_lo, col_hi, Fel, Kt, energies):
         return False
     _gravity(w, mass_diag, gravity, R, p, J, Fg, energies)
-    if not _tendons(w, B, Bd, xi, q, t_d, t_dp, t_dpp, t_active, t_mu, Q, smoothing,
+    if not _tendons(w, B, Bd, xi, q, t_d, t_dp, t_dpp, t_active, t_mu, Q, smoothing, col_lo, col_hi,
                     A, A0, Lc, theta, wrap, phi):
         return False
     if level >= 2:
-        _mass_bias(w, mass_diag, J, eta, psi, M, Cqd, energies)
+        _mass_bias(w, mass_diag, J, eta, psi, col_hi, M, Cqd, energies)
     if level >= 3:
         _coriolis_matrix(w, mass_diag, J, eta, Jd, C)
     return True

@@ -312,12 +312,21 @@ def build_model(config: ArmConfig | None = None, overrides: dict | None = None) 
                   marker_h=m_h, marker_B1=m_B1, marker_B2=m_B2)
     arrays = {k: _frozen(v) for k, v in arrays.items()}
     m_point.setflags(write=False)
+    # columns of each point's division (empty at division ends, whose weight is zero)
+    col_lo = np.zeros(P, dtype=np.int64)
+    col_hi = np.zeros(P, dtype=np.int64)
+    for i in range(P):
+        cols = [c for c, (d, _, _) in enumerate(labels) if d == div[i]]
+        if cols:
+            col_lo[i], col_hi[i] = cols[0], cols[-1] + 1
+    col_lo.setflags(write=False)
+    col_hi.setflags(write=False)
     neo = config.material.axial_law == "neo_hookean"
     a = arrays
     kernel_args = (a["w"], a["B"], a["Bd"], a["h"], a["B1"], a["B2"], _frozen(XI_STAR),
                    a["mass_diag"], a["stiff_diag"], neo, _frozen(R_BASE), a["gravity"], a["tendon_d"],
                    a["tendon_dp"], a["tendon_dpp"], a["tendon_active"], a["friction_mu"],
-                   a["friction_Q"], float(config.friction_smoothing), m_point, a["marker_h"],
+                   a["friction_Q"], float(config.friction_smoothing), col_lo, col_hi, m_point, a["marker_h"],
                    a["marker_B1"], a["marker_B2"])
     mode_names = STRAIN_MODES
     coordinate_labels = tuple(f"div{d + 1}.{mode_names[r]}.P{j}" for d, r, j in labels)

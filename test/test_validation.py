@@ -254,3 +254,14 @@ def test_zero_friction_recovers_frictionless_model(rng):
     d = evaluate(m, ArmData(m), q, level=1)
     assert np.array_equal(d.A, d.A0)
     assert np.array_equal(d.theta, d.Lc)
+
+
+def test_paper_arm_converges_over_the_whole_tension_range(paper_model):
+    """0-5 N on every combination of tendons: every equilibrium found, stretch stays positive."""
+    from soft_arm_model.workspace import sample_workspace
+    ws = sample_workspace(paper_model, [0.0, 2.5, 5.0])
+    assert ws.converged.all()
+    data = ArmData(paper_model)
+    stretch = min(evaluate(paper_model, data, q, level=1).xi[paper_model.w > 0, 3].min() for q in ws.q)
+    assert 0.5 < stretch < 0.95  # some, limited, axial compression
+    assert ws.tip[:, 2].max() > -0.05  # the tip reaches up towards the base plane
