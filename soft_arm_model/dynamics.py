@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import kernels
-from .model import ArmData, ArmModel, _substep
+from .model import XI_STAR, ArmData, ArmModel, _substep
 
 KINEMATICS, STATICS, DYNAMICS, CORIOLIS = 0, 1, 2, 3
 
@@ -76,15 +76,10 @@ def frame_at(model: ArmModel, q, X: float, data: ArmData | None = None) -> Frame
     p = np.empty(3)
     J = np.empty((6, model.n))
     q = np.ascontiguousarray(q, dtype=float)
-    kernels._magnus_step(q, q, kernels_xi_star(model), h, B1, B2, data.R[pt], data.p[pt], data.J[pt],
+    kernels._magnus_step(q, q, XI_STAR, h, B1, B2, data.R[pt], data.p[pt], data.J[pt],
                          R, p, J, 0, data.eta[pt], data.psi[pt], data.Jd[pt], data.eta[pt],
                          data.psi[pt], data.Jd[pt], kernels.new_scratch(model.n))
     return Frame(R, p, J)
-
-
-def kernels_xi_star(model: ArmModel) -> np.ndarray:
-    """Reference strain xi* of the model (straight, unstretched)."""
-    return model.kernel_args[6]
 
 
 def shape(model: ArmModel, q, data: ArmData | None = None) -> np.ndarray:

@@ -45,8 +45,6 @@ class ImexStepper:
             raise ValueError(f"dt must be > 0 s, got {dt}")
         self.model, self.dt, self.friction = model, float(dt), friction
         self.data = ArmData(model)
-        self._q = np.zeros(model.n)
-        self._qd = np.zeros(model.n)
 
     def step(self, q, qd, u):
         """Return (q, qd) one step later (new arrays). Raises OutOfDomainError if the state leaves

@@ -81,7 +81,8 @@ class _Problem:
         self.model, self.data, self.friction = model, data, friction
         self.r = np.zeros(model.n)
         self.jac = np.zeros((model.n, model.n))
-        self.force_scale = float(np.abs(model.K).max()) * 1e-12
+        # residual changes below this floor count as no increase in the line search
+        self.residual_floor = float(np.abs(model.K).max()) * 1e-12
 
     def residual(self, q, u):
         ok = _residual_kernel(self.model.kernel_args, self.data.kernel_args, q, u, self.friction, self.r)
@@ -111,7 +112,7 @@ def _newton(pb: _Problem, q, u, tol, max_iter):
         while True:
             q_new = q + alpha * dq
             r_new = pb.residual(q_new, u)
-            if r_new is not None and np.linalg.norm(r_new) <= (1.0 - 1e-4 * alpha) * norm0 + pb.force_scale:
+            if r_new is not None and np.linalg.norm(r_new) <= (1.0 - 1e-4 * alpha) * norm0 + pb.residual_floor:
                 break
             alpha *= 0.5
             if alpha < 1e-3:
@@ -154,7 +155,7 @@ def solve_equilibrium(model: ArmModel, u, q_start=None, u_start=None, friction: 
     while lam < 1.0:
         trial = min(1.0, lam + step)
         u_t = u0 + trial * du
-        try:  # tangent predictor: dq/dlam = -J^-1 A du
+        try:  # tangent predictor: dq/dlam = -J^-1 A(q) du (the residual call refreshes A at q)
             pb.residual(q, u_t)
             q_pred = q - (trial - lam) * np.linalg.solve(jac, pb.actuation() @ du)
         except np.linalg.LinAlgError:
