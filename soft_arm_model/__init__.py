@@ -14,7 +14,7 @@ from .config import ArmConfig, ConfigError, load_arm_config
 from .dynamics import (CORIOLIS, DYNAMICS, KINEMATICS, STATICS, Frame, OutOfDomainError,
                        actuation_coordinates, actuation_matrix, coriolis_matrix, elastic_force,
                        evaluate, forward_dynamics, frame_at, gravity_force, marker_positions,
-                       mass_matrix, potential_energies, shape, tendon_lengths, tip_frame,
+                       mass_matrix, potential_energies, tendon_lengths, tip_frame,
                        total_energy)
 from .integrators import ImexStepper, Trajectory, simulate
 from .model import ArmData, ArmModel, build_model
@@ -23,7 +23,7 @@ from .statics import Equilibrium, EquilibriumError, solve_equilibrium
 __all__ = [
     "ArmConfig", "ConfigError", "load_arm_config", "ArmModel", "ArmData", "build_model",
     "KINEMATICS", "STATICS", "DYNAMICS", "CORIOLIS", "Frame", "OutOfDomainError", "evaluate",
-    "tip_frame", "frame_at", "marker_positions", "shape", "elastic_force", "gravity_force",
+    "tip_frame", "frame_at", "marker_positions", "elastic_force", "gravity_force",
     "actuation_matrix", "tendon_lengths", "actuation_coordinates", "potential_energies",
     "mass_matrix", "coriolis_matrix", "total_energy", "forward_dynamics",
     "Equilibrium", "EquilibriumError", "solve_equilibrium", "ImexStepper", "Trajectory", "simulate",

@@ -75,22 +75,30 @@ def _shape_samples(model, q, count=80):
     return np.array([frame_at(model, q, X).p for X in np.linspace(0, model.length, count)])
 
 
-def _plot_shape(model, q, path, title):
+def _save_3d_plot(model, path, title, draw):
+    """A 3-D figure in arm_base scaled to the arm, drawn by ``draw(fig, ax)``, saved as PNG."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    pts = _shape_samples(model, q)
-    marks = evaluate(model, ArmData(model), q, level=KINEMATICS, markers=True).marker_p
     fig = plt.figure(figsize=(6, 6))
     ax = fig.add_subplot(projection="3d")
-    ax.plot(*pts.T, lw=3, color="tab:blue", label="backbone")
-    ax.scatter(*marks.T, color="tab:red", label="markers")
+    draw(fig, ax)
     L = model.length
     ax.set(xlim=(-L, L), ylim=(-L, L), zlim=(-L, 0.1), xlabel="x [m]", ylabel="y [m]", zlabel="z [m]",
            title=title)
-    ax.legend()
     fig.savefig(path, dpi=120)
     plt.close(fig)
+
+
+def _plot_shape(model, q, path, title):
+    pts = _shape_samples(model, q)
+    marks = evaluate(model, ArmData(model), q, level=KINEMATICS, markers=True).marker_p
+
+    def draw(fig, ax):
+        ax.plot(*pts.T, lw=3, color="tab:blue", label="backbone")
+        ax.scatter(*marks.T, color="tab:red", label="markers")
+        ax.legend()
+    _save_3d_plot(model, path, title, draw)
 
 
 def _equilibrium(model, args):
@@ -128,19 +136,11 @@ def _workspace(model, args):
            "converged": int(ws.converged.sum()), "tensions_n": ws.tensions.tolist(),
            "tip_positions_m": [None if not ok else p.tolist() for p, ok in zip(ws.tip, ws.converged)]}
     if args.plot:
-        import matplotlib
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-        fig = plt.figure(figsize=(6, 6))
-        ax = fig.add_subplot(projection="3d")
-        tips = ws.tip[ws.converged]
-        sc = ax.scatter(*tips.T, c=ws.tensions[ws.converged].sum(axis=1), cmap="viridis", s=12)
-        fig.colorbar(sc, ax=ax, shrink=0.6, label="total tension [N]")
-        L = model.length
-        ax.set(xlim=(-L, L), ylim=(-L, L), zlim=(-L, 0.1), xlabel="x [m]", ylabel="y [m]",
-               zlabel="z [m]", title="tip workspace")
-        fig.savefig(args.plot, dpi=120)
-        plt.close(fig)
+        def draw(fig, ax):
+            sc = ax.scatter(*ws.tip[ws.converged].T, c=ws.tensions[ws.converged].sum(axis=1),
+                            cmap="viridis", s=12)
+            fig.colorbar(sc, ax=ax, shrink=0.6, label="total tension [N]")
+        _save_3d_plot(model, args.plot, "tip workspace", draw)
         out["plot"] = args.plot
     if args.json:
         return out

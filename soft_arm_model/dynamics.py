@@ -82,12 +82,6 @@ def frame_at(model: ArmModel, q, X: float, data: ArmData | None = None) -> Frame
     return Frame(R, p, J)
 
 
-def shape(model: ArmModel, q, data: ArmData | None = None) -> np.ndarray:
-    """Backbone positions [m] in arm_base at the model's points (base to tip), (P, 3)."""
-    data = evaluate(model, data or ArmData(model), q, level=KINEMATICS)
-    return data.p.copy()
-
-
 def elastic_force(model: ArmModel, q, data: ArmData | None = None) -> np.ndarray:
     """Generalised elastic force F_el(q) (= K q for the linear axial law)."""
     return evaluate(model, data or ArmData(model), q, level=STATICS).Fel.copy()
@@ -116,11 +110,10 @@ def actuation_coordinates(model: ArmModel, q, friction: bool = True,
     Without friction theta_a = L_c(0) - L_c(q). With friction, the paper's
     ``int t^T exp(-mu_S) [xi^ d + d']_3 dX`` replaces L_c (same sign convention).
     """
-    data = data or ArmData(model)
-    ref = evaluate(model, data, np.zeros(model.n), level=STATICS)
-    base = (ref.theta if friction else ref.Lc).copy()
-    cur = evaluate(model, data, q, level=STATICS)
-    return base - (cur.theta if friction else cur.Lc)
+    cur = evaluate(model, data or ArmData(model), q, level=STATICS)
+    if friction:
+        return model.rest_theta - cur.theta
+    return model.rest_tendon_lengths - cur.Lc
 
 
 def potential_energies(model: ArmModel, q, data: ArmData | None = None) -> tuple[float, float]:

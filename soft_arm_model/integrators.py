@@ -21,12 +21,10 @@ from .model import ArmData, ArmModel
 
 
 @njit(cache=True)
-def _imex_step(model_args, data_args, D, q, qd, u, h, friction, q_out, qd_out):
+def _imex_step(model_args, data_args, M, Cqd, Fg, Fel, Kt, Au, D, q, qd, u, h, q_out, qd_out):
+    """One IMEX step; M .. Au are the workspace arrays in data_args (Au: A or A0), D the damping."""
     if not kernels.evaluate(*model_args, q, qd, 2, False, *data_args):
         return False
-    M, Cqd, Fg, Fel, Kt, A, A0 = (data_args[10], data_args[12], data_args[13], data_args[14],
-                                  data_args[15], data_args[16], data_args[17])
-    Au = A if friction else A0
     n = q.shape[0]
     lhs = M + h * D + (h * h) * Kt
     rhs = M @ qd + h * (Fg - Cqd - Fel - Au @ u)
@@ -44,7 +42,9 @@ class ImexStepper:
         if not dt > 0:
             raise ValueError(f"dt must be > 0 s, got {dt}")
         self.model, self.dt, self.friction = model, float(dt), friction
-        self.data = ArmData(model)
+        self.data = d = ArmData(model)
+        self._args = (model.kernel_args, d.kernel_args, d.M, d.Cqd, d.Fg, d.Fel, d.Kt,
+                      d.A if friction else d.A0, model.D)
 
     def step(self, q, qd, u):
         """Return (q, qd) one step later (new arrays). Raises OutOfDomainError if the state leaves
@@ -54,8 +54,7 @@ class ImexStepper:
         u = np.ascontiguousarray(u, dtype=float)
         q_out = np.empty_like(q)
         qd_out = np.empty_like(qd)
-        if not _imex_step(self.model.kernel_args, self.data.kernel_args, self.model.D, q, qd, u,
-                          self.dt, self.friction, q_out, qd_out):
+        if not _imex_step(*self._args, q, qd, u, self.dt, q_out, qd_out):
             raise OutOfDomainError("the state left the model's domain during a step")
         return q_out, qd_out
 

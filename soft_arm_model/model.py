@@ -11,11 +11,12 @@ length, so an angular coordinate is an angle [rad] and an axial/shear coordinate
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.polynomial import legendre as npleg
 
+from . import kernels
 from .config import STRAIN_MODES, ArmConfig, load_arm_config
 
 # arm_base <- section frame at the clamp: the section's x axis (the arm axis) points along -z,
@@ -46,6 +47,8 @@ class ArmModel:
       tendon_active: 1 where the tendon runs through a point; friction_mu: mubar per tendon.
       friction_Q: cumulative quadrature, wrap(X_p) = sum_j Q[p, j] phi(X_j), (P, P).
       gravity: in arm_base [m/s^2]; marker_*: one Magnus sub-step from a point to each marker.
+      rest_tendon_lengths, rest_theta: L_c and the friction-aware tendon integral theta of the
+        straight arm (q = 0) [m], the origin of the actuation coordinates.
     """
     config: ArmConfig
     n: int
@@ -75,6 +78,8 @@ class ArmModel:
     marker_B2: np.ndarray
     coordinate_labels: tuple
     kernel_args: tuple = field(repr=False)
+    rest_tendon_lengths: np.ndarray | None = None
+    rest_theta: np.ndarray | None = None
 
     @property
     def n_tendons(self) -> int:
@@ -87,15 +92,6 @@ class ArmModel:
     @property
     def length(self) -> float:
         return self.config.geometry.length
-
-    def radius(self, X):
-        """Cross-section radius [m] at arc length X [m]."""
-        g = self.config.geometry
-        return g.base_radius + (g.tip_radius - g.base_radius) * np.asarray(X) / g.length
-
-    def basis(self, X: float, division: int | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """Strain basis B(X) (6, n) and its derivative; ``division`` picks the side at a boundary."""
-        return _basis_at(self.config, self.n, X, division)
 
 
 class ArmData:
@@ -255,16 +251,11 @@ def _tendon_arrays(config: ArmConfig, X, w):
     return d, dp, dpp, active
 
 
-def build_model(config: ArmConfig | None = None, overrides: dict | None = None) -> ArmModel:
-    """Discretise the arm described by ``config`` (default: the package's ``arm.yaml``).
-
-    ``overrides`` are dotted keys relative to ``arm`` (``{"material.youngs_modulus": 2e5}``) applied
-    to the default file when ``config`` is None.
-    """
+def build_model(config: ArmConfig | None = None) -> ArmModel:
+    """Discretise the arm described by ``config`` (default: the package's ``arm.yaml``; for
+    overrides use ``build_model(load_arm_config(overrides={...}))``)."""
     if config is None:
-        config = load_arm_config(overrides=overrides)
-    elif overrides:
-        raise ValueError("pass overrides to load_arm_config, or config=None to use the default file")
+        config = load_arm_config()
     labels, _ = _coordinate_layout(config)
     n = len(labels)
     X, w, div = _points(config)
@@ -330,5 +321,10 @@ def build_model(config: ArmConfig | None = None, overrides: dict | None = None) 
                    a["marker_B1"], a["marker_B2"])
     mode_names = STRAIN_MODES
     coordinate_labels = tuple(f"div{d + 1}.{mode_names[r]}.P{j}" for d, r, j in labels)
-    return ArmModel(config=config, n=n, marker_point=m_point, coordinate_labels=coordinate_labels,
-                    kernel_args=kernel_args, **arrays)
+    model = ArmModel(config=config, n=n, marker_point=m_point, coordinate_labels=coordinate_labels,
+                     kernel_args=kernel_args, **arrays)
+    rest = ArmData(model)
+    zero = np.zeros(n)
+    if not kernels.evaluate(*kernel_args, zero, zero, 1, False, *rest.kernel_args):
+        raise ValueError("the straight arm is outside the model's domain (degenerate tendon routing)")
+    return replace(model, rest_tendon_lengths=_frozen(rest.Lc), rest_theta=_frozen(rest.theta))

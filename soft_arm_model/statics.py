@@ -39,12 +39,10 @@ class Equilibrium:
 
 
 @njit(cache=True)
-def _residual_kernel(model_args, data_args, q, u, friction, out):
-    ok = kernels.evaluate(*model_args, q, q, 1, False, *data_args)
-    if not ok:
+def _residual_kernel(model_args, data_args, Fg, Fel, Au, q, u, out):
+    """out = F_el - F_g + A u at q; Fg, Fel and Au (A or A0) are the workspace arrays in data_args."""
+    if not kernels.evaluate(*model_args, q, q, 1, False, *data_args):
         return False
-    Fg, Fel, A, A0 = data_args[13], data_args[14], data_args[16], data_args[17]
-    Au = A if friction else A0
     for a in range(q.shape[0]):
         acc = Fel[a] - Fg[a]
         for k in range(u.shape[0]):
@@ -54,47 +52,49 @@ def _residual_kernel(model_args, data_args, q, u, friction, out):
 
 
 @njit(cache=True)
-def _residual_jacobian(model_args, data_args, q, u, friction, r0, jac):
-    """Residual at q into r0 and its forward-difference Jacobian into jac; False outside the domain."""
+def _residual_jacobian(model_args, data_args, Fg, Fel, Au, q, u, r0, jac):
+    """Residual at q into r0 and its forward-difference Jacobian into jac; False outside the domain.
+    The workspace is left at the last perturbed state."""
     n = q.shape[0]
-    if not _residual_kernel(model_args, data_args, q, u, friction, r0):
+    if not _residual_kernel(model_args, data_args, Fg, Fel, Au, q, u, r0):
         return False
     qp = q.copy()
     rp = np.empty(n)
     for b in range(n):
         step = 1e-7 * max(1.0, abs(q[b]))
         qp[b] = q[b] + step
-        if not _residual_kernel(model_args, data_args, qp, u, friction, rp):
+        if not _residual_kernel(model_args, data_args, Fg, Fel, Au, qp, u, rp):
             qp[b] = q[b] - step
             step = -step
-            if not _residual_kernel(model_args, data_args, qp, u, friction, rp):
+            if not _residual_kernel(model_args, data_args, Fg, Fel, Au, qp, u, rp):
                 return False
         for a in range(n):
             jac[a, b] = (rp[a] - r0[a]) / step
         qp[b] = q[b]
-    # leave the workspace at q
-    return _residual_kernel(model_args, data_args, q, u, friction, r0)
+    return True
 
 
 class _Problem:
     def __init__(self, model: ArmModel, data: ArmData, friction: bool):
-        self.model, self.data, self.friction = model, data, friction
+        self.model, self.data = model, data
+        self.Au = data.A if friction else data.A0   # a view into the workspace, refreshed per call
+        self.args = (model.kernel_args, data.kernel_args, data.Fg, data.Fel, self.Au)
         self.r = np.zeros(model.n)
         self.jac = np.zeros((model.n, model.n))
         # residual changes below this floor count as no increase in the line search
         self.residual_floor = float(np.abs(model.K).max()) * 1e-12
 
     def residual(self, q, u):
-        ok = _residual_kernel(self.model.kernel_args, self.data.kernel_args, q, u, self.friction, self.r)
+        ok = _residual_kernel(*self.args, q, u, self.r)
         return self.r.copy() if ok else None
 
     def linearise(self, q, u):
-        ok = _residual_jacobian(self.model.kernel_args, self.data.kernel_args, q, u, self.friction,
-                                self.r, self.jac)
+        ok = _residual_jacobian(*self.args, q, u, self.r, self.jac)
         return (self.r.copy(), self.jac.copy()) if ok else (None, None)
 
     def actuation(self):
-        return (self.data.A if self.friction else self.data.A0).copy()
+        """A(q) at the last evaluated q (call ``residual`` first)."""
+        return self.Au.copy()
 
 
 def _newton(pb: _Problem, q, u, tol, max_iter):

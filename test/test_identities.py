@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from soft_arm_model import ArmData, evaluate
+from soft_arm_model import ArmData, actuation_coordinates, evaluate, solve_equilibrium
 from soft_arm_model.dynamics import CORIOLIS, STATICS
 
 EPS = 1e-6
@@ -98,3 +98,22 @@ def test_damping_proportional_to_stiffness_for_incompressible_material(paper_mod
     mat = m.config.material
     np.testing.assert_allclose(m.D, 3 * mat.viscosity / mat.youngs_modulus * m.K,
                                atol=1e-12 * np.abs(m.D).max())
+
+
+def test_actuation_coordinates_are_tendon_shortenings(paper_model, rng):
+    m = paper_model
+    # straight tendons follow the cone's taper: a straight slanted line at rest; crossed ones longer
+    g = m.config.geometry
+    slope = 0.6 * (g.tip_radius - g.base_radius) / g.length
+    np.testing.assert_allclose(m.rest_tendon_lengths[:2], 0.325 * np.hypot(1, slope), rtol=1e-12)
+    assert np.all(m.rest_tendon_lengths[2:] > m.rest_tendon_lengths[0] + 1e-5)
+    q, v = _state(m, rng)
+    thp = actuation_coordinates(m, q + EPS * v, friction=False)
+    thm = actuation_coordinates(m, q - EPS * v, friction=False)
+    A0 = evaluate(m, ArmData(m), q, level=STATICS).A0
+    np.testing.assert_allclose((thp - thm) / (2 * EPS), -A0.T @ v, atol=1e-8)
+    # pulling shortens: theta_a > 0 at the equilibrium under tension, friction-aware one too
+    q_eq = solve_equilibrium(m, [2.0, 2.0, 2.0, 2.0]).q
+    assert np.all(actuation_coordinates(m, q_eq, friction=False) > 1e-3)
+    assert np.all(actuation_coordinates(m, q_eq) > 1e-3)
+    np.testing.assert_array_equal(actuation_coordinates(m, np.zeros(m.n)), np.zeros(4))

@@ -1,21 +1,16 @@
 """Validation of the model against references built independently of it."""
 import numpy as np
 import pytest
-from scipy.integrate import quad, solve_bvp, solve_ivp
 from scipy.linalg import expm
-from scipy.optimize import fsolve
 
 from soft_arm_model import ArmData, evaluate, solve_equilibrium, tip_frame
 from soft_arm_model.model import R_BASE
+from soft_arm_model.references import (euler_bernoulli_tip_deflection, kirchhoff_cantilever_tip,
+                                       tendon_load_tip)
 
 
 NO_GRAVITY = {"gravity": [0.0, 0.0, 0.0]}
 
-
-@pytest.fixture(autouse=True)
-def _factory(model_factory):
-    global make_model
-    make_model = model_factory
 
 
 def _hat(xi):
@@ -26,9 +21,9 @@ def _hat(xi):
     return H
 
 
-def test_uniform_rod_one_straight_tendon_lies_on_exact_arc():
+def test_uniform_rod_one_straight_tendon_lies_on_exact_arc(model_factory):
     r, L, E, frac, u = 0.01, 0.38, 1e5, 0.5, 1.0
-    m = make_model(**NO_GRAVITY, **{
+    m = model_factory(**NO_GRAVITY, **{
         "geometry.base_radius": r, "geometry.tip_radius": r, "material.axial_law": "linear",
         "material.youngs_modulus": E,
         "tendons.names": ["t"], "tendons.start_angle_deg": [90.0], "tendons.end_angle_deg": [90.0],
@@ -46,7 +41,8 @@ def test_uniform_rod_one_straight_tendon_lies_on_exact_arc():
     assert np.linalg.norm(tip - [0, 0, -L]) > 0.1  # a large, non-trivial deflection
 
 
-def _cantilever_model(E, orders, gauss, modes=("torsion", "bending_y", "bending_z", "axial")):
+def _cantilever_model(make_model, E, orders, gauss,
+                      modes=("torsion", "bending_y", "bending_z", "axial")):
     over = {"material.youngs_modulus": E, "gravity": [-9.81, 0.0, 0.0],
             "discretisation.legendre_order": orders, "discretisation.gauss_points": gauss}
     for mode in ("torsion", "bending_y", "bending_z", "axial", "shear_y", "shear_z"):
@@ -54,63 +50,17 @@ def _cantilever_model(E, orders, gauss, modes=("torsion", "bending_y", "bending_
     return make_model(**over)
 
 
-def test_euler_bernoulli_small_deflection_of_stiff_cone():
-    m = _cantilever_model(1e9, [4, 3], [10, 6])
-    g = m.config.geometry
-    rho, E = m.config.material.density, 1e9
-    L = g.length
-
-    def radius(x):
-        return g.base_radius + (g.tip_radius - g.base_radius) * x / L
-
-    def moment(x):  # bending moment of the distal weight about the section at x
-        return quad(lambda s: rho * 9.81 * np.pi * radius(s) ** 2 * (s - x), x, L, epsabs=0, epsrel=1e-13)[0]
-
-    w_tip = quad(lambda x: (L - x) * moment(x) / (E * np.pi * radius(x) ** 4 / 4), 0, L,
-                 epsabs=0, epsrel=1e-12)[0]
+def test_euler_bernoulli_small_deflection_of_stiff_cone(model_factory):
+    m = _cantilever_model(model_factory, 1e9, [4, 3], [10, 6])
+    w_tip = euler_bernoulli_tip_deflection(m.config)
     tip = tip_frame(m, solve_equilibrium(m, [0.0] * 4).q).p
-    assert abs(-tip[0] - w_tip) / w_tip < 1e-3
     assert w_tip > 1e-5
+    assert abs(-tip[0] - w_tip) / w_tip < 1e-3
 
 
-def _kirchhoff_cantilever_tip(m):
-    """Planar inextensible Kirchhoff rod under self-weight, clamped at s = 0 (scipy solve_bvp)."""
-    g = m.config.geometry
-    rho, E, L = m.config.material.density, m.config.material.youngs_modulus, g.length
-
-    def radius(s):
-        return g.base_radius + (g.tip_radius - g.base_radius) * s / L
-
-    def distal_weight(s):  # W(s) = int_s^L rho g A
-        r0, r1 = radius(s), radius(L)
-        slope = (g.tip_radius - g.base_radius) / L
-        return rho * 9.81 * np.pi * (r1 ** 3 - r0 ** 3) / (3 * slope)
-
-    def rhs(s, y):  # y = [theta, m, x, z]; theta' = m / EI, m' = W cos(theta)
-        EI = E * np.pi * radius(s) ** 4 / 4
-        return np.vstack([y[1] / EI, distal_weight(s) * np.cos(y[0]), np.cos(y[0]), np.sin(y[0])])
-
-    def bc(ya, yb):
-        return np.array([ya[0], yb[1], ya[2], ya[3]])
-
-    s = np.linspace(0, L, 400)
-    y = np.zeros((4, s.size))
-    y[2] = s
-    sol = None
-    for scale in np.linspace(0.1, 1.0, 10):  # continuation in gravity
-        def rhs_scaled(s, y, c=scale):
-            out = rhs(s, y)
-            out[1] *= c
-            return out
-        sol = solve_bvp(rhs_scaled, bc, s, y, tol=1e-10, max_nodes=200000)
-        assert sol.success, sol.message
-        s, y = sol.x, sol.y
-    return sol.y[2, -1], sol.y[3, -1]
-
-
-def test_large_deflection_matches_kirchhoff_bvp():
-    m = _cantilever_model(None or 1.5e5, [5, 3], [10, 6], modes=("bending_y", "bending_z"))
-    axial_ref, deflection_ref = _kirchhoff_cantilever_tip(m)
+def test_large_deflection_matches_kirchhoff_bvp(model_factory):
+    m = _cantilever_model(model_factory, 1.5e5, [5, 3], [10, 6], modes=("bending_y", "bending_z"))
+    axial_ref, deflection_ref = kirchhoff_cantilever_tip(m.config)
     tip = tip_frame(m, solve_equilibrium(m, [0.0] * 4).q).p
     assert deflection_ref < -0.1  # a genuinely large deflection
     np.testing.assert_allclose([-tip[2], tip[0]], [axial_ref, deflection_ref], atol=5e-4)
@@ -118,93 +68,28 @@ def test_large_deflection_matches_kirchhoff_bvp():
 
 # ---- tendon-only loads: the pointwise exact reference -------------------------------------------
 
-def _pointwise_reference_tip(m, u):
-    """Tip of the continuum solution: at each X, Sigma (xi - xi*) + sum u_k Phi_k(xi, X) = 0 on the
-    enabled modes (frictionless, no gravity), then g' = g xi^ integrated to the tip."""
-    cfg = m.config
-    g, mat = cfg.geometry, cfg.material
-    L = g.length
-    enabled = [i for i, on in enumerate(cfg.discretisation.modes) if on]
-    E, G = mat.youngs_modulus, mat.youngs_modulus / (2 * (1 + mat.poisson_ratio))
-
-    def offsets(t, X):
-        r = g.base_radius + (g.tip_radius - g.base_radius) * X / L
-        rp = (g.tip_radius - g.base_radius) / L
-        th_p = (t.end_angle - t.start_angle) / t.end
-        th = t.start_angle + th_p * X
-        rho, rho_p = t.offset_fraction * r, t.offset_fraction * rp
-        d = np.array([0.0, rho * np.sin(th), rho * np.cos(th)])
-        dp = np.array([0.0, rho_p * np.sin(th) + rho * th_p * np.cos(th),
-                       rho_p * np.cos(th) - rho * th_p * np.sin(th)])
-        return d, dp
-
-    def stress(xi, X):
-        r = g.base_radius + (g.tip_radius - g.base_radius) * X / L
-        A, I = np.pi * r ** 2, np.pi * r ** 4 / 4
-        k = np.array([G * 2 * I, E * I, E * I, E * A, G * A, G * A])
-        s = k * (xi - [0, 0, 0, 1, 0, 0])
-        if mat.axial_law == "neo_hookean":
-            s[3] = E * A / 3 * (xi[3] - xi[3] ** -2)
-        for t, uk in zip(cfg.tendons, u):
-            if X < t.end and uk != 0:
-                d, dp = offsets(t, X)
-                tau = np.cross(xi[:3], d) + xi[3:] + dp
-                tt = tau / np.linalg.norm(tau)
-                s += uk * np.concatenate([np.cross(d, tt), tt])
-        return s
-
-    guess = {"xi": np.array([0, 0, 0, 1.0, 0, 0])}
-
-    def strain(X):
-        def f(z):
-            xi = np.array([0, 0, 0, 1.0, 0, 0])
-            xi[enabled] = z
-            return stress(xi, X)[enabled]
-        z, info, ok, msg = fsolve(f, guess["xi"][enabled], xtol=1e-12, full_output=True)
-        assert np.abs(info["fvec"]).max() < 1e-11, msg
-        xi = np.array([0, 0, 0, 1.0, 0, 0])
-        xi[enabled] = z
-        guess["xi"] = xi
-        return xi
-
-    def rhs(X, y):
-        R = y[:9].reshape(3, 3)
-        xi = strain(X)
-        k = xi[:3]
-        K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-        return np.concatenate([(R @ K).ravel(), R @ xi[3:]])
-
-    y0 = np.concatenate([R_BASE.ravel(), np.zeros(3)])
-    ends = sorted({t.end for t in cfg.tendons} | {L})
-    X0 = 0.0
-    for X1 in ends:  # integrate piecewise: the strain jumps at tendon ends
-        sol = solve_ivp(rhs, (X0, X1), y0, method="DOP853", rtol=1e-11, atol=1e-13)
-        y0, X0 = sol.y[:, -1], X1
-    return y0[9:]
-
-
 def _tip_error(m, u):
     tip = tip_frame(m, solve_equilibrium(m, u, friction=False).q).p
-    return np.linalg.norm(tip - _pointwise_reference_tip(m, u))
+    return np.linalg.norm(tip - tendon_load_tip(m.config, u, R_BASE))
 
 
 @pytest.mark.parametrize("u", [[2.0, 0, 0, 0], [0, 0, 2.0, 0], [0, 0, 2.0, 2.0], [1.0, 0, 2.0, 0]],
                          ids=["straight", "crossed", "crossed-pair", "mixed"])
-def test_tendon_loads_converge_to_pointwise_reference(u):
+def test_tendon_loads_converge_to_pointwise_reference(model_factory, u):
     errors = []
     for order in (1, 2, 3, 5):
-        m = make_model(**NO_GRAVITY, **{"discretisation.legendre_order": [order, 0],
+        m = model_factory(**NO_GRAVITY, **{"discretisation.legendre_order": [order, 0],
                                         "discretisation.gauss_points": [order + 6, 3]})
         errors.append(_tip_error(m, u))
     assert errors[-1] < 2e-4, errors
     assert errors[-1] < errors[0] / 10, errors
 
 
-def test_basis_without_break_at_tendon_end_does_not_converge():
+def test_basis_without_break_at_tendon_end_does_not_converge(model_factory):
     u = [0, 0, 2.0, 0]
     errors = []
     for order in (3, 5, 7):
-        m = make_model(**NO_GRAVITY, **{"discretisation.division_ends": [0.38],
+        m = model_factory(**NO_GRAVITY, **{"discretisation.division_ends": [0.38],
                                         "discretisation.legendre_order": [order],
                                         "discretisation.gauss_points": [order + 6],
                                         "discretisation.allow_tendon_end_inside_division": True})
@@ -232,7 +117,7 @@ def test_crossed_tendons_twist_in_opposite_directions_and_cancel(paper_model):
     assert abs(tip_frame(m, q34).p[0]) < 1e-9
 
 
-def test_friction_lowers_transmitted_load_monotonically(paper_model):
+def test_friction_lowers_transmitted_load_monotonically(paper_model, model_factory):
     m = paper_model
     q = solve_equilibrium(m, [3.0, 0, 3.0, 0]).q
     d = evaluate(m, ArmData(m), q, level=1)
@@ -242,14 +127,14 @@ def test_friction_lowers_transmitted_load_monotonically(paper_model):
         assert np.all(np.diff(weight) <= 1e-15) and weight[-1] < 0.99
     tips = []
     for mu in (0.0, 0.1, 0.2, 0.4):
-        mm = make_model(**{"tendons.friction": [mu] * 4})
+        mm = model_factory(**{"tendons.friction": [mu] * 4})
         tips.append(np.linalg.norm(tip_frame(mm, solve_equilibrium(mm, [3.0, 0, 0, 0]).q).p
                                    - [0, 0, -0.38]))
     assert np.all(np.diff(tips) < 0), tips
 
 
-def test_zero_friction_recovers_frictionless_model(rng):
-    m = make_model(**{"tendons.friction": [0.0] * 4})
+def test_zero_friction_recovers_frictionless_model(model_factory, rng):
+    m = model_factory(**{"tendons.friction": [0.0] * 4})
     q = rng.normal(size=m.n) * 0.3
     d = evaluate(m, ArmData(m), q, level=1)
     assert np.array_equal(d.A, d.A0)
