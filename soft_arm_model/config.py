@@ -164,9 +164,9 @@ def _flatten(tree: Mapping, prefix: str = "") -> dict:
     return flat
 
 
-def _coerce(key: str, value: Any, kind: str, allowed: str):
+def _coerce(full_key: str, value: Any, kind: str, allowed: str):
     def bad():
-        return ConfigError(f"{NAMESPACE}.{key} = {value!r} is not valid: expected {allowed}")
+        return ConfigError(f"{full_key} = {value!r} is not valid: expected {allowed}")
 
     def scalar(v, k):
         if k == "float":
@@ -192,24 +192,31 @@ def _coerce(key: str, value: Any, kind: str, allowed: str):
     return scalar(value, kind)
 
 
-def apply_overrides(params: dict, overrides: Mapping[str, Any] | None) -> dict:
-    """Return a copy of the ``arm`` parameter tree with dotted-key overrides applied.
+def _unknown_key(namespace: str, key: str, known) -> ConfigError:
+    close = difflib.get_close_matches(key, list(known), n=3)
+    hint = f"; did you mean {', '.join(namespace + '.' + c for c in close)}?" if close else ""
+    return ConfigError(f"unknown key {namespace}.{key}{hint}")
 
-    String values are parsed as YAML (``"2e5"`` -> 200000.0, ``"[1, 2]"`` -> list). An unknown key
-    raises :class:`ConfigError` with the closest known keys.
+
+def apply_overrides(params: dict, overrides: Mapping[str, Any] | None, schema: Mapping | None = None,
+                    namespace: str = NAMESPACE) -> dict:
+    """Return a copy of a parameter tree with dotted-key overrides applied.
+
+    Keys are relative to ``namespace`` (a leading ``namespace.`` is accepted). String values are
+    parsed as YAML (``"2e5"`` -> 200000.0, ``"[1, 2]"`` -> list). A key that ``schema`` (default: the
+    arm schema) does not know raises :class:`ConfigError` with the closest known keys.
     """
+    schema = _SCHEMA if schema is None else schema
     out = copy.deepcopy(params)
     for key, value in (overrides or {}).items():
-        key = key[len(NAMESPACE) + 1:] if key.startswith(NAMESPACE + ".") else key
-        if key not in _SCHEMA:
-            close = difflib.get_close_matches(key, list(_SCHEMA), n=3)
-            hint = f"; did you mean {', '.join(NAMESPACE + '.' + c for c in close)}?" if close else ""
-            raise ConfigError(f"unknown key {NAMESPACE}.{key}{hint}")
+        key = key[len(namespace) + 1:] if key.startswith(namespace + ".") else key
+        if not any(_matches(key, k) for k in schema):
+            raise _unknown_key(namespace, key, schema)
         if isinstance(value, str):
             try:
                 value = parse_yaml(value)
             except yaml.YAMLError as exc:
-                raise ConfigError(f"{NAMESPACE}.{key}: cannot parse {value!r}: {exc}") from None
+                raise ConfigError(f"{namespace}.{key}: cannot parse {value!r}: {exc}") from None
         node = out
         *parents, leaf = key.split(".")
         for part in parents:
@@ -218,22 +225,42 @@ def apply_overrides(params: dict, overrides: Mapping[str, Any] | None) -> dict:
     return out
 
 
+def _matches(key: str, pattern: str) -> bool:
+    """Schema keys may hold one ``*`` path element (a name chosen by the user, e.g. a task name)."""
+    if "*" not in pattern:
+        return key == pattern
+    parts, pparts = key.split("."), pattern.split(".")
+    return len(parts) == len(pparts) and all(p == "*" or p == k for k, p in zip(parts, pparts))
+
+
+def validate_tree(params: Mapping, schema: Mapping, namespace: str) -> dict:
+    """Check a parameter tree against ``schema`` (dotted key -> (kind, check, allowed)).
+
+    Returns the coerced values by dotted key. Unknown and missing keys and values that fail their
+    check raise :class:`ConfigError` naming ``namespace.key``, the value and what is allowed.
+    Patterns with a ``*`` element match any name there; they are optional as a group.
+    """
+    flat = _flatten(params)
+    for key in flat:
+        if not any(_matches(key, k) for k in schema):
+            raise _unknown_key(namespace, key, schema)
+    missing = [k for k in schema if "*" not in k and k not in flat]
+    if missing:
+        raise ConfigError(f"missing key {namespace}.{missing[0]} (expected {schema[missing[0]][2]})")
+    values = {}
+    for key, raw in flat.items():
+        pattern = next(k for k in schema if _matches(key, k))
+        kind, check, allowed = schema[pattern]
+        values[key] = _coerce(f"{namespace}.{key}", raw, kind, allowed)
+        if check is not None and not check(values[key]):
+            raise ConfigError(f"{namespace}.{key} = {raw!r} is not valid: expected {allowed}")
+    return values
+
+
 def parse_arm_config(params: Mapping) -> ArmConfig:
     """Validate an ``arm`` parameter tree (the mapping under ``ros__parameters.arm``)."""
     flat = _flatten(params)
-    unknown = sorted(set(flat) - set(_SCHEMA))
-    if unknown:
-        close = difflib.get_close_matches(unknown[0], list(_SCHEMA), n=3)
-        hint = f"; did you mean {', '.join(NAMESPACE + '.' + c for c in close)}?" if close else ""
-        raise ConfigError(f"unknown key {NAMESPACE}.{unknown[0]}{hint}")
-    missing = [k for k in _SCHEMA if k not in flat]
-    if missing:
-        raise ConfigError(f"missing key {NAMESPACE}.{missing[0]} (expected {_SCHEMA[missing[0]][2]})")
-    v = {}
-    for key, (kind, check, allowed) in _SCHEMA.items():
-        v[key] = _coerce(key, flat[key], kind, allowed)
-        if check is not None and not check(v[key]):
-            raise ConfigError(f"{NAMESPACE}.{key} = {flat[key]!r} is not valid: expected {allowed}")
+    v = validate_tree(params, _SCHEMA, NAMESPACE)
 
     def require(ok, key, allowed):
         if not ok:

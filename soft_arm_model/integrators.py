@@ -7,6 +7,15 @@ elastic and damping forces are taken implicitly, linearised about the current st
     (M + h D + h^2 K_t) qd+ = M qd + h (F_g - C qd - F_el(q) - A u),    q+ = q + h qd+
 
 This is first-order accurate and unconditionally stable for the linear stiff part.
+
+Motor rotors on the tendons (direct drive) add their reflected mass m_k = J_k / r_k^2 [kg] to the
+tendon coordinate: with an inextensible tendon the rotor turns with the shortening s_k, and the
+tension that reaches the body is u_k - m_k s_k'' with s'' = -(A0^T qdd + Adot0^T qd). So u is the
+tension the motor applies (torque / radius) and
+
+    (M + A diag(m) A0^T) qdd + ... = ... - A (u + diag(m) Adot0^T qd),
+
+with Adot0^T qd taken by a directional difference of A0 along qd (one more kernel evaluation).
 """
 from __future__ import annotations
 
@@ -21,13 +30,45 @@ from .model import ArmData, ArmModel
 
 
 @njit(cache=True)
-def _imex_step(model_args, data_args, M, Cqd, Fg, Fel, Kt, Au, D, q, qd, u, h, q_out, qd_out):
-    """One IMEX step; M .. Au are the workspace arrays in data_args (Au: A or A0), D the damping."""
+def _imex_step(model_args, data_args, M, Cqd, Fg, Fel, Kt, Au, A0, D, rotor_mass, q, qd, u, h,
+               q_out, qd_out):
+    """One IMEX step; M .. A0 are the workspace arrays in data_args (Au: A or A0), D the damping,
+    rotor_mass the reflected rotor masses [kg] per tendon (all zero: no rotors)."""
+    n = q.shape[0]
+    n_t = u.shape[0]
+    rotors = False
+    for k in range(n_t):
+        rotors = rotors or rotor_mass[k] != 0.0
+    force = u.copy()
+    vmax = 0.0
+    for a in range(n):
+        vmax = max(vmax, abs(qd[a]))
+    eps = 1e-7 / vmax if vmax > 0.0 else 1.0
+    shifted = np.zeros(n_t)
+    if rotors and vmax > 0.0:  # Adot0^T qd by a directional difference of A0 along qd
+        if not kernels.evaluate(*model_args, q + eps * qd, qd, 1, False, *data_args):
+            return False
+        shifted = A0.T @ qd
     if not kernels.evaluate(*model_args, q, qd, 2, False, *data_args):
         return False
-    n = q.shape[0]
     lhs = M + h * D + (h * h) * Kt
-    rhs = M @ qd + h * (Fg - Cqd - Fel - Au @ u)
+    rhs = M @ qd
+    if rotors:
+        s_rate = A0.T @ qd
+        if vmax > 0.0:
+            for k in range(n_t):
+                force[k] += rotor_mass[k] * (shifted[k] - s_rate[k]) / eps
+        for a in range(n):
+            for b in range(n):
+                acc = 0.0
+                for k in range(n_t):
+                    acc += Au[a, k] * rotor_mass[k] * A0[b, k]
+                lhs[a, b] += acc
+            acc = 0.0
+            for k in range(n_t):
+                acc += Au[a, k] * rotor_mass[k] * s_rate[k]
+            rhs[a] += acc
+    rhs += h * (Fg - Cqd - Fel - Au @ force)
     v = np.linalg.solve(lhs, rhs)
     for a in range(n):
         qd_out[a] = v[a]
@@ -36,15 +77,22 @@ def _imex_step(model_args, data_args, M, Cqd, Fg, Fel, Kt, Au, D, q, qd, u, h, q
 
 
 class ImexStepper:
-    """Advances (q, qd) by fixed steps ``dt`` [s] under tensions u [N]; owns its workspace."""
+    """Advances (q, qd) by fixed steps ``dt`` [s] under tendon tensions u [N]; owns its workspace.
 
-    def __init__(self, model: ArmModel, dt: float, friction: bool = True):
+    ``rotor_mass``: reflected rotor mass [kg] per tendon (rotor inertia / pulley radius^2), or None.
+    """
+
+    def __init__(self, model: ArmModel, dt: float, friction: bool = True, rotor_mass=None):
         if not dt > 0:
             raise ValueError(f"dt must be > 0 s, got {dt}")
+        rotor = np.zeros(model.n_tendons) if rotor_mass is None else \
+            np.array(rotor_mass, dtype=float).reshape(-1)
+        if rotor.shape != (model.n_tendons,) or not np.all(np.isfinite(rotor)) or np.any(rotor < 0):
+            raise ValueError(f"rotor_mass must be {model.n_tendons} masses >= 0 kg, got {rotor_mass}")
         self.model, self.dt, self.friction = model, float(dt), friction
         self.data = d = ArmData(model)
         self._args = (model.kernel_args, d.kernel_args, d.M, d.Cqd, d.Fg, d.Fel, d.Kt,
-                      d.A if friction else d.A0, model.D)
+                      d.A if friction else d.A0, d.A0, model.D, rotor)
 
     def step(self, q, qd, u):
         """Return (q, qd) one step later (new arrays). Raises OutOfDomainError if the state leaves
@@ -69,9 +117,10 @@ class Trajectory:
 
 
 def simulate(model: ArmModel, q0, qd0, tension, duration: float, dt: float = 1e-3,
-             friction: bool = True) -> Trajectory:
-    """Simulate ``duration`` [s] with the IMEX step; ``tension(t)`` returns tensions [N] at time t."""
-    stepper = ImexStepper(model, dt, friction)
+             friction: bool = True, rotor_mass=None) -> Trajectory:
+    """Simulate ``duration`` [s] with the IMEX step; ``tension(t)`` returns tensions [N] at time t
+    (``rotor_mass``: see :class:`ImexStepper`)."""
+    stepper = ImexStepper(model, dt, friction, rotor_mass)
     steps = int(round(duration / dt))
     t = np.arange(steps + 1) * dt
     q = np.zeros((steps + 1, model.n))

@@ -14,6 +14,7 @@ import numpy as np
 from numba import njit
 
 from . import kernels
+from .dynamics import OutOfDomainError
 from .model import ArmData, ArmModel
 
 
@@ -95,6 +96,22 @@ class _Problem:
     def actuation(self):
         """A(q) at the last evaluated q (call ``residual`` first)."""
         return self.Au.copy()
+
+
+def residual_jacobian(model: ArmModel, q, u, friction: bool = True,
+                      data: ArmData | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Static residual R = F_el - F_g + A u at (q, u) and its tangent dR/dq at fixed u.
+
+    dR/dq = K_t - dF_g/dq + sum_k u_k dA_k/dq (elastic tangent, gravity and tendon geometric
+    stiffness), taken by forward differences of the kernel (n + 1 evaluations, relative step 1e-7).
+    Raises :class:`~soft_arm_model.dynamics.OutOfDomainError` outside the model's domain.
+    """
+    u = np.ascontiguousarray(u, dtype=float)
+    q = np.ascontiguousarray(q, dtype=float)
+    r, jac = _Problem(model, data or ArmData(model), friction).linearise(q, u)
+    if r is None:
+        raise OutOfDomainError("configuration outside the model's domain")
+    return r, jac
 
 
 def _newton(pb: _Problem, q, u, tol, max_iter):

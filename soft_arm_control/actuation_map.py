@@ -1,0 +1,104 @@
+"""The paper's approximation of the friction-aware actuation coordinates by measured tendon lengths.
+
+With friction, theta_a (the friction-weighted tendon integral) depends on the whole configuration q,
+which cannot be measured. The paper observes that it depends mainly on the tendon lengths and uses
+``thetabar_a(L_c)``. Here thetabar_a is a polynomial in the measured tendon shortenings
+s = L_c(0) - L_c [m], fitted by least squares to static equilibria of the model over a grid of
+tensions and checked on random equilibria that the fit did not see.
+"""
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass
+
+import numpy as np
+
+from soft_arm_model import ArmData, ArmModel, EquilibriumError, evaluate, solve_equilibrium
+from soft_arm_model.dynamics import STATICS
+
+SCALE = 0.01  # m: shortenings are fitted in centimetres, which keeps the normal equations well scaled
+
+
+def _monomials(n_vars: int, degree: int) -> np.ndarray:
+    """Exponent rows of every monomial of total degree <= ``degree`` in ``n_vars`` variables."""
+    rows = [e for e in itertools.product(range(degree + 1), repeat=n_vars) if sum(e) <= degree]
+    return np.array(sorted(rows, key=lambda e: (sum(e), tuple(-x for x in e))), dtype=np.int64)
+
+
+@dataclass(frozen=True, eq=False)
+class ActuationMap:
+    """thetabar_a(s): actuation coordinates [m] of every tendon from the shortenings s [m] of all tendons.
+
+    ``exponents`` (F, n_t) and ``coef`` (n_t, F) define the polynomial in s / SCALE. ``rms_error`` and
+    ``max_error`` [m] are the validation errors against the model's exact theta_a; ``samples`` counts
+    the fitted equilibria. An identity map (friction off) has ``coef`` None.
+    """
+    exponents: np.ndarray | None
+    coef: np.ndarray | None
+    rms_error: float
+    max_error: float
+    samples: int
+
+    @classmethod
+    def identity(cls) -> "ActuationMap":
+        """theta_a = s: the exact actuation coordinates without friction."""
+        return cls(None, None, 0.0, 0.0, 0)
+
+    def __call__(self, s) -> np.ndarray:
+        s = np.asarray(s, dtype=float)
+        if self.coef is None:
+            return s.copy()
+        return self.coef @ np.prod((s / SCALE)[None, :] ** self.exponents, axis=1)
+
+    def jacobian(self, s) -> np.ndarray:
+        """d thetabar_a / ds (n_t, n_t) at s."""
+        s = np.asarray(s, dtype=float)
+        if self.coef is None:
+            return np.eye(s.size)
+        x = s / SCALE
+        cols = []
+        for j in range(s.size):
+            e = self.exponents.copy()
+            factor = e[:, j].astype(float)
+            e[:, j] = np.maximum(e[:, j] - 1, 0)
+            cols.append(factor * np.prod(x[None, :] ** e, axis=1))
+        return (self.coef @ np.array(cols).T) / SCALE
+
+
+def _sample(model: ArmModel, tensions) -> tuple[np.ndarray, np.ndarray]:
+    """(shortenings, friction-aware theta_a) at the equilibria of ``tensions`` that converge."""
+    data = ArmData(model)
+    s, th = [], []
+    for u in tensions:
+        try:
+            eq = solve_equilibrium(model, np.asarray(u, dtype=float), data=data)
+        except EquilibriumError:
+            continue
+        evaluate(model, data, eq.q, level=STATICS)
+        s.append(model.rest_tendon_lengths - data.Lc)
+        th.append(model.rest_theta - data.theta)
+    return np.array(s), np.array(th)
+
+
+def fit_actuation_map(model: ArmModel, levels, degree: int = 2, validation_samples: int = 40,
+                      seed: int = 0) -> ActuationMap:
+    """Fit thetabar_a on the equilibria of every combination of tensions in ``levels`` [N].
+
+    The validation set is ``validation_samples`` equilibria at uniformly random tensions in
+    [min(levels), max(levels)] (seeded). Raises ValueError when too few equilibria converge.
+    """
+    levels = [float(v) for v in levels]
+    n_t = model.n_tendons
+    exps = _monomials(n_t, degree)
+    s, th = _sample(model, itertools.product(levels, repeat=n_t))
+    if len(s) < 2 * exps.shape[0]:
+        raise ValueError(f"only {len(s)} equilibria converged; a degree-{degree} fit needs "
+                         f"at least {2 * exps.shape[0]} (add tension levels or lower the degree)")
+    X = np.prod((s / SCALE)[:, None, :] ** exps[None, :, :], axis=2)
+    coef, *_ = np.linalg.lstsq(X, th, rcond=None)
+    rng = np.random.default_rng(seed)
+    s_v, th_v = _sample(model, rng.uniform(min(levels), max(levels), (validation_samples, n_t)))
+    fit = ActuationMap(exps, coef.T, 0.0, 0.0, len(s))
+    err = np.array([fit(x) - y for x, y in zip(s_v, th_v)])
+    return ActuationMap(exps, coef.T, float(np.sqrt(np.mean(err ** 2))), float(np.abs(err).max()),
+                        len(s))

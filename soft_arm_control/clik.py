@@ -1,0 +1,213 @@
+"""Closed-loop inverse kinematics for underactuated systems (paper eq. CLIK; DESIGN.md section 4).
+
+With task x = h_g(q) of dimension m = n_a, the stacked Jacobian ``Z = [J_x; dG_theta_u/dq]`` is square
+and the law
+
+    qdot = Z^-1 [xdot_d + Gamma_Z (x_d - x); -Gamma_eps G_theta_u]
+
+makes the task error and the equilibrium residual decay independently: e' = -Gamma_Z e and
+G_theta_u' = -Gamma_eps G_theta_u. In collocated coordinates this is the paper's
+``thetadot = Pbar_eps Gamma_Z e - Pbar_Z Gamma_eps G_theta_u`` with ``[Pbar_eps, Pbar_Z] = J_h Z^-1``
+and ``qdot = J_h^-1 thetadot`` (:func:`projectors`). Near a singular Z the solve is damped (rows
+scaled to unit norm, damped least squares below a relative singular value threshold).
+
+Two variants: precomputed (x from the model; :meth:`Clik.precompute` solves for the end point
+offline, a damped Newton iteration on the same equations, i.e. the CLIK flow with unit gain-step) and
+online (x measured at the mocap rate; :meth:`Clik.step`). Targets are checked before anything moves:
+:class:`TargetError` says why a target cannot be reached or needs tensions outside the limits.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from soft_arm_model import OutOfDomainError
+
+from .collocated import CollocatedData, CollocatedModel, equilibrium_jacobian, evaluate_collocated
+from .task_space import TaskSpace
+
+
+class TargetError(ValueError):
+    """A target is unreachable (no equilibrium reaches it) or infeasible (tensions out of limits)."""
+
+
+@dataclass(frozen=True)
+class ClikGains:
+    """Gamma_Z and Gamma_eps [1/s] (scalar times identity); ``singular_threshold``: relative singular
+    value of the row-normalised Z below which the solve is damped."""
+    task: float
+    equilibrium: float
+    singular_threshold: float = 1e-4
+
+    def __post_init__(self):
+        if not (self.task > 0 and self.equilibrium > 0):
+            raise ValueError(f"CLIK gains must be > 0 1/s, got {self.task}, {self.equilibrium}")
+        if not 0 < self.singular_threshold < 1:
+            raise ValueError(f"singular_threshold must be in (0, 1), got {self.singular_threshold}")
+
+
+@dataclass(frozen=True)
+class ClikPoint:
+    """A reference configuration q_d with its tendon references: shortenings s_d [m] (all tendons),
+    feedforward u_ff = G_theta_a(q_d) [N] (active tendons) and model task coordinates x [m]."""
+    q: np.ndarray
+    shortening: np.ndarray
+    u_ff: np.ndarray
+    x: np.ndarray
+
+
+@dataclass(frozen=True)
+class ClikStep:
+    """Diagnostics of one CLIK evaluation: qdot, the task error e [m], G_theta_u, cond(Z) of the
+    row-normalised Z and whether the solve was damped."""
+    qdot: np.ndarray
+    error: np.ndarray
+    G_theta_u: np.ndarray
+    condition: float
+    damped: bool
+
+
+class Clik:
+    """Underactuated CLIK for one task and one collocated model (m must equal n_a)."""
+
+    def __init__(self, cm: CollocatedModel, task: TaskSpace, gains: ClikGains,
+                 tension_limits: tuple[float, float]):
+        task.check(cm.model)
+        if task.m != cm.n_a:
+            raise ValueError(f"the task has {task.m} coordinates but {cm.n_a} tendons are actuated "
+                             "(the underactuated CLIK needs m = n_a)")
+        self.cm, self.task, self.gains = cm, task, gains
+        self.u_min, self.u_max = map(float, tension_limits)
+        self.cd = CollocatedData(cm)
+
+    # -- evaluation -------------------------------------------------------------------------------
+    def _stack(self, q):
+        evaluate_collocated(self.cm, self.cd, q)
+        x, Jx = self.task.evaluate(self.cm.model, q, self.cd.arm)
+        Z = np.vstack([Jx, equilibrium_jacobian(self.cm, self.cd)])
+        return x, Z
+
+    def _solve(self, Z, rhs):
+        """Z^-1 rhs with unit-norm rows; damped least squares below the singular threshold."""
+        w = 1.0 / np.linalg.norm(Z, axis=1)
+        U, sig, Vt = np.linalg.svd(Z * w[:, None])
+        cond = sig[0] / sig[-1] if sig[-1] > 0 else np.inf
+        lam = self.gains.singular_threshold * sig[0]
+        damped = sig[-1] < lam
+        inv = sig / (sig ** 2 + lam ** 2) if damped else 1.0 / sig
+        return Vt.T @ (inv * (U.T @ (w * rhs))), float(cond), bool(damped)
+
+    def velocity(self, q, x_d, x=None, xd_dot=None) -> ClikStep:
+        """qdot of the CLIK law at q [generalised coordinates] for target x_d [m].
+
+        x: measured task coordinates [m] (online variant); default the model's x(q) (precomputed).
+        xd_dot: target velocity [m/s] (default zero: regulation).
+        """
+        x_model, Z = self._stack(q)
+        x = x_model if x is None else np.asarray(x, dtype=float)
+        e = np.asarray(x_d, dtype=float) - x
+        rhs = np.concatenate([(0.0 if xd_dot is None else np.asarray(xd_dot, dtype=float))
+                              + self.gains.task * e, -self.gains.equilibrium * self.cd.G_theta_u])
+        qdot, cond, damped = self._solve(Z, rhs)
+        return ClikStep(qdot, e, self.cd.G_theta_u.copy(), cond, damped)
+
+    def projectors(self, q) -> tuple[np.ndarray, np.ndarray]:
+        """The paper's (Pbar_eps (n, m), Pbar_Z (n, n - n_a)): the column blocks of J_h Z^-1 at q."""
+        _, Z = self._stack(q)
+        P = self.cd.J_h @ np.linalg.inv(Z)
+        return P[:, :self.task.m], P[:, self.task.m:]
+
+    def reference(self, q) -> ClikPoint:
+        """Tendon references of configuration q (shortenings, feedforward, model task coordinates)."""
+        evaluate_collocated(self.cm, self.cd, q)
+        x, _ = self.task.evaluate(self.cm.model, q, self.cd.arm)
+        return ClikPoint(np.array(q, dtype=float), self.cd.shortening.copy(), self.cd.u_eq.copy(), x)
+
+    def feasibility_error(self, u_ff) -> str | None:
+        """Why the feedforward tensions [N] violate [u_min, u_max], or None if they do not."""
+        names = self.cm.model.tendon_names
+        for k, u in zip(self.cm.active, u_ff):
+            if not self.u_min <= u <= self.u_max:
+                return (f"{names[k]} would need {u:.3f} N at equilibrium, outside "
+                        f"[{self.u_min}, {self.u_max}] N")
+        return None
+
+    # -- online variant ---------------------------------------------------------------------------
+    def step(self, q, x_d, dt: float, x=None) -> tuple[ClikPoint | None, ClikStep]:
+        """One explicit Euler step of length dt [s] from q_d = q; x: measured task coordinates [m]
+        (online) or None (model). Returns (the new reference, diagnostics); the reference is None
+        when the step would leave the model's domain or the tension limits (keep the last one)."""
+        info = self.velocity(q, x_d, x)
+        q_new = np.asarray(q, dtype=float) + dt * info.qdot
+        try:
+            ref = self.reference(q_new)
+        except (OutOfDomainError, ValueError):
+            return None, info
+        if self.feasibility_error(ref.u_ff) is not None:
+            return None, info
+        return ref, info
+
+    # -- precomputed variant ----------------------------------------------------------------------
+    def _newton(self, q, x_d, tol: float, max_iter: int):
+        """Damped Newton on [x(q) - x_d; G_theta_u(q)] = 0 from q; returns (q, iterations) or None."""
+        def merit(qq):
+            try:
+                x, Z = self._stack(qq)
+            except (OutOfDomainError, ValueError):
+                return None
+            scale = 1e-3 * np.linalg.norm(Z[self.task.m:], axis=1)  # G per 1e-3 coordinate change
+            r = np.concatenate([(x - x_d) / 1e-3, self.cd.G_theta_u / scale])
+            return x, Z, float(r @ r), self.cd.G_theta_u.copy(), scale
+
+        state = merit(q)
+        if state is None:
+            return None
+        for it in range(1, max_iter + 1):
+            x, Z, phi, G_u, scale = state
+            if np.max(np.abs(x - x_d)) < tol and np.max(np.abs(G_u) / scale) < 1e-6:
+                return q, it - 1
+            dq, _, _ = self._solve(Z, np.concatenate([x_d - x, -G_u]))
+            alpha = 1.0
+            while True:
+                trial = merit(q + alpha * dq)
+                if trial is not None and trial[2] < (1.0 - 1e-4 * alpha) * phi:
+                    break
+                alpha *= 0.5
+                if alpha < 1.0 / 64:
+                    return None
+            q, state = q + alpha * dq, trial
+        return None
+
+    def precompute(self, x_d, q_start, tol: float = 1e-6, max_iter: int = 40,
+                   max_splits: int = 6) -> ClikPoint:
+        """The equilibrium reference q_d whose model task coordinates are x_d [m], from q_start.
+
+        Newton from q_start; if it fails, the target is approached along the straight task path from
+        x(q_start) in halved sub-steps (up to ``max_splits`` halvings). Raises TargetError when no
+        equilibrium reaches x_d or when its tensions are outside the limits.
+        """
+        x_d = np.asarray(x_d, dtype=float)
+        if x_d.shape != (self.task.m,) or not np.all(np.isfinite(x_d)):
+            raise TargetError(f"a target needs {self.task.m} finite coordinates "
+                              f"({', '.join(self.task.labels())}), got {x_d.tolist()}")
+        q = np.array(q_start, dtype=float)
+        x0, _ = self.task.evaluate(self.cm.model, q, self.cd.arm)
+        lam, step = 0.0, 1.0
+        while lam < 1.0:
+            trial = min(1.0, lam + step)
+            sol = self._newton(q, x0 + trial * (x_d - x0), tol if trial == 1.0 else 1e-4, max_iter)
+            if sol is None:
+                step *= 0.5
+                if step < 0.5 ** max_splits:
+                    raise TargetError(
+                        f"target {x_d.tolist()} m ({', '.join(self.task.labels())}) is unreachable: "
+                        f"no equilibrium found beyond {lam:.0%} of the way from {x0.round(4).tolist()}")
+                continue
+            q, lam = sol[0], trial
+            step = min(1.0, 2.0 * step)
+        ref = self.reference(q)
+        reason = self.feasibility_error(ref.u_ff)
+        if reason is not None:
+            raise TargetError(f"target {x_d.tolist()} m is infeasible: {reason}")
+        return ref

@@ -1,0 +1,168 @@
+"""Collocated coordinates of the arm (paper, "Low-level collocated control"; DESIGN.md section 4).
+
+The equation of motion is written with the paper's input matrix B = -A (DESIGN.md: tension u >= 0
+pulls, ``M qdd + C qd + D qd + G(q) = B(q) u`` with ``G = F_el - F_g``). Tendons that the task does not
+use are held at a constant tension (their pretension); their force is part of G.
+
+Coordinates theta = [theta_a; theta_u] = h(q) with ``d theta_a/dt = B^T qd`` (tendon shortening
+rates; exact without friction, quasi-static with it) and ``theta_u = S_u q`` for a constant selector
+S_u. Then ``J_h = [B^T; S_u]`` and ``J_h^-T B = [I; 0]``: every actuated equation sees exactly one
+tension. The transformed forces are ``K_theta = J_h^-T F_el``, ``F_theta = J_h^-T (G - F_el)`` and
+``G_theta = K_theta + F_theta``; at an equilibrium ``G_theta = [u; 0]``, so ``G_theta_u = 0`` defines
+the equilibrium set and ``G_theta_a`` is the feedforward tension. Both are independent of S_u.
+
+Units: theta_a and shortenings [m]; theta_u are the selected coordinates of q [rad or -];
+G_theta_a [N]; G_theta_u in the generalised-force units of the selected coordinates.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.linalg
+
+from soft_arm_model import ArmData, ArmModel, evaluate, residual_jacobian
+from soft_arm_model.dynamics import STATICS
+
+
+@dataclass(frozen=True, eq=False)
+class CollocatedModel:
+    """The collocated transformation for one set of actuated tendons.
+
+    active: indices (0-based) of the actuated tendons, in task order; held: tension [N] of every
+    tendon that is not actuated (zero on the actuated ones); selector: S_u, (n - n_a, n), constant;
+    friction: use the paper's friction model in B and theta_a.
+    """
+    model: ArmModel
+    active: tuple
+    held: np.ndarray
+    selector: np.ndarray
+    friction: bool
+
+    @property
+    def n(self) -> int:
+        return self.model.n
+
+    @property
+    def n_a(self) -> int:
+        return len(self.active)
+
+
+def coordinate_selector(model: ArmModel, active, q_ref=None, friction: bool = True) -> np.ndarray:
+    """S_u selecting the n - n_a coordinates of q that B(q_ref)^T depends on least.
+
+    QR with column pivoting of B(q_ref)^T ranks the coordinates by how independently the tendons
+    move them; the first n_a pivots are left to theta_a, the others become theta_u. This keeps
+    J_h = [B^T; S_u] well conditioned near q_ref (default: the straight arm).
+    """
+    q_ref = np.zeros(model.n) if q_ref is None else np.asarray(q_ref, dtype=float)
+    data = evaluate(model, ArmData(model), q_ref, level=STATICS)
+    B = -(data.A if friction else data.A0)[:, list(active)]
+    _, _, pivots = scipy.linalg.qr(B.T, pivoting=True, mode="economic")
+    rest = np.sort(pivots[len(active):])
+    S = np.zeros((model.n - len(active), model.n))
+    S[np.arange(rest.size), rest] = 1.0
+    return S
+
+
+def build_collocated(model: ArmModel, active, held_tension: float = 0.0, friction: bool = True,
+                     selector=None) -> CollocatedModel:
+    """Collocated model for tendons ``active`` (0-based indices); the others hold ``held_tension`` [N].
+
+    ``selector`` is S_u ((n - n_a, n)); by default :func:`coordinate_selector` at the straight arm.
+    """
+    active = tuple(int(k) for k in active)
+    n_t = model.n_tendons
+    if not active or len(set(active)) != len(active) or not all(0 <= k < n_t for k in active):
+        raise ValueError(f"active tendons must be distinct indices in [0, {n_t - 1}], got {active}")
+    if not np.isfinite(held_tension) or held_tension < 0:
+        raise ValueError(f"held_tension must be >= 0 N, got {held_tension}")
+    held = np.full(n_t, float(held_tension))
+    held[list(active)] = 0.0
+    S = coordinate_selector(model, active, friction=friction) if selector is None else \
+        np.array(selector, dtype=float)
+    if S.shape != (model.n - len(active), model.n):
+        raise ValueError(f"selector must have shape ({model.n - len(active)}, {model.n}), got {S.shape}")
+    S.setflags(write=False)
+    held.setflags(write=False)
+    return CollocatedModel(model, active, held, S, friction)
+
+
+class CollocatedData:
+    """Workspace of :func:`evaluate_collocated`; arrays are overwritten on every call.
+
+    After a call: q; B (n, n_a); J_h (n, n); G (n); K_theta, F_theta, G_theta (n); u_eq = G_theta_a
+    [N] (n_a); G_theta_u (n - n_a); shortening (n_t) = L_c(0) - L_c(q) [m]; theta_a (n_t), the
+    friction-aware actuation coordinates [m] (equal to ``shortening`` without friction).
+    """
+
+    def __init__(self, cm: CollocatedModel):
+        n, n_a = cm.n, cm.n_a
+        self.arm = ArmData(cm.model)
+        self.q = np.zeros(n)
+        self.B = np.zeros((n, n_a))
+        self.J_h = np.zeros((n, n))
+        self.G = np.zeros(n)
+        self.K_theta = np.zeros(n)
+        self.F_theta = np.zeros(n)
+        self.G_theta = np.zeros(n)
+        self.shortening = np.zeros(cm.model.n_tendons)
+        self.theta_a = np.zeros(cm.model.n_tendons)
+        self.J_h_inv = np.zeros((n, n))
+
+    @property
+    def u_eq(self) -> np.ndarray:
+        return self.G_theta[:self.B.shape[1]]
+
+    @property
+    def G_theta_u(self) -> np.ndarray:
+        return self.G_theta[self.B.shape[1]:]
+
+    def solve_transposed(self, rhs) -> np.ndarray:
+        """J_h^-T rhs at the last evaluated q (rhs a vector or an (n, k) matrix)."""
+        return self.J_h_inv.T @ rhs
+
+
+def evaluate_collocated(cm: CollocatedModel, cd: CollocatedData, q) -> CollocatedData:
+    """Fill ``cd`` at q (see :class:`CollocatedData`). Raises OutOfDomainError outside the domain,
+    and ValueError when J_h is singular (the selector does not complement B^T at q)."""
+    q = np.ascontiguousarray(q, dtype=float)
+    arm = evaluate(cm.model, cd.arm, q, level=STATICS)
+    A = arm.A if cm.friction else arm.A0
+    cd.q[:] = q
+    cd.B[:] = -A[:, list(cm.active)]
+    n_a = cm.n_a
+    cd.J_h[:n_a] = cd.B.T
+    cd.J_h[n_a:] = cm.selector
+    if np.linalg.cond(cd.J_h) > 1e12:
+        raise ValueError("J_h = [B^T; S_u] is singular at this configuration")
+    cd.J_h_inv[:] = np.linalg.inv(cd.J_h)
+    cd.G[:] = arm.Fel - arm.Fg + A @ cm.held
+    cd.K_theta[:] = cd.solve_transposed(arm.Fel)
+    cd.F_theta[:] = cd.solve_transposed(cd.G - arm.Fel)
+    cd.G_theta[:] = cd.K_theta + cd.F_theta
+    cd.shortening[:] = cm.model.rest_tendon_lengths - arm.Lc
+    cd.theta_a[:] = (cm.model.rest_theta - arm.theta) if cm.friction else cd.shortening
+    return cd
+
+
+def full_tensions(cm: CollocatedModel, u_active) -> np.ndarray:
+    """Tensions of all tendons [N]: ``u_active`` on the actuated ones, the held tension elsewhere."""
+    u = cm.held.copy()
+    u[list(cm.active)] = u_active
+    return u
+
+
+def effective_stiffness(cm: CollocatedModel, cd: CollocatedData) -> np.ndarray:
+    """H_eff = dG/dq - sum_i u_eq,i dB_i/dq at the last evaluated q (n, n).
+
+    It is the tangent of the static residual at the tensions u_eq = G_theta_a(q), so that
+    ``dG_theta/dq = J_h^-T H_eff``; the tendon part is the tension-induced geometric stiffness.
+    """
+    _, H = residual_jacobian(cm.model, cd.q, full_tensions(cm, cd.u_eq), friction=cm.friction)
+    return H
+
+
+def equilibrium_jacobian(cm: CollocatedModel, cd: CollocatedData) -> np.ndarray:
+    """dG_theta_u/dq = S J_h^-T H_eff at the last evaluated q, (n - n_a, n)."""
+    return cd.solve_transposed(effective_stiffness(cm, cd))[cm.n_a:]

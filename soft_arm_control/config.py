@@ -1,0 +1,276 @@
+"""Controller, plant and task parameters (``config/control.yaml``, ``plant.yaml``, ``tasks.yaml``).
+
+Each file is in ROS 2 parameter layout (``/**: ros__parameters: <namespace>: ...``) and is validated
+like the arm description: every key required, every value checked, a bad value raises
+:class:`~soft_arm_model.config.ConfigError` naming ``namespace.key``, the value and what is allowed.
+Overrides are dotted keys relative to the namespace.
+"""
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass, replace
+from typing import Any, Mapping
+
+from soft_arm_model.config import (ArmConfig, ConfigError, apply_overrides, default_config_dir,
+                                   read_parameters, validate_tree)
+
+from .task_space import AXES, TaskSpace
+
+PHASE_MODES = ("clik", "replay")
+
+
+def _positive(v):
+    return v > 0
+
+
+def _nonneg_list(v):
+    return len(v) >= 1 and all(math.isfinite(a) and a >= 0 for a in v)
+
+
+CONTROL_SCHEMA = {
+    "friction": ("bool", None, "true or false"),
+    "tension_min": ("float", lambda v: 0 <= v <= 100, "a pretension in [0, 100] N"),
+    "tension_max": ("float", lambda v: 0 < v <= 100, "a tension in (0, 100] N"),
+    "actuation_map.degree": ("int", lambda v: 1 <= v <= 4, "a polynomial degree in [1, 4]"),
+    "actuation_map.levels": ("floats", lambda v: len(v) >= 2 and all(0 <= a <= 100 for a in v),
+                             "two or more tensions in [0, 100] N"),
+    "actuation_map.validation_samples": ("int", lambda v: 1 <= v <= 10000, "a count in [1, 10000]"),
+    "inner_loop.rate": ("float", lambda v: 1 <= v <= 10000, "a rate in [1, 10000] Hz"),
+    "inner_loop.proportional": ("floats", _nonneg_list, "gains >= 0 N/m, one per tendon"),
+    "inner_loop.derivative": ("floats", _nonneg_list, "gains >= 0 N s/m, one per tendon"),
+    "inner_loop.integral": ("floats", _nonneg_list, "gains >= 0 N/(m s), one per tendon"),
+    "inner_loop.integral_saturation": ("float", lambda v: 0 < v <= 10, "a length in (0, 10] m"),
+    "inner_loop.tension_rate_limit": ("float", lambda v: 0 <= v <= 1e6,
+                                      "a rate in [0, 1e6] N/s (0 disables the limit)"),
+    "inner_loop.feedforward": ("bool", None, "true or false"),
+    "clik.task_gain": ("float", lambda v: 0 < v <= 1000, "a gain in (0, 1000] 1/s"),
+    "clik.equilibrium_gain": ("float", lambda v: 0 < v <= 1000, "a gain in (0, 1000] 1/s"),
+    "clik.singular_threshold": ("float", lambda v: 0 < v < 1, "a relative singular value in (0, 1)"),
+    "clik.rate": ("float", lambda v: 1 <= v <= 10000, "a rate in [1, 10000] Hz"),
+    "clik.switch_delay": ("float", lambda v: 0 <= v <= 3600,
+                          "a delay in [0, 3600] s from a target change to online refinement"),
+    "clik.tolerance": ("float", lambda v: 0 < v <= 0.01, "a task tolerance in (0, 0.01] m"),
+}
+
+PLANT_SCHEMA = {
+    "youngs_modulus_scale": ("float", lambda v: 0.1 <= v <= 10, "a factor in [0.1, 10]"),
+    "viscosity_scale": ("float", lambda v: 0 <= v <= 10, "a factor in [0, 10]"),
+    "friction": ("floats", lambda v: all(0 <= a <= 10 for a in v),
+                 "friction coefficients in [0, 10], one per tendon"),
+    "timestep": ("float", lambda v: 1e-5 <= v <= 0.01, "a time step in [1e-5, 0.01] s"),
+    "motor.rotor_inertia": ("float", lambda v: 0 <= v <= 1, "an inertia in [0, 1] kg m^2"),
+    "encoder.pulley_radius": ("float", lambda v: 0 < v <= 1, "a radius in (0, 1] m"),
+    "encoder.resolution": ("float", lambda v: 0 <= v <= 1, "an angle step in [0, 1] rad"),
+    "encoder.velocity_resolution": ("float", lambda v: 0 <= v <= 10, "a rate step in [0, 10] rad/s"),
+    "mocap.rate": ("float", lambda v: 1 <= v <= 2000, "a frame rate in [1, 2000] Hz"),
+    "mocap.noise": ("float", lambda v: 0 <= v <= 0.1, "a standard deviation in [0, 0.1] m"),
+    "mocap.latency": ("float", lambda v: 0 <= v <= 1, "a latency in [0, 1] s"),
+    "mocap.seed": ("int", lambda v: v >= 0, "a seed >= 0"),
+}
+
+TASK_SCHEMA = {
+    "*.tendons": ("strs", lambda v: len(v) >= 1 and len(set(v)) == len(v),
+                  "one or more distinct tendon names"),
+    "*.markers": ("ints", lambda v: len(v) >= 1 and all(a >= 1 for a in v),
+                  "marker numbers >= 1 (1 = nearest the base), one per coordinate"),
+    "*.axes": ("strs", lambda v: all(a in AXES for a in v), "axes among x, y, z, one per coordinate"),
+    "*.targets": ("floats", lambda v: len(v) >= 1, "task coordinates [m], one group per target"),
+    "*.steady_time": ("float", lambda v: 0 < v <= 3600, "a time in (0, 3600] s"),
+    "*.phases": ("strs", lambda v: len(v) >= 1, "one or more phase names"),
+    "*.phase.*.mode": ("str", lambda v: v in PHASE_MODES, f"one of {list(PHASE_MODES)}"),
+    "*.phase.*.window": ("float", lambda v: 0 < v <= 3600, "a window in (0, 3600] s"),
+    "*.phase.*.sequence": ("ints", lambda v: len(v) >= 1 and all(a >= 1 for a in v),
+                           "target numbers >= 1, in the order they are visited"),
+}
+
+
+def load_section(filename: str, namespace: str, schema: Mapping, path: str | None = None,
+                 overrides: Mapping[str, Any] | None = None, node: str = "/**") -> dict:
+    """Validated values (dotted key -> value) of ``namespace`` in a parameter file of the config dir."""
+    path = path or os.path.join(default_config_dir(), filename)
+    params = read_parameters(path, node)
+    if namespace not in params or not isinstance(params[namespace], dict):
+        raise ConfigError(f"{path}: no '{namespace}' parameters under {node}.ros__parameters")
+    try:
+        return validate_tree(apply_overrides(params[namespace], overrides, schema, namespace),
+                             schema, namespace)
+    except ConfigError as exc:
+        raise ConfigError(f"{path}: {exc}") from None
+
+
+@dataclass(frozen=True)
+class ControlConfig:
+    """Validated ``control`` parameters; gains are per tendon of the arm (all of them)."""
+    friction: bool
+    tension_min: float
+    tension_max: float
+    map_degree: int
+    map_levels: tuple
+    map_validation_samples: int
+    inner_rate: float
+    proportional: tuple
+    derivative: tuple
+    integral: tuple
+    integral_saturation: float
+    tension_rate_limit: float
+    feedforward: bool
+    task_gain: float
+    equilibrium_gain: float
+    singular_threshold: float
+    clik_rate: float
+    switch_delay: float
+    tolerance: float
+
+
+def parse_control(v: dict, arm: ArmConfig) -> ControlConfig:
+    """Cross-checks of the ``control`` values against the arm (one gain per tendon)."""
+    n_t = len(arm.tendons)
+    for key in ("inner_loop.proportional", "inner_loop.derivative", "inner_loop.integral"):
+        if len(v[key]) != n_t:
+            raise ConfigError(f"control.{key} = {list(v[key])} is not valid: expected {n_t} values, "
+                              "one per tendon in arm.tendons.names")
+    if not v["tension_min"] < v["tension_max"]:
+        raise ConfigError(f"control.tension_min = {v['tension_min']} is not valid: expected a "
+                          f"pretension below control.tension_max ({v['tension_max']})")
+    return ControlConfig(
+        v["friction"], v["tension_min"], v["tension_max"], v["actuation_map.degree"],
+        v["actuation_map.levels"], v["actuation_map.validation_samples"], v["inner_loop.rate"],
+        v["inner_loop.proportional"], v["inner_loop.derivative"], v["inner_loop.integral"],
+        v["inner_loop.integral_saturation"], v["inner_loop.tension_rate_limit"],
+        v["inner_loop.feedforward"], v["clik.task_gain"], v["clik.equilibrium_gain"],
+        v["clik.singular_threshold"], v["clik.rate"], v["clik.switch_delay"], v["clik.tolerance"])
+
+
+def load_control_config(arm: ArmConfig, path: str | None = None, overrides=None) -> ControlConfig:
+    """Load ``control.yaml`` (default: the package's) and validate it against ``arm``."""
+    return parse_control(load_section("control.yaml", "control", CONTROL_SCHEMA, path, overrides), arm)
+
+
+@dataclass(frozen=True)
+class PlantConfig:
+    """The simulated plant: material scale factors and friction relative to the controller's arm,
+    the time step [s], the motor rotor inertia [kg m^2], the encoder (pulley radius [m], angle and
+    rate resolution [rad], [rad/s]) and the mocap (frame rate [Hz], noise standard deviation [m],
+    latency [s], seed)."""
+    youngs_modulus_scale: float
+    viscosity_scale: float
+    friction: tuple
+    timestep: float
+    rotor_inertia: float
+    pulley_radius: float
+    encoder_resolution: float
+    velocity_resolution: float
+    mocap_rate: float
+    mocap_noise: float
+    mocap_latency: float
+    mocap_seed: int
+
+    def plant_arm(self, arm: ArmConfig) -> ArmConfig:
+        """The plant's arm: the controller's description with E and viscosity scaled and the
+        plant's friction coefficients."""
+        material = replace(arm.material,
+                           youngs_modulus=arm.material.youngs_modulus * self.youngs_modulus_scale,
+                           viscosity=arm.material.viscosity * self.viscosity_scale)
+        tendons = tuple(replace(t, friction=f) for t, f in zip(arm.tendons, self.friction))
+        return replace(arm, material=material, tendons=tendons)
+
+    @property
+    def rotor_mass(self) -> float:
+        """The rotor inertia reflected onto the tendon: J / r^2 [kg]."""
+        return self.rotor_inertia / self.pulley_radius ** 2
+
+
+def load_plant_config(arm: ArmConfig, path: str | None = None, overrides=None) -> PlantConfig:
+    """Load ``plant.yaml`` and check it against ``arm`` (one friction coefficient per tendon)."""
+    v = load_section("plant.yaml", "plant", PLANT_SCHEMA, path, overrides)
+    if len(v["friction"]) != len(arm.tendons):
+        raise ConfigError(f"plant.friction = {list(v['friction'])} is not valid: expected "
+                          f"{len(arm.tendons)} values, one per tendon in arm.tendons.names")
+    return PlantConfig(v["youngs_modulus_scale"], v["viscosity_scale"], v["friction"], v["timestep"],
+                       v["motor.rotor_inertia"], v["encoder.pulley_radius"], v["encoder.resolution"],
+                       v["encoder.velocity_resolution"], v["mocap.rate"], v["mocap.noise"],
+                       v["mocap.latency"], v["mocap.seed"])
+
+
+@dataclass(frozen=True)
+class Phase:
+    """A phase of an experiment: ``mode`` clik (CLIK to each target, storing the reached q_d) or
+    replay (the stored q_d given straight to the inner loop), a window [s] per target and the
+    sequence of target indices (0-based) visited."""
+    name: str
+    mode: str
+    window: float
+    sequence: tuple
+
+
+@dataclass(frozen=True)
+class TaskConfig:
+    """An experiment: actuated tendons (0-based), task space, targets (k, m) [m], phases and the
+    steady-state time [s] used by the metrics."""
+    name: str
+    tendons: tuple
+    space: TaskSpace
+    targets: tuple
+    phases: tuple
+    steady_time: float
+
+
+def parse_task(name: str, v: dict, arm: ArmConfig) -> TaskConfig:
+    """Cross-checks of one task's values against the arm and themselves."""
+    def get(key):
+        full = f"{name}.{key}"
+        if full not in v:
+            raise ConfigError(f"missing key tasks.{full}")
+        return v[full]
+
+    def bad(key, allowed):
+        return ConfigError(f"tasks.{name}.{key} = {get(key)!r} is not valid: expected {allowed}")
+
+    names = [t.name for t in arm.tendons]
+    if any(t not in names for t in get("tendons")):
+        raise bad("tendons", f"names among {names}")
+    tendons = tuple(names.index(t) for t in get("tendons"))
+    markers, axes = get("markers"), get("axes")
+    n_markers = len(arm.marker_positions)
+    if len(markers) != len(tendons) or any(k > n_markers for k in markers):
+        raise bad("markers", f"{len(tendons)} marker numbers in 1..{n_markers} "
+                             "(the task controls as many coordinates as it actuates tendons)")
+    if len(axes) != len(markers):
+        raise bad("axes", f"{len(markers)} axes, one per marker")
+    space = TaskSpace(tuple(k - 1 for k in markers), tuple(AXES.index(a) for a in axes))
+    flat = get("targets")
+    m = space.m
+    if len(flat) % m:
+        raise bad("targets", f"groups of {m} coordinates ({', '.join(space.labels())}) per target")
+    targets = tuple(tuple(flat[i:i + m]) for i in range(0, len(flat), m))
+    phases = []
+    for pname in get("phases"):
+        seq = get(f"phase.{pname}.sequence")
+        if any(k > len(targets) for k in seq):
+            raise bad(f"phase.{pname}.sequence", f"target numbers in 1..{len(targets)}")
+        phases.append(Phase(pname, get(f"phase.{pname}.mode"), get(f"phase.{pname}.window"),
+                            tuple(k - 1 for k in seq)))
+    seen_clik = set()
+    for ph in phases:
+        if ph.mode == "clik":
+            seen_clik.update(ph.sequence)
+        elif any(k not in seen_clik for k in ph.sequence):
+            raise bad(f"phase.{ph.name}.sequence",
+                      "targets reached by an earlier clik phase (replay needs a stored configuration)")
+    return TaskConfig(name, tendons, space, targets, tuple(phases), get("steady_time"))
+
+
+def load_task_config(name: str, arm: ArmConfig, path: str | None = None, overrides=None) -> TaskConfig:
+    """Load task ``name`` from ``tasks.yaml``; an unknown name lists the known ones."""
+    v = load_section("tasks.yaml", "tasks", TASK_SCHEMA, path, overrides)
+    known = sorted({k.split(".")[0] for k in v})
+    if name not in known:
+        raise ConfigError(f"unknown task {name!r}; the tasks are: {', '.join(known)}")
+    return parse_task(name, v, arm)
+
+
+def task_names(path: str | None = None) -> list:
+    """Names of the tasks defined in ``tasks.yaml``."""
+    v = load_section("tasks.yaml", "tasks", TASK_SCHEMA, path)
+    return sorted({k.split(".")[0] for k in v})

@@ -1,0 +1,306 @@
+"""The closed-loop harness (ROS-free): plant, sensors, the two-level controller and the paper's protocols.
+
+- Plant: the Variable-Strain model with its own parameters (``plant.yaml``: scaled E and viscosity,
+  its own friction), stepped by the IMEX integrator at ``plant.timestep``.
+- Sensors: encoders (tendon shortening from the motor angle through the pulley, quantised, zeroed at
+  start-up on the hanging arm and offset by the controller model's prediction of that pose) and
+  motion capture (markers at ``mocap.rate``, Gaussian noise, delivered ``mocap.latency`` late).
+- Controller: P-satI-D+ at ``control.inner_loop.rate`` on the measured shortenings; the CLIK
+  precomputed (every target is solved before anything moves) then online at ``control.clik.rate``
+  from ``control.clik.switch_delay`` after each target change, as in the paper's protocol; replay
+  phases give the configurations stored at the end of the CLIK windows straight to the inner loop.
+
+All times are simulated seconds on one clock; every rate is realised on the plant's time grid.
+"""
+from __future__ import annotations
+
+import os
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from soft_arm_model import (ArmConfig, ArmData, ImexStepper, build_model, evaluate, load_arm_config,
+                            solve_equilibrium)
+from soft_arm_model.config import default_config_dir
+from soft_arm_model.dynamics import STATICS
+
+from .actuation_map import ActuationMap, fit_actuation_map
+from .clik import Clik, ClikGains, ClikPoint
+from .collocated import build_collocated
+from .config import (ControlConfig, PlantConfig, TaskConfig, load_control_config, load_plant_config,
+                     load_task_config)
+from .inner_loop import InnerLoopGains, PSatID
+from .metrics import TransitionMetrics, summarise, transition_metrics
+
+
+@dataclass(frozen=True)
+class Setup:
+    """Everything a run needs: the controller's arm, controller, plant and task parameters."""
+    arm: ArmConfig
+    control: ControlConfig
+    plant: PlantConfig
+    task: TaskConfig
+
+
+def split_overrides(pairs) -> dict:
+    """Group ``namespace.key=value`` strings (namespaces arm, control, plant, tasks) by namespace."""
+    groups = {"arm": {}, "control": {}, "plant": {}, "tasks": {}}
+    for pair in pairs or ():
+        key, sep, value = pair.partition("=")
+        ns = key.split(".", 1)[0]
+        if not sep or ns not in groups or "." not in key:
+            raise ValueError(f"--set expects namespace.key=value with namespace one of "
+                             f"{', '.join(groups)}; got {pair!r}")
+        groups[ns][key.split(".", 1)[1]] = value
+    return groups
+
+
+def load_setup(task: str, config_dir: str | None = None, overrides=None) -> Setup:
+    """Load the four parameter files from ``config_dir`` (default: the package's) with overrides
+    (``namespace.key=value`` strings)."""
+    d = config_dir or default_config_dir()
+    groups = split_overrides(overrides)
+    arm = load_arm_config(os.path.join(d, "arm.yaml"), groups["arm"])
+    return Setup(arm,
+                 load_control_config(arm, os.path.join(d, "control.yaml"), groups["control"]),
+                 load_plant_config(arm, os.path.join(d, "plant.yaml"), groups["plant"]),
+                 load_task_config(task, arm, os.path.join(d, "tasks.yaml"), groups["tasks"]))
+
+
+class TwoLevelController:
+    """The paper's controller for one task: P-satI-D+ inner loop and underactuated CLIK outer loop.
+
+    ``reference`` is the current configuration reference (q_d with its tendon shortenings and
+    feedforward); ``inner`` computes tensions for all tendons from measured shortenings.
+    """
+
+    def __init__(self, model, control: ControlConfig, task: TaskConfig,
+                 actuation_map: ActuationMap | None = None):
+        self.model, self.control, self.task = model, control, task
+        a = list(task.tendons)
+        self.cm = build_collocated(model, a, held_tension=control.tension_min,
+                                   friction=control.friction)
+        self.clik = Clik(self.cm, task.space,
+                         ClikGains(control.task_gain, control.equilibrium_gain,
+                                   control.singular_threshold),
+                         (control.tension_min, control.tension_max))
+        if actuation_map is None:
+            actuation_map = (fit_actuation_map(model, control.map_levels, control.map_degree,
+                                               control.map_validation_samples)
+                             if control.friction else ActuationMap.identity())
+        self.actuation_map = actuation_map
+        gains = InnerLoopGains(np.take(control.proportional, a), np.take(control.derivative, a),
+                               np.take(control.integral, a), control.integral_saturation,
+                               control.tension_min, control.tension_max, control.tension_rate_limit)
+        self.pid = PSatID(gains, actuation_map, a, model.n_tendons)
+        self.reference: ClikPoint | None = None
+
+    def inner(self, t: float, s, s_dot) -> np.ndarray:
+        """Tensions [N] of all tendons at time t [s] from measured shortenings [m] and rates [m/s]."""
+        ref = self.reference
+        u_ff = ref.u_ff if self.control.feedforward else np.zeros(len(self.task.tendons))
+        return self.pid.update(t, s, s_dot, ref.shortening, u_ff)
+
+
+class Plant:
+    """The simulated arm with its motors: state (q, qd) stepped under the motor tensions (torque /
+    pulley radius) [N], the rotors' reflected mass [kg] on every tendon; true sensor values."""
+
+    def __init__(self, model, timestep: float, rotor_mass: float = 0.0):
+        self.model = model
+        self.stepper = ImexStepper(model, timestep, rotor_mass=np.full(model.n_tendons, rotor_mass))
+        self.data = ArmData(model)
+        self.q = np.zeros(model.n)
+        self.qd = np.zeros(model.n)
+
+    def settle(self, u):
+        """Put the arm at rest at the static equilibrium of tensions u [N]."""
+        self.q = solve_equilibrium(self.model, np.asarray(u, dtype=float)).q
+        self.qd = np.zeros(self.model.n)
+
+    def step(self, u):
+        self.q, self.qd = self.stepper.step(self.q, self.qd, u)
+
+    def tendons(self) -> tuple[np.ndarray, np.ndarray]:
+        """True shortenings L_c(0) - L_c(q) [m] and rates [m/s] of all tendons."""
+        d = evaluate(self.model, self.data, self.q, level=STATICS)
+        return self.model.rest_tendon_lengths - d.Lc, -(d.A0.T @ self.qd)
+
+    def markers(self) -> tuple[np.ndarray, float]:
+        """True marker positions (n_markers, 3) [m] in arm_base and the tip speed [m/s]."""
+        d = evaluate(self.model, self.data, self.q, level=0, markers=True)
+        v = d.marker_R[-1] @ (d.marker_J[-1][3:] @ self.qd)
+        return d.marker_p.copy(), float(np.linalg.norm(v))
+
+
+class Encoders:
+    """Motor encoders: shortening = pulley radius x angle, quantised to ``resolution`` [rad] (rate to
+    ``velocity_resolution`` [rad/s]), zeroed at ``zero`` [m] (true shortening at start-up) and offset
+    by ``offset`` [m] (the controller model's shortening of the start-up pose)."""
+
+    def __init__(self, plant: PlantConfig, zero, offset):
+        self.r, self.res, self.vres = plant.pulley_radius, plant.encoder_resolution, \
+            plant.velocity_resolution
+        self.zero, self.offset = np.array(zero, dtype=float), np.array(offset, dtype=float)
+
+    @staticmethod
+    def _quantise(v, step):
+        return v if step == 0 else np.round(v / step) * step
+
+    def read(self, s_true, s_dot_true) -> tuple[np.ndarray, np.ndarray]:
+        angle = self._quantise((np.asarray(s_true) - self.zero) / self.r, self.res)
+        rate = self._quantise(np.asarray(s_dot_true) / self.r, self.vres)
+        return angle * self.r + self.offset, rate * self.r
+
+
+@dataclass
+class Record:
+    """Time series of a run. Inner-loop rate: t_inner, tension, shortening (measured), shortening_ref,
+    theta (thetabar_a of the measured shortenings), theta_ref. Mocap rate: t_mocap (exposure times),
+    x (measured task coordinates), x_true, x_d, tip (measured tip), tip_speed (true), window (index of
+    the transition). All SI."""
+    t_inner: list = field(default_factory=list)
+    tension: list = field(default_factory=list)
+    shortening: list = field(default_factory=list)
+    shortening_ref: list = field(default_factory=list)
+    theta: list = field(default_factory=list)
+    theta_ref: list = field(default_factory=list)
+    t_mocap: list = field(default_factory=list)
+    x: list = field(default_factory=list)
+    x_true: list = field(default_factory=list)
+    x_d: list = field(default_factory=list)
+    tip: list = field(default_factory=list)
+    tip_speed: list = field(default_factory=list)
+    window: list = field(default_factory=list)
+
+    def arrays(self) -> dict:
+        return {k: np.asarray(v) for k, v in self.__dict__.items()}
+
+
+@dataclass(frozen=True)
+class Transition:
+    """One window of the protocol: phase, mode, target index (0-based), x_d [m], start and end [s]."""
+    phase: str
+    mode: str
+    target: int
+    x_d: np.ndarray
+    start: float
+    end: float
+
+
+@dataclass
+class RunResult:
+    """The outcome of :func:`run_experiment`: transitions, per-transition metrics, summary, record,
+    the actuation-map fit errors [m] and the stored configurations per target."""
+    transitions: list
+    metrics: list
+    summary: object
+    record: Record
+    map_rms: float
+    map_max: float
+    stored: dict
+
+
+def schedule(task: TaskConfig) -> list:
+    """The protocol as (phase, mode, target, window) tuples in order."""
+    return [(ph.name, ph.mode, k, ph.window) for ph in task.phases for k in ph.sequence]
+
+
+def precompute_targets(ctrl: TwoLevelController, q_start) -> dict:
+    """Precomputed CLIK references of every target visited by a clik phase, each solved from q_start
+    (the start-up configuration), so that a reference does not depend on the visiting order (a task
+    point can have several equilibria). Raises TargetError, before anything moves, for a bad target."""
+    return {k: ctrl.clik.precompute(np.array(ctrl.task.targets[k]), q_start,
+                                    tol=ctrl.control.tolerance)
+            for _, mode, k, _ in schedule(ctrl.task) if mode == "clik"}
+
+
+def run_experiment(setup: Setup, progress=None, actuation_map: ActuationMap | None = None) -> RunResult:
+    """Run the task's protocol on the simulated plant and compute the paper's metrics.
+
+    ``progress(t, t_end)`` is called about once per simulated second.
+    """
+    ctl, task, pc = setup.control, setup.task, setup.plant
+    model = build_model(setup.arm)
+    plant_model = build_model(pc.plant_arm(setup.arm))
+    ctrl = TwoLevelController(model, ctl, task, actuation_map)
+
+    pretension = np.full(model.n_tendons, ctl.tension_min)
+    plant = Plant(plant_model, pc.timestep, pc.rotor_mass)
+    plant.settle(pretension)
+    q_rest = solve_equilibrium(model, pretension).q           # the controller's view of start-up
+    ctrl.reference = ctrl.clik.reference(q_rest)
+    s0, _ = plant.tendons()
+    encoders = Encoders(pc, zero=s0, offset=ctrl.reference.shortening)
+    points = precompute_targets(ctrl, q_rest)
+
+    dt = pc.timestep
+    inner_every = max(1, int(round(1.0 / (ctl.inner_rate * dt))))
+    rng = np.random.default_rng(pc.mocap_seed)
+    frame_period, latency = 1.0 / pc.mocap_rate, pc.mocap_latency
+    pending = deque()
+    rec = Record()
+    stored, transitions, rows = {}, [], []
+    tip_index = model.marker_X.size - 1
+    space = task.space
+    step_index, next_frame, x_meas_latest, new_frame = 0, 0.0, None, False
+    u = pretension.copy()
+    total = sum(w for *_, w in schedule(task))
+    t_start = 0.0
+    for w_index, (phase, mode, k, window) in enumerate(schedule(task)):
+        x_d = np.array(task.targets[k])
+        ctrl.reference = points[k] if mode == "clik" else stored[k]
+        t_end = t_start + window
+        online_from = t_start + ctl.switch_delay
+        next_clik = online_from
+        while step_index * dt < t_end - 1e-9:
+            t = step_index * dt
+            if t >= next_frame - 1e-12:                  # mocap exposure
+                markers, speed = plant.markers()
+                noisy = markers + rng.normal(0.0, pc.mocap_noise, markers.shape)
+                pending.append((next_frame + latency, noisy))
+                rec.t_mocap.append(next_frame)
+                rec.x.append(space.from_markers(noisy))
+                rec.x_true.append(space.from_markers(markers))
+                rec.x_d.append(x_d)
+                rec.tip.append(noisy[tip_index])
+                rec.tip_speed.append(speed)
+                rec.window.append(w_index)
+                next_frame += frame_period
+            while pending and pending[0][0] <= t + 1e-12:  # delivery after the latency
+                x_meas_latest = space.from_markers(pending.popleft()[1])
+                new_frame = True
+            if mode == "clik" and t >= next_clik - 1e-12 and new_frame:
+                ref, _ = ctrl.clik.step(ctrl.reference.q, x_d, 1.0 / ctl.clik_rate, x_meas_latest)
+                if ref is not None:
+                    ctrl.reference = ref
+                new_frame = False
+                next_clik += 1.0 / ctl.clik_rate
+            if step_index % inner_every == 0:
+                s_true, sd_true = plant.tendons()
+                s, sd = encoders.read(s_true, sd_true)
+                u = ctrl.inner(t, s, sd)
+                rec.t_inner.append(t)
+                rec.tension.append(u)
+                rec.shortening.append(s)
+                rec.shortening_ref.append(ctrl.reference.shortening)
+                rec.theta.append(ctrl.actuation_map(s))
+                rec.theta_ref.append(ctrl.actuation_map(ctrl.reference.shortening))
+            plant.step(u)
+            step_index += 1
+            if progress is not None and step_index % int(round(1.0 / dt)) == 0:
+                progress(step_index * dt, total)
+        if mode == "clik":
+            stored[k] = ctrl.reference
+        transitions.append(Transition(phase, mode, k, x_d, t_start, t_end))
+        t_start = t_end
+    arrays = rec.arrays()
+    for w_index, tr in enumerate(transitions):
+        sel = arrays["window"] == w_index
+        rows.append(transition_metrics(tr.phase, tr.target + 1, arrays["t_mocap"][sel],
+                                       arrays["x_d"][sel] - arrays["x"][sel], arrays["tip"][sel],
+                                       arrays["tip_speed"][sel], task.steady_time))
+    return RunResult(transitions, rows, summarise(rows), rec, ctrl.actuation_map.rms_error,
+                     ctrl.actuation_map.max_error, stored)
+

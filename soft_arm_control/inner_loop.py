@@ -1,0 +1,115 @@
+"""The inner loop: the paper's collocated P-satI-D+ law on tendon-length-based actuation coordinates.
+
+    u = G_P (theta_d - theta) - G_D thetadot + G_I xi + u_ff,
+    xi' = e_sat tanh((theta_d - theta) / e_sat)
+
+(paper eq. PID+; e_sat = 1 m is the paper's literal tanh of the error in metres, a smaller e_sat
+bounds the integrator rate to e_sat per second per tendon while keeping the small-error slope 1).
+theta = thetabar_a(s) from the measured shortenings s [m] (:mod:`.actuation_map`), thetadot by the
+chain rule from the measured shortening rates, theta_d = thetabar_a(s_d) from the reference
+shortenings, u_ff = K_theta_a(q_d) + F_theta_a(q_d) [N] from the outer loop.
+
+Tensions are clipped to [u_min, u_max] (pull only, u_min a small pretension) after an optional rate
+limit; the integral is frozen while the clipped output saturates in the direction it would push it
+(conditional integration, anti-windup). The core takes explicit time stamps [s] and never reads a
+clock. Tendons that the task does not use hold u_min.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .actuation_map import ActuationMap
+
+
+@dataclass(frozen=True)
+class InnerLoopGains:
+    """Diagonal gains per actuated tendon: proportional [N/m], derivative [N s/m], integral
+    [N/(m s)]; integral saturation e_sat [m]; tension limits [N]; rate limit [N/s] (0: none)."""
+    proportional: np.ndarray
+    derivative: np.ndarray
+    integral: np.ndarray
+    integral_saturation: float
+    tension_min: float
+    tension_max: float
+    tension_rate_limit: float = 0.0
+
+    def __post_init__(self):
+        for name in ("proportional", "derivative", "integral"):
+            v = np.asarray(getattr(self, name), dtype=float)
+            if v.ndim != 1 or not np.all(np.isfinite(v)) or np.any(v < 0):
+                raise ValueError(f"{name} gains must be finite and >= 0, got {v}")
+            object.__setattr__(self, name, v)
+        if not (self.proportional.size == self.derivative.size == self.integral.size):
+            raise ValueError("proportional, derivative and integral need one gain per tendon each")
+        if not self.integral_saturation > 0:
+            raise ValueError(f"integral_saturation must be > 0 m, got {self.integral_saturation}")
+        if not 0 <= self.tension_min < self.tension_max:
+            raise ValueError(f"need 0 <= tension_min < tension_max, got {self.tension_min}, "
+                             f"{self.tension_max}")
+        if not self.tension_rate_limit >= 0:
+            raise ValueError(f"tension_rate_limit must be >= 0 N/s, got {self.tension_rate_limit}")
+
+
+class PSatID:
+    """P-satI-D+ regulator for the tendons ``active`` (0-based) of an arm with ``n_tendons`` tendons.
+
+    ``update`` takes and returns arrays over all tendons; the inactive ones get u_min. The integral
+    state ``xi`` [m s] is public for inspection and is kept across reference changes.
+    """
+
+    def __init__(self, gains: InnerLoopGains, actuation_map: ActuationMap, active, n_tendons: int):
+        self.gains = gains
+        self.map = actuation_map
+        self.active = np.array(active, dtype=int)
+        if self.active.size != gains.proportional.size:
+            raise ValueError(f"{self.active.size} active tendons but {gains.proportional.size} gains")
+        self.n_tendons = n_tendons
+        self.xi = np.zeros(self.active.size)
+        self.u = np.full(n_tendons, gains.tension_min)
+        self.t = None
+
+    def reset(self):
+        """Forget the integral, the last output and the last time stamp."""
+        self.xi[:] = 0.0
+        self.u[:] = self.gains.tension_min
+        self.t = None
+
+    def update(self, t: float, s, s_dot, s_ref, u_ff) -> np.ndarray:
+        """Tensions [N] of all tendons at time t [s].
+
+        s, s_dot: measured shortenings [m] and rates [m/s] of all tendons; s_ref: reference
+        shortenings [m] of all tendons (from q_d); u_ff: feedforward tensions [N] of the active
+        tendons. Non-finite inputs or a time stamp earlier than the last raise ValueError and leave
+        the state unchanged.
+        """
+        s, s_dot, s_ref = (np.asarray(v, dtype=float) for v in (s, s_dot, s_ref))
+        u_ff = np.asarray(u_ff, dtype=float)
+        if not (np.all(np.isfinite(s)) and np.all(np.isfinite(s_dot)) and np.all(np.isfinite(s_ref))
+                and np.all(np.isfinite(u_ff))):
+            raise ValueError("non-finite measurement, reference or feedforward")
+        if self.t is not None and t < self.t:
+            raise ValueError(f"time stamp {t} s is earlier than the last one ({self.t} s)")
+        dt = 0.0 if self.t is None else t - self.t
+        g = self.gains
+        a = self.active
+        theta = self.map(s)[a]
+        theta_dot = (self.map.jacobian(s) @ s_dot)[a]
+        e = self.map(s_ref)[a] - theta
+        xi = self.xi + dt * g.integral_saturation * np.tanh(e / g.integral_saturation)
+        u_pd = g.proportional * e - g.derivative * theta_dot + u_ff
+        u_raw = u_pd + g.integral * xi
+        # conditional integration: keep the old integral where the output saturates and the
+        # integral would push it further out
+        wind = ((u_raw > g.tension_max) & (xi > self.xi)) | ((u_raw < g.tension_min) & (xi < self.xi))
+        xi = np.where(wind, self.xi, xi)
+        u_a = u_pd + g.integral * xi
+        if g.tension_rate_limit > 0 and self.t is not None:
+            step = g.tension_rate_limit * dt
+            u_a = np.clip(u_a, self.u[a] - step, self.u[a] + step)
+        self.xi = xi
+        self.u = np.full(self.n_tendons, g.tension_min)
+        self.u[a] = np.clip(u_a, g.tension_min, g.tension_max)
+        self.t = float(t)
+        return self.u.copy()

@@ -1,0 +1,58 @@
+"""Task coordinates: a list of (marker, axis) pairs read from the model's marker kinematics.
+
+A task coordinate is one Cartesian component [m] in ``arm_base`` of one tracked marker; markers are
+the arm's ``markers.positions`` in order from the base (index 0) to the tip (last index).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from soft_arm_model import ArmData, ArmModel, evaluate
+from soft_arm_model.dynamics import KINEMATICS
+
+AXES = ("x", "y", "z")
+
+
+@dataclass(frozen=True)
+class TaskSpace:
+    """Controlled coordinates: ``markers`` (0-based marker indices) and ``axes`` (0, 1, 2 = x, y, z)."""
+    markers: tuple
+    axes: tuple
+
+    def __post_init__(self):
+        if len(self.markers) != len(self.axes) or not self.markers:
+            raise ValueError("a task needs one axis per marker and at least one coordinate")
+        if any(a not in (0, 1, 2) for a in self.axes):
+            raise ValueError(f"axes must be 0, 1 or 2 (x, y, z), got {self.axes}")
+        if len(set(zip(self.markers, self.axes))) != len(self.axes):
+            raise ValueError("task coordinates must be distinct")
+
+    @property
+    def m(self) -> int:
+        return len(self.axes)
+
+    def labels(self) -> list:
+        """Human-readable names, e.g. ``marker4.x`` (markers numbered from 1 at the base)."""
+        return [f"marker{k + 1}.{AXES[a]}" for k, a in zip(self.markers, self.axes)]
+
+    def check(self, model: ArmModel):
+        """Raise ValueError if a marker index is outside the model's markers."""
+        n_markers = model.marker_X.size
+        if any(not 0 <= k < n_markers for k in self.markers):
+            raise ValueError(f"task markers {[k + 1 for k in self.markers]} outside 1..{n_markers}")
+
+    def from_markers(self, markers) -> np.ndarray:
+        """Task coordinates from marker positions (n_markers, 3) [m], e.g. a mocap frame."""
+        markers = np.asarray(markers, dtype=float)
+        return markers[list(self.markers), list(self.axes)].copy()
+
+    def evaluate(self, model: ArmModel, q, data: ArmData | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Task coordinates x(q) [m] and their Jacobian dx/dq (m, n) from the model."""
+        data = evaluate(model, data or ArmData(model), q, level=KINEMATICS, markers=True)
+        x = data.marker_p[list(self.markers), list(self.axes)].copy()
+        J = np.empty((self.m, model.n))
+        for row, (k, a) in enumerate(zip(self.markers, self.axes)):
+            J[row] = data.marker_R[k][a] @ data.marker_J[k][3:]
+        return x, J
