@@ -24,13 +24,14 @@ setup(
         "PyYAML>=6",
         "matplotlib>=3.8",
         "python-can>=4.3",
+        "mcap==1.6.0",
         # Real ROS 2 Jazzy rclpy from PyPI; without the RMW implementation rclpy cannot start.
         "ros-jazzy-rclpy==7.1.6",
         "ros-jazzy-common-interfaces==5.3.6",
         "ros-jazzy-rmw-fastrtps-cpp==8.4.3",
     ],
     extras_require={
-        "test": ["pytest>=8", "hypothesis>=6"],
+        "test": ["pytest>=8", "hypothesis>=6", "rosbags==0.11.9"],
         "bench": ["pyelastica==1.0.0"],
     },
     zip_safe=True,
@@ -41,6 +42,7 @@ setup(
     entry_points={
         "console_scripts": [
             "soft-arm-model = soft_arm_model.cli:main",
+            "soft-arm-harness = soft_arm_control.cli:main",
         ],
     },
 )

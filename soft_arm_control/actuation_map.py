@@ -12,6 +12,7 @@ import itertools
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 from soft_arm_model import ArmData, ArmModel, EquilibriumError, evaluate, solve_equilibrium
 from soft_arm_model.dynamics import STATICS
@@ -48,21 +49,45 @@ class ActuationMap:
         s = np.asarray(s, dtype=float)
         if self.coef is None:
             return s.copy()
-        return self.coef @ np.prod((s / SCALE)[None, :] ** self.exponents, axis=1)
+        out = np.empty(self.exponents.shape[0])
+        _features(s / SCALE, self.exponents, out)
+        return self.coef @ out
 
     def jacobian(self, s) -> np.ndarray:
         """d thetabar_a / ds (n_t, n_t) at s."""
         s = np.asarray(s, dtype=float)
         if self.coef is None:
             return np.eye(s.size)
-        x = s / SCALE
-        cols = []
-        for j in range(s.size):
-            e = self.exponents.copy()
-            factor = e[:, j].astype(float)
-            e[:, j] = np.maximum(e[:, j] - 1, 0)
-            cols.append(factor * np.prod(x[None, :] ** e, axis=1))
-        return (self.coef @ np.array(cols).T) / SCALE
+        out = np.empty((self.exponents.shape[0], s.size))
+        _feature_jacobian(s / SCALE, self.exponents, out)
+        return (self.coef @ out) / SCALE
+
+
+@njit(cache=True)
+def _features(x, exps, out):
+    """Monomials prod_j x_j^e_fj, one per row f of ``exps``."""
+    for f in range(exps.shape[0]):
+        acc = 1.0
+        for j in range(x.shape[0]):
+            for _ in range(exps[f, j]):
+                acc *= x[j]
+        out[f] = acc
+
+
+@njit(cache=True)
+def _feature_jacobian(x, exps, out):
+    """d monomial_f / d x_j into out[f, j]."""
+    for f in range(exps.shape[0]):
+        for j in range(x.shape[0]):
+            e = exps[f, j]
+            if e == 0:
+                out[f, j] = 0.0
+                continue
+            acc = float(e)
+            for i in range(x.shape[0]):
+                for _ in range(exps[f, i] - (1 if i == j else 0)):
+                    acc *= x[i]
+            out[f, j] = acc
 
 
 def _sample(model: ArmModel, tensions) -> tuple[np.ndarray, np.ndarray]:
@@ -94,7 +119,9 @@ def fit_actuation_map(model: ArmModel, levels, degree: int = 2, validation_sampl
     if len(s) < 2 * exps.shape[0]:
         raise ValueError(f"only {len(s)} equilibria converged; a degree-{degree} fit needs "
                          f"at least {2 * exps.shape[0]} (add tension levels or lower the degree)")
-    X = np.prod((s / SCALE)[:, None, :] ** exps[None, :, :], axis=2)
+    X = np.empty((len(s), exps.shape[0]))
+    for row, x in zip(X, s / SCALE):
+        _features(x, exps, row)
     coef, *_ = np.linalg.lstsq(X, th, rcond=None)
     rng = np.random.default_rng(seed)
     s_v, th_v = _sample(model, rng.uniform(min(levels), max(levels), (validation_samples, n_t)))

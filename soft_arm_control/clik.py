@@ -18,13 +18,15 @@ online (x measured at the mocap rate; :meth:`Clik.step`). Targets are checked be
 """
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 
 import numpy as np
 
-from soft_arm_model import OutOfDomainError
+from soft_arm_model import EquilibriumError, OutOfDomainError, solve_equilibrium
 
-from .collocated import CollocatedData, CollocatedModel, equilibrium_jacobian, evaluate_collocated
+from .collocated import (CollocatedData, CollocatedModel, equilibrium_jacobian, evaluate_collocated,
+                         full_tensions)
 from .task_space import TaskSpace
 
 
@@ -80,13 +82,17 @@ class Clik:
         self.cm, self.task, self.gains = cm, task, gains
         self.u_min, self.u_max = map(float, tension_limits)
         self.cd = CollocatedData(cm)
+        self._Z = None
 
     # -- evaluation -------------------------------------------------------------------------------
-    def _stack(self, q):
+    def _stack(self, q, refresh: bool = True):
+        """Model task coordinates and Z at q. With ``refresh`` False the last Z is reused (the
+        residuals are always fresh, so the fixed point is unchanged: a chord iteration)."""
         evaluate_collocated(self.cm, self.cd, q)
         x, Jx = self.task.evaluate(self.cm.model, q, self.cd.arm)
-        Z = np.vstack([Jx, equilibrium_jacobian(self.cm, self.cd)])
-        return x, Z
+        if refresh or self._Z is None:
+            self._Z = np.vstack([Jx, equilibrium_jacobian(self.cm, self.cd)])
+        return x, self._Z
 
     def _solve(self, Z, rhs):
         """Z^-1 rhs with unit-norm rows; damped least squares below the singular threshold."""
@@ -98,13 +104,14 @@ class Clik:
         inv = sig / (sig ** 2 + lam ** 2) if damped else 1.0 / sig
         return Vt.T @ (inv * (U.T @ (w * rhs))), float(cond), bool(damped)
 
-    def velocity(self, q, x_d, x=None, xd_dot=None) -> ClikStep:
+    def velocity(self, q, x_d, x=None, xd_dot=None, refresh: bool = True) -> ClikStep:
         """qdot of the CLIK law at q [generalised coordinates] for target x_d [m].
 
         x: measured task coordinates [m] (online variant); default the model's x(q) (precomputed).
-        xd_dot: target velocity [m/s] (default zero: regulation).
+        xd_dot: target velocity [m/s] (default zero: regulation). refresh: recompute Z (False
+        reuses the last one; the residuals G_theta_u and e are always evaluated at q).
         """
-        x_model, Z = self._stack(q)
+        x_model, Z = self._stack(q, refresh)
         x = x_model if x is None else np.asarray(x, dtype=float)
         e = np.asarray(x_d, dtype=float) - x
         rhs = np.concatenate([(0.0 if xd_dot is None else np.asarray(xd_dot, dtype=float))
@@ -134,11 +141,12 @@ class Clik:
         return None
 
     # -- online variant ---------------------------------------------------------------------------
-    def step(self, q, x_d, dt: float, x=None) -> tuple[ClikPoint | None, ClikStep]:
+    def step(self, q, x_d, dt: float, x=None, refresh: bool = True) -> tuple[ClikPoint | None, ClikStep]:
         """One explicit Euler step of length dt [s] from q_d = q; x: measured task coordinates [m]
-        (online) or None (model). Returns (the new reference, diagnostics); the reference is None
-        when the step would leave the model's domain or the tension limits (keep the last one)."""
-        info = self.velocity(q, x_d, x)
+        (online) or None (model); refresh: see :meth:`velocity`. Returns (the new reference,
+        diagnostics); the reference is None when the step would leave the model's domain or the
+        tension limits (keep the last one)."""
+        info = self.velocity(q, x_d, x, refresh=refresh)
         q_new = np.asarray(q, dtype=float) + dt * info.qdot
         try:
             ref = self.reference(q_new)
@@ -156,16 +164,18 @@ class Clik:
                 x, Z = self._stack(qq)
             except (OutOfDomainError, ValueError):
                 return None
-            scale = 1e-3 * np.linalg.norm(Z[self.task.m:], axis=1)  # G per 1e-3 coordinate change
-            r = np.concatenate([(x - x_d) / 1e-3, self.cd.G_theta_u / scale])
-            return x, Z, float(r @ r), self.cd.G_theta_u.copy(), scale
+            # residuals over the row norms of Z (the scaling of _solve, so that its step descends):
+            # each is the coordinate change that would cancel it
+            norms = np.linalg.norm(Z, axis=1)
+            r = np.concatenate([x - x_d, self.cd.G_theta_u]) / norms
+            return x, Z, float(r @ r), self.cd.G_theta_u.copy(), norms[self.task.m:]
 
         state = merit(q)
         if state is None:
             return None
         for it in range(1, max_iter + 1):
             x, Z, phi, G_u, scale = state
-            if np.max(np.abs(x - x_d)) < tol and np.max(np.abs(G_u) / scale) < 1e-6:
+            if np.max(np.abs(x - x_d)) < tol and np.max(np.abs(G_u) / scale) < tol:
                 return q, it - 1
             dq, _, _ = self._solve(Z, np.concatenate([x_d - x, -G_u]))
             alpha = 1.0
@@ -179,18 +189,9 @@ class Clik:
             q, state = q + alpha * dq, trial
         return None
 
-    def precompute(self, x_d, q_start, tol: float = 1e-6, max_iter: int = 40,
-                   max_splits: int = 6) -> ClikPoint:
-        """The equilibrium reference q_d whose model task coordinates are x_d [m], from q_start.
-
-        Newton from q_start; if it fails, the target is approached along the straight task path from
-        x(q_start) in halved sub-steps (up to ``max_splits`` halvings). Raises TargetError when no
-        equilibrium reaches x_d or when its tensions are outside the limits.
-        """
-        x_d = np.asarray(x_d, dtype=float)
-        if x_d.shape != (self.task.m,) or not np.all(np.isfinite(x_d)):
-            raise TargetError(f"a target needs {self.task.m} finite coordinates "
-                              f"({', '.join(self.task.labels())}), got {x_d.tolist()}")
+    def _continue(self, x_d, q_start, tol, max_iter, max_splits):
+        """Newton from q_start along the straight task path to x_d in halved sub-steps; returns
+        (q, None) or (None, the fraction of the path reached)."""
         q = np.array(q_start, dtype=float)
         x0, _ = self.task.evaluate(self.cm.model, q, self.cd.arm)
         lam, step = 0.0, 1.0
@@ -200,14 +201,53 @@ class Clik:
             if sol is None:
                 step *= 0.5
                 if step < 0.5 ** max_splits:
-                    raise TargetError(
-                        f"target {x_d.tolist()} m ({', '.join(self.task.labels())}) is unreachable: "
-                        f"no equilibrium found beyond {lam:.0%} of the way from {x0.round(4).tolist()}")
+                    return None, lam
                 continue
             q, lam = sol[0], trial
             step = min(1.0, 2.0 * step)
-        ref = self.reference(q)
-        reason = self.feasibility_error(ref.u_ff)
-        if reason is not None:
-            raise TargetError(f"target {x_d.tolist()} m is infeasible: {reason}")
-        return ref
+        return q, 1.0
+
+    def precompute(self, x_d, q_start, seeds=(), tol: float = 1e-6, max_iter: int = 40,
+                   max_splits: int = 6, max_seeds: int = 8) -> ClikPoint:
+        """The equilibrium reference q_d whose model task coordinates are x_d [m].
+
+        Newton from q_start, continued along the straight task path in halved sub-steps when a full
+        step fails. A task point can have several equilibria (and the straight path can leave the
+        workspace), so when q_start gives none within the tension limits, the ``seeds`` (pairs of
+        task coordinates and configurations, e.g. from :func:`equilibrium_seeds`) nearest to x_d are
+        tried in turn. Raises TargetError when no equilibrium reaches x_d or none is within the limits.
+        """
+        x_d = np.asarray(x_d, dtype=float)
+        if x_d.shape != (self.task.m,) or not np.all(np.isfinite(x_d)):
+            raise TargetError(f"a target needs {self.task.m} finite coordinates "
+                              f"({', '.join(self.task.labels())}), got {x_d.tolist()}")
+        starts = [np.asarray(q_start, dtype=float)] + [
+            q for x, q in sorted(seeds, key=lambda s: float(np.linalg.norm(s[0] - x_d)))[:max_seeds]]
+        reasons = []
+        for q0 in starts:
+            q, reached = self._continue(x_d, q0, tol, max_iter, max_splits)
+            if q is None:
+                reasons.append(f"unreachable (stalled at {reached:.0%} of the way)")
+                continue
+            ref = self.reference(q)
+            reason = self.feasibility_error(ref.u_ff)
+            if reason is None:
+                return ref
+            reasons.append(f"infeasible ({reason})")
+        kind = "infeasible" if any(r.startswith("infeasible") for r in reasons) else "unreachable"
+        raise TargetError(f"target {x_d.round(4).tolist()} m ({', '.join(self.task.labels())}) is "
+                          f"{kind}: from {len(starts)} starting configuration(s): " + "; ".join(reasons))
+
+
+def equilibrium_seeds(clik: Clik, levels) -> list:
+    """(task coordinates, q) of the model's equilibria for every combination of ``levels`` [N] on the
+    actuated tendons (the others held), for :meth:`Clik.precompute`; non-converging ones are skipped."""
+    cm = clik.cm
+    out = []
+    for u in itertools.product([float(v) for v in levels], repeat=cm.n_a):
+        try:
+            q = solve_equilibrium(cm.model, full_tensions(cm, u), data=clik.cd.arm).q
+        except EquilibriumError:
+            continue
+        out.append((clik.task.evaluate(cm.model, q, clik.cd.arm)[0], q))
+    return out

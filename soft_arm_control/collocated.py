@@ -134,9 +134,12 @@ def evaluate_collocated(cm: CollocatedModel, cd: CollocatedData, q) -> Collocate
     n_a = cm.n_a
     cd.J_h[:n_a] = cd.B.T
     cd.J_h[n_a:] = cm.selector
-    if np.linalg.cond(cd.J_h) > 1e12:
+    try:
+        cd.J_h_inv[:] = np.linalg.inv(cd.J_h)
+    except np.linalg.LinAlgError:
+        raise ValueError("J_h = [B^T; S_u] is singular at this configuration") from None
+    if np.abs(cd.J_h_inv).max() * np.abs(cd.J_h).max() > 1e12:
         raise ValueError("J_h = [B^T; S_u] is singular at this configuration")
-    cd.J_h_inv[:] = np.linalg.inv(cd.J_h)
     cd.G[:] = arm.Fel - arm.Fg + A @ cm.held
     cd.K_theta[:] = cd.solve_transposed(arm.Fel)
     cd.F_theta[:] = cd.solve_transposed(cd.G - arm.Fel)

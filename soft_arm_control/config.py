@@ -48,9 +48,13 @@ CONTROL_SCHEMA = {
     "clik.equilibrium_gain": ("float", lambda v: 0 < v <= 1000, "a gain in (0, 1000] 1/s"),
     "clik.singular_threshold": ("float", lambda v: 0 < v < 1, "a relative singular value in (0, 1)"),
     "clik.rate": ("float", lambda v: 1 <= v <= 10000, "a rate in [1, 10000] Hz"),
+    "clik.jacobian_rate": ("float", lambda v: 0 < v <= 10000,
+                           "a rate in (0, 10000] Hz, at most clik.rate"),
     "clik.switch_delay": ("float", lambda v: 0 <= v <= 3600,
                           "a delay in [0, 3600] s from a target change to online refinement"),
     "clik.tolerance": ("float", lambda v: 0 < v <= 0.01, "a task tolerance in (0, 0.01] m"),
+    "clik.seed_levels": ("floats", lambda v: all(0 <= a <= 100 for a in v),
+                         "tensions in [0, 100] N (may be empty)"),
 }
 
 PLANT_SCHEMA = {
@@ -119,8 +123,10 @@ class ControlConfig:
     equilibrium_gain: float
     singular_threshold: float
     clik_rate: float
+    jacobian_rate: float
     switch_delay: float
     tolerance: float
+    seed_levels: tuple
 
 
 def parse_control(v: dict, arm: ArmConfig) -> ControlConfig:
@@ -130,6 +136,9 @@ def parse_control(v: dict, arm: ArmConfig) -> ControlConfig:
         if len(v[key]) != n_t:
             raise ConfigError(f"control.{key} = {list(v[key])} is not valid: expected {n_t} values, "
                               "one per tendon in arm.tendons.names")
+    if v["clik.jacobian_rate"] > v["clik.rate"]:
+        raise ConfigError(f"control.clik.jacobian_rate = {v['clik.jacobian_rate']} is not valid: "
+                          f"expected a rate no higher than control.clik.rate ({v['clik.rate']})")
     if not v["tension_min"] < v["tension_max"]:
         raise ConfigError(f"control.tension_min = {v['tension_min']} is not valid: expected a "
                           f"pretension below control.tension_max ({v['tension_max']})")
@@ -139,7 +148,8 @@ def parse_control(v: dict, arm: ArmConfig) -> ControlConfig:
         v["inner_loop.proportional"], v["inner_loop.derivative"], v["inner_loop.integral"],
         v["inner_loop.integral_saturation"], v["inner_loop.tension_rate_limit"],
         v["inner_loop.feedforward"], v["clik.task_gain"], v["clik.equilibrium_gain"],
-        v["clik.singular_threshold"], v["clik.rate"], v["clik.switch_delay"], v["clik.tolerance"])
+        v["clik.singular_threshold"], v["clik.rate"], v["clik.jacobian_rate"], v["clik.switch_delay"], v["clik.tolerance"],
+        v["clik.seed_levels"])
 
 
 def load_control_config(arm: ArmConfig, path: str | None = None, overrides=None) -> ControlConfig:

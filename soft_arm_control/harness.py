@@ -26,7 +26,7 @@ from soft_arm_model.config import default_config_dir
 from soft_arm_model.dynamics import STATICS
 
 from .actuation_map import ActuationMap, fit_actuation_map
-from .clik import Clik, ClikGains, ClikPoint
+from .clik import Clik, ClikGains, ClikPoint, TargetError, equilibrium_seeds
 from .collocated import build_collocated
 from .config import (ControlConfig, PlantConfig, TaskConfig, load_control_config, load_plant_config,
                      load_task_config)
@@ -209,11 +209,22 @@ def schedule(task: TaskConfig) -> list:
 
 def precompute_targets(ctrl: TwoLevelController, q_start) -> dict:
     """Precomputed CLIK references of every target visited by a clik phase, each solved from q_start
-    (the start-up configuration), so that a reference does not depend on the visiting order (a task
-    point can have several equilibria). Raises TargetError, before anything moves, for a bad target."""
-    return {k: ctrl.clik.precompute(np.array(ctrl.task.targets[k]), q_start,
-                                    tol=ctrl.control.tolerance)
-            for _, mode, k, _ in schedule(ctrl.task) if mode == "clik"}
+    (the start-up configuration) or, failing that, from the nearest seed equilibrium, so that a
+    reference does not depend on the visiting order. Raises TargetError, before anything moves,
+    for a target that is unreachable or needs tensions outside the limits."""
+    seeds = None
+    points = {}
+    for _, mode, k, _ in schedule(ctrl.task):
+        if mode != "clik" or k in points:
+            continue
+        x_d = np.array(ctrl.task.targets[k])
+        try:
+            points[k] = ctrl.clik.precompute(x_d, q_start, tol=ctrl.control.tolerance)
+        except TargetError:
+            if seeds is None:
+                seeds = equilibrium_seeds(ctrl.clik, ctrl.control.seed_levels)
+            points[k] = ctrl.clik.precompute(x_d, q_start, seeds, tol=ctrl.control.tolerance)
+    return points
 
 
 def run_experiment(setup: Setup, progress=None, actuation_map: ActuationMap | None = None) -> RunResult:
@@ -237,6 +248,8 @@ def run_experiment(setup: Setup, progress=None, actuation_map: ActuationMap | No
 
     dt = pc.timestep
     inner_every = max(1, int(round(1.0 / (ctl.inner_rate * dt))))
+    jacobian_every = max(1, int(round(ctl.clik_rate / ctl.jacobian_rate)))
+    clik_steps = 0
     rng = np.random.default_rng(pc.mocap_seed)
     frame_period, latency = 1.0 / pc.mocap_rate, pc.mocap_latency
     pending = deque()
@@ -272,7 +285,10 @@ def run_experiment(setup: Setup, progress=None, actuation_map: ActuationMap | No
                 x_meas_latest = space.from_markers(pending.popleft()[1])
                 new_frame = True
             if mode == "clik" and t >= next_clik - 1e-12 and new_frame:
-                ref, _ = ctrl.clik.step(ctrl.reference.q, x_d, 1.0 / ctl.clik_rate, x_meas_latest)
+                refresh = clik_steps % jacobian_every == 0
+                clik_steps += 1
+                ref, _ = ctrl.clik.step(ctrl.reference.q, x_d, 1.0 / ctl.clik_rate, x_meas_latest,
+                                        refresh)
                 if ref is not None:
                     ctrl.reference = ref
                 new_frame = False

@@ -15,7 +15,8 @@ tension the motor applies (torque / radius) and
 
     (M + A diag(m) A0^T) qdd + ... = ... - A (u + diag(m) Adot0^T qd),
 
-with Adot0^T qd taken by a directional difference of A0 along qd (one more kernel evaluation).
+with Adot0^T qd taken by a directional difference of A0 along qd (one tendon-only evaluation, no
+kinematics).
 """
 from __future__ import annotations
 
@@ -30,10 +31,11 @@ from .model import ArmData, ArmModel
 
 
 @njit(cache=True)
-def _imex_step(model_args, data_args, M, Cqd, Fg, Fel, Kt, Au, A0, D, rotor_mass, q, qd, u, h,
-               q_out, qd_out):
+def _imex_step(model_args, data_args, M, Cqd, Fg, Fel, Kt, Au, A0, D, rotor_mass, shifted, q, qd, u,
+               h, q_out, qd_out):
     """One IMEX step; M .. A0 are the workspace arrays in data_args (Au: A or A0), D the damping,
-    rotor_mass the reflected rotor masses [kg] per tendon (all zero: no rotors)."""
+    rotor_mass the reflected rotor masses [kg] per tendon (all zero: no rotors), ``shifted`` scratch
+    for the tendon terms at q + eps qd (xi, A, A0, L_c, theta, wrap, phi)."""
     n = q.shape[0]
     n_t = u.shape[0]
     rotors = False
@@ -44,11 +46,11 @@ def _imex_step(model_args, data_args, M, Cqd, Fg, Fel, Kt, Au, A0, D, rotor_mass
     for a in range(n):
         vmax = max(vmax, abs(qd[a]))
     eps = 1e-7 / vmax if vmax > 0.0 else 1.0
-    shifted = np.zeros(n_t)
+    rate_shifted = np.zeros(n_t)
     if rotors and vmax > 0.0:  # Adot0^T qd by a directional difference of A0 along qd
-        if not kernels.evaluate(*model_args, q + eps * qd, qd, 1, False, *data_args):
+        if not kernels.tendon_matrices(*model_args, q + eps * qd, *shifted):
             return False
-        shifted = A0.T @ qd
+        rate_shifted = shifted[2].T @ qd
     if not kernels.evaluate(*model_args, q, qd, 2, False, *data_args):
         return False
     lhs = M + h * D + (h * h) * Kt
@@ -57,7 +59,7 @@ def _imex_step(model_args, data_args, M, Cqd, Fg, Fel, Kt, Au, A0, D, rotor_mass
         s_rate = A0.T @ qd
         if vmax > 0.0:
             for k in range(n_t):
-                force[k] += rotor_mass[k] * (shifted[k] - s_rate[k]) / eps
+                force[k] += rotor_mass[k] * (rate_shifted[k] - s_rate[k]) / eps
         for a in range(n):
             for b in range(n):
                 acc = 0.0
@@ -91,8 +93,10 @@ class ImexStepper:
             raise ValueError(f"rotor_mass must be {model.n_tendons} masses >= 0 kg, got {rotor_mass}")
         self.model, self.dt, self.friction = model, float(dt), friction
         self.data = d = ArmData(model)
+        shifted = (np.zeros_like(d.xi), np.zeros_like(d.A), np.zeros_like(d.A0), np.zeros_like(d.Lc),
+                   np.zeros_like(d.theta), np.zeros_like(d.wrap), np.zeros_like(d.phi))
         self._args = (model.kernel_args, d.kernel_args, d.M, d.Cqd, d.Fg, d.Fel, d.Kt,
-                      d.A if friction else d.A0, d.A0, model.D, rotor)
+                      d.A if friction else d.A0, d.A0, model.D, rotor, shifted)
 
     def step(self, q, qd, u):
         """Return (q, qd) one step later (new arrays). Raises OutOfDomainError if the state leaves

@@ -406,3 +406,15 @@ def evaluate(w, B, Bd, h, B1, B2, xi_star, mass_diag, stiff_diag, neo_axial, R0,
     if level >= 3:
         _coriolis_matrix(w, mass_diag, J, eta, Jd, C)
     return True
+
+
+@njit(cache=True, fastmath=True, error_model="numpy")
+def tendon_matrices(w, B, Bd, h, B1, B2, xi_star, mass_diag, stiff_diag, neo_axial, R0, gravity,
+                    t_d, t_dp, t_dpp, t_active, t_mu, Q, smoothing, col_lo, col_hi,
+                    m_point, m_h, m_B1, m_B2, q, xi, A, A0, Lc, theta, wrap, phi):
+    """Only the tendon terms at q (A, A0, L_c, theta, wrap angles) into the given arrays: they
+    depend on the local strains alone, so no kinematics is needed. False outside the domain."""
+    for pt in range(w.shape[0]):
+        _strain(xi_star, B[pt], q, xi[pt])
+    return _tendons(w, B, Bd, xi, q, t_d, t_dp, t_dpp, t_active, t_mu, Q, smoothing, col_lo, col_hi,
+                    A, A0, Lc, theta, wrap, phi)

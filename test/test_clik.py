@@ -1,0 +1,125 @@
+"""Underactuated CLIK: decoupled exponential convergence, equilibrium end points, target checks."""
+import numpy as np
+import pytest
+import scipy.linalg
+
+from soft_arm_control.clik import Clik, ClikGains, TargetError, equilibrium_seeds
+from soft_arm_control.collocated import CollocatedData, build_collocated, evaluate_collocated
+from soft_arm_control.task_space import TaskSpace
+from soft_arm_model import ImexStepper, solve_equilibrium
+
+TRIANGLE = TaskSpace((3, 3, 3, 2), (0, 1, 2, 1))
+U_TARGET = np.array([1.5, 0.5, 0.5, 1.5])
+
+
+@pytest.fixture(scope="module")
+def clik(paper_model):
+    cm = build_collocated(paper_model, (0, 1, 2, 3))
+    return Clik(cm, TRIANGLE, ClikGains(2.0, 5.0), (0.05, 5.0))
+
+
+@pytest.fixture(scope="module")
+def target(paper_model):
+    q = solve_equilibrium(paper_model, U_TARGET).q
+    return TRIANGLE.evaluate(paper_model, q)[0], q
+
+
+def test_task_error_and_equilibrium_residual_decay_at_their_rates(paper_model, clik, target):
+    """Euler integration of the CLIK law from a configuration off the equilibrium set: e decays
+    like exp(-2 t) and G_theta_u like exp(-5 t), independently."""
+    x_d, q_eq = target
+    x_d = x_d + np.array([0.01, -0.005, 0.005, 0.002])
+    q = q_eq + 0.03 * clik.cm.selector[2] + 0.02 * clik.cm.selector[5]
+    dt, steps = 2e-3, 250
+    e0 = g0 = None
+    for k in range(steps + 1):
+        info = clik.velocity(q, x_d)
+        if k == 0:
+            e0, g0 = info.error.copy(), info.G_theta_u.copy()
+            assert np.linalg.norm(e0) > 1e-3 and np.linalg.norm(g0) > 1e-5
+        if k < steps:
+            q = q + dt * info.qdot
+    t = steps * dt
+    assert np.allclose(info.error, e0 * (1 - 2.0 * dt) ** steps, atol=0.02 * np.abs(e0).max())
+    assert np.allclose(info.G_theta_u, g0 * (1 - 5.0 * dt) ** steps, atol=0.02 * np.abs(g0).max())
+    assert np.linalg.norm(info.error) / np.linalg.norm(e0) == pytest.approx(np.exp(-2.0 * t), rel=0.05)
+
+
+def test_projectors_split_the_two_feedbacks(paper_model, clik, target):
+    x_d, q_eq = target
+    P_eps, P_Z = clik.projectors(q_eq)
+    cd = clik.cd
+    Z_theta = clik._Z @ cd.J_h_inv
+    m = TRIANGLE.m
+    assert np.allclose(Z_theta[:m] @ P_eps, np.eye(m), atol=1e-8)    # moves the task ...
+    assert np.allclose(Z_theta[m:] @ P_eps, 0.0, atol=1e-8)          # ... not the residual
+    assert np.allclose(Z_theta[:m] @ P_Z, 0.0, atol=1e-8)
+    assert np.allclose(Z_theta[m:] @ P_Z, np.eye(paper_model.n - m), atol=1e-8)
+
+
+def test_precomputed_end_point_is_an_equilibrium_that_open_loop_tensions_reach(paper_model, clik,
+                                                                                target):
+    x_d, q_eq = target
+    start = solve_equilibrium(paper_model, np.full(4, 0.05)).q
+    ref = clik.precompute(x_d, start, tol=1e-9)
+    assert np.allclose(ref.x, x_d, atol=1e-9)
+    cd = evaluate_collocated(clik.cm, CollocatedData(clik.cm), ref.q)
+    assert np.abs(cd.G_theta_u).max() < 1e-7 * np.abs(cd.G).max()
+    assert np.allclose(ref.u_ff, U_TARGET, atol=1e-6)
+    # constant tensions u_eq from the hanging arm: the simulated arm settles on q_d, tip on target
+    stepper = ImexStepper(paper_model, 2e-3)
+    q, qd = start.copy(), np.zeros(paper_model.n)
+    initial = np.abs(start - ref.q).max()
+    for _ in range(6000):
+        q, qd = stepper.step(q, qd, ref.u_ff)
+    assert np.abs(q - ref.q).max() < 1e-3 * initial
+    assert np.allclose(TRIANGLE.evaluate(paper_model, q)[0], x_d, atol=1e-4)
+
+
+def test_end_point_does_not_depend_on_theta_u(paper_model, clik, target):
+    x_d, q_eq = target
+    start = solve_equilibrium(paper_model, np.full(4, 0.05)).q
+    cd = evaluate_collocated(clik.cm, CollocatedData(clik.cm), q_eq)
+    dense = build_collocated(paper_model, (0, 1, 2, 3), selector=scipy.linalg.null_space(cd.B.T).T)
+    other = Clik(dense, TRIANGLE, ClikGains(2.0, 5.0), (0.05, 5.0))
+    a = clik.precompute(x_d, start, tol=1e-10)
+    b = other.precompute(x_d, start, tol=1e-10)
+    assert np.abs(a.q - b.q).max() < 1e-6
+    assert np.abs(a.u_ff - b.u_ff).max() < 1e-6
+
+
+def test_bad_targets_are_refused_before_anything_moves(paper_model, clik, target):
+    start = solve_equilibrium(paper_model, np.full(4, 0.05)).q
+    with pytest.raises(TargetError, match="unreachable"):
+        clik.precompute([0.3, 0.3, 0.0, 0.0], start)
+    tight = Clik(clik.cm, TRIANGLE, ClikGains(2.0, 5.0), (0.05, 1.0))
+    with pytest.raises(TargetError, match=r"infeasible: .*tendon_1 would need 1\.500 N"):
+        tight.precompute(target[0], start)
+    with pytest.raises(TargetError, match="4 finite coordinates"):
+        clik.precompute([0.0, np.nan, 0.0, 0.0], start)
+    with pytest.raises(ValueError, match="m = n_a"):
+        Clik(clik.cm, TaskSpace((3, 3), (0, 2)), ClikGains(1.0, 1.0), (0.0, 5.0))
+
+
+def test_seeds_find_the_branch_within_limits(paper_model):
+    """A task point with several equilibria: from the hanging arm the continuation lands on a
+    branch that needs a negative tension; the seed equilibria lead to the admissible one."""
+    clik = Clik(build_collocated(paper_model, (0, 1, 2, 3)), TRIANGLE, ClikGains(1.0, 1.0),
+                (0.05, 5.0))
+    x_d = np.array([0.048, 0.123, -0.282, 0.043])
+    start = solve_equilibrium(paper_model, np.full(4, 0.05)).q
+    with pytest.raises(TargetError, match="infeasible"):
+        clik.precompute(x_d, start)
+    ref = clik.precompute(x_d, start, equilibrium_seeds(clik, [0.05, 0.6, 1.2, 2.4]))
+    assert np.all(ref.u_ff >= 0.05) and np.allclose(ref.x, x_d, atol=1e-6)
+
+
+def test_online_step_keeps_the_last_reference_when_a_step_is_infeasible(paper_model, target):
+    x_d, q_eq = target
+    tight = Clik(build_collocated(paper_model, (0, 1, 2, 3)), TRIANGLE, ClikGains(2.0, 5.0),
+                 (0.05, 1.5 + 1e-9))
+    # tendons 1 and 4 are at their limit already: a large measured error asks for more
+    ref, info = tight.step(q_eq, x_d, 0.5, x=x_d + np.array([0.0, 0.0, 0.02, 0.0]))
+    assert ref is None and np.linalg.norm(info.error) > 0.01
+    ref, _ = tight.step(q_eq, x_d, 1e-3, x=x_d)
+    assert ref is not None and np.allclose(ref.q, q_eq, atol=1e-6)

@@ -1,0 +1,41 @@
+"""The paper's task-space metrics on synthetic signals with known answers."""
+import numpy as np
+import pytest
+
+from soft_arm_control.metrics import format_table, settling_time, summarise, to_json, transition_metrics
+
+
+def _decay(t, amplitude, rate):
+    """A two-coordinate error decaying exponentially, and a straight tip path of 0.2 m."""
+    err = amplitude * np.exp(-rate * t)[:, None] * np.array([1.0, -0.5])
+    tip = np.column_stack([0.2 * (1 - np.exp(-rate * t)), np.zeros_like(t), np.zeros_like(t)])
+    return err, tip
+
+
+def test_settling_time_is_the_last_entry_into_the_band():
+    t = np.linspace(0, 5, 501)
+    err, _ = _decay(t, 0.2, 2.0)
+    # |e_1| = 0.2 exp(-2 t) < 0.03  <=>  t > ln(0.2 / 0.03) / 2
+    assert settling_time(t, err, 0.03) == pytest.approx(np.log(0.2 / 0.03) / 2, abs=0.011)
+    bounce = err.copy()
+    bounce[300] = 0.05                                     # leaves the band again at t = 3 s
+    assert settling_time(t, bounce, 0.03) == pytest.approx(3.01, abs=1e-9)
+    assert settling_time(t, err + 0.05, 0.03) is None      # never inside at the end
+
+
+def test_transition_metrics_and_summary():
+    t = np.linspace(0, 5, 1201)
+    err, tip = _decay(t, 0.2, 2.0)
+    row = transition_metrics("p", 1, t, err, tip, np.full(t.size, 1.5), steady_time=1.0)
+    assert row.displacement == pytest.approx(0.2 * (1 - np.exp(-10.0)))
+    assert row.velocity_cm == pytest.approx(row.displacement / row.time_cm)
+    assert row.time_mm == pytest.approx(np.log(0.2 / 0.01) / 2, abs=0.005)
+    steady = t >= 4.0
+    assert row.rms_steady == pytest.approx(np.sqrt(np.mean(np.sum(err[steady] ** 2, axis=1))))
+    slow = transition_metrics("q", 2, t, err * 10, tip, np.full(t.size, 0.5), steady_time=1.0)
+    assert slow.time_mm is None and slow.velocity_mm is None
+    summary = summarise([row, slow])
+    assert summary.velocity_mm == row.velocity_mm and summary.peak_speed == 1.5
+    assert summary.reached_mm == 1 and summary.transitions == 2
+    assert "Table 1 row" in format_table([row, slow], summary)
+    assert to_json([row], summarise([row]))["summary"]["reached_cm"] == 1
