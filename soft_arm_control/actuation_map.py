@@ -53,6 +53,16 @@ class ActuationMap:
         _features(s / SCALE, self.exponents, out)
         return self.coef @ out
 
+    def batch(self, S) -> np.ndarray:
+        """thetabar_a of every row of S (N, n_t) [m]."""
+        S = np.asarray(S, dtype=float)
+        if self.coef is None:
+            return S.copy()
+        X = np.empty((S.shape[0], self.exponents.shape[0]))
+        for row, x in zip(X, S / SCALE):
+            _features(x, self.exponents, row)
+        return X @ self.coef.T
+
     def jacobian(self, s) -> np.ndarray:
         """d thetabar_a / ds (n_t, n_t) at s."""
         s = np.asarray(s, dtype=float)

@@ -82,27 +82,43 @@ class Clik:
         self.cm, self.task, self.gains = cm, task, gains
         self.u_min, self.u_max = map(float, tension_limits)
         self.cd = CollocatedData(cm)
-        self._Z = None
+        self._at = None          # q of the last evaluation held in cd, _x, _Jx
+        self._x = self._Jx = None
+        self._Z = self._factor = None
 
     # -- evaluation -------------------------------------------------------------------------------
+    def _evaluate(self, q):
+        """Collocated terms and task coordinates at q, skipped when q is the last point evaluated."""
+        q = np.asarray(q, dtype=float)
+        if self._at is None or not np.array_equal(q, self._at):
+            self._at = None
+            evaluate_collocated(self.cm, self.cd, q)
+            self._x, self._Jx = self.task.evaluate(self.cm.model, q, self.cd.arm)
+            self._at = q.copy()
+        return self._x
+
     def _stack(self, q, refresh: bool = True):
         """Model task coordinates and Z at q. With ``refresh`` False the last Z is reused (the
         residuals are always fresh, so the fixed point is unchanged: a chord iteration)."""
-        evaluate_collocated(self.cm, self.cd, q)
-        x, Jx = self.task.evaluate(self.cm.model, q, self.cd.arm)
+        x = self._evaluate(q)
         if refresh or self._Z is None:
-            self._Z = np.vstack([Jx, equilibrium_jacobian(self.cm, self.cd)])
+            self._Z = np.vstack([self._Jx, equilibrium_jacobian(self.cm, self.cd)])
+            self._factor = None
         return x, self._Z
 
     def _solve(self, Z, rhs):
-        """Z^-1 rhs with unit-norm rows; damped least squares below the singular threshold."""
-        w = 1.0 / np.linalg.norm(Z, axis=1)
-        U, sig, Vt = np.linalg.svd(Z * w[:, None])
-        cond = sig[0] / sig[-1] if sig[-1] > 0 else np.inf
-        lam = self.gains.singular_threshold * sig[0]
-        damped = sig[-1] < lam
-        inv = sig / (sig ** 2 + lam ** 2) if damped else 1.0 / sig
-        return Vt.T @ (inv * (U.T @ (w * rhs))), float(cond), bool(damped)
+        """Z^-1 rhs with unit-norm rows; damped least squares below the singular threshold. The
+        factorisation of the current Z is kept for the chord steps that reuse it."""
+        if self._factor is None or self._factor[0] is not Z:
+            w = 1.0 / np.linalg.norm(Z, axis=1)
+            U, sig, Vt = np.linalg.svd(Z * w[:, None])
+            lam = self.gains.singular_threshold * sig[0]
+            damped = sig[-1] < lam
+            inv = sig / (sig ** 2 + lam ** 2) if damped else 1.0 / sig
+            cond = sig[0] / sig[-1] if sig[-1] > 0 else np.inf
+            self._factor = (Z, w, U, inv, Vt, float(cond), bool(damped))
+        _, w, U, inv, Vt, cond, damped = self._factor
+        return Vt.T @ (inv * (U.T @ (w * rhs))), cond, damped
 
     def velocity(self, q, x_d, x=None, xd_dot=None, refresh: bool = True) -> ClikStep:
         """qdot of the CLIK law at q [generalised coordinates] for target x_d [m].
@@ -127,9 +143,9 @@ class Clik:
 
     def reference(self, q) -> ClikPoint:
         """Tendon references of configuration q (shortenings, feedforward, model task coordinates)."""
-        evaluate_collocated(self.cm, self.cd, q)
-        x, _ = self.task.evaluate(self.cm.model, q, self.cd.arm)
-        return ClikPoint(np.array(q, dtype=float), self.cd.shortening.copy(), self.cd.u_eq.copy(), x)
+        x = self._evaluate(q)
+        return ClikPoint(np.array(q, dtype=float), self.cd.shortening.copy(), self.cd.u_eq.copy(),
+                         x.copy())
 
     def feasibility_error(self, u_ff) -> str | None:
         """Why the feedforward tensions [N] violate [u_min, u_max], or None if they do not."""
@@ -193,7 +209,7 @@ class Clik:
         """Newton from q_start along the straight task path to x_d in halved sub-steps; returns
         (q, None) or (None, the fraction of the path reached)."""
         q = np.array(q_start, dtype=float)
-        x0, _ = self.task.evaluate(self.cm.model, q, self.cd.arm)
+        x0 = self._evaluate(q).copy()
         lam, step = 0.0, 1.0
         while lam < 1.0:
             trial = min(1.0, lam + step)
@@ -246,8 +262,8 @@ def equilibrium_seeds(clik: Clik, levels) -> list:
     out = []
     for u in itertools.product([float(v) for v in levels], repeat=cm.n_a):
         try:
-            q = solve_equilibrium(cm.model, full_tensions(cm, u), data=clik.cd.arm).q
+            q = solve_equilibrium(cm.model, full_tensions(cm, u)).q
         except EquilibriumError:
             continue
-        out.append((clik.task.evaluate(cm.model, q, clik.cd.arm)[0], q))
+        out.append((clik.task.evaluate(cm.model, q)[0], q))
     return out

@@ -20,10 +20,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from soft_arm_model import (ArmConfig, ArmData, ImexStepper, build_model, evaluate, load_arm_config,
-                            solve_equilibrium)
+from soft_arm_model import ArmConfig, ImexStepper, build_model, load_arm_config, solve_equilibrium
 from soft_arm_model.config import default_config_dir
-from soft_arm_model.dynamics import STATICS
 
 from .actuation_map import ActuationMap, fit_actuation_map
 from .clik import Clik, ClikGains, ClikPoint, TargetError, equilibrium_seeds
@@ -105,12 +103,15 @@ class TwoLevelController:
 
 class Plant:
     """The simulated arm with its motors: state (q, qd) stepped under the motor tensions (torque /
-    pulley radius) [N], the rotors' reflected mass [kg] on every tendon; true sensor values."""
+    pulley radius) [N], the rotors' reflected mass [kg] on every tendon.
+
+    Each step is ``sense`` (evaluate the current state; the true sensor values come from that same
+    evaluation) then ``step(u)``.
+    """
 
     def __init__(self, model, timestep: float, rotor_mass: float = 0.0):
         self.model = model
         self.stepper = ImexStepper(model, timestep, rotor_mass=np.full(model.n_tendons, rotor_mass))
-        self.data = ArmData(model)
         self.q = np.zeros(model.n)
         self.qd = np.zeros(model.n)
 
@@ -119,17 +120,23 @@ class Plant:
         self.q = solve_equilibrium(self.model, np.asarray(u, dtype=float)).q
         self.qd = np.zeros(self.model.n)
 
+    def sense(self, markers: bool = False):
+        """Evaluate the current state (markers too if asked) for the readings and the next step."""
+        self.stepper.prepare(self.q, self.qd, markers)
+
     def step(self, u):
-        self.q, self.qd = self.stepper.step(self.q, self.qd, u)
+        """Advance the sensed state by one time step under tensions u [N]."""
+        self.q, self.qd = self.stepper.advance(u)
 
     def tendons(self) -> tuple[np.ndarray, np.ndarray]:
-        """True shortenings L_c(0) - L_c(q) [m] and rates [m/s] of all tendons."""
-        d = evaluate(self.model, self.data, self.q, level=STATICS)
+        """True shortenings L_c(0) - L_c(q) [m] and rates [m/s] of all tendons at the sensed state."""
+        d = self.stepper.data
         return self.model.rest_tendon_lengths - d.Lc, -(d.A0.T @ self.qd)
 
     def markers(self) -> tuple[np.ndarray, float]:
-        """True marker positions (n_markers, 3) [m] in arm_base and the tip speed [m/s]."""
-        d = evaluate(self.model, self.data, self.q, level=0, markers=True)
+        """True marker positions (n_markers, 3) [m] in arm_base and the tip speed [m/s] at the
+        state sensed with ``markers=True``."""
+        d = self.stepper.data
         v = d.marker_R[-1] @ (d.marker_J[-1][3:] @ self.qd)
         return d.marker_p.copy(), float(np.linalg.norm(v))
 
@@ -242,6 +249,7 @@ def run_experiment(setup: Setup, progress=None, actuation_map: ActuationMap | No
     plant.settle(pretension)
     q_rest = solve_equilibrium(model, pretension).q           # the controller's view of start-up
     ctrl.reference = ctrl.clik.reference(q_rest)
+    plant.sense()
     s0, _ = plant.tendons()
     encoders = Encoders(pc, zero=s0, offset=ctrl.reference.shortening)
     points = precompute_targets(ctrl, q_rest)
@@ -269,7 +277,9 @@ def run_experiment(setup: Setup, progress=None, actuation_map: ActuationMap | No
         next_clik = online_from
         while step_index * dt < t_end - 1e-9:
             t = step_index * dt
-            if t >= next_frame - 1e-12:                  # mocap exposure
+            exposure = t >= next_frame - 1e-12
+            plant.sense(markers=exposure)
+            if exposure:                                 # mocap exposure
                 markers, speed = plant.markers()
                 noisy = markers + rng.normal(0.0, pc.mocap_noise, markers.shape)
                 pending.append((next_frame + latency, noisy))
@@ -301,8 +311,6 @@ def run_experiment(setup: Setup, progress=None, actuation_map: ActuationMap | No
                 rec.tension.append(u)
                 rec.shortening.append(s)
                 rec.shortening_ref.append(ctrl.reference.shortening)
-                rec.theta.append(ctrl.actuation_map(s))
-                rec.theta_ref.append(ctrl.actuation_map(ctrl.reference.shortening))
             plant.step(u)
             step_index += 1
             if progress is not None and step_index % int(round(1.0 / dt)) == 0:
@@ -311,12 +319,15 @@ def run_experiment(setup: Setup, progress=None, actuation_map: ActuationMap | No
             stored[k] = ctrl.reference
         transitions.append(Transition(phase, mode, k, x_d, t_start, t_end))
         t_start = t_end
+    rec.theta = list(ctrl.actuation_map.batch(rec.shortening))
+    rec.theta_ref = list(ctrl.actuation_map.batch(rec.shortening_ref))
     arrays = rec.arrays()
     for w_index, tr in enumerate(transitions):
         sel = arrays["window"] == w_index
         rows.append(transition_metrics(tr.phase, tr.target + 1, arrays["t_mocap"][sel],
                                        arrays["x_d"][sel] - arrays["x"][sel], arrays["tip"][sel],
-                                       arrays["tip_speed"][sel], task.steady_time))
+                                       arrays["tip_speed"][sel], task.steady_time,
+                                       tr.end - tr.start))
     return RunResult(transitions, rows, summarise(rows), rec, ctrl.actuation_map.rms_error,
                      ctrl.actuation_map.max_error, stored)
 

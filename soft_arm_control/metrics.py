@@ -51,14 +51,14 @@ class TransitionMetrics:
 
 
 def transition_metrics(phase: str, target: int, t, error, tip, tip_speed, steady_time: float = 2.0,
-                       ) -> TransitionMetrics:
+                       window: float | None = None) -> TransitionMetrics:
     """Metrics of one window: samples t [s] (N,), task errors (N, m) [m], measured tip positions
     (N, 3) [m] and true tip speeds (N,) [m/s]. The steady part is the last ``steady_time`` seconds,
-    at most half the window."""
+    at most half the window; ``window`` [s] defaults to the span of the samples."""
     t = np.asarray(t, dtype=float)
     error = np.asarray(error, dtype=float)
     tip = np.asarray(tip, dtype=float)
-    window = float(t[-1] - t[0])
+    window = float(t[-1] - t[0]) if window is None else float(window)
     displacement = float(np.linalg.norm(tip[-1] - tip[0]))
     times = {band: settling_time(t, error, band) for band in (CM_BAND, MM_BAND)}
 

@@ -31,57 +31,61 @@ from .model import ArmData, ArmModel
 
 
 @njit(cache=True)
-def _imex_step(model_args, data_args, M, Cqd, Fg, Fel, Kt, Au, A0, D, rotor_mass, shifted, q, qd, u,
-               h, q_out, qd_out):
-    """One IMEX step; M .. A0 are the workspace arrays in data_args (Au: A or A0), D the damping,
-    rotor_mass the reflected rotor masses [kg] per tendon (all zero: no rotors), ``shifted`` scratch
-    for the tendon terms at q + eps qd (xi, A, A0, L_c, theta, wrap, phi)."""
+def _imex_prepare(model_args, data_args, A0, rotor_mass, shifted, q, qd, markers, adot_qd):
+    """Evaluate the workspace at (q, qd) (dynamics level, markers if asked) and, with rotors, the
+    tendon acceleration term Adot0^T qd (by a directional difference of A0 along qd) into adot_qd."""
     n = q.shape[0]
-    n_t = u.shape[0]
+    adot_qd[:] = 0.0
     rotors = False
-    for k in range(n_t):
+    for k in range(rotor_mass.shape[0]):
         rotors = rotors or rotor_mass[k] != 0.0
-    force = u.copy()
     vmax = 0.0
     for a in range(n):
         vmax = max(vmax, abs(qd[a]))
-    eps = 1e-7 / vmax if vmax > 0.0 else 1.0
-    rate_shifted = np.zeros(n_t)
-    if rotors and vmax > 0.0:  # Adot0^T qd by a directional difference of A0 along qd
+    if rotors and vmax > 0.0:
+        eps = 1e-7 / vmax
         if not kernels.tendon_matrices(*model_args, q + eps * qd, *shifted):
             return False
-        rate_shifted = shifted[2].T @ qd
-    if not kernels.evaluate(*model_args, q, qd, 2, False, *data_args):
+        adot_qd[:] = shifted[2].T @ qd
+    if not kernels.evaluate(*model_args, q, qd, 2, markers, *data_args):
         return False
+    if rotors and vmax > 0.0:
+        adot_qd[:] = (adot_qd - A0.T @ qd) / eps
+    return True
+
+
+@njit(cache=True)
+def _imex_advance(M, Cqd, Fg, Fel, Kt, Au, A0, D, rotor_mass, adot_qd, q, qd, u, h, q_out, qd_out):
+    """The IMEX update from the prepared workspace (M .. A0 at (q, qd); Au: A or A0)."""
+    n = q.shape[0]
+    n_t = u.shape[0]
     lhs = M + h * D + (h * h) * Kt
     rhs = M @ qd
-    if rotors:
-        s_rate = A0.T @ qd
-        if vmax > 0.0:
-            for k in range(n_t):
-                force[k] += rotor_mass[k] * (rate_shifted[k] - s_rate[k]) / eps
-        for a in range(n):
-            for b in range(n):
-                acc = 0.0
-                for k in range(n_t):
-                    acc += Au[a, k] * rotor_mass[k] * A0[b, k]
-                lhs[a, b] += acc
+    force = u + rotor_mass * adot_qd
+    s_rate = A0.T @ qd
+    for a in range(n):
+        for b in range(n):
             acc = 0.0
             for k in range(n_t):
-                acc += Au[a, k] * rotor_mass[k] * s_rate[k]
-            rhs[a] += acc
+                acc += Au[a, k] * rotor_mass[k] * A0[b, k]
+            lhs[a, b] += acc
+        acc = 0.0
+        for k in range(n_t):
+            acc += Au[a, k] * rotor_mass[k] * s_rate[k]
+        rhs[a] += acc
     rhs += h * (Fg - Cqd - Fel - Au @ force)
     v = np.linalg.solve(lhs, rhs)
     for a in range(n):
         qd_out[a] = v[a]
         q_out[a] = q[a] + h * v[a]
-    return True
 
 
 class ImexStepper:
     """Advances (q, qd) by fixed steps ``dt`` [s] under tendon tensions u [N]; owns its workspace.
 
     ``rotor_mass``: reflected rotor mass [kg] per tendon (rotor inertia / pulley radius^2), or None.
+    ``step`` does both halves; ``prepare`` then ``advance`` split them, so that a caller can read the
+    workspace ``data`` at the current state (tendon lengths, markers: the sensors) before choosing u.
     """
 
     def __init__(self, model: ArmModel, dt: float, friction: bool = True, rotor_mass=None):
@@ -95,20 +99,38 @@ class ImexStepper:
         self.data = d = ArmData(model)
         shifted = (np.zeros_like(d.xi), np.zeros_like(d.A), np.zeros_like(d.A0), np.zeros_like(d.Lc),
                    np.zeros_like(d.theta), np.zeros_like(d.wrap), np.zeros_like(d.phi))
-        self._args = (model.kernel_args, d.kernel_args, d.M, d.Cqd, d.Fg, d.Fel, d.Kt,
-                      d.A if friction else d.A0, d.A0, model.D, rotor, shifted)
+        self._adot = np.zeros(model.n_tendons)
+        self._prepare_args = (model.kernel_args, d.kernel_args, d.A0, rotor, shifted)
+        self._advance_args = (d.M, d.Cqd, d.Fg, d.Fel, d.Kt, d.A if friction else d.A0, d.A0,
+                              model.D, rotor, self._adot)
+        self._state = None
+
+    def prepare(self, q, qd, markers: bool = False):
+        """Evaluate ``data`` at (q, qd) (dynamics terms, markers if asked). Raises OutOfDomainError
+        if the state is outside the model's domain."""
+        q = np.ascontiguousarray(q, dtype=float)
+        qd = np.ascontiguousarray(qd, dtype=float)
+        if not _imex_prepare(*self._prepare_args, q, qd, markers, self._adot):
+            raise OutOfDomainError("the state left the model's domain")
+        self._state = (q, qd)
+
+    def advance(self, u):
+        """(q, qd) one step after the prepared state under tensions u [N] (new arrays)."""
+        if self._state is None:
+            raise RuntimeError("advance() needs a prepare() first")
+        q, qd = self._state
+        q_out = np.empty_like(q)
+        qd_out = np.empty_like(qd)
+        _imex_advance(*self._advance_args, q, qd, np.ascontiguousarray(u, dtype=float), self.dt,
+                      q_out, qd_out)
+        self._state = None
+        return q_out, qd_out
 
     def step(self, q, qd, u):
         """Return (q, qd) one step later (new arrays). Raises OutOfDomainError if the state leaves
         the model's domain."""
-        q = np.ascontiguousarray(q, dtype=float)
-        qd = np.ascontiguousarray(qd, dtype=float)
-        u = np.ascontiguousarray(u, dtype=float)
-        q_out = np.empty_like(q)
-        qd_out = np.empty_like(qd)
-        if not _imex_step(*self._args, q, qd, u, self.dt, q_out, qd_out):
-            raise OutOfDomainError("the state left the model's domain during a step")
-        return q_out, qd_out
+        self.prepare(q, qd)
+        return self.advance(u)
 
 
 @dataclass(frozen=True)

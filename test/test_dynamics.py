@@ -3,8 +3,8 @@ import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
-from soft_arm_model import (ArmData, EquilibriumError, ImexStepper, evaluate, forward_dynamics,
-                            simulate, solve_equilibrium, tip_frame, total_energy)
+from soft_arm_model import (ArmData, EquilibriumError, ImexStepper, actuation_matrix, evaluate,
+                            forward_dynamics, simulate, solve_equilibrium, tip_frame, total_energy)
 
 
 def _released(model):
@@ -71,3 +71,54 @@ def test_equilibrium_failure_is_reported_not_returned(model_factory):
 def test_stepper_rejects_bad_step(paper_model):
     with pytest.raises(ValueError, match="dt must be > 0"):
         ImexStepper(paper_model, 0.0)
+
+
+def _rotor_ode(m, rotor, data):
+    """The continuous dynamics with rotors, written out from the Lagrangian
+    T_rotor = 1/2 sum m_k (A0_k^T qd)^2: (M + A0 m A0^T) qdd = F - A0 m (Adot0^T qd) (frictionless)."""
+    def rhs(t, x):
+        q, qd = x[:m.n], x[m.n:]
+        h = 1e-6
+        a_plus = actuation_matrix(m, q + h * qd, friction=False, data=data)
+        a_minus = actuation_matrix(m, q - h * qd, friction=False, data=data)
+        adot_qd = (a_plus - a_minus).T @ qd / (2 * h)
+        d = evaluate(m, data, q, qd)
+        lhs = d.M + d.A0 @ np.diag(rotor) @ d.A0.T
+        force = d.Fg - d.Cqd - m.D @ qd - d.Fel - d.A0 @ (rotor * adot_qd)
+        return np.concatenate([qd, np.linalg.solve(lhs, force)])
+    return rhs
+
+
+def test_rotor_inertia_conserves_energy_and_matches_the_stepper(model_factory):
+    m = model_factory(**{"material.viscosity": 0.0, "discretisation.legendre_order": [1, 0],
+                         "discretisation.gauss_points": [5, 3], "tendons.friction": [0.0] * 4})
+    rotor = np.array([0.6, 0.3, 0.6, 0.2])
+    data = ArmData(m)
+    rhs = _rotor_ode(m, rotor, data)
+    q0 = _released(m)
+    sol = solve_ivp(rhs, (0, 0.5), np.concatenate([q0, np.zeros(m.n)]), method="DOP853",
+                    rtol=1e-10, atol=1e-12, t_eval=np.linspace(0, 0.5, 11))
+
+    def energy(x):
+        q, qd = x[:m.n], x[m.n:]
+        s_rate = actuation_matrix(m, q, friction=False, data=data).T @ qd
+        return total_energy(m, q, qd, data) + 0.5 * np.sum(rotor * s_rate ** 2)
+
+    e = np.array([energy(x) for x in sol.y.T])
+    rotor_kinetic = max(0.5 * np.sum(rotor * (actuation_matrix(m, x[:m.n], friction=False,
+                                                               data=data).T @ x[m.n:]) ** 2)
+                        for x in sol.y.T)
+    assert rotor_kinetic > 1e-5                       # the rotors do take part in the motion
+    assert np.abs(e - e[0]).max() < 1e-6 * (e.max() - e.min() + rotor_kinetic)
+    # the stepper's velocity update is the same acceleration: qd+ = qd + h qdd + O(h^2)
+    x = sol.y[:, 5]
+    q, qd = x[:m.n], x[m.n:]
+    qdd = rhs(0.0, x)[m.n:]
+    for h in (1e-5, 1e-6):
+        _, qd_next = ImexStepper(m, h, friction=False, rotor_mass=rotor).step(q, qd, np.zeros(4))
+        assert np.abs((qd_next - qd) / h - qdd).max() < 1e-2 * np.abs(qdd).max() * h / 1e-5
+
+
+def test_rotor_mass_is_checked(paper_model):
+    with pytest.raises(ValueError, match="rotor_mass must be 4 masses"):
+        ImexStepper(paper_model, 1e-3, rotor_mass=[1.0, -1.0, 0.0, 0.0])

@@ -73,6 +73,7 @@ def _regulate(ctrl_model, plant_model, u_target, gains, duration, rotor_mass=0.6
     log = []
     for k in range(int(round(duration / dt))):
         t = k * dt
+        plant.sense()
         if k % 2 == 0:
             s, sd = plant.tendons()
             u = pid.update(t, s, sd, s_d, u_ff)

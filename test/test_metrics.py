@@ -32,7 +32,7 @@ def test_transition_metrics_and_summary():
     assert row.time_mm == pytest.approx(np.log(0.2 / 0.01) / 2, abs=0.005)
     steady = t >= 4.0
     assert row.rms_steady == pytest.approx(np.sqrt(np.mean(np.sum(err[steady] ** 2, axis=1))))
-    slow = transition_metrics("q", 2, t, err * 10, tip, np.full(t.size, 0.5), steady_time=1.0)
+    slow = transition_metrics("q", 2, t, err + 0.02, tip, np.full(t.size, 0.5), steady_time=1.0)
     assert slow.time_mm is None and slow.velocity_mm is None
     summary = summarise([row, slow])
     assert summary.velocity_mm == row.velocity_mm and summary.peak_speed == 1.5

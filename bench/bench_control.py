@@ -1,0 +1,124 @@
+"""Benchmarks of the two-level controller and the closed-loop harness. Prints a table, writes JSON.
+
+    python bench/bench_control.py [--output bench/results/control.json]
+
+Measures, on one core, with the default configuration (config/*.yaml):
+- one inner-loop (P-satI-D+) step with the fitted thetabar_a map, all four tendons;
+- one online CLIK step of the 4D triangle task, with the Jacobian Z recomputed and with Z reused;
+- precomputing each triangle target from the start-up pose (without and with the seed equilibria);
+- the paper's Table 1 on the harness: the full triangle protocol (25 s windows with CLIK, then the
+  stored configurations three times round with 5 s and with 1 s windows) under the declared plant
+  mismatch, its real-time factor, and the summary row next to the paper's hardware numbers.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import time
+
+import numpy as np
+
+from soft_arm_control.clik import equilibrium_seeds
+from soft_arm_control.harness import TwoLevelController, load_setup, run_experiment
+from soft_arm_control.metrics import format_table, to_json
+from soft_arm_model import build_model, solve_equilibrium
+
+PAPER = {"rms_error_mm": 0.67, "velocity_mm_band": 0.063, "velocity_cm_band": 0.384}
+
+
+def _best_of(fn, repeats=5, inner=200):
+    best = np.inf
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        for _ in range(inner):
+            fn()
+        best = min(best, (time.perf_counter() - t0) / inner)
+    return best
+
+
+def bench_steps():
+    setup = load_setup("triangle")
+    model = build_model(setup.arm)
+    ctrl = TwoLevelController(model, setup.control, setup.task)
+    rest = solve_equilibrium(model, np.full(4, setup.control.tension_min)).q
+    x_d = np.array(setup.task.targets[0])
+    ref = ctrl.clik.precompute(x_d, rest)
+    ctrl.reference = ref
+    s = ref.shortening + 1e-3
+    sd = np.full(4, 0.01)
+    clock = iter(np.arange(0, 1e6, 2e-3))
+    inner = _best_of(lambda: ctrl.inner(next(clock), s, sd), inner=2000)
+    x_meas = x_d + 1e-3
+    ctrl.clik.step(ref.q, x_d, 1 / 240, x_meas)
+    full = _best_of(lambda: ctrl.clik.step(ref.q, x_d, 1 / 240, x_meas, True), inner=100)
+    chord = _best_of(lambda: ctrl.clik.step(ref.q, x_d, 1 / 240, x_meas, False), inner=200)
+    pre = {}
+    for k, target in enumerate(setup.task.targets):
+        t0 = time.perf_counter()
+        try:
+            ctrl.clik.precompute(np.array(target), rest)
+            pre[k + 1] = {"from_rest_s": time.perf_counter() - t0}
+        except ValueError:
+            pre[k + 1] = {"from_rest_s": None}
+    t0 = time.perf_counter()
+    seeds = equilibrium_seeds(ctrl.clik, setup.control.seed_levels)
+    seed_time = time.perf_counter() - t0
+    for k, target in enumerate(setup.task.targets):
+        t0 = time.perf_counter()
+        ctrl.clik.precompute(np.array(target), rest, seeds)
+        pre[k + 1]["with_seeds_s"] = time.perf_counter() - t0
+    return {"inner_loop_step_us": 1e6 * inner, "clik_online_step_ms": 1e3 * full,
+            "clik_online_step_reused_jacobian_ms": 1e3 * chord, "precompute": pre,
+            "seed_equilibria": len(seeds), "seed_equilibria_s": seed_time,
+            "actuation_map": {"rms_error_m": ctrl.actuation_map.rms_error,
+                              "max_error_m": ctrl.actuation_map.max_error}}
+
+
+def bench_table1():
+    setup = load_setup("triangle")
+    t0 = time.perf_counter()
+    result = run_experiment(setup)
+    wall = time.perf_counter() - t0
+    simulated = result.transitions[-1].end
+    return result, {"simulated_s": simulated, "wall_s": wall, "real_time_factor": simulated / wall,
+                    **to_json(result.metrics, result.summary)}
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--output", default=os.path.join(os.path.dirname(__file__), "results",
+                                                         "control.json"))
+    args = parser.parse_args()
+    steps = bench_steps()
+    print(f"inner-loop step (P-satI-D+, thetabar_a map)  {steps['inner_loop_step_us']:8.1f} us"
+          "   (target <= 100 us)")
+    print(f"online CLIK step, Z recomputed              {steps['clik_online_step_ms']:8.3f} ms"
+          "   (target <= 2 ms)")
+    print(f"online CLIK step, Z reused                  {steps['clik_online_step_reused_jacobian_ms']:8.3f} ms")
+    for k, v in steps["precompute"].items():
+        rest = "unreachable within limits" if v["from_rest_s"] is None else f"{v['from_rest_s']:.3f} s"
+        print(f"precompute target {k}: from rest {rest}, with seeds {v['with_seeds_s']:.3f} s"
+              "   (target <= 1 s)")
+    print(f"seed equilibria: {steps['seed_equilibria']} in {steps['seed_equilibria_s']:.2f} s "
+          "(once per task)")
+    am = steps["actuation_map"]
+    print(f"thetabar_a fit: validation RMS {am['rms_error_m'] * 1e3:.2f} mm, "
+          f"max {am['max_error_m'] * 1e3:.2f} mm")
+    result, table = bench_table1()
+    print()
+    print(format_table(result.metrics, result.summary))
+    print(f"\ntriangle protocol: {table['simulated_s']:.0f} s simulated in {table['wall_s']:.1f} s, "
+          f"real-time factor {table['real_time_factor']:.2f} (target >= 5)")
+    out = {"machine": {"python": platform.python_version(), "processor": platform.processor(),
+                       "cpus": os.cpu_count()},
+           "steps": steps, "table1": table, "paper": PAPER}
+    os.makedirs(os.path.dirname(args.output), exist_ok=True)
+    with open(args.output, "w", encoding="utf-8") as fh:
+        json.dump(out, fh, indent=2, default=float)
+    print(f"wrote {args.output}")
+
+
+if __name__ == "__main__":
+    main()
