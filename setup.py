@@ -31,7 +31,7 @@ setup(
         "ros-jazzy-rmw-fastrtps-cpp==8.4.3",
     ],
     extras_require={
-        "test": ["pytest>=8", "hypothesis>=6", "rosbags==0.11.9"],
+        "test": ["pytest>=8", "hypothesis>=6", "rosbags==0.11.9", "flake8>=7"],
         "bench": ["pyelastica==1.0.0"],
     },
     zip_safe=True,

@@ -96,7 +96,8 @@ def main():
           "   (target <= 100 us)")
     print(f"online CLIK step, Z recomputed              {steps['clik_online_step_ms']:8.3f} ms"
           "   (target <= 2 ms)")
-    print(f"online CLIK step, Z reused                  {steps['clik_online_step_reused_jacobian_ms']:8.3f} ms")
+    reused = steps["clik_online_step_reused_jacobian_ms"]
+    print(f"online CLIK step, Z reused                  {reused:8.3f} ms")
     for k, v in steps["precompute"].items():
         rest = "unreachable within limits" if v["from_rest_s"] is None else f"{v['from_rest_s']:.3f} s"
         print(f"precompute target {k}: from rest {rest}, with seeds {v['with_seeds_s']:.3f} s"

@@ -191,7 +191,8 @@ def main(argv=None):
     print("\nsoft_arm_model benchmarks (one core; targets in brackets)")
     print(f"{'DOF':>4} {'points':>6} {'dynamics terms [us] (<=50 @16)':>32} {'+ Coriolis matrix [us]':>24}")
     for dof, r in res["evaluation"].items():
-        print(f"{dof:>4} {r['points']:>6} {r['dynamics_terms_us']:>32.1f} {r['with_coriolis_matrix_us']:>24.1f}")
+        print(f"{dof:>4} {r['points']:>6} {r['dynamics_terms_us']:>32.1f} "
+              f"{r['with_coriolis_matrix_us']:>24.1f}")
     for dof, r in res["statics"].items():
         print(f"static equilibrium 0 -> 5 N on tendons 1 and 3, {dof} DOF: {r['ms']:.1f} ms "
               f"[<= 20 ms] ({r['newton_iterations']} Newton iterations, {r['load_steps']} load steps)")

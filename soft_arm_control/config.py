@@ -148,7 +148,8 @@ def parse_control(v: dict, arm: ArmConfig) -> ControlConfig:
         v["inner_loop.proportional"], v["inner_loop.derivative"], v["inner_loop.integral"],
         v["inner_loop.integral_saturation"], v["inner_loop.tension_rate_limit"],
         v["inner_loop.feedforward"], v["clik.task_gain"], v["clik.equilibrium_gain"],
-        v["clik.singular_threshold"], v["clik.rate"], v["clik.jacobian_rate"], v["clik.switch_delay"], v["clik.tolerance"],
+        v["clik.singular_threshold"], v["clik.rate"], v["clik.jacobian_rate"],
+        v["clik.switch_delay"], v["clik.tolerance"],
         v["clik.seed_levels"])
 
 

@@ -29,7 +29,7 @@ from .collocated import build_collocated
 from .config import (ControlConfig, PlantConfig, TaskConfig, load_control_config, load_plant_config,
                      load_task_config)
 from .inner_loop import InnerLoopGains, PSatID
-from .metrics import TransitionMetrics, summarise, transition_metrics
+from .metrics import summarise, transition_metrics
 
 
 @dataclass(frozen=True)
@@ -165,8 +165,8 @@ class Encoders:
 class Record:
     """Time series of a run. Inner-loop rate: t_inner, tension, shortening (measured), shortening_ref,
     theta (thetabar_a of the measured shortenings), theta_ref. Mocap rate: t_mocap (exposure times),
-    x (measured task coordinates), x_true, x_d, tip (measured tip), tip_speed (true), window (index of
-    the transition). All SI."""
+    x (measured task coordinates), x_true, x_d, tip (the measured tip coordinates the task controls;
+    all three if it controls none), tip_speed (true), window (index of the transition). All SI."""
     t_inner: list = field(default_factory=list)
     tension: list = field(default_factory=list)
     shortening: list = field(default_factory=list)
@@ -264,6 +264,7 @@ def run_experiment(setup: Setup, progress=None, actuation_map: ActuationMap | No
     rec = Record()
     stored, transitions, rows = {}, [], []
     tip_index = model.marker_X.size - 1
+    tip_axes = [a for k, a in zip(task.space.markers, task.space.axes) if k == tip_index] or [0, 1, 2]
     space = task.space
     step_index, next_frame, x_meas_latest, new_frame = 0, 0.0, None, False
     u = pretension.copy()
@@ -287,7 +288,7 @@ def run_experiment(setup: Setup, progress=None, actuation_map: ActuationMap | No
                 rec.x.append(space.from_markers(noisy))
                 rec.x_true.append(space.from_markers(markers))
                 rec.x_d.append(x_d)
-                rec.tip.append(noisy[tip_index])
+                rec.tip.append(noisy[tip_index, tip_axes])
                 rec.tip_speed.append(speed)
                 rec.window.append(w_index)
                 next_frame += frame_period
@@ -330,4 +331,3 @@ def run_experiment(setup: Setup, progress=None, actuation_map: ActuationMap | No
                                        tr.end - tr.start))
     return RunResult(transitions, rows, summarise(rows), rec, ctrl.actuation_map.rms_error,
                      ctrl.actuation_map.max_error, stored)
-

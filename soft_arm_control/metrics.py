@@ -3,7 +3,9 @@
 For each transition (one target held for one time window):
 - the time to reach and remain within a band: every controlled coordinate's error below the band
   from that sample to the end of the window (cm band: 3 cm, mm band: 1 cm);
-- the equivalent task velocity: tip displacement over the window [m] / that time [s];
+- the equivalent task velocity: tip displacement over the window [m] / that time [s], the
+  displacement measured along the tip coordinates the task controls (a 2D task on the tip's x and z
+  does not count its uncontrolled y); none when the displacement is within the band already;
 - the RMS of the task error norm over the steady-state part (the last ``steady_time`` seconds);
 - the peak tip speed [m/s].
 The summary row reports, like Table 1, the best (largest) task velocities over all transitions that
@@ -52,9 +54,9 @@ class TransitionMetrics:
 
 def transition_metrics(phase: str, target: int, t, error, tip, tip_speed, steady_time: float = 2.0,
                        window: float | None = None) -> TransitionMetrics:
-    """Metrics of one window: samples t [s] (N,), task errors (N, m) [m], measured tip positions
-    (N, 3) [m] and true tip speeds (N,) [m/s]. The steady part is the last ``steady_time`` seconds,
-    at most half the window; ``window`` [s] defaults to the span of the samples."""
+    """Metrics of one window: samples t [s] (N,), task errors (N, m) [m], measured tip coordinates
+    (N, k) [m] (those the task controls) and true tip speeds (N,) [m/s]. The steady part is the last
+    ``steady_time`` seconds, at most half the window; ``window`` [s] defaults to the span of the samples."""
     t = np.asarray(t, dtype=float)
     error = np.asarray(error, dtype=float)
     tip = np.asarray(tip, dtype=float)
@@ -62,15 +64,17 @@ def transition_metrics(phase: str, target: int, t, error, tip, tip_speed, steady
     displacement = float(np.linalg.norm(tip[-1] - tip[0]))
     times = {band: settling_time(t, error, band) for band in (CM_BAND, MM_BAND)}
 
-    def velocity(tb):
-        return None if tb is None else displacement / max(tb, t[1] - t[0])
+    def velocity(tb, band):
+        if tb is None or displacement <= band:
+            return None
+        return displacement / max(tb, t[1] - t[0])
 
     steady = t >= t[-1] - min(steady_time, 0.5 * window)
     norms = np.linalg.norm(error, axis=1)
     return TransitionMetrics(
         phase=phase, target=int(target), window=round(window, 6), displacement=displacement,
         time_cm=times[CM_BAND], time_mm=times[MM_BAND],
-        velocity_cm=velocity(times[CM_BAND]), velocity_mm=velocity(times[MM_BAND]),
+        velocity_cm=velocity(times[CM_BAND], CM_BAND), velocity_mm=velocity(times[MM_BAND], MM_BAND),
         rms_steady=float(np.sqrt(np.mean(norms[steady] ** 2))), final_error=float(norms[-1]),
         peak_speed=float(np.max(tip_speed)))
 

@@ -484,7 +484,7 @@ class RosbagWriter:
 
     def _register(self, definitions: dict[str, str]) -> dict[str, int]:
         schema_ids = {type_name: self._mcap.register_schema(type_name, SCHEMA_ENCODING,
-                                                           text.encode("utf-8"))
+                                                            text.encode("utf-8"))
                       for type_name, text in definitions.items()}
         channels = {}
         for spec, topic in zip(self._topics, self._topic_metadata):

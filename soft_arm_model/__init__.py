@@ -26,5 +26,6 @@ __all__ = [
     "tip_frame", "frame_at", "marker_positions", "elastic_force", "gravity_force",
     "actuation_matrix", "tendon_lengths", "actuation_coordinates", "potential_energies",
     "mass_matrix", "coriolis_matrix", "total_energy", "forward_dynamics",
-    "Equilibrium", "EquilibriumError", "solve_equilibrium", "residual_jacobian", "ImexStepper", "Trajectory", "simulate",
+    "Equilibrium", "EquilibriumError", "solve_equilibrium", "residual_jacobian", "ImexStepper",
+    "Trajectory", "simulate",
 ]

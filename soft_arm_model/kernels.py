@@ -208,7 +208,6 @@ def _tendons(w, B, Bd, xi, q, t_d, t_dp, t_dpp, t_active, t_mu, Q, smoothing, co
     """Tendon columns with and without friction, lengths and friction-aware integrals."""
     n_t = t_d.shape[0]
     P = w.shape[0]
-    n = q.shape[0]
     A[:, :] = 0.0
     A0[:, :] = 0.0
     tang = np.empty((P, 3))

@@ -113,8 +113,10 @@ def expmap(omega, R, p):
     theta2 = wx * wx + wy * wy + wz * wz
     if theta2 < _EXP_SERIES_BELOW * _EXP_SERIES_BELOW:
         a = 1.0 - theta2 / 6.0 * (1.0 - theta2 / 20.0 * (1.0 - theta2 / 42.0 * (1.0 - theta2 / 72.0)))
-        b = 0.5 * (1.0 - theta2 / 12.0 * (1.0 - theta2 / 30.0 * (1.0 - theta2 / 56.0 * (1.0 - theta2 / 90.0))))
-        c = (1.0 - theta2 / 20.0 * (1.0 - theta2 / 42.0 * (1.0 - theta2 / 72.0 * (1.0 - theta2 / 110.0)))) / 6.0
+        b = 0.5 * (1.0 - theta2 / 12.0 * (
+            1.0 - theta2 / 30.0 * (1.0 - theta2 / 56.0 * (1.0 - theta2 / 90.0))))
+        c = (1.0 - theta2 / 20.0 * (
+            1.0 - theta2 / 42.0 * (1.0 - theta2 / 72.0 * (1.0 - theta2 / 110.0)))) / 6.0
     else:
         theta = np.sqrt(theta2)
         s = np.sin(theta)

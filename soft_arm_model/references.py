@@ -95,10 +95,11 @@ def tendon_load_tip(cfg: ArmConfig, u, base_rotation: np.ndarray) -> np.ndarray:
 
     def stress(xi, X):
         r = _radius(cfg, X)
-        A, I = np.pi * r ** 2, np.pi * r ** 4 / 4
-        s = np.array([G * 2 * I, E * I, E * I, E * A, G * A, G * A]) * (xi - XI_STAR)
+        area, inertia = np.pi * r ** 2, np.pi * r ** 4 / 4
+        s = np.array([G * 2 * inertia, E * inertia, E * inertia, E * area, G * area, G * area]) \
+            * (xi - XI_STAR)
         if mat.axial_law == "neo_hookean":
-            s[3] = E * A / 3 * (xi[3] - xi[3] ** -2)
+            s[3] = E * area / 3 * (xi[3] - xi[3] ** -2)
         for tendon, uk in zip(cfg.tendons, u):
             if X < tendon.end and uk != 0:
                 d, dp = _tendon_offsets(cfg, tendon, X)

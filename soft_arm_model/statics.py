@@ -129,7 +129,8 @@ def _newton(pb: _Problem, q, u, tol, max_iter):
         while True:
             q_new = q + alpha * dq
             r_new = pb.residual(q_new, u)
-            if r_new is not None and np.linalg.norm(r_new) <= (1.0 - 1e-4 * alpha) * norm0 + pb.residual_floor:
+            if r_new is not None and \
+                    np.linalg.norm(r_new) <= (1.0 - 1e-4 * alpha) * norm0 + pb.residual_floor:
                 break
             alpha *= 0.5
             if alpha < 1e-3:

@@ -34,8 +34,8 @@ def _static_sensitivity(model, u, h=1e-4):
 
 def test_jacobian_matches_finite_differences_and_the_static_sensitivity(paper_model, fitted):
     """At shortenings the arm takes at rest the fitted Jacobian is the model's own d theta_a / d s
-    along equilibria to within 50 % (a degree-2 fit of a curved map), and, like it, has eigenvalues with positive real
-    parts (more shortening, larger theta_a: the proportional term stays a restoring one)."""
+    along equilibria to within 50 % (a degree-2 fit of a curved map), and, like it, has eigenvalues
+    with positive real parts (more shortening, larger theta_a: the proportional term restores)."""
     for u in ([1.0, 0.2, 0.5, 0.8], [0.3, 2.0, 1.0, 0.1], [0.5, 0.5, 3.0, 2.0]):
         u = np.array(u)
         (s,), _ = _sample(paper_model, [u])

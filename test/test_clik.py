@@ -57,8 +57,8 @@ def test_projectors_split_the_two_feedbacks(paper_model, clik, target):
     assert np.allclose(Z_theta[m:] @ P_Z, np.eye(paper_model.n - m), atol=1e-8)
 
 
-def test_precomputed_end_point_is_an_equilibrium_that_open_loop_tensions_reach(paper_model, clik,
-                                                                                target):
+def test_precomputed_end_point_is_an_equilibrium_that_open_loop_tensions_reach(
+        paper_model, clik, target):
     x_d, q_eq = target
     start = solve_equilibrium(paper_model, np.full(4, 0.05)).q
     ref = clik.precompute(x_d, start, tol=1e-9)

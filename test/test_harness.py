@@ -1,7 +1,6 @@
 """The closed-loop harness: configuration checks, the paper's protocols under model error, the CLI."""
 import json
 
-import numpy as np
 import pytest
 
 from soft_arm_control.cli import main as harness_main
@@ -10,7 +9,8 @@ from soft_arm_model.config import ConfigError
 
 
 @pytest.mark.parametrize("sets, message", [
-    (["control.inner_loop.rate=0"], "control.inner_loop.rate = 0 is not valid: expected a rate in [1, 10000] Hz"),
+    (["control.inner_loop.rate=0"],
+     "control.inner_loop.rate = 0 is not valid: expected a rate in [1, 10000] Hz"),
     (["control.inner_loop.proportional=[1, 2]"], "expected 4 values, one per tendon"),
     (["plant.mocap.noise=-1"], "plant.mocap.noise = -1 is not valid"),
     (["control.clik.jacobian_rate=500"], "no higher than control.clik.rate"),
@@ -71,5 +71,6 @@ def test_cli_prints_metrics_as_json(capsys):
 def test_cli_reports_bad_configuration_with_status_2(capsys):
     assert harness_main(["coiling", "--quiet", "--set", "plant.timestep=1"]) == 2
     assert "plant.timestep = 1 is not valid" in capsys.readouterr().err
-    assert harness_main(["coiling", "--quiet", "--set", "tasks.coiling.targets=[0.3, 0.3, 0.3, 0.3, 0.3, 0.3, 0.3, 0.3]"]) == 2
+    far = "tasks.coiling.targets=[0.3, 0.3, 0.3, 0.3, 0.3, 0.3, 0.3, 0.3]"
+    assert harness_main(["coiling", "--quiet", "--set", far]) == 2
     assert "unreachable" in capsys.readouterr().err

@@ -39,3 +39,14 @@ def test_transition_metrics_and_summary():
     assert summary.reached_mm == 1 and summary.transitions == 2
     assert "Table 1 row" in format_table([row, slow], summary)
     assert to_json([row], summarise([row]))["summary"]["reached_cm"] == 1
+
+
+def test_no_velocity_when_the_move_is_within_the_band():
+    """A 2 cm move is inside the 3 cm band from the start: no cm-band velocity (it would be
+    displacement / one sample), but a mm-band one."""
+    t = np.linspace(0, 2, 481)
+    err, tip = _decay(t, 0.02, 3.0)
+    tip = tip * 0.1                                       # 2 cm of travel
+    row = transition_metrics("p", 1, t, err, tip, np.ones(t.size))
+    assert row.time_cm == 0.0 and row.velocity_cm is None
+    assert row.velocity_mm == pytest.approx(row.displacement / row.time_mm)

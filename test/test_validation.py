@@ -12,7 +12,6 @@ from soft_arm_model.references import (euler_bernoulli_tip_deflection, kirchhoff
 NO_GRAVITY = {"gravity": [0.0, 0.0, 0.0]}
 
 
-
 def _hat(xi):
     k, g = xi[:3], xi[3:]
     H = np.zeros((4, 4))
@@ -79,7 +78,7 @@ def test_tendon_loads_converge_to_pointwise_reference(model_factory, u):
     errors = []
     for order in (1, 2, 3, 5):
         m = model_factory(**NO_GRAVITY, **{"discretisation.legendre_order": [order, 0],
-                                        "discretisation.gauss_points": [order + 6, 3]})
+                                           "discretisation.gauss_points": [order + 6, 3]})
         errors.append(_tip_error(m, u))
     assert errors[-1] < 2e-4, errors
     assert errors[-1] < errors[0] / 10, errors
@@ -89,10 +88,10 @@ def test_basis_without_break_at_tendon_end_does_not_converge(model_factory):
     u = [0, 0, 2.0, 0]
     errors = []
     for order in (3, 5, 7):
-        m = model_factory(**NO_GRAVITY, **{"discretisation.division_ends": [0.38],
-                                        "discretisation.legendre_order": [order],
-                                        "discretisation.gauss_points": [order + 6],
-                                        "discretisation.allow_tendon_end_inside_division": True})
+        m = model_factory(**NO_GRAVITY, **{
+            "discretisation.division_ends": [0.38], "discretisation.legendre_order": [order],
+            "discretisation.gauss_points": [order + 6],
+            "discretisation.allow_tendon_end_inside_division": True})
         errors.append(_tip_error(m, u))
     assert min(errors) > 1e-3, errors  # stalls at millimetres whatever the order
 
