@@ -17,7 +17,7 @@ from soft_arm_model.config import (ArmConfig, ConfigError, apply_overrides, defa
 
 from .task_space import AXES, TaskSpace
 
-PHASE_MODES = ("clik", "replay")
+PHASE_MODES = ("clik", "replay", "precomputed", "online")
 
 
 def _positive(v):
@@ -192,9 +192,8 @@ class PlantConfig:
         return self.rotor_inertia / self.pulley_radius ** 2
 
 
-def load_plant_config(arm: ArmConfig, path: str | None = None, overrides=None) -> PlantConfig:
-    """Load ``plant.yaml`` and check it against ``arm`` (one friction coefficient per tendon)."""
-    v = load_section("plant.yaml", "plant", PLANT_SCHEMA, path, overrides)
+def parse_plant(v: dict, arm: ArmConfig) -> PlantConfig:
+    """Cross-checks of the ``plant`` values against the arm (one friction coefficient per tendon)."""
     if len(v["friction"]) != len(arm.tendons):
         raise ConfigError(f"plant.friction = {list(v['friction'])} is not valid: expected "
                           f"{len(arm.tendons)} values, one per tendon in arm.tendons.names")
@@ -202,6 +201,11 @@ def load_plant_config(arm: ArmConfig, path: str | None = None, overrides=None) -
                        v["motor.rotor_inertia"], v["encoder.pulley_radius"], v["encoder.resolution"],
                        v["encoder.velocity_resolution"], v["mocap.rate"], v["mocap.noise"],
                        v["mocap.latency"], v["mocap.seed"])
+
+
+def load_plant_config(arm: ArmConfig, path: str | None = None, overrides=None) -> PlantConfig:
+    """Load ``plant.yaml`` and check it against ``arm``."""
+    return parse_plant(load_section("plant.yaml", "plant", PLANT_SCHEMA, path, overrides), arm)
 
 
 @dataclass(frozen=True)

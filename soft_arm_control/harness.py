@@ -15,20 +15,21 @@ All times are simulated seconds on one clock; every rate is realised on the plan
 from __future__ import annotations
 
 import os
-from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from soft_arm_model import ArmConfig, ImexStepper, build_model, load_arm_config, solve_equilibrium
+from soft_arm_model import ArmConfig, build_model, load_arm_config, solve_equilibrium
 from soft_arm_model.config import default_config_dir
 
 from .actuation_map import ActuationMap, fit_actuation_map
-from .clik import Clik, ClikGains, ClikPoint, TargetError, equilibrium_seeds
+from .clik import Clik, ClikGains, ClikPoint
 from .collocated import build_collocated
 from .config import (ControlConfig, PlantConfig, TaskConfig, load_control_config, load_plant_config,
                      load_task_config)
 from .inner_loop import InnerLoopGains, PSatID
+from .outer_loop import OuterLoop
+from .rig import SimulatedRig
 from .metrics import summarise, transition_metrics
 
 
@@ -101,66 +102,6 @@ class TwoLevelController:
         return self.pid.update(t, s, s_dot, ref.shortening, u_ff)
 
 
-class Plant:
-    """The simulated arm with its motors: state (q, qd) stepped under the motor tensions (torque /
-    pulley radius) [N], the rotors' reflected mass [kg] on every tendon.
-
-    Each step is ``sense`` (evaluate the current state; the true sensor values come from that same
-    evaluation) then ``step(u)``.
-    """
-
-    def __init__(self, model, timestep: float, rotor_mass: float = 0.0):
-        self.model = model
-        self.stepper = ImexStepper(model, timestep, rotor_mass=np.full(model.n_tendons, rotor_mass))
-        self.q = np.zeros(model.n)
-        self.qd = np.zeros(model.n)
-
-    def settle(self, u):
-        """Put the arm at rest at the static equilibrium of tensions u [N]."""
-        self.q = solve_equilibrium(self.model, np.asarray(u, dtype=float)).q
-        self.qd = np.zeros(self.model.n)
-
-    def sense(self, markers: bool = False):
-        """Evaluate the current state (markers too if asked) for the readings and the next step."""
-        self.stepper.prepare(self.q, self.qd, markers)
-
-    def step(self, u):
-        """Advance the sensed state by one time step under tensions u [N]."""
-        self.q, self.qd = self.stepper.advance(u)
-
-    def tendons(self) -> tuple[np.ndarray, np.ndarray]:
-        """True shortenings L_c(0) - L_c(q) [m] and rates [m/s] of all tendons at the sensed state."""
-        d = self.stepper.data
-        return self.model.rest_tendon_lengths - d.Lc, -(d.A0.T @ self.qd)
-
-    def markers(self) -> tuple[np.ndarray, float]:
-        """True marker positions (n_markers, 3) [m] in arm_base and the tip speed [m/s] at the
-        state sensed with ``markers=True``."""
-        d = self.stepper.data
-        v = d.marker_R[-1] @ (d.marker_J[-1][3:] @ self.qd)
-        return d.marker_p.copy(), float(np.linalg.norm(v))
-
-
-class Encoders:
-    """Motor encoders: shortening = pulley radius x angle, quantised to ``resolution`` [rad] (rate to
-    ``velocity_resolution`` [rad/s]), zeroed at ``zero`` [m] (true shortening at start-up) and offset
-    by ``offset`` [m] (the controller model's shortening of the start-up pose)."""
-
-    def __init__(self, plant: PlantConfig, zero, offset):
-        self.r, self.res, self.vres = plant.pulley_radius, plant.encoder_resolution, \
-            plant.velocity_resolution
-        self.zero, self.offset = np.array(zero, dtype=float), np.array(offset, dtype=float)
-
-    @staticmethod
-    def _quantise(v, step):
-        return v if step == 0 else np.round(v / step) * step
-
-    def read(self, s_true, s_dot_true) -> tuple[np.ndarray, np.ndarray]:
-        angle = self._quantise((np.asarray(s_true) - self.zero) / self.r, self.res)
-        rate = self._quantise(np.asarray(s_dot_true) / self.r, self.vres)
-        return angle * self.r + self.offset, rate * self.r
-
-
 @dataclass
 class Record:
     """Time series of a run. Inner-loop rate: t_inner, tension, shortening (measured), shortening_ref,
@@ -214,112 +155,73 @@ def schedule(task: TaskConfig) -> list:
     return [(ph.name, ph.mode, k, ph.window) for ph in task.phases for k in ph.sequence]
 
 
-def precompute_targets(ctrl: TwoLevelController, q_start) -> dict:
-    """Precomputed CLIK references of every target visited by a clik phase, each solved from q_start
-    (the start-up configuration) or, failing that, from the nearest seed equilibrium, so that a
-    reference does not depend on the visiting order. Raises TargetError, before anything moves,
-    for a target that is unreachable or needs tensions outside the limits."""
-    seeds = None
-    points = {}
-    for _, mode, k, _ in schedule(ctrl.task):
-        if mode != "clik" or k in points:
-            continue
-        x_d = np.array(ctrl.task.targets[k])
-        try:
-            points[k] = ctrl.clik.precompute(x_d, q_start, tol=ctrl.control.tolerance)
-        except TargetError:
-            if seeds is None:
-                seeds = equilibrium_seeds(ctrl.clik, ctrl.control.seed_levels)
-            points[k] = ctrl.clik.precompute(x_d, q_start, seeds, tol=ctrl.control.tolerance)
-    return points
+def precompute_targets(outer: OuterLoop, task: TaskConfig) -> dict:
+    """Precomputed references of every target a clik phase visits, each solved from the start-up
+    pose (or the nearest seed equilibrium), so that a reference does not depend on the visiting
+    order. Raises TargetError, before anything moves, for an unreachable or infeasible target."""
+    return {k: outer.precompute(np.array(task.targets[k]))
+            for _, mode, k, _ in schedule(task) if mode in ("clik", "precomputed")}
 
 
 def run_experiment(setup: Setup, progress=None, actuation_map: ActuationMap | None = None) -> RunResult:
-    """Run the task's protocol on the simulated plant and compute the paper's metrics.
+    """Run the task's protocol on the simulated rig and compute the paper's metrics.
 
     ``progress(t, t_end)`` is called about once per simulated second.
     """
     ctl, task, pc = setup.control, setup.task, setup.plant
     model = build_model(setup.arm)
-    plant_model = build_model(pc.plant_arm(setup.arm))
     ctrl = TwoLevelController(model, ctl, task, actuation_map)
-
     pretension = np.full(model.n_tendons, ctl.tension_min)
-    plant = Plant(plant_model, pc.timestep, pc.rotor_mass)
-    plant.settle(pretension)
-    q_rest = solve_equilibrium(model, pretension).q           # the controller's view of start-up
-    ctrl.reference = ctrl.clik.reference(q_rest)
-    plant.sense()
-    s0, _ = plant.tendons()
-    encoders = Encoders(pc, zero=s0, offset=ctrl.reference.shortening)
-    points = precompute_targets(ctrl, q_rest)
+    start = ctrl.clik.reference(solve_equilibrium(model, pretension).q)   # the controller's view
+    ctrl.reference = start
+    outer = OuterLoop(ctrl.clik, start, ctl.switch_delay, ctl.clik_rate,
+                      int(round(ctl.clik_rate / ctl.jacobian_rate)), ctl.seed_levels, ctl.tolerance)
+    points = precompute_targets(outer, task)
+    rig = SimulatedRig(build_model(pc.plant_arm(setup.arm)), pc, start.shortening, pretension)
 
     dt = pc.timestep
     inner_every = max(1, int(round(1.0 / (ctl.inner_rate * dt))))
-    jacobian_every = max(1, int(round(ctl.clik_rate / ctl.jacobian_rate)))
-    clik_steps = 0
-    rng = np.random.default_rng(pc.mocap_seed)
-    frame_period, latency = 1.0 / pc.mocap_rate, pc.mocap_latency
-    pending = deque()
     rec = Record()
-    stored, transitions, rows = {}, [], []
+    transitions, rows = [], []
     tip_index = model.marker_X.size - 1
     tip_axes = [a for k, a in zip(task.space.markers, task.space.axes) if k == tip_index] or [0, 1, 2]
     space = task.space
-    step_index, next_frame, x_meas_latest, new_frame = 0, 0.0, None, False
     u = pretension.copy()
     total = sum(w for *_, w in schedule(task))
+    second = int(round(1.0 / dt))
     t_start = 0.0
     for w_index, (phase, mode, k, window) in enumerate(schedule(task)):
         x_d = np.array(task.targets[k])
-        ctrl.reference = points[k] if mode == "clik" else stored[k]
+        ctrl.reference = outer.goal(rig.t, x_d, mode, points.get(k))
         t_end = t_start + window
-        online_from = t_start + ctl.switch_delay
-        next_clik = online_from
-        while step_index * dt < t_end - 1e-9:
-            t = step_index * dt
-            exposure = t >= next_frame - 1e-12
-            plant.sense(markers=exposure)
-            if exposure:                                 # mocap exposure
-                markers, speed = plant.markers()
-                noisy = markers + rng.normal(0.0, pc.mocap_noise, markers.shape)
-                pending.append((next_frame + latency, noisy))
-                rec.t_mocap.append(next_frame)
-                rec.x.append(space.from_markers(noisy))
-                rec.x_true.append(space.from_markers(markers))
+        while rig.t < t_end - 1e-9:
+            t = rig.t
+            frame, delivered = rig.begin_step()
+            if frame is not None:
+                rec.t_mocap.append(frame.stamp)
+                rec.x.append(space.from_markers(frame.markers))
+                rec.x_true.append(space.from_markers(frame.true_markers))
                 rec.x_d.append(x_d)
-                rec.tip.append(noisy[tip_index, tip_axes])
-                rec.tip_speed.append(speed)
+                rec.tip.append(frame.markers[tip_index, tip_axes])
+                rec.tip_speed.append(frame.tip_speed)
                 rec.window.append(w_index)
-                next_frame += frame_period
-            while pending and pending[0][0] <= t + 1e-12:  # delivery after the latency
-                x_meas_latest = space.from_markers(pending.popleft()[1])
-                new_frame = True
-            if mode == "clik" and t >= next_clik - 1e-12 and new_frame:
-                refresh = clik_steps % jacobian_every == 0
-                clik_steps += 1
-                ref, _ = ctrl.clik.step(ctrl.reference.q, x_d, 1.0 / ctl.clik_rate, x_meas_latest,
-                                        refresh)
+            if delivered:
+                ref = outer.frame(t, space.from_markers(delivered[-1].markers))
                 if ref is not None:
                     ctrl.reference = ref
-                new_frame = False
-                next_clik += 1.0 / ctl.clik_rate
-            if step_index % inner_every == 0:
-                s_true, sd_true = plant.tendons()
-                s, sd = encoders.read(s_true, sd_true)
+            if rig.step_index % inner_every == 0:
+                s, sd = rig.tendons()
                 u = ctrl.inner(t, s, sd)
                 rec.t_inner.append(t)
                 rec.tension.append(u)
                 rec.shortening.append(s)
                 rec.shortening_ref.append(ctrl.reference.shortening)
-            plant.step(u)
-            step_index += 1
-            if progress is not None and step_index % int(round(1.0 / dt)) == 0:
-                progress(step_index * dt, total)
-        if mode == "clik":
-            stored[k] = ctrl.reference
+            rig.end_step(u)
+            if progress is not None and rig.step_index % second == 0:
+                progress(rig.t, total)
         transitions.append(Transition(phase, mode, k, x_d, t_start, t_end))
         t_start = t_end
+    outer.finish()
     rec.theta = list(ctrl.actuation_map.batch(rec.shortening))
     rec.theta_ref = list(ctrl.actuation_map.batch(rec.shortening_ref))
     arrays = rec.arrays()
@@ -329,5 +231,7 @@ def run_experiment(setup: Setup, progress=None, actuation_map: ActuationMap | No
                                        arrays["x_d"][sel] - arrays["x"][sel], arrays["tip"][sel],
                                        arrays["tip_speed"][sel], task.steady_time,
                                        tr.end - tr.start))
+    stored = {k: outer.stored[outer.key(x)] for k, x in enumerate(task.targets)
+              if outer.key(x) in outer.stored}
     return RunResult(transitions, rows, summarise(rows), rec, ctrl.actuation_map.rms_error,
                      ctrl.actuation_map.max_error, stored)

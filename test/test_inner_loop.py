@@ -4,7 +4,7 @@ import pytest
 
 from soft_arm_control.actuation_map import ActuationMap
 from soft_arm_control.collocated import CollocatedData, build_collocated, evaluate_collocated
-from soft_arm_control.harness import Plant
+from soft_arm_control.rig import Plant
 from soft_arm_control.inner_loop import InnerLoopGains, PSatID
 from soft_arm_model import solve_equilibrium
 

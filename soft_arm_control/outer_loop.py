@@ -1,0 +1,111 @@
+"""The CLIK layer as the paper runs it, ROS-free: goals in, configuration references out.
+
+A goal is a target in task coordinates with a mode:
+
+- ``clik``: the precomputed reference at once (the paper's fast step), then online refinement from
+  the mocap ``switch_delay`` seconds later; the reached reference is stored for the target when the
+  next goal arrives;
+- ``replay``: the reference stored for this target, straight to the inner loop (no CLIK);
+- ``precomputed``: the precomputed reference only (the pendulum strike);
+- ``online``: online refinement from the current reference, no precomputed step (sugar task).
+
+Times are the caller's [s] (simulated or wall). An unreachable or infeasible goal raises
+:class:`~soft_arm_control.clik.TargetError` and leaves the current reference untouched.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .clik import ClikPoint, TargetError, equilibrium_seeds
+
+MODES = ("clik", "replay", "precomputed", "online")
+
+
+class OuterLoop:
+    """Reference generator around a :class:`~soft_arm_control.clik.Clik`.
+
+    ``start``: the reference at start-up (the hanging arm); ``switch_delay`` [s]; ``rate`` [Hz] of
+    the online steps; ``jacobian_every``: online steps per recomputation of Z; ``seed_levels``
+    [N]: tensions of the seed equilibria tried when a precomputation from ``start`` fails;
+    ``tolerance`` [m]: precomputation tolerance.
+    """
+
+    def __init__(self, clik, start: ClikPoint, switch_delay: float, rate: float,
+                 jacobian_every: int = 1, seed_levels=(), tolerance: float = 1e-6):
+        self.clik = clik
+        self.start = start
+        self.reference = start
+        self.switch_delay, self.period = float(switch_delay), 1.0 / float(rate)
+        self.jacobian_every = max(1, int(jacobian_every))
+        self.seed_levels, self.tolerance = tuple(seed_levels), float(tolerance)
+        self.stored: dict = {}
+        self._seeds = None
+        self._x_d = None
+        self._mode = None
+        self._online_from = np.inf
+        self._next_step = np.inf
+        self._steps = 0
+
+    @staticmethod
+    def key(x_d) -> tuple:
+        """The key a target is stored under (its coordinates rounded to 0.1 mm)."""
+        return tuple(np.round(np.asarray(x_d, dtype=float), 4))
+
+    def precompute(self, x_d) -> ClikPoint:
+        """The precomputed reference of x_d from the start-up pose, or from the nearest seed
+        equilibrium when that fails (raises TargetError)."""
+        try:
+            return self.clik.precompute(x_d, self.start.q, tol=self.tolerance)
+        except TargetError:
+            if not self.seed_levels:
+                raise
+            if self._seeds is None:
+                self._seeds = equilibrium_seeds(self.clik, self.seed_levels)
+            return self.clik.precompute(x_d, self.start.q, self._seeds, tol=self.tolerance)
+
+    def goal(self, t: float, x_d, mode: str, point: ClikPoint | None = None) -> ClikPoint:
+        """Take a new goal at time t [s]; returns the reference to use from now on.
+
+        ``point`` is a reference precomputed beforehand for a clik or precomputed goal (the
+        harness solves every target before anything moves).
+        """
+        if mode not in MODES:
+            raise ValueError(f"goal mode {mode!r} is not one of {list(MODES)}")
+        x_d = np.asarray(x_d, dtype=float)
+        if mode == "replay":
+            key = self.key(x_d)
+            if key not in self.stored and not (self._mode == "clik" and self.key(self._x_d) == key):
+                raise TargetError(f"no stored configuration for target {list(key)}: a clik goal "
+                                  "must reach it first")
+        ref = None
+        if mode in ("clik", "precomputed"):
+            ref = point if point is not None else self.precompute(x_d)
+        if self._mode == "clik":
+            self.stored[self.key(self._x_d)] = self.reference
+        if mode == "replay":
+            ref = self.stored[self.key(x_d)]
+        self._x_d, self._mode = x_d, mode
+        self._online_from = {"clik": t + self.switch_delay, "online": t}.get(mode, np.inf)
+        self._next_step = self._online_from
+        if ref is not None:
+            self.reference = ref
+        return self.reference
+
+    def frame(self, t: float, x_measured) -> ClikPoint | None:
+        """A mocap frame delivered at time t [s] with the measured task coordinates [m]; returns
+        the new reference when an online step was taken (None otherwise)."""
+        if t < self._next_step - 1e-9:
+            return None
+        self._next_step = max(self._next_step + self.period, t + 0.5 * self.period)
+        refresh = self._steps % self.jacobian_every == 0
+        self._steps += 1
+        ref, _ = self.clik.step(self.reference.q, self._x_d, self.period, x_measured, refresh)
+        if ref is None:
+            return None
+        self.reference = ref
+        return ref
+
+    def finish(self):
+        """Store the reference of the last clik goal (end of an experiment)."""
+        if self._mode == "clik":
+            self.stored[self.key(self._x_d)] = self.reference
