@@ -14,7 +14,7 @@ setup(
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),
         (f"share/{PACKAGE}/config", glob("config/*.yaml")),
-        (f"share/{PACKAGE}/launch", glob("launch/*.py")),
+        (f"share/{PACKAGE}/launch", glob("launch/*.launch.py")),
     ],
     python_requires=">=3.10",
     install_requires=[
@@ -43,6 +43,12 @@ setup(
         "console_scripts": [
             "soft-arm-model = soft_arm_model.cli:main",
             "soft-arm-harness = soft_arm_control.cli:main",
+            "soft-arm-experiment = soft_arm_drivers.experiment:main",
+            "simulator = soft_arm_drivers.simulator_node:main",
+            "recorder = soft_arm_drivers.recorder_node:main",
+            "inner_loop = soft_arm_control.inner_loop_node:main",
+            "clik = soft_arm_control.clik_node:main",
+            "task_runner = soft_arm_control.task_runner_node:main",
         ],
     },
 )

@@ -113,3 +113,41 @@ class PSatID:
         self.u[a] = np.clip(u_a, g.tension_min, g.tension_max)
         self.t = float(t)
         return self.u.copy()
+
+
+class TendonController:
+    """The inner loop as a node runs it: P-satI-D+ on the ``active`` tendons (the task's), the
+    others held at their feedforward tension.
+
+    ``set_reference(s_ref, u_ff)``: reference shortenings [m] and feedforward tensions [N] of all
+    tendons (the shortenings of the tendons that are not actuated matter too: thetabar_a is a
+    function of all of them). Before any reference every tendon holds ``tension_min``.
+    """
+
+    def __init__(self, n_tendons: int, gains: InnerLoopGains, actuation_map: ActuationMap, active):
+        self.n, self.gains = n_tendons, gains
+        self.active = [int(k) for k in active]
+        a = self.active
+        self.pid = PSatID(InnerLoopGains(gains.proportional[a], gains.derivative[a],
+                                         gains.integral[a], gains.integral_saturation,
+                                         gains.tension_min, gains.tension_max,
+                                         gains.tension_rate_limit),
+                          actuation_map, a, n_tendons)
+        self.s_ref = None
+        self.u_ff = np.full(n_tendons, gains.tension_min)
+
+    def set_reference(self, s_ref, u_ff):
+        s_ref, u_ff = np.asarray(s_ref, dtype=float), np.asarray(u_ff, dtype=float)
+        if s_ref.shape != (self.n,) or u_ff.shape != (self.n,) or not (
+                np.all(np.isfinite(s_ref)) and np.all(np.isfinite(u_ff))):
+            raise ValueError(f"a reference needs {self.n} finite shortenings and tensions")
+        self.s_ref, self.u_ff = s_ref, u_ff
+
+    def update(self, t: float, s, s_dot) -> np.ndarray:
+        """Tensions [N] of all tendons at time t [s] from measured shortenings [m] and rates [m/s]."""
+        u = np.clip(self.u_ff, self.gains.tension_min, self.gains.tension_max)
+        if self.s_ref is None:
+            return u
+        out = self.pid.update(t, s, s_dot, self.s_ref, self.u_ff[self.active])
+        u[self.active] = out[self.active]
+        return u

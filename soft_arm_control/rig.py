@@ -109,6 +109,7 @@ class SimulatedRig:
         self._frame_period = 1.0 / plant.mocap_rate
         self._next_frame = 0
         self._pending = deque()
+        self._sensed = -1
         self.tension = np.array(pretension, dtype=float)
 
     @property
@@ -116,7 +117,11 @@ class SimulatedRig:
         return self.step_index * self.config.timestep
 
     def begin_step(self) -> tuple[MocapFrame | None, list]:
-        """Sense the current state; returns (the frame exposed now or None, frames delivered now)."""
+        """Sense the current state; returns (the frame exposed now or None, frames delivered now).
+        A second call before ``end_step`` senses nothing new and returns (None, [])."""
+        if self._sensed == self.step_index:
+            return None, []
+        self._sensed = self.step_index
         exposure = self.t >= self._next_frame * self._frame_period - 1e-12
         self.plant.sense(markers=exposure)
         frame = None

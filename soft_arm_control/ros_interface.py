@@ -8,18 +8,18 @@ logs the key, the value and the allowed range and exits with status 2.
 """
 from __future__ import annotations
 
-import math
 import os
-import sys
 
 import numpy as np
-from geometry_msgs.msg import Point, Pose, PoseArray, PoseStamped
+import rclpy
+from geometry_msgs.msg import Pose, PoseArray, PoseStamped
+from rclpy.executors import ExternalShutdownException
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 
 from soft_arm_model.config import (ConfigError, apply_overrides, default_config_dir, parse_arm_config,
-                                   parse_yaml, read_parameters, validate_tree)
+                                   read_parameters, validate_tree)
 
 from . import config as cfg
 
@@ -103,10 +103,29 @@ class NodeConfig:
         self.task = cfg.parse_task(name, values["tasks"], self.arm)
 
 
-def fail(node, exc) -> int:
-    """Log a configuration error on the node and return the exit status (2)."""
-    node.get_logger().fatal(f"bad parameter: {exc}")
-    return 2
+def run_node(factory, name: str, args=None) -> int:
+    """Create a node with ``factory()`` and spin it until Ctrl-C, SIGTERM or until it sets
+    ``done``; a ConfigError while creating it is logged and gives exit status 2. A node's ``close()``
+    (if any) runs on the way out, whatever ended the spin."""
+    rclpy.init(args=args)
+    try:
+        node = factory()
+    except ConfigError as exc:
+        rclpy.logging.get_logger(name).fatal(f"bad parameter: {exc}")
+        rclpy.try_shutdown()
+        return 2
+    try:
+        while rclpy.ok() and not getattr(node, "done", False):
+            rclpy.spin_once(node, timeout_sec=0.1)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        close = getattr(node, "close", None)
+        if close is not None:
+            close()
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
 
 
 # -- conversions ---------------------------------------------------------------------------------
@@ -177,23 +196,3 @@ def float_array(values, label: str = "") -> Float64MultiArray:
     msg.layout.dim.append(MultiArrayDimension(label=label, size=len(values), stride=len(values)))
     msg.data = values
     return msg
-
-
-def point(p) -> Point:
-    out = Point()
-    out.x, out.y, out.z = (float(v) for v in p)
-    return out
-
-
-def finite(values) -> bool:
-    return all(math.isfinite(v) for v in values)
-
-
-def parse_value(text: str):
-    """A command-line value parsed like ROS parameters (YAML, 1.5e5 is a float)."""
-    return parse_yaml(text)
-
-
-def ros_args(argv=None) -> list:
-    """The process arguments for rclpy.init (sys.argv by default)."""
-    return list(sys.argv if argv is None else argv)

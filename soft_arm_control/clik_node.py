@@ -1,0 +1,103 @@
+"""``clik`` node: the underactuated CLIK, precomputed and online, with the paper's switch.
+
+Subscribes ``task/goal`` (Float64MultiArray: the task coordinates; ``layout.dim[0].label`` the mode:
+clik (default), replay, precomputed or online, see :mod:`soft_arm_control.outer_loop`) and
+``mocap/markers``; publishes ``tendon/reference`` (position: reference shortenings [m] of all
+tendons; effort: feedforward tensions [N], the pretension on the tendons the task does not use) and
+``arm/configuration_reference`` (q_d). A bad or infeasible goal is rejected with a logged reason;
+the last good reference stays. Time is the mocap's (frame stamps), so it works on sim time and on
+the rig alike.
+"""
+from __future__ import annotations
+
+import sys
+
+import numpy as np
+from geometry_msgs.msg import PoseArray
+from rclpy.node import Node
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64MultiArray
+
+from soft_arm_model import build_model, solve_equilibrium
+
+from .clik import Clik, ClikGains, TargetError
+from .collocated import build_collocated
+from .outer_loop import MODES, OuterLoop
+from .ros_interface import (QOS, TOPICS, NodeConfig, float_array, joint_state, markers_of, run_node,
+                            stamp_to_seconds)
+
+
+def build_outer_loop(model, control, task) -> OuterLoop:
+    """The outer loop of a task, starting from the hanging arm under the pretension."""
+    cm = build_collocated(model, list(task.tendons), held_tension=control.tension_min,
+                          friction=control.friction)
+    clik = Clik(cm, task.space, ClikGains(control.task_gain, control.equilibrium_gain,
+                                          control.singular_threshold),
+                (control.tension_min, control.tension_max))
+    start = clik.reference(solve_equilibrium(model, np.full(model.n_tendons, control.tension_min)).q)
+    return OuterLoop(clik, start, control.switch_delay, control.clik_rate,
+                     int(round(control.clik_rate / control.jacobian_rate)), control.seed_levels,
+                     control.tolerance)
+
+
+class ClikNode(Node):
+    def __init__(self, config_dir: str | None = None, **node_options):
+        super().__init__("clik", allow_undeclared_parameters=True,
+                         automatically_declare_parameters_from_overrides=True, **node_options)
+        self.config = c = NodeConfig(self, config_dir)
+        self.model = build_model(c.arm)
+        self.task = c.task
+        self.outer = build_outer_loop(self.model, c.control, c.task)
+        self.names = self.model.tendon_names
+        self.now = 0.0
+        self.rejected_goals = 0
+        self.ref_pub = self.create_publisher(JointState, TOPICS["reference"], QOS["tendon/reference"])
+        self.q_pub = self.create_publisher(Float64MultiArray, TOPICS["configuration"],
+                                           QOS["arm/configuration_reference"])
+        self.create_subscription(Float64MultiArray, TOPICS["goal"], self.on_goal, QOS["task/goal"])
+        self.create_subscription(PoseArray, TOPICS["markers"], self.on_markers, QOS["mocap/markers"])
+        self.get_logger().info(f"clik ready for task {c.task.name} "
+                               f"({', '.join(c.task.space.labels())})")
+
+    def publish(self, ref):
+        u_ff = np.full(self.model.n_tendons, self.config.control.tension_min)
+        u_ff[list(self.task.tendons)] = ref.u_ff
+        self.ref_pub.publish(joint_state(self.names, self.now, position=ref.shortening, effort=u_ff))
+        self.q_pub.publish(float_array(ref.q, "q_d"))
+
+    def on_goal(self, msg: Float64MultiArray):
+        mode = (msg.layout.dim[0].label if msg.layout.dim and msg.layout.dim[0].label else "clik")
+        x_d = np.array(msg.data, dtype=float)
+        if mode not in MODES or x_d.shape != (self.task.space.m,) or not np.all(np.isfinite(x_d)):
+            self.rejected_goals += 1
+            self.get_logger().error(
+                f"goal rejected: expected {self.task.space.m} finite coordinates "
+                f"({', '.join(self.task.space.labels())}) and a mode in {list(MODES)}, got "
+                f"{list(msg.data)} with mode {mode!r}; keeping the last reference")
+            return
+        try:
+            ref = self.outer.goal(self.now, x_d, mode)
+        except TargetError as exc:
+            self.rejected_goals += 1
+            self.get_logger().error(f"goal rejected: {exc}; keeping the last reference")
+            return
+        self.publish(ref)
+
+    def on_markers(self, msg: PoseArray):
+        self.now = stamp_to_seconds(msg.header.stamp)
+        markers = markers_of(msg)
+        if markers.shape[0] != self.model.marker_X.size:
+            self.get_logger().warning(f"mocap frame with {markers.shape[0]} markers, expected "
+                                      f"{self.model.marker_X.size}", throttle_duration_sec=1.0)
+            return
+        ref = self.outer.frame(self.now, self.task.space.from_markers(markers))
+        if ref is not None:
+            self.publish(ref)
+
+
+def main(args=None) -> int:
+    return run_node(ClikNode, "clik", args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,72 @@
+"""``inner_loop`` node: P-satI-D+ on ``tendon/state`` and ``tendon/reference``, publishing
+``tendon/command`` (stamped like the state it answers) on every state message. It regulates the
+tendons of the task ``graph.task``; the others get their feedforward tension. Without a reference
+it holds the pretension. Parameters: ``control.*`` (gains, limits, the thetabar_a fit), ``arm.*``,
+``graph.task``.
+"""
+from __future__ import annotations
+
+import sys
+
+import numpy as np
+from rclpy.node import Node
+from sensor_msgs.msg import JointState
+
+from soft_arm_model import build_model
+
+from .actuation_map import ActuationMap, fit_actuation_map
+from .inner_loop import InnerLoopGains, TendonController
+from .ros_interface import QOS, TOPICS, NodeConfig, joint_state, ordered, run_node, stamp_to_seconds
+
+
+class InnerLoopNode(Node):
+    def __init__(self, config_dir: str | None = None, actuation_map: ActuationMap | None = None,
+                 **node_options):
+        super().__init__("inner_loop", allow_undeclared_parameters=True,
+                         automatically_declare_parameters_from_overrides=True, **node_options)
+        self.config = c = NodeConfig(self, config_dir)
+        model = build_model(c.arm)
+        ctl = c.control
+        if actuation_map is None:
+            actuation_map = (fit_actuation_map(model, ctl.map_levels, ctl.map_degree,
+                                               ctl.map_validation_samples)
+                             if ctl.friction else ActuationMap.identity())
+        self.names = model.tendon_names
+        gains = InnerLoopGains(np.array(ctl.proportional), np.array(ctl.derivative),
+                               np.array(ctl.integral), ctl.integral_saturation, ctl.tension_min,
+                               ctl.tension_max, ctl.tension_rate_limit)
+        self.core = TendonController(model.n_tendons, gains, actuation_map, c.task.tendons)
+        self.rejected = 0
+        self.pub = self.create_publisher(JointState, TOPICS["command"], QOS["tendon/command"])
+        self.create_subscription(JointState, TOPICS["reference"], self.on_reference,
+                                 QOS["tendon/reference"])
+        self.create_subscription(JointState, TOPICS["state"], self.on_state, QOS["tendon/state"])
+        self.get_logger().info(
+            f"inner loop ready: thetabar_a fit RMS {actuation_map.rms_error * 1e3:.2f} mm")
+
+    def on_reference(self, msg: JointState):
+        try:
+            self.core.set_reference(ordered(msg, "position", self.names),
+                                    ordered(msg, "effort", self.names))
+        except ValueError as exc:
+            self.rejected += 1
+            self.get_logger().warning(f"reference rejected: {exc}")
+
+    def on_state(self, msg: JointState):
+        t = stamp_to_seconds(msg.header.stamp)
+        try:
+            u = self.core.update(t, ordered(msg, "position", self.names),
+                                 ordered(msg, "velocity", self.names))
+        except ValueError as exc:
+            self.rejected += 1
+            self.get_logger().warning(f"state rejected: {exc}", throttle_duration_sec=1.0)
+            return
+        self.pub.publish(joint_state(self.names, t, effort=u))
+
+
+def main(args=None) -> int:
+    return run_node(InnerLoopNode, "inner_loop", args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
