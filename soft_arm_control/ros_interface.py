@@ -106,24 +106,24 @@ class NodeConfig:
 def run_node(factory, name: str, args=None) -> int:
     """Create a node with ``factory()`` and spin it until Ctrl-C, SIGTERM or until it sets
     ``done``; a ConfigError while creating it is logged and gives exit status 2. A node's ``close()``
-    (if any) runs on the way out, whatever ended the spin."""
+    (if any) runs on the way out, whatever ended the spin (a signal during start-up included)."""
     rclpy.init(args=args)
+    node = None
     try:
         node = factory()
-    except ConfigError as exc:
-        rclpy.logging.get_logger(name).fatal(f"bad parameter: {exc}")
-        rclpy.try_shutdown()
-        return 2
-    try:
         while rclpy.ok() and not getattr(node, "done", False):
             rclpy.spin_once(node, timeout_sec=0.1)
+    except ConfigError as exc:
+        rclpy.logging.get_logger(name).fatal(f"bad parameter: {exc}")
+        return 2
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
-        close = getattr(node, "close", None)
-        if close is not None:
-            close()
-        node.destroy_node()
+        if node is not None:
+            close = getattr(node, "close", None)
+            if close is not None:
+                close()
+            node.destroy_node()
         rclpy.try_shutdown()
     return 0
 

@@ -47,8 +47,13 @@ def _progress(t: float, total: float):
     print(f"\r  simulated {t:6.1f} / {total:.1f} s", end="", file=sys.stderr, flush=True)
 
 
-def run_composed(ros_args: list, out: dict, progress=None, config_dir: str | None = None) -> dict:
-    """All nodes in this process, lockstep waves. Returns run facts (simulated time, waves...)."""
+def run_composed(ros_args: list, out: dict, progress=None, config_dir: str | None = None,
+                 node_args: dict | None = None) -> dict:
+    """All nodes in this process, lockstep waves. Returns run facts (simulated time, waves...).
+
+    ``node_args``: extra command-line arguments per node name (e.g. remaps:
+    ``{"simulator": ["--ros-args", "-r", "__ns:=/hw"]}``).
+    """
     import rclpy
     from rclpy.parameter import Parameter
 
@@ -63,14 +68,20 @@ def run_composed(ros_args: list, out: dict, progress=None, config_dir: str | Non
     rclpy.init(args=["soft-arm-experiment"] + ros_args)
     nodes, executor = [], None
     try:
-        quiet = {"start_parameter_services": False}
-        sim = SimulatorNode(config_dir, watchdog=False, **quiet)
+        node_args = node_args or {}
+
+        def options(name):
+            return {"start_parameter_services": False, "cli_args": node_args.get(name)}
+
+        sim = SimulatorNode(config_dir, watchdog=False, **options("simulator"))
         nodes.append(sim)
-        nodes += [InnerLoopNode(config_dir, **quiet), ClikNode(config_dir, **quiet)]
+        nodes += [InnerLoopNode(config_dir, **options("inner_loop")),
+                  ClikNode(config_dir, **options("clik"))]
         runner = TaskRunnerNode(config_dir, parameter_overrides=[
-            Parameter("output", value=out["metrics"])], **quiet)
+            Parameter("output", value=out["metrics"])], **options("task_runner"))
         recorder = RecorderNode(config_dir, parameter_overrides=[
-            Parameter("output", value=out["bag"]), Parameter("use_sim_time", value=True)], **quiet)
+            Parameter("output", value=out["bag"]), Parameter("use_sim_time", value=True)],
+            **options("recorder"))
         nodes += [runner, recorder]
         executor = WaveExecutor(nodes)
         start = time.monotonic()
