@@ -86,6 +86,10 @@ TASK_SCHEMA = {
     "*.phase.*.window": ("float", lambda v: 0 < v <= 3600, "a window in (0, 3600] s"),
     "*.phase.*.sequence": ("ints", lambda v: len(v) >= 1 and all(a >= 1 for a in v),
                            "target numbers >= 1, in the order they are visited"),
+    "*.payload.masses": ("floats", lambda v: all(0 <= a <= 1 for a in v),
+                         "tip masses in [0, 1] kg (optional: an unmodelled load on the plant)"),
+    "*.payload.attach_times": ("floats", lambda v: all(0 <= a for a in v),
+                               "times >= 0 s from the start, one per payload mass"),
 }
 
 
@@ -221,14 +225,16 @@ class Phase:
 
 @dataclass(frozen=True)
 class TaskConfig:
-    """An experiment: actuated tendons (0-based), task space, targets (k, m) [m], phases and the
-    steady-state time [s] used by the metrics."""
+    """An experiment: actuated tendons (0-based), task space, targets (k, m) [m], phases, the
+    steady-state time [s] used by the metrics and the plant's unmodelled tip payload (masses [kg],
+    attach times [s])."""
     name: str
     tendons: tuple
     space: TaskSpace
     targets: tuple
     phases: tuple
     steady_time: float
+    payload: tuple = ((), ())
 
 
 def parse_task(name: str, v: dict, arm: ArmConfig) -> TaskConfig:
@@ -270,10 +276,16 @@ def parse_task(name: str, v: dict, arm: ArmConfig) -> TaskConfig:
     for ph in phases:
         if ph.mode == "clik":
             seen_clik.update(ph.sequence)
-        elif any(k not in seen_clik for k in ph.sequence):
+        elif ph.mode == "replay" and any(k not in seen_clik for k in ph.sequence):
             raise bad(f"phase.{ph.name}.sequence",
                       "targets reached by an earlier clik phase (replay needs a stored configuration)")
-    return TaskConfig(name, tendons, space, targets, tuple(phases), get("steady_time"))
+    masses = v.get(f"{name}.payload.masses", ())
+    times = v.get(f"{name}.payload.attach_times", ())
+    if len(masses) != len(times):
+        raise ConfigError(f"tasks.{name}.payload.attach_times = {list(times)!r} is not valid: "
+                          f"expected {len(masses)} times, one per payload mass")
+    return TaskConfig(name, tendons, space, targets, tuple(phases), get("steady_time"),
+                      (tuple(masses), tuple(times)))
 
 
 def load_task_config(name: str, arm: ArmConfig, path: str | None = None, overrides=None) -> TaskConfig:

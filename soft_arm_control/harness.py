@@ -177,7 +177,8 @@ def run_experiment(setup: Setup, progress=None, actuation_map: ActuationMap | No
     outer = OuterLoop(ctrl.clik, start, ctl.switch_delay, ctl.clik_rate,
                       int(round(ctl.clik_rate / ctl.jacobian_rate)), ctl.seed_levels, ctl.tolerance)
     points = precompute_targets(outer, task)
-    rig = SimulatedRig(build_model(pc.plant_arm(setup.arm)), pc, start.shortening, pretension)
+    rig = SimulatedRig(build_model(pc.plant_arm(setup.arm)), pc, start.shortening, pretension,
+                       task.payload)
 
     dt = pc.timestep
     inner_every = max(1, int(round(1.0 / (ctl.inner_rate * dt))))

@@ -41,9 +41,15 @@ class Plant:
         """Evaluate the current state (markers too if asked) for the readings and the next step."""
         self.stepper.prepare(self.q, self.qd, markers)
 
-    def step(self, u):
-        """Advance the sensed state by one time step under tensions u [N]."""
-        self.q, self.qd = self.stepper.advance(u)
+    def step(self, u, payload: float = 0.0):
+        """Advance the sensed state by one time step under tensions u [N], with a point mass
+        ``payload`` [kg] hanging at the tip (its weight only; sense with markers=True first)."""
+        f_ext = None
+        if payload:
+            d = self.stepper.data
+            gravity_body = d.marker_R[-1].T @ self.model.gravity
+            f_ext = payload * (d.marker_J[-1][3:].T @ gravity_body)
+        self.q, self.qd = self.stepper.advance(u, f_ext)
 
     def tendons(self) -> tuple[np.ndarray, np.ndarray]:
         """True shortenings L_c(0) - L_c(q) [m] and rates [m/s] of all tendons at the sensed state."""
@@ -97,8 +103,13 @@ class SimulatedRig:
     under at start-up.
     """
 
-    def __init__(self, plant_model, plant: PlantConfig, encoder_offset, pretension):
+    def __init__(self, plant_model, plant: PlantConfig, encoder_offset, pretension,
+                 payload=((), ())):
+        """``payload``: (masses [kg], attach times [s]): each mass hangs at the tip from its time
+        on (an unmodelled load: the controller does not know it)."""
         self.config = plant
+        self.payload_masses = np.asarray(payload[0], dtype=float)
+        self.payload_times = np.asarray(payload[1], dtype=float)
         self.plant = Plant(plant_model, plant.timestep, plant.rotor_mass)
         self.plant.settle(pretension)
         self.plant.sense()
@@ -123,7 +134,7 @@ class SimulatedRig:
             return None, []
         self._sensed = self.step_index
         exposure = self.t >= self._next_frame * self._frame_period - 1e-12
-        self.plant.sense(markers=exposure)
+        self.plant.sense(markers=exposure or self.payload() > 0)
         frame = None
         if exposure:
             true, speed = self.plant.markers()
@@ -141,8 +152,12 @@ class SimulatedRig:
         """Encoder readings at the sensed state: shortenings [m] and rates [m/s]."""
         return self.encoders.read(*self.plant.tendons())
 
+    def payload(self) -> float:
+        """The tip payload [kg] at the current time."""
+        return float(self.payload_masses[self.payload_times <= self.t + 1e-12].sum())
+
     def end_step(self, u):
         """Apply tensions u [N] over one plant step."""
         self.tension = np.array(u, dtype=float)
-        self.plant.step(self.tension)
+        self.plant.step(self.tension, self.payload())
         self.step_index += 1

@@ -41,7 +41,8 @@ class SimulatorNode(Node):
         pretension = np.full(model.n_tendons, c.control.tension_min)
         q_rest = solve_equilibrium(model, pretension).q
         offset = model.rest_tendon_lengths - tendon_lengths(model, q_rest)
-        self.rig = SimulatedRig(build_model(c.plant.plant_arm(c.arm)), c.plant, offset, pretension)
+        self.rig = SimulatedRig(build_model(c.plant.plant_arm(c.arm)), c.plant, offset, pretension,
+                                c.task.payload)
         self.names = model.tendon_names
         self.steps_per_command = max(1, int(round(1.0 / (c.control.inner_rate * c.plant.timestep))))
         self.mode = c.graph["simulator.mode"]

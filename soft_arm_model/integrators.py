@@ -55,8 +55,10 @@ def _imex_prepare(model_args, data_args, A0, rotor_mass, shifted, q, qd, markers
 
 
 @njit(cache=True)
-def _imex_advance(M, Cqd, Fg, Fel, Kt, Au, A0, D, rotor_mass, adot_qd, q, qd, u, h, q_out, qd_out):
-    """The IMEX update from the prepared workspace (M .. A0 at (q, qd); Au: A or A0)."""
+def _imex_advance(M, Cqd, Fg, Fel, Kt, Au, A0, D, rotor_mass, adot_qd, q, qd, u, f_ext, h, q_out,
+                  qd_out):
+    """The IMEX update from the prepared workspace (M .. A0 at (q, qd); Au: A or A0); f_ext: an
+    external generalised force, taken explicitly."""
     n = q.shape[0]
     n_t = u.shape[0]
     lhs = M + h * D + (h * h) * Kt
@@ -73,7 +75,7 @@ def _imex_advance(M, Cqd, Fg, Fel, Kt, Au, A0, D, rotor_mass, adot_qd, q, qd, u,
         for k in range(n_t):
             acc += Au[a, k] * rotor_mass[k] * s_rate[k]
         rhs[a] += acc
-    rhs += h * (Fg - Cqd - Fel - Au @ force)
+    rhs += h * (Fg - Cqd - Fel - Au @ force + f_ext)
     v = np.linalg.solve(lhs, rhs)
     for a in range(n):
         qd_out[a] = v[a]
@@ -114,15 +116,17 @@ class ImexStepper:
             raise OutOfDomainError("the state left the model's domain")
         self._state = (q, qd)
 
-    def advance(self, u):
-        """(q, qd) one step after the prepared state under tensions u [N] (new arrays)."""
+    def advance(self, u, f_ext=None):
+        """(q, qd) one step after the prepared state under tensions u [N] and an optional external
+        generalised force ``f_ext`` (e.g. a payload's weight through a Jacobian) (new arrays)."""
         if self._state is None:
             raise RuntimeError("advance() needs a prepare() first")
         q, qd = self._state
         q_out = np.empty_like(q)
         qd_out = np.empty_like(qd)
-        _imex_advance(*self._advance_args, q, qd, np.ascontiguousarray(u, dtype=float), self.dt,
-                      q_out, qd_out)
+        f_ext = np.zeros_like(q) if f_ext is None else np.ascontiguousarray(f_ext, dtype=float)
+        _imex_advance(*self._advance_args, q, qd, np.ascontiguousarray(u, dtype=float), f_ext,
+                      self.dt, q_out, qd_out)
         self._state = None
         return q_out, qd_out
 

@@ -26,7 +26,7 @@ def test_bad_parameters_name_the_key_and_the_allowed_values(sets, message):
 
 
 def test_unknown_task_and_bad_override_syntax():
-    with pytest.raises(ConfigError, match="unknown task 'square'; the tasks are: coiling, triangle"):
+    with pytest.raises(ConfigError, match="unknown task .square.; the tasks are: coiling, pendulum, sugar,"):
         load_setup("square")
     with pytest.raises(ValueError, match="namespace.key=value"):
         load_setup("triangle", overrides=["inner_loop.rate=5"])
@@ -74,3 +74,31 @@ def test_cli_reports_bad_configuration_with_status_2(capsys):
     far = "tasks.coiling.targets=[0.3, 0.3, 0.3, 0.3, 0.3, 0.3, 0.3, 0.3]"
     assert harness_main(["coiling", "--quiet", "--set", far]) == 2
     assert "unreachable" in capsys.readouterr().err
+
+
+def test_payload_force_is_the_gradient_of_its_potential(paper_model):
+    """The tip payload's generalised force equals -dU/dq with U = -m g . p_tip (finite differences)."""
+    import numpy as np
+
+    from soft_arm_control.rig import Plant
+    from soft_arm_model import marker_positions, solve_equilibrium
+    plant = Plant(paper_model, 1e-3)
+    q = solve_equilibrium(paper_model, [1.0, 0.2, 0.6, 0.3]).q
+    plant.q, plant.qd = q, np.zeros(paper_model.n)
+    plant.sense(markers=True)
+    d = plant.stepper.data
+    force = 0.01 * (d.marker_J[-1][3:].T @ (d.marker_R[-1].T @ paper_model.gravity))
+    h = 1e-6
+    grad = np.array([(marker_positions(paper_model, q + h * e)[-1]
+                      - marker_positions(paper_model, q - h * e)[-1]) @ paper_model.gravity
+                     for e in np.eye(paper_model.n)]) * 0.01 / (2 * h)
+    assert np.allclose(force, grad, atol=1e-7 * np.abs(grad).max() + 1e-12, rtol=1e-5)
+
+
+def test_sugar_payload_is_unmodelled_but_the_online_loop_copes():
+    """The pick phase of the sugar task with its tip load: every point within 1 mm at the end."""
+    sets = ["tasks.sugar.phases=[pick]", "tasks.sugar.phase.pick.sequence=[1, 2, 3]"]
+    setup = load_setup("sugar", overrides=sets)
+    result = run_experiment(setup)
+    assert setup.task.payload == ((0.003, 0.002), (0.0, 40.0))
+    assert all(r.final_error < 1e-3 for r in result.metrics)
