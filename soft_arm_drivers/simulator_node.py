@@ -58,7 +58,9 @@ class SimulatorNode(Node):
         self.tip_pub = self.create_publisher(PoseStamped, TOPICS["tip"], QOS["mocap/tip"])
         self.clock_pub = self.create_publisher(Clock, TOPICS["clock"], QOS["/clock"])
         self.shape_pub = self.create_publisher(MarkerArray, TOPICS["shape"], QOS["arm/shape"])
-        self.create_subscription(JointState, TOPICS["command"], self.on_command, QOS["tendon/command"])
+        sub = self.create_subscription(JointState, TOPICS["command"], self.on_command,
+                                       QOS["tendon/command"])
+        self.command_topic = sub.topic_name
         self.waiting_since = time.monotonic()
         period = 1.0 / c.control.inner_rate
         if self.mode == "realtime":
@@ -72,11 +74,14 @@ class SimulatorNode(Node):
             f"x{c.plant.viscosity_scale}, friction {list(c.plant.friction)}")
 
     def start(self):
-        """Publish the state at t = 0 once (lockstep: the first command answers it)."""
+        """Publish the state at t = 0 once, as soon as a controller (a publisher of
+        ``tendon/command``) and a mocap consumer are there; lockstep: the first command answers it."""
+        if self._started or self.count_publishers(self.command_topic) == 0 \
+                or self.markers_pub.get_subscription_count() == 0:
+            return
         self.start_timer.cancel()
-        if not self._started:
-            self._started = True
-            self.publish_state()
+        self._started = True
+        self.publish_state()
 
     def on_command(self, msg: JointState):
         try:

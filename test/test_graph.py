@@ -102,3 +102,17 @@ def test_the_simulator_can_be_swapped_by_remapping(tmp_path):
     assert "/hw/tendon/state" in messages and "/tendon/state" not in messages
     assert metrics["summary"]["transitions"] == 2 and facts["missing_commands"] == 0
     assert metrics["transitions"][-1]["final_error"] < 0.03
+
+
+def test_processes_mode_runs_each_node_as_its_own_process(tmp_path):
+    from soft_arm_drivers.experiment import main
+    out = tmp_path / "procs"
+    code = main(["coiling", "--processes", "--quiet", "--output", str(out), "--set",
+                 "tasks.coiling.phases=[upward]", "--set", "tasks.coiling.phase.upward.sequence=[1]",
+                 "--set", "tasks.coiling.phase.upward.window=3.0"])
+    assert code == 0
+    with open(out / "metrics.json", encoding="utf-8") as fh:
+        metrics = json.load(fh)
+    assert metrics["transitions"][0]["final_error"] < 5e-3
+    assert sorted(p.name for p in (out / "figures").iterdir()) == [
+        "actuation.png", "task_error.png", "tensions.png"]

@@ -136,3 +136,90 @@ def test_recorder_bag_survives_sigkill(tmp_path):
     messages = _read(bag)                       # no summary: the readers scan the chunks
     assert len(messages) >= 200                 # all but the last chunk (a few dozen messages)
     assert (bag / "metadata.yaml").exists()
+
+
+def test_simulator_in_realtime_holds_the_tension_and_counts_missing_commands():
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.parameter import Parameter
+
+    from soft_arm_control.ros_interface import QOS, joint_state
+    from soft_arm_drivers.simulator_node import SimulatorNode
+    from geometry_msgs.msg import PoseArray
+    from sensor_msgs.msg import JointState
+    rclpy.init()
+    try:
+        sim = SimulatorNode(parameter_overrides=[Parameter("graph.simulator.mode", value="realtime"),
+                                                 Parameter("graph.task", value="coiling")])
+        peer = rclpy.create_node("peer")
+        command = peer.create_publisher(JointState, "tendon/command", QOS["tendon/command"])
+        frames = []
+        peer.create_subscription(PoseArray, "mocap/markers", frames.append, QOS["mocap/markers"])
+        executor = SingleThreadedExecutor()
+        executor.add_node(sim)
+        executor.add_node(peer)
+        end = time.monotonic() + 1.5
+        while time.monotonic() < end:
+            executor.spin_once(timeout_sec=0.01)
+        assert 0.3 < sim.rig.t < 2.0                     # steps on the wall clock
+        assert sim.missing_commands > 10                 # nobody commands: counted, not a crash
+        assert all(u == pytest.approx(0.05) for u in sim.rig.tension)
+        assert frames                                    # mocap keeps streaming
+        names = ["tendon_1", "tendon_2", "tendon_3", "tendon_4"]
+        for effort in ([0.05, 0.05, 1.0, float("nan")], [0.05, 0.05, 1.0, 0.5]):
+            command.publish(joint_state(names, sim.rig.t, effort=effort))
+            end = time.monotonic() + 0.3
+            while time.monotonic() < end:
+                executor.spin_once(timeout_sec=0.01)
+        assert sim.bad_commands == 1
+        assert list(sim.rig.tension) == [0.05, 0.05, 1.0, 0.5]
+        executor.shutdown()
+        sim.destroy_node()
+        peer.destroy_node()
+    finally:
+        rclpy.try_shutdown()
+
+
+def test_clik_node_rejects_bad_goals_and_keeps_the_last_reference():
+    import rclpy
+    from rclpy.parameter import Parameter
+
+    from soft_arm_control.clik_node import ClikNode
+    from soft_arm_control.ros_interface import float_array
+    rclpy.init()
+    try:
+        node = ClikNode(parameter_overrides=[Parameter("graph.task", value="coiling")])
+        sent = []
+        node.ref_pub.publish = sent.append
+        node.q_pub.publish = lambda msg: None
+        node.on_goal(float_array([-0.009, -0.349], "clik"))
+        assert len(sent) == 1 and node.rejected_goals == 0
+        first = node.outer.reference
+        node.on_goal(float_array([0.3, 0.3], "clik"))             # unreachable
+        node.on_goal(float_array([0.01], "clik"))                 # wrong size
+        node.on_goal(float_array([0.0, -0.3], "sideways"))        # unknown mode
+        node.on_goal(float_array([0.017, -0.313], "replay"))      # never reached
+        assert node.rejected_goals == 4 and len(sent) == 1
+        assert node.outer.reference is first
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown()
+
+
+def test_ctrl_c_stops_the_experiment_and_keeps_the_bag(tmp_path):
+    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYTHONUNBUFFERED="1")
+    out = tmp_path / "run"
+    proc = subprocess.Popen([sys.executable, "-m", "soft_arm_drivers.experiment", "triangle",
+                             "--output", str(out)], stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True, env=env)
+    try:
+        _wait_for(proc, "recording", timeout=90)            # the recorder is up: it runs
+        time.sleep(3.0)
+        proc.send_signal(signal.SIGINT)
+        output, _ = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 130, output
+    messages = _read(out / "bag")
+    assert len(messages) > 100
