@@ -19,6 +19,7 @@ import platform
 import time
 
 import numpy as np
+from timing import best_of
 
 from soft_arm_control.clik import equilibrium_seeds
 from soft_arm_control.harness import TwoLevelController, load_setup, run_experiment
@@ -26,16 +27,6 @@ from soft_arm_control.metrics import format_table, to_json
 from soft_arm_model import build_model, solve_equilibrium
 
 PAPER = {"rms_error_mm": 0.67, "velocity_mm_band": 0.063, "velocity_cm_band": 0.384}
-
-
-def _best_of(fn, repeats=5, inner=200):
-    best = np.inf
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        for _ in range(inner):
-            fn()
-        best = min(best, (time.perf_counter() - t0) / inner)
-    return best
 
 
 def bench_steps():
@@ -49,11 +40,11 @@ def bench_steps():
     s = ref.shortening + 1e-3
     sd = np.full(4, 0.01)
     clock = iter(np.arange(0, 1e6, 2e-3))
-    inner = _best_of(lambda: ctrl.inner(next(clock), s, sd), inner=2000)
+    inner = best_of(lambda: ctrl.inner(next(clock), s, sd), inner=2000)
     x_meas = x_d + 1e-3
     ctrl.clik.step(ref.q, x_d, 1 / 240, x_meas)
-    full = _best_of(lambda: ctrl.clik.step(ref.q, x_d, 1 / 240, x_meas, True), inner=100)
-    chord = _best_of(lambda: ctrl.clik.step(ref.q, x_d, 1 / 240, x_meas, False), inner=200)
+    full = best_of(lambda: ctrl.clik.step(ref.q, x_d, 1 / 240, x_meas, True), inner=100)
+    chord = best_of(lambda: ctrl.clik.step(ref.q, x_d, 1 / 240, x_meas, False), inner=200)
     pre = {}
     for k, target in enumerate(setup.task.targets):
         t0 = time.perf_counter()

@@ -24,6 +24,7 @@ import sys
 import time
 
 import numpy as np
+from timing import best_of
 
 from soft_arm_model import ArmData, build_model, load_arm_config, simulate, solve_equilibrium, tip_frame
 from soft_arm_model import kernels
@@ -37,16 +38,6 @@ def _model(dof):
     return build_model(load_arm_config(overrides={"discretisation.legendre_order": ORDERS[dof]}))
 
 
-def _best_of(fn, repeats=7, inner=500):
-    best = np.inf
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        for _ in range(inner):
-            fn()
-        best = min(best, (time.perf_counter() - t0) / inner)
-    return best
-
-
 def bench_evaluation():
     rows = {}
     rng = np.random.default_rng(0)
@@ -57,10 +48,10 @@ def bench_evaluation():
         qd = rng.normal(size=m.n) * 0.5
         args = (*m.kernel_args, q, qd, 2, False, *d.kernel_args)
         kernels.evaluate(*args)
-        rows[dof] = {"dynamics_terms_us": 1e6 * _best_of(lambda: kernels.evaluate(*args)),
+        rows[dof] = {"dynamics_terms_us": 1e6 * best_of(lambda: kernels.evaluate(*args)),
                      "points": int(m.X.size)}
         args3 = (*m.kernel_args, q, qd, 3, False, *d.kernel_args)
-        rows[dof]["with_coriolis_matrix_us"] = 1e6 * _best_of(lambda: kernels.evaluate(*args3))
+        rows[dof]["with_coriolis_matrix_us"] = 1e6 * best_of(lambda: kernels.evaluate(*args3))
     return rows
 
 
