@@ -37,3 +37,13 @@ def test_launch_file_names_existing_executables_and_parameter_files(path):
 
 def test_there_is_a_simulated_rig_launch_file():
     assert (ROOT / "launch" / "sim.launch.py").is_file()
+
+
+@pytest.mark.parametrize("path", sorted((ROOT / "config").glob("*.yaml")), ids=lambda p: p.name)
+def test_parameter_file_parses_with_rcl(path):
+    """rcl's own YAML rules differ from PyYAML's (a bare y is a boolean there): every parameter
+    file must load through rclpy --params-file."""
+    import rclpy
+    context = rclpy.Context()
+    rclpy.init(args=["check", "--ros-args", "--params-file", str(path)], context=context)
+    rclpy.shutdown(context=context)
