@@ -49,6 +49,7 @@ setup(
             "inner_loop = soft_arm_control.inner_loop_node:main",
             "clik = soft_arm_control.clik_node:main",
             "task_runner = soft_arm_control.task_runner_node:main",
+            "mocap_bridge = soft_arm_drivers.mocap_bridge_node:main",
         ],
     },
 )
