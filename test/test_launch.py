@@ -35,8 +35,9 @@ def test_launch_file_names_existing_executables_and_parameter_files(path):
     assert "package=\"soft_arm\"" in path.read_text()
 
 
-def test_there_is_a_simulated_rig_launch_file():
+def test_there_are_launch_files_for_the_simulated_and_the_physical_rig():
     assert (ROOT / "launch" / "sim.launch.py").is_file()
+    assert (ROOT / "launch" / "rig.launch.py").is_file()
 
 
 @pytest.mark.parametrize("path", sorted((ROOT / "config").glob("*.yaml")), ids=lambda p: p.name)
