@@ -118,6 +118,9 @@ def run_node(factory, name: str, args=None) -> int:
         return 2
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except RuntimeError:
+        if rclpy.ok():   # a signal between rclpy.ok() and the wait set surfaces as RuntimeError
+            raise
     finally:
         if node is not None:
             close = getattr(node, "close", None)

@@ -113,6 +113,94 @@ def run_composed(ros_args: list, out: dict, progress=None, config_dir: str | Non
         rclpy.try_shutdown()
 
 
+def run_emulated_hardware(ros_args: list, out: dict, progress=None, config_dir: str | None = None,
+                          duration: float = 0.0) -> dict:
+    """The rig's graph in real time against emulated hardware, all in this process: the motor
+    driver on a python-can ``virtual`` bus with the CAN motor emulator behind it (the plant of
+    plant.yaml, stepped in real time by the emulator), the mocap bridge receiving NatNet frames of
+    the same plant from the server emulator over UDP on 127.0.0.1; inner_loop, clik, task_runner and
+    recorder unchanged."""
+    import can
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.parameter import Parameter
+
+    from soft_arm_control.clik_node import ClikNode
+    from soft_arm_control.inner_loop_node import InnerLoopNode
+    from soft_arm_control.task_runner_node import TaskRunnerNode
+    from soft_arm_model import ArmData, marker_positions
+
+    from .can_emulator import CanMotorEmulator, EmulatorThread, arm_plant
+    from .mocap_bridge import load_mocap_config
+    from .mocap_bridge_node import MocapBridgeNode
+    from .motor_driver import load_driver_config
+    from .motor_driver_node import MotorDriverNode
+    from .natnet_emulator import NatNetEmulator
+    from .recorder_node import RecorderNode
+
+    d = config_dir or default_config_dir()
+    channel = f"soft_arm_{os.getpid()}"
+    plant = arm_plant(d, tension=0.05)
+    driver_config = load_driver_config(os.path.join(d, "rig.yaml"),
+                                       {"interface": '"virtual"', "channel": f'"{channel}"'},
+                                       plant.model.n_tendons)
+    emulator_bus = can.Bus(interface="virtual", channel=channel, preserve_timestamps=True)
+    emulator = CanMotorEmulator.for_config(driver_config, emulator_bus, plant,
+                                           start_time=time.time())
+    mocap = load_mocap_config(os.path.join(d, "mocap.yaml"))
+    data = ArmData(plant.model)
+    natnet = NatNetEmulator(lambda t: marker_positions(plant.model, plant.q, data),
+                            calibration=mocap.calibration, rate=240.0).start()
+    rclpy.init(args=["soft-arm-experiment"] + ros_args)
+    nodes, executor, can_thread = [], None, None
+    try:
+        can_thread = EmulatorThread(emulator).start()
+        # One Python process serves the emulated motors, the driver and the controller, so a CLIK
+        # precomputation can hold the interpreter for tens of ms: a longer watchdog than the rig's.
+        driver = MotorDriverNode(d, parameter_overrides=[
+            Parameter("rig.motors.interface", value="virtual"),
+            Parameter("rig.motors.channel", value=channel),
+            Parameter("rig.motors.watchdog_timeout", value=0.2),
+            Parameter("rig.motors.reply_timeout", value=0.2)])
+        bridge = MocapBridgeNode(d, parameter_overrides=[
+            Parameter("rig.mocap.command_port", value=natnet.command_port),
+            Parameter("rig.mocap.data_port", value=0)])
+        nodes += [driver, bridge, InnerLoopNode(d), ClikNode(d)]
+        runner = TaskRunnerNode(d, parameter_overrides=[Parameter("output", value=out["metrics"])])
+        recorder = RecorderNode(d, parameter_overrides=[Parameter("output", value=out["bag"])])
+        nodes += [runner, recorder]
+        driver.driver.zero()                                 # the tendons hang slack
+        driver.driver.enable(time.monotonic())
+        executor = SingleThreadedExecutor()
+        for node in nodes:
+            executor.add_node(node)
+        start = time.monotonic()
+        reported = 0
+        while not runner.done and (not duration or time.monotonic() - start < duration):
+            executor.spin_once(timeout_sec=0.01)
+            if progress is not None and runner.core.t0 is not None and \
+                    time.monotonic() - start >= reported + 1.0:
+                reported = int(time.monotonic() - start)
+                progress(time.monotonic() - start, runner.core.duration)
+        return {"wall_s": time.monotonic() - start, "emulated_hardware": True}
+    finally:
+        for node in nodes:
+            if isinstance(node, TaskRunnerNode) and not node.done:
+                node.finish()
+            close = getattr(node, "close", None)
+            if close is not None:
+                close()
+        if executor is not None:
+            executor.shutdown()
+        for node in nodes:
+            node.destroy_node()
+        rclpy.try_shutdown()
+        if can_thread is not None:
+            can_thread.stop()
+        natnet.close()
+        emulator_bus.shutdown()
+
+
 def run_processes(ros_args: list, out: dict) -> dict:
     """Each node its own process (console scripts), the same parameters; waits for the task
     runner, then stops the others with SIGINT."""
@@ -164,6 +252,9 @@ def main(argv=None) -> int:
     parser.add_argument("task", help="task name in tasks.yaml (triangle, coiling, ...)")
     parser.add_argument("--output", metavar="DIR", help="run directory (default: runs/<task>-<time>)")
     parser.add_argument("--processes", action="store_true", help="one process per node")
+    parser.add_argument("--emulated-hardware", action="store_true",
+                        help="motor driver + CAN emulator and mocap bridge + NatNet emulator in the "
+                             "simulator's place (real time)")
     parser.add_argument("--config", metavar="DIR", help="directory with the parameter files")
     parser.add_argument("--set", dest="sets", action="append", default=[], metavar="NS.KEY=VALUE",
                         help="override one parameter (repeatable)")
@@ -190,7 +281,9 @@ def main(argv=None) -> int:
     progress = None if args.quiet else _progress
     interrupted = False
     try:
-        if args.processes:
+        if args.emulated_hardware:
+            facts = run_emulated_hardware(ros_args, out, progress, args.config)
+        elif args.processes:
             facts = run_processes(ros_args, out)
         else:
             facts = run_composed(ros_args, out, progress, args.config)
