@@ -8,6 +8,7 @@ logs the key, the value and the allowed range and exits with status 2.
 """
 from __future__ import annotations
 
+import json
 import os
 
 import numpy as np
@@ -62,16 +63,24 @@ SCHEMAS = {"control": cfg.CONTROL_SCHEMA, "plant": cfg.PLANT_SCHEMA, "tasks": cf
 
 
 # -- parameters ----------------------------------------------------------------------------------
+def parameter_overrides(node, prefix: str) -> dict:
+    """The node's parameters under ``prefix`` (from --params-file / -p) as dotted overrides relative
+    to it. ROS has typed the values already: strings are passed quoted, so that the overrides' YAML
+    reading keeps "4.1" or "yes" a string; arrays become lists."""
+    out = {}
+    for key, param in node.get_parameters_by_prefix(prefix).items():
+        value = param.value
+        if isinstance(value, str):
+            value = json.dumps(value)
+        elif isinstance(value, (list, tuple)) or hasattr(value, "tolist"):
+            value = list(value)
+        out[key] = value
+    return out
+
+
 def node_overrides(node) -> dict:
-    """The node's parameters (from --params-file / -p) grouped by namespace as dotted overrides."""
-    groups = {ns: {} for ns in NAMESPACES}
-    for name, param in node.get_parameters_by_prefix("").items():
-        ns, _, key = name.partition(".")
-        if ns in groups and key:
-            value = param.value
-            groups[ns][key] = list(value) if isinstance(value, (list, tuple)) or hasattr(
-                value, "tolist") else value
-    return groups
+    """The node's parameters grouped by namespace (arm, control, plant, tasks, graph)."""
+    return {ns: parameter_overrides(node, ns) for ns in NAMESPACES}
 
 
 def _tree(namespace: str, config_dir: str) -> dict:

@@ -47,6 +47,24 @@ def _progress(t: float, total: float):
     print(f"\r  simulated {t:6.1f} / {total:.1f} s", end="", file=sys.stderr, flush=True)
 
 
+def _shut_down(nodes, executor):
+    """End a composed run whatever stopped it: the task runner writes what it has, every node
+    closes (the recorder its bag), then the executor, the nodes and rclpy go."""
+    import rclpy
+    for node in nodes:
+        finish = getattr(node, "finish", None)
+        if finish is not None and not node.done:
+            finish()
+        close = getattr(node, "close", None)
+        if close is not None:
+            close()
+    if executor is not None:
+        executor.shutdown()
+    for node in nodes:
+        node.destroy_node()
+    rclpy.try_shutdown()
+
+
 def run_composed(ros_args: list, out: dict, progress=None, config_dir: str | None = None,
                  node_args: dict | None = None) -> dict:
     """All nodes in this process, lockstep waves. Returns run facts (simulated time, waves...).
@@ -100,17 +118,7 @@ def run_composed(ros_args: list, out: dict, progress=None, config_dir: str | Non
         return {"simulated_s": sim.rig.t, "wall_s": time.monotonic() - start, "waves": executor.waves,
                 "missing_commands": sim.missing_commands, "messages_recorded": recorder.count}
     finally:
-        for node in nodes:
-            if isinstance(node, TaskRunnerNode) and not node.done:
-                node.finish()
-            close = getattr(node, "close", None)
-            if close is not None:
-                close()
-        if executor is not None:
-            executor.shutdown()
-        for node in nodes:
-            node.destroy_node()
-        rclpy.try_shutdown()
+        _shut_down(nodes, executor)
 
 
 def run_emulated_hardware(ros_args: list, out: dict, progress=None, config_dir: str | None = None,
@@ -184,17 +192,7 @@ def run_emulated_hardware(ros_args: list, out: dict, progress=None, config_dir: 
                 progress(time.monotonic() - start, runner.core.duration)
         return {"wall_s": time.monotonic() - start, "emulated_hardware": True}
     finally:
-        for node in nodes:
-            if isinstance(node, TaskRunnerNode) and not node.done:
-                node.finish()
-            close = getattr(node, "close", None)
-            if close is not None:
-                close()
-        if executor is not None:
-            executor.shutdown()
-        for node in nodes:
-            node.destroy_node()
-        rclpy.try_shutdown()
+        _shut_down(nodes, executor)
         if can_thread is not None:
             can_thread.stop()
         natnet.close()

@@ -16,7 +16,6 @@ status 2). The rig runs on the system clock (no ``use_sim_time``).
 """
 from __future__ import annotations
 
-import json
 import os
 import sys
 import threading
@@ -25,7 +24,8 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseArray, PoseStamped
 from rclpy.node import Node
 
-from soft_arm_control.ros_interface import (QOS, RELIABLE, TOPICS, node_overrides, pose_array,
+from soft_arm_control.ros_interface import (QOS, RELIABLE, TOPICS, node_overrides, parameter_overrides,
+                                            pose_array,
                                             pose_stamped, run_node, seconds_to_stamp)
 from soft_arm_model.config import ConfigError, default_config_dir, load_arm_config
 
@@ -36,26 +36,11 @@ DIAGNOSTICS_PERIOD = 1.0   # s
 _POLL_TIMEOUT = 0.05       # s, how long the receive thread waits before checking for shutdown
 
 
-def rig_overrides(node) -> dict:
-    """The node's ``rig.mocap.*`` parameters as overrides relative to ``rig``. The values are typed
-    by ROS already; strings are passed quoted so that "4.1" stays a string and "" stays empty."""
-    out = {}
-    for name, param in node.get_parameters_by_prefix(NAMESPACE).items():
-        if not name.startswith("mocap."):
-            continue
-        value = param.value
-        if isinstance(value, str):
-            value = json.dumps(value)
-        elif isinstance(value, (list, tuple)) or hasattr(value, "tolist"):
-            value = list(value)
-        out[name] = value
-    return out
-
-
 def load_node_config(node, config_dir: str | None = None) -> BridgeConfig:
     """``rig.mocap`` of ``mocap.yaml`` with the node's parameters, checked against the arm's markers."""
     d = config_dir or default_config_dir()
-    config = load_mocap_config(os.path.join(d, "mocap.yaml"), rig_overrides(node))
+    overrides = {f"mocap.{k}": v for k, v in parameter_overrides(node, "rig.mocap").items()}
+    config = load_mocap_config(os.path.join(d, "mocap.yaml"), overrides)
     arm = load_arm_config(os.path.join(d, "arm.yaml"), node_overrides(node)["arm"])
     n = len(arm.marker_positions)
     if len(config.ids) != n:

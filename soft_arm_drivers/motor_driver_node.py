@@ -24,7 +24,6 @@ sends zero torque and exit-motor-mode to every motor.
 """
 from __future__ import annotations
 
-import json
 import os
 import sys
 import time
@@ -35,26 +34,13 @@ from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from std_srvs.srv import SetBool, Trigger
 
-from soft_arm_control.ros_interface import QOS, TOPICS, joint_state, node_overrides, ordered, run_node
+from soft_arm_control.ros_interface import (QOS, TOPICS, joint_state, node_overrides, ordered,
+                                            parameter_overrides, run_node)
 from soft_arm_model.config import ConfigError, default_config_dir, load_arm_config
 
 from .motor_driver import NAMESPACE, Diagnostics, MotorDriver, bus_load, load_driver_config
 
 DIAGNOSTICS_PERIOD = 0.5        # s between /diagnostics messages when nothing changes
-
-
-def rig_overrides(node: Node) -> dict:
-    """The node's ``rig.motors.*`` parameters as overrides relative to ``rig.motors``. ROS has typed
-    them already: strings go quoted, so that the overrides' YAML reading keeps ``"on"`` a string."""
-    out = {}
-    for key, param in node.get_parameters_by_prefix(NAMESPACE).items():
-        value = param.value
-        if isinstance(value, str):
-            value = json.dumps(value)
-        elif isinstance(value, (list, tuple)) or hasattr(value, "tolist"):
-            value = list(value)
-        out[key] = value
-    return out
 
 
 class MotorDriverNode(Node):
@@ -64,7 +50,8 @@ class MotorDriverNode(Node):
         d = config_dir or default_config_dir()
         arm = load_arm_config(os.path.join(d, "arm.yaml"), node_overrides(self)["arm"])
         self.names = tuple(t.name for t in arm.tendons)
-        self.config = c = load_driver_config(os.path.join(d, "rig.yaml"), rig_overrides(self),
+        self.config = c = load_driver_config(os.path.join(d, "rig.yaml"),
+                                             parameter_overrides(self, NAMESPACE),
                                              len(self.names))
         try:
             self.driver = MotorDriver(c)
