@@ -1,7 +1,8 @@
 """What every soft_arm node shares: topic names, message types, QoS, conversions, parameter loading.
 
 Topics, types and QoS follow DESIGN.md section 5 (README, "The ROS 2 graph"). Streams (state,
-command, mocap, shape, clock) are best effort with depth 1; goals and references are reliable.
+command, mocap, shape, clock) are best effort with depth 1; goals and references are reliable and
+transient-local (the last one reaches a node that starts late).
 Parameters come from the package's ``config/*.yaml`` overlaid with whatever the node was given
 (``--params-file``, ``-p``); they are validated like everywhere else, and a node given a bad value
 logs the key, the value and the allowed range and exits with status 2.
@@ -15,7 +16,7 @@ import numpy as np
 import rclpy
 from geometry_msgs.msg import Pose, PoseArray, PoseStamped
 from rclpy.executors import ExternalShutdownException
-from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 
@@ -39,8 +40,9 @@ TYPES = {
 }
 STREAM = QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT,
                     history=HistoryPolicy.KEEP_LAST)
-RELIABLE = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
-                      history=HistoryPolicy.KEEP_LAST)
+# goals and references are state: the last one is kept for subscribers that join late
+RELIABLE = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                      history=HistoryPolicy.KEEP_LAST, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 QOS = {"tendon/command": STREAM, "tendon/state": STREAM, "mocap/markers": STREAM, "mocap/tip": STREAM,
        "arm/shape": STREAM, "/clock": STREAM, "tendon/reference": RELIABLE, "task/goal": RELIABLE,
        "arm/configuration_reference": RELIABLE}

@@ -19,12 +19,21 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 
 from soft_arm_control.metrics import TransitionMetrics, Summary, format_table
 from soft_arm_model.config import ConfigError, default_config_dir
 
 NODES = ("simulator", "inner_loop", "clik", "task_runner", "recorder")
+STOP = threading.Event()       # set by the first Ctrl-C / SIGTERM: the run loops end at their next turn
+
+
+def _request_stop(signum, frame):
+    """First signal: stop at the next turn of the run loop; a second one interrupts at once."""
+    if STOP.is_set():
+        raise KeyboardInterrupt
+    STOP.set()
 
 
 def _ros_arguments(task: str, sets, config_dir: str | None) -> list:
@@ -74,6 +83,7 @@ def run_composed(ros_args: list, out: dict, progress=None, config_dir: str | Non
     """
     import rclpy
     from rclpy.parameter import Parameter
+    from rclpy.signals import SignalHandlerOptions
 
     from soft_arm_control.clik_node import ClikNode
     from soft_arm_control.inner_loop_node import InnerLoopNode
@@ -83,7 +93,9 @@ def run_composed(ros_args: list, out: dict, progress=None, config_dir: str | Non
     from .recorder_node import RecorderNode
     from .simulator_node import SimulatorNode
 
-    rclpy.init(args=["soft-arm-experiment"] + ros_args)
+    # Ctrl-C stays Python's KeyboardInterrupt (no rclpy handler shutting the context mid-wave), so
+    # that the shutdown below always runs in order.
+    rclpy.init(args=["soft-arm-experiment"] + ros_args, signal_handler_options=SignalHandlerOptions.NO)
     nodes, executor = [], None
     try:
         node_args = node_args or {}
@@ -106,7 +118,7 @@ def run_composed(ros_args: list, out: dict, progress=None, config_dir: str | Non
         while not sim._started:
             executor.spin_timers(0.01)
         last_flush, reported = time.monotonic(), 0
-        while not runner.done:
+        while not runner.done and not STOP.is_set():
             if executor.wave() == 0:
                 raise RuntimeError("the graph went quiet before the experiment ended")
             if progress is not None and sim.rig.t >= reported + 1.0:
@@ -132,6 +144,7 @@ def run_emulated_hardware(ros_args: list, out: dict, progress=None, config_dir: 
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.parameter import Parameter
+    from rclpy.signals import SignalHandlerOptions
 
     from soft_arm_control.clik_node import ClikNode
     from soft_arm_control.inner_loop_node import InnerLoopNode
@@ -159,7 +172,9 @@ def run_emulated_hardware(ros_args: list, out: dict, progress=None, config_dir: 
     data = ArmData(plant.model)
     natnet = NatNetEmulator(lambda t: marker_positions(plant.model, plant.q, data),
                             calibration=mocap.calibration, rate=240.0).start()
-    rclpy.init(args=["soft-arm-experiment"] + ros_args)
+    # Ctrl-C stays Python's KeyboardInterrupt (no rclpy handler shutting the context mid-wave), so
+    # that the shutdown below always runs in order.
+    rclpy.init(args=["soft-arm-experiment"] + ros_args, signal_handler_options=SignalHandlerOptions.NO)
     nodes, executor, can_thread = [], None, None
     try:
         can_thread = EmulatorThread(emulator).start()
@@ -184,7 +199,8 @@ def run_emulated_hardware(ros_args: list, out: dict, progress=None, config_dir: 
             executor.add_node(node)
         start = time.monotonic()
         reported = 0
-        while not runner.done and (not duration or time.monotonic() - start < duration):
+        while not runner.done and not STOP.is_set() and (
+                not duration or time.monotonic() - start < duration):
             executor.spin_once(timeout_sec=0.01)
             if progress is not None and runner.core.t0 is not None and \
                     time.monotonic() - start >= reported + 1.0:
@@ -214,12 +230,12 @@ def run_processes(ros_args: list, out: dict) -> dict:
                 extra = ["-p", f"output:={out['metrics']}"]
             procs[name] = subprocess.Popen(
                 [sys.executable, "-m", _MODULES[name]] + ros_args + extra, env=env)
-        while procs["task_runner"].poll() is None:
+        while procs["task_runner"].poll() is None and not STOP.is_set():
             for name, proc in procs.items():
                 if proc.poll() is not None and name != "task_runner":
                     raise RuntimeError(f"node {name} exited with status {proc.returncode}")
             time.sleep(0.2)
-        if procs["task_runner"].returncode != 0:
+        if not STOP.is_set() and procs["task_runner"].returncode != 0:
             raise RuntimeError(f"task_runner exited with status {procs['task_runner'].returncode}")
     finally:
         for proc in procs.values():
@@ -277,7 +293,9 @@ def main(argv=None) -> int:
     out = {"bag": os.path.join(run_dir, "bag"), "metrics": os.path.join(run_dir, "metrics.json"),
            "figures": os.path.join(run_dir, "figures")}
     progress = None if args.quiet else _progress
-    interrupted = False
+    STOP.clear()
+    signal.signal(signal.SIGINT, _request_stop)
+    signal.signal(signal.SIGTERM, _request_stop)
     try:
         if args.emulated_hardware:
             facts = run_emulated_hardware(ros_args, out, progress, args.config)
@@ -286,10 +304,11 @@ def main(argv=None) -> int:
         else:
             facts = run_composed(ros_args, out, progress, args.config)
     except KeyboardInterrupt:
-        interrupted, facts = True, {}
+        facts = {}
     except ConfigError as exc:
         print(f"\nsoft-arm-experiment: {exc}", file=sys.stderr)
         return 2
+    interrupted = STOP.is_set()
     if progress is not None:
         print(file=sys.stderr)
     figures = []

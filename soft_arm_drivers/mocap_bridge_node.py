@@ -24,7 +24,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseArray, PoseStamped
 from rclpy.node import Node
 
-from soft_arm_control.ros_interface import (QOS, RELIABLE, TOPICS, node_overrides, parameter_overrides,
+from soft_arm_control.ros_interface import (QOS, TOPICS, node_overrides, parameter_overrides,
                                             pose_array,
                                             pose_stamped, run_node, seconds_to_stamp)
 from soft_arm_model.config import ConfigError, default_config_dir, load_arm_config
@@ -61,7 +61,7 @@ class MocapBridgeNode(Node):
                               f"{c.data_port} is not valid: cannot open the NatNet sockets ({exc})") from None
         self.markers_pub = self.create_publisher(PoseArray, TOPICS["markers"], QOS["mocap/markers"])
         self.tip_pub = self.create_publisher(PoseStamped, TOPICS["tip"], QOS["mocap/tip"])
-        self.diagnostics_pub = self.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, RELIABLE)
+        self.diagnostics_pub = self.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, 10)
         self.published = 0
         self.last_latency = float("nan")
         self._published_at_last_report = 0

@@ -17,7 +17,7 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 
 from soft_arm_control.rig import Plant
-from soft_arm_control.ros_interface import FRAME, QOS, RELIABLE, markers_of, stamp_to_seconds
+from soft_arm_control.ros_interface import FRAME, QOS, markers_of, stamp_to_seconds
 from soft_arm_drivers.mocap_bridge import load_mocap_config
 from soft_arm_drivers.mocap_bridge_node import DIAGNOSTICS_TOPIC, MocapBridgeNode, main
 from soft_arm_drivers.natnet_emulator import NatNetEmulator, plant_markers
@@ -59,7 +59,7 @@ def test_node_publishes_the_arms_markers_in_arm_base(ros, plant):
 
         listener.create_subscription(PoseArray, "mocap/markers", on("markers"), QOS["mocap/markers"])
         listener.create_subscription(PoseStamped, "mocap/tip", on("tip"), QOS["mocap/tip"])
-        listener.create_subscription(DiagnosticArray, DIAGNOSTICS_TOPIC, on("diagnostics"), RELIABLE)
+        listener.create_subscription(DiagnosticArray, DIAGNOSTICS_TOPIC, on("diagnostics"), 10)
         executor = SingleThreadedExecutor()
         for node in (bridge, listener):
             executor.add_node(node)
