@@ -31,7 +31,7 @@ VERSIONS = ["3.1", "4.0", "4.1"]
 
 SERVER_INFO = build_server_info(ServerInfo("Motive", Version(3, 1), Version(4, 1),
                                            clock_frequency=10_000_000, data_port=1511,
-                                           multicast=False, multicast_group="239.255.42.99"))
+                                           multicast=False, multicast_group="233.252.0.1"))
 VALID_41 = build_frame_of_data(Version(4, 1), FrameOfData(
     frame_number=1, rigid_bodies=tuple(RigidBody(k, (0.0, 1.0, 0.0), (0.0, 0.0, 0.0, 1.0))
                                        for k in (1, 2, 3, 4)),
@@ -169,7 +169,7 @@ def test_unanswered_version_request_times_out():
 ])
 def test_unsupported_servers_are_reported_and_their_frames_not_parsed(version, frequency, note):
     fields = dict(clock_frequency=frequency, data_port=1511, multicast=False,
-                  multicast_group="239.255.42.99") if frequency else {}
+                  multicast_group="233.252.0.1") if frequency else {}
     info = build_server_info(ServerInfo("Motive", Version(3, 1), version, **fields))
     with NatNetEmulator(static) as silent:
         with MocapBridge(config(silent)) as bridge:
@@ -466,7 +466,7 @@ def test_the_package_config_loads():
 @pytest.mark.parametrize("key, value, message", [
     ("mocap.command_port", 70000, "rig.mocap.command_port = 70000 is not valid: expected the "
                                   "server's command port in [1, 65535]"),
-    ("mocap.server_address", "239.255.42.99", "rig.mocap.server_address = '239.255.42.99' is not valid"),
+    ("mocap.server_address", "233.252.0.1", "rig.mocap.server_address = '233.252.0.1' is not valid"),
     ("mocap.multicast_group", "10.0.0.1", "rig.mocap.multicast_group = '10.0.0.1' is not valid"),
     ("mocap.natnet_version", '"2.9"', "rig.mocap.natnet_version = '2.9' is not valid: expected empty"),
     ("mocap.markers.source", "points", "rig.mocap.markers.source = 'points' is not valid: expected "

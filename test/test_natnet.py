@@ -100,10 +100,10 @@ def test_end_of_data_tag_is_optional():
 
 def test_server_info_hand_built():
     payload = (b"Motive".ljust(256, b"\0") + bytes([3, 1, 0, 0]) + bytes([4, 1, 0, 0])
-               + struct.pack("<QH?4B", 10_000_000, 1511, True, 239, 255, 42, 99))
+               + struct.pack("<QH?4B", 10_000_000, 1511, True, 233, 252, 0, 1))
     info = parse_server_info(packet(1, payload))
     assert info == ServerInfo("Motive", Version(3, 1), Version(4, 1), clock_frequency=10_000_000,
-                              data_port=1511, multicast=True, multicast_group="239.255.42.99")
+                              data_port=1511, multicast=True, multicast_group="233.252.0.1")  # RFC 5771 documentation group
     assert build_server_info(info) == packet(1, payload)
 
 
