@@ -103,7 +103,7 @@ def test_server_info_hand_built():
                + struct.pack("<QH?4B", 10_000_000, 1511, True, 233, 252, 0, 1))
     info = parse_server_info(packet(1, payload))
     assert info == ServerInfo("Motive", Version(3, 1), Version(4, 1), clock_frequency=10_000_000,
-                              data_port=1511, multicast=True, multicast_group="233.252.0.1")  # RFC 5771 documentation group
+                              data_port=1511, multicast=True, multicast_group="233.252.0.1")
     assert build_server_info(info) == packet(1, payload)
 
 
