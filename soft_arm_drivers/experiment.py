@@ -22,6 +22,8 @@ import sys
 import threading
 import time
 
+import numpy as np
+
 from soft_arm_control.metrics import TransitionMetrics, Summary, format_table
 from soft_arm_model.config import ConfigError, default_config_dir
 
@@ -162,8 +164,17 @@ def run_emulated_hardware(ros_args: list, out: dict, progress=None, config_dir: 
     d = config_dir or default_config_dir()
     channel = f"soft_arm_{os.getpid()}"
     plant = arm_plant(d, tension=0.05)
-    driver_config = load_driver_config(os.path.join(d, "rig.yaml"),
-                                       {"interface": '"virtual"', "channel": f'"{channel}"'},
+    # the emulated motors are flashed with a 0.5 N m torque range (0.024 N of tension per step) and
+    # zeroed on the hanging arm, whose shortening the controller's model predicts
+    from soft_arm_model import build_model, solve_equilibrium, tendon_lengths
+    from soft_arm_control.harness import load_setup
+    setup = load_setup("coiling", d)
+    model = build_model(setup.arm)
+    hanging = solve_equilibrium(model, np.full(model.n_tendons, setup.control.tension_min)).q
+    zero = list(model.rest_tendon_lengths - tendon_lengths(model, hanging))
+    rig_overrides = {"interface": '"virtual"', "channel": f'"{channel}"',
+                     "torque_ranges": [0.5] * model.n_tendons, "zero_shortening": zero}
+    driver_config = load_driver_config(os.path.join(d, "rig.yaml"), rig_overrides,
                                        plant.model.n_tendons)
     emulator_bus = can.Bus(interface="virtual", channel=channel, preserve_timestamps=True)
     emulator = CanMotorEmulator.for_config(driver_config, emulator_bus, plant,
@@ -184,7 +195,9 @@ def run_emulated_hardware(ros_args: list, out: dict, progress=None, config_dir: 
             Parameter("rig.motors.interface", value="virtual"),
             Parameter("rig.motors.channel", value=channel),
             Parameter("rig.motors.watchdog_timeout", value=0.2),
-            Parameter("rig.motors.reply_timeout", value=0.2)])
+            Parameter("rig.motors.reply_timeout", value=0.2),
+            Parameter("rig.motors.torque_ranges", value=[0.5] * model.n_tendons),
+            Parameter("rig.motors.zero_shortening", value=[float(z) for z in zero])])
         bridge = MocapBridgeNode(d, parameter_overrides=[
             Parameter("rig.mocap.command_port", value=natnet.command_port),
             Parameter("rig.mocap.data_port", value=0)])

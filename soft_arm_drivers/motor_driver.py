@@ -6,7 +6,9 @@ d = +1 or -1 of a motor (the sign of the motor torque that pulls its tendon):
 
 - tension T [N] -> motor torque ``tau = d r T`` [N m]; a measured torque gives ``T = d tau / r``;
 - encoder angle a [rad], counted from the motor's zero (set by :meth:`MotorDriver.zero`) -> tendon
-  shortening ``s = d r a`` [m]; the angular rate gives ``ds/dt = d r da/dt`` [m/s].
+  shortening ``s = d r a + s0`` [m], ``s0`` the configured shortening of the zeroing pose
+  (``zero_shortening``: the controller's model of the hanging arm, so that the shortenings count
+  from the straight arm as the controller's do); the angular rate gives ``ds/dt = d r da/dt`` [m/s].
 
 Commands are never on the pushing side: tensions are clipped to [0, max_tension] and the 12-bit torque
 field is rounded to the nearest step that does not push (``tension_frame``), so a zero tension is the
@@ -39,7 +41,7 @@ from __future__ import annotations
 
 import math
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Mapping, NamedTuple, Optional, Sequence
 
 import can
@@ -74,6 +76,12 @@ SCHEMA = {
     "directions": ("ints", lambda v: all(a in (1, -1) for a in v), "1 or -1, one per tendon"),
     "models": ("strs", lambda v: all(a in MOTOR_PRESETS for a in v),
                f"motor models among {sorted(MOTOR_PRESETS)}, one per tendon"),
+    "torque_ranges": ("floats", lambda v: all(0 <= a <= 1000 for a in v),
+                      "torque ranges T [N m] in [0, 1000] the firmware was flashed with (+-T on the "
+                      "wire), one per tendon; 0 keeps the model's preset"),
+    "zero_shortening": ("floats", lambda v: all(abs(a) <= 1 for a in v),
+                        "shortenings [m] in [-1, 1] of the pose the motors are zeroed in (from the "
+                        "straight arm), one per tendon"),
     "pulley_radius": ("float", lambda v: 0 < v <= 0.5, "a radius in (0, 0.5] m"),
     "max_tension": ("float", lambda v: 0 < v <= 1000, "a tension in (0, 1000] N"),
     "tension_rate_limit": ("float", lambda v: 0 < v <= 1e6, "a rate in (0, 1e6] N/s"),
@@ -86,10 +94,13 @@ SCHEMA = {
 @dataclass(frozen=True)
 class Motor:
     """One tendon's motor: CAN id (1..255, also byte 0 of its replies), mounting direction (+1 or -1:
-    the sign of the torque that pulls the tendon) and model (a ``MOTOR_PRESETS`` name)."""
+    the sign of the torque that pulls the tendon), model (a ``MOTOR_PRESETS`` name) and the torque
+    range T [N m] its firmware encodes as +-T (0: the model's preset). The 12-bit torque field makes
+    one step 2T/4095: a narrower range is a finer tension resolution."""
     can_id: int
     direction: int
     model: str
+    torque_range: float = 0.0
 
     def __post_init__(self):
         if isinstance(self.can_id, bool) or not isinstance(self.can_id, int) or not 1 <= self.can_id <= 255:
@@ -100,7 +111,10 @@ class Motor:
 
     @property
     def limits(self) -> MotorLimits:
-        return MOTOR_PRESETS[self.model]
+        preset = MOTOR_PRESETS[self.model]
+        if not self.torque_range:
+            return preset
+        return replace(preset, t_min=-self.torque_range, t_max=self.torque_range)
 
 
 @dataclass(frozen=True)
@@ -119,6 +133,7 @@ class DriverConfig:
     watchdog_timeout: float
     reply_timeout: float
     max_temperature: float
+    zero_shortening: tuple = ()
 
 
 def bus_load(config: DriverConfig) -> tuple[float, float]:
@@ -139,22 +154,24 @@ def parse_driver_config(values: Mapping[str, Any], n_tendons: Optional[int] = No
     n = len(values["ids"])
     if n_tendons is not None and n != n_tendons:
         raise bad("ids", f"{n_tendons} CAN ids, one per tendon of the arm")
-    for key in ("directions", "models"):
+    for key in ("directions", "models", "torque_ranges", "zero_shortening"):
         if len(values[key]) != n:
             raise bad(key, f"{n} values, one per motor in {NAMESPACE}.ids")
-    torque = min(MOTOR_PRESETS[m].t_max for m in values["models"])
+    motors = tuple(Motor(i, d, m, t) for i, d, m, t in zip(values["ids"], values["directions"],
+                                                           values["models"], values["torque_ranges"]))
+    torque = min(m.limits.t_max for m in motors)
     most = torque / values["pulley_radius"]
     if values["max_tension"] > most:
-        raise bad("max_tension", f"a tension in (0, {most:g}] N: the smallest torque range of the models "
+        raise bad("max_tension", f"a tension in (0, {most:g}] N: the smallest torque range of the motors "
                                  f"({torque:g} N m) over pulley_radius ({values['pulley_radius']:g} m)")
     shortest = 2.0 / values["rate"]
     for key in ("watchdog_timeout", "reply_timeout"):
         if values[key] < shortest:
             raise bad(key, f"a time of at least two cycles, {shortest:g} s at rate {values['rate']:g} Hz")
-    motors = tuple(Motor(i, d, m) for i, d, m in zip(values["ids"], values["directions"], values["models"]))
     config = DriverConfig(values["interface"], values["channel"], values["bitrate"], values["rate"], motors,
                           values["pulley_radius"], values["max_tension"], values["tension_rate_limit"],
-                          values["watchdog_timeout"], values["reply_timeout"], values["max_temperature"])
+                          values["watchdog_timeout"], values["reply_timeout"], values["max_temperature"],
+                          tuple(values["zero_shortening"]))
     if bus_load(config)[0] > 1.0:
         most_rate = config.bitrate / (2 * n * FRAME_BITS)
         raise bad("rate", f"a rate in [1, {most_rate:.0f}] Hz: {n} motors exchange two frames of "
@@ -282,6 +299,7 @@ class MotorDriver:
         self._watch_from: Optional[float] = None     # silence counts from here (first cycle, enable)
         self._reply_time = np.full(n, -math.inf)      # ``now`` of the cycle that read the last reply
         self._shortening, self._rate, self._tension = np.zeros(n), np.zeros(n), np.zeros(n)
+        self._zero_offset = np.array(config.zero_shortening or (0.0,) * n, dtype=float)
         self._stamps = np.full(n, math.nan)
         self._temperature: list = [None] * n
         self._error: list = [None] * n
@@ -424,7 +442,7 @@ class MotorDriver:
             motor = c.motors[i]
             reply = decode_reply(motor.limits, msg.data)
             d = motor.direction
-            self._shortening[i] = d * c.pulley_radius * reply.position
+            self._shortening[i] = d * c.pulley_radius * reply.position + self._zero_offset[i]
             self._rate[i] = d * c.pulley_radius * reply.velocity
             self._tension[i] = d * reply.torque / c.pulley_radius
             self._stamps[i] = msg.timestamp

@@ -478,3 +478,30 @@ def test_motor_count_must_match_the_tendons():
     with pytest.raises(ConfigError,
                        match=r"rig.motors.ids = \[1, 2, 3, 4\] is not valid: expected 3 CAN ids"):
         load_driver_config(n_tendons=3)
+
+
+def test_a_narrower_firmware_torque_range_gives_finer_tension_steps_and_zero_pose_offsets_shortening():
+    coarse = config()
+    fine = config(torque_ranges=[0.5] * 4, zero_shortening=[-0.001, -0.001, 0.002, 0.0])
+    assert coarse.motors[0].limits.t_max == 18.0 and fine.motors[0].limits.t_max == 0.5
+    r = fine.pulley_radius
+    step_coarse = 2 * 18.0 / 4095 / r
+    step_fine = 2 * 0.5 / 4095 / r
+    assert step_fine < 0.03 < 0.8 < step_coarse                     # N of tension per wire step
+    assert fine.zero_shortening == (-0.001, -0.001, 0.002, 0.0)
+    with pytest.raises(ConfigError, match="rig.motors.torque_ranges"):
+        config(torque_ranges=[0.5] * 3)
+    with pytest.raises(ConfigError, match="max_tension"):
+        config(torque_ranges=[0.01] * 4)                            # 0.01 N m cannot pull 5 N at 1 cm
+
+
+def test_zeroing_pose_shortening_is_added_to_the_readings(make_rig):
+    offset = np.array([-0.001, -0.001, 0.002, 0.0])
+    rig = make_rig(overrides={"zero_shortening": list(offset)}, seed=1)
+    rest = np.array([0.010, 0.004, 0.007, 0.012])
+    rig.emulator.set_tendons(rest)
+    rig.step(2)
+    rig.driver.zero()
+    rig.step(2)
+    rig.emulator.set_tendons(rest + 0.003)
+    np.testing.assert_allclose(rig.step(2).state.shortening, offset + 0.003, atol=R * P_STEP)
