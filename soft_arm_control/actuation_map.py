@@ -139,3 +139,12 @@ def fit_actuation_map(model: ArmModel, levels, degree: int = 2, validation_sampl
     err = np.array([fit(x) - y for x, y in zip(s_v, th_v)])
     return ActuationMap(exps, coef.T, float(np.sqrt(np.mean(err ** 2))), float(np.abs(err).max()),
                         len(s))
+
+
+def actuation_map_for(model: ArmModel, control) -> ActuationMap:
+    """The map the controller configuration asks for (``control.yaml``): fitted with friction, the
+    identity without."""
+    if not control.friction:
+        return ActuationMap.identity()
+    return fit_actuation_map(model, control.map_levels, control.map_degree,
+                             control.map_validation_samples)

@@ -18,26 +18,13 @@ from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
-from soft_arm_model import build_model, solve_equilibrium
+from soft_arm_model import build_model
 
-from .clik import Clik, ClikGains, TargetError
-from .collocated import build_collocated
-from .outer_loop import MODES, OuterLoop
+from .clik import TargetError
+from .collocated import full_tensions
+from .outer_loop import outer_loop_for
 from .ros_interface import (QOS, TOPICS, NodeConfig, float_array, joint_state, markers_of, run_node,
                             stamp_to_seconds)
-
-
-def build_outer_loop(model, control, task) -> OuterLoop:
-    """The outer loop of a task, starting from the hanging arm under the pretension."""
-    cm = build_collocated(model, list(task.tendons), held_tension=control.tension_min,
-                          friction=control.friction)
-    clik = Clik(cm, task.space, ClikGains(control.task_gain, control.equilibrium_gain,
-                                          control.singular_threshold),
-                (control.tension_min, control.tension_max))
-    start = clik.reference(solve_equilibrium(model, np.full(model.n_tendons, control.tension_min)).q)
-    return OuterLoop(clik, start, control.switch_delay, control.clik_rate,
-                     int(round(control.clik_rate / control.jacobian_rate)), control.seed_levels,
-                     control.tolerance)
 
 
 class ClikNode(Node):
@@ -47,7 +34,7 @@ class ClikNode(Node):
         self.config = c = NodeConfig(self, config_dir)
         self.model = build_model(c.arm)
         self.task = c.task
-        self.outer = build_outer_loop(self.model, c.control, c.task)
+        self.outer = outer_loop_for(self.model, c.control, c.task)
         self.names = self.model.tendon_names
         self.now = 0.0
         self.rejected_goals = 0
@@ -60,24 +47,15 @@ class ClikNode(Node):
                                f"({', '.join(c.task.space.labels())})")
 
     def publish(self, ref):
-        u_ff = np.full(self.model.n_tendons, self.config.control.tension_min)
-        u_ff[list(self.task.tendons)] = ref.u_ff
-        self.ref_pub.publish(joint_state(self.names, self.now, position=ref.shortening, effort=u_ff))
+        self.ref_pub.publish(joint_state(self.names, self.now, position=ref.shortening,
+                                         effort=full_tensions(self.outer.clik.cm, ref.u_ff)))
         self.q_pub.publish(float_array(ref.q, "q_d"))
 
     def on_goal(self, msg: Float64MultiArray):
         mode = (msg.layout.dim[0].label if msg.layout.dim and msg.layout.dim[0].label else "clik")
-        x_d = np.array(msg.data, dtype=float)
-        if mode not in MODES or x_d.shape != (self.task.space.m,) or not np.all(np.isfinite(x_d)):
-            self.rejected_goals += 1
-            self.get_logger().error(
-                f"goal rejected: expected {self.task.space.m} finite coordinates "
-                f"({', '.join(self.task.space.labels())}) and a mode in {list(MODES)}, got "
-                f"{list(msg.data)} with mode {mode!r}; keeping the last reference")
-            return
         try:
-            ref = self.outer.goal(self.now, x_d, mode)
-        except TargetError as exc:
+            ref = self.outer.goal(self.now, np.array(msg.data, dtype=float), mode)
+        except (TargetError, ValueError) as exc:
             self.rejected_goals += 1
             self.get_logger().error(f"goal rejected: {exc}; keeping the last reference")
             return

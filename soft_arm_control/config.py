@@ -295,9 +295,3 @@ def load_task_config(name: str, arm: ArmConfig, path: str | None = None, overrid
     if name not in known:
         raise ConfigError(f"unknown task {name!r}; the tasks are: {', '.join(known)}")
     return parse_task(name, v, arm)
-
-
-def task_names(path: str | None = None) -> list:
-    """Names of the tasks defined in ``tasks.yaml``."""
-    v = load_section("tasks.yaml", "tasks", TASK_SCHEMA, path)
-    return sorted({k.split(".")[0] for k in v})

@@ -19,16 +19,16 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from soft_arm_model import ArmConfig, build_model, load_arm_config, solve_equilibrium
+from soft_arm_model import ArmConfig, build_model, load_arm_config
 from soft_arm_model.config import default_config_dir
 
-from .actuation_map import ActuationMap, fit_actuation_map
-from .clik import Clik, ClikGains, ClikPoint
-from .collocated import build_collocated
+from .actuation_map import ActuationMap, actuation_map_for
+from .clik import ClikPoint
+from .collocated import full_tensions
 from .config import (ControlConfig, PlantConfig, TaskConfig, load_control_config, load_plant_config,
                      load_task_config)
-from .inner_loop import InnerLoopGains, PSatID
-from .outer_loop import OuterLoop
+from .inner_loop import tendon_controller_for
+from .outer_loop import OuterLoop, outer_loop_for
 from .rig import SimulatedRig
 from .metrics import summarise, transition_metrics
 
@@ -68,38 +68,35 @@ def load_setup(task: str, config_dir: str | None = None, overrides=None) -> Setu
 
 
 class TwoLevelController:
-    """The paper's controller for one task: P-satI-D+ inner loop and underactuated CLIK outer loop.
+    """The paper's controller for one task, as the nodes run it: the outer loop (CLIK, its
+    precomputed/online/replay protocol) and the inner loop (P-satI-D+ on the task's tendons).
 
-    ``reference`` is the current configuration reference (q_d with its tendon shortenings and
-    feedforward); ``inner`` computes tensions for all tendons from measured shortenings.
+    Setting ``reference`` (a ClikPoint) hands the inner loop its shortenings and feedforward;
+    ``inner`` computes tensions for all tendons from measured shortenings.
     """
 
     def __init__(self, model, control: ControlConfig, task: TaskConfig,
                  actuation_map: ActuationMap | None = None):
         self.model, self.control, self.task = model, control, task
-        a = list(task.tendons)
-        self.cm = build_collocated(model, a, held_tension=control.tension_min,
-                                   friction=control.friction)
-        self.clik = Clik(self.cm, task.space,
-                         ClikGains(control.task_gain, control.equilibrium_gain,
-                                   control.singular_threshold),
-                         (control.tension_min, control.tension_max))
-        if actuation_map is None:
-            actuation_map = (fit_actuation_map(model, control.map_levels, control.map_degree,
-                                               control.map_validation_samples)
-                             if control.friction else ActuationMap.identity())
-        self.actuation_map = actuation_map
-        gains = InnerLoopGains(np.take(control.proportional, a), np.take(control.derivative, a),
-                               np.take(control.integral, a), control.integral_saturation,
-                               control.tension_min, control.tension_max, control.tension_rate_limit)
-        self.pid = PSatID(gains, actuation_map, a, model.n_tendons)
-        self.reference: ClikPoint | None = None
+        self.outer = outer_loop_for(model, control, task)
+        self.clik = self.outer.clik
+        self.actuation_map = actuation_map or actuation_map_for(model, control)
+        self.tendons = tendon_controller_for(model.n_tendons, control, task.tendons,
+                                             self.actuation_map)
+        self._reference = None
+
+    @property
+    def reference(self) -> ClikPoint | None:
+        return self._reference
+
+    @reference.setter
+    def reference(self, ref: ClikPoint):
+        self._reference = ref
+        self.tendons.set_reference(ref.shortening, full_tensions(self.clik.cm, ref.u_ff))
 
     def inner(self, t: float, s, s_dot) -> np.ndarray:
         """Tensions [N] of all tendons at time t [s] from measured shortenings [m] and rates [m/s]."""
-        ref = self.reference
-        u_ff = ref.u_ff if self.control.feedforward else np.zeros(len(self.task.tendons))
-        return self.pid.update(t, s, s_dot, ref.shortening, u_ff)
+        return self.tendons.update(t, s, s_dot)
 
 
 @dataclass
@@ -172,10 +169,8 @@ def run_experiment(setup: Setup, progress=None, actuation_map: ActuationMap | No
     model = build_model(setup.arm)
     ctrl = TwoLevelController(model, ctl, task, actuation_map)
     pretension = np.full(model.n_tendons, ctl.tension_min)
-    start = ctrl.clik.reference(solve_equilibrium(model, pretension).q)   # the controller's view
-    ctrl.reference = start
-    outer = OuterLoop(ctrl.clik, start, ctl.switch_delay, ctl.clik_rate,
-                      int(round(ctl.clik_rate / ctl.jacobian_rate)), ctl.seed_levels, ctl.tolerance)
+    outer = ctrl.outer
+    start = ctrl.reference = outer.start           # the controller's view of start-up
     points = precompute_targets(outer, task)
     rig = SimulatedRig(build_model(pc.plant_arm(setup.arm)), pc, start.shortening, pretension,
                        task.payload)

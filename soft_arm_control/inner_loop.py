@@ -121,11 +121,13 @@ class TendonController:
 
     ``set_reference(s_ref, u_ff)``: reference shortenings [m] and feedforward tensions [N] of all
     tendons (the shortenings of the tendons that are not actuated matter too: thetabar_a is a
-    function of all of them). Before any reference every tendon holds ``tension_min``.
+    function of all of them). Before any reference every tendon holds ``tension_min``. Without
+    ``feedforward`` the regulated tendons get no feedforward tension (the integral has to find it).
     """
 
-    def __init__(self, n_tendons: int, gains: InnerLoopGains, actuation_map: ActuationMap, active):
-        self.n, self.gains = n_tendons, gains
+    def __init__(self, n_tendons: int, gains: InnerLoopGains, actuation_map: ActuationMap, active,
+                 feedforward: bool = True):
+        self.n, self.gains, self.feedforward = n_tendons, gains, feedforward
         self.active = [int(k) for k in active]
         a = self.active
         self.pid = PSatID(InnerLoopGains(gains.proportional[a], gains.derivative[a],
@@ -148,6 +150,17 @@ class TendonController:
         u = np.clip(self.u_ff, self.gains.tension_min, self.gains.tension_max)
         if self.s_ref is None:
             return u
-        out = self.pid.update(t, s, s_dot, self.s_ref, self.u_ff[self.active])
+        u_ff = self.u_ff[self.active] if self.feedforward else np.zeros(len(self.active))
+        out = self.pid.update(t, s, s_dot, self.s_ref, u_ff)
         u[self.active] = out[self.active]
         return u
+
+
+def tendon_controller_for(n_tendons: int, control, active, actuation_map: ActuationMap
+                          ) -> TendonController:
+    """The inner loop the controller configuration (``control.yaml``) describes, regulating the
+    tendons ``active`` (0-based)."""
+    gains = InnerLoopGains(np.array(control.proportional), np.array(control.derivative),
+                           np.array(control.integral), control.integral_saturation,
+                           control.tension_min, control.tension_max, control.tension_rate_limit)
+    return TendonController(n_tendons, gains, actuation_map, active, control.feedforward)

@@ -8,14 +8,13 @@ from __future__ import annotations
 
 import sys
 
-import numpy as np
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 
 from soft_arm_model import build_model
 
-from .actuation_map import ActuationMap, fit_actuation_map
-from .inner_loop import InnerLoopGains, TendonController
+from .actuation_map import ActuationMap, actuation_map_for
+from .inner_loop import tendon_controller_for
 from .ros_interface import QOS, TOPICS, NodeConfig, joint_state, ordered, run_node, stamp_to_seconds
 
 
@@ -27,15 +26,9 @@ class InnerLoopNode(Node):
         self.config = c = NodeConfig(self, config_dir)
         model = build_model(c.arm)
         ctl = c.control
-        if actuation_map is None:
-            actuation_map = (fit_actuation_map(model, ctl.map_levels, ctl.map_degree,
-                                               ctl.map_validation_samples)
-                             if ctl.friction else ActuationMap.identity())
+        actuation_map = actuation_map or actuation_map_for(model, ctl)
         self.names = model.tendon_names
-        gains = InnerLoopGains(np.array(ctl.proportional), np.array(ctl.derivative),
-                               np.array(ctl.integral), ctl.integral_saturation, ctl.tension_min,
-                               ctl.tension_max, ctl.tension_rate_limit)
-        self.core = TendonController(model.n_tendons, gains, actuation_map, c.task.tendons)
+        self.core = tendon_controller_for(model.n_tendons, ctl, c.task.tendons, actuation_map)
         self.rejected = 0
         self.pub = self.create_publisher(JointState, TOPICS["command"], QOS["tendon/command"])
         self.create_subscription(JointState, TOPICS["reference"], self.on_reference,

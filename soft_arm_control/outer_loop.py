@@ -16,7 +16,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from .clik import ClikPoint, TargetError, equilibrium_seeds
+from soft_arm_model import solve_equilibrium
+
+from .clik import Clik, ClikGains, ClikPoint, TargetError, equilibrium_seeds
+from .collocated import build_collocated
 
 MODES = ("clik", "replay", "precomputed", "online")
 
@@ -72,6 +75,10 @@ class OuterLoop:
         if mode not in MODES:
             raise ValueError(f"goal mode {mode!r} is not one of {list(MODES)}")
         x_d = np.asarray(x_d, dtype=float)
+        space = self.clik.task
+        if x_d.shape != (space.m,) or not np.all(np.isfinite(x_d)):
+            raise ValueError(f"a goal needs {space.m} finite coordinates "
+                             f"({', '.join(space.labels())}), got {x_d.tolist()}")
         if mode == "replay":
             key = self.key(x_d)
             if key not in self.stored and not (self._mode == "clik" and self.key(self._x_d) == key):
@@ -109,3 +116,17 @@ class OuterLoop:
         """Store the reference of the last clik goal (end of an experiment)."""
         if self._mode == "clik":
             self.stored[self.key(self._x_d)] = self.reference
+
+
+def outer_loop_for(model, control, task) -> OuterLoop:
+    """The outer loop the configuration describes for ``task`` (a TaskConfig), starting from the
+    hanging arm under the pretension; the task's other tendons are held at the pretension."""
+    cm = build_collocated(model, list(task.tendons), held_tension=control.tension_min,
+                          friction=control.friction)
+    clik = Clik(cm, task.space, ClikGains(control.task_gain, control.equilibrium_gain,
+                                          control.singular_threshold),
+                (control.tension_min, control.tension_max))
+    start = clik.reference(solve_equilibrium(model, np.full(model.n_tendons, control.tension_min)).q)
+    return OuterLoop(clik, start, control.switch_delay, control.clik_rate,
+                     int(round(control.clik_rate / control.jacobian_rate)), control.seed_levels,
+                     control.tolerance)

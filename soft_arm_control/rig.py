@@ -121,6 +121,7 @@ class SimulatedRig:
         self._next_frame = 0
         self._pending = deque()
         self._sensed = -1
+        self._load = 0.0               # payload [kg] at the sensed state
         self.tension = np.array(pretension, dtype=float)
 
     @property
@@ -134,7 +135,8 @@ class SimulatedRig:
             return None, []
         self._sensed = self.step_index
         exposure = self.t >= self._next_frame * self._frame_period - 1e-12
-        self.plant.sense(markers=exposure or self.payload() > 0)
+        self._load = self.payload()
+        self.plant.sense(markers=exposure or self._load > 0)
         frame = None
         if exposure:
             true, speed = self.plant.markers()
@@ -154,10 +156,12 @@ class SimulatedRig:
 
     def payload(self) -> float:
         """The tip payload [kg] at the current time."""
+        if not self.payload_masses.size:
+            return 0.0
         return float(self.payload_masses[self.payload_times <= self.t + 1e-12].sum())
 
     def end_step(self, u):
         """Apply tensions u [N] over one plant step."""
         self.tension = np.array(u, dtype=float)
-        self.plant.step(self.tension, self.payload())
+        self.plant.step(self.tension, self._load)
         self.step_index += 1

@@ -102,6 +102,7 @@ class ImexStepper:
         shifted = (np.zeros_like(d.xi), np.zeros_like(d.A), np.zeros_like(d.A0), np.zeros_like(d.Lc),
                    np.zeros_like(d.theta), np.zeros_like(d.wrap), np.zeros_like(d.phi))
         self._adot = np.zeros(model.n_tendons)
+        self._no_force = np.zeros(model.n)
         self._prepare_args = (model.kernel_args, d.kernel_args, d.A0, rotor, shifted)
         self._advance_args = (d.M, d.Cqd, d.Fg, d.Fel, d.Kt, d.A if friction else d.A0, d.A0,
                               model.D, rotor, self._adot)
@@ -124,7 +125,7 @@ class ImexStepper:
         q, qd = self._state
         q_out = np.empty_like(q)
         qd_out = np.empty_like(qd)
-        f_ext = np.zeros_like(q) if f_ext is None else np.ascontiguousarray(f_ext, dtype=float)
+        f_ext = self._no_force if f_ext is None else np.ascontiguousarray(f_ext, dtype=float)
         _imex_advance(*self._advance_args, q, qd, np.ascontiguousarray(u, dtype=float), f_ext,
                       self.dt, q_out, qd_out)
         self._state = None

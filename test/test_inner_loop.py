@@ -112,3 +112,17 @@ def test_saturation_keeps_tensions_in_limits_and_the_integral_bounded(model_fact
     late = t > 3.0
     assert np.abs(xi[late, 0] - xi[late][0, 0]).max() < 1e-12   # frozen on the saturated tendon
     assert np.abs(xi).max() < 0.01 * 6.0               # below the rate bound e_sat x time
+
+
+def test_tendon_controller_regulates_the_task_tendons_and_honours_the_feedforward_switch():
+    from soft_arm_control.inner_loop import TendonController
+    s = np.array([0.01, 0.02, 0.03, 0.04])
+    with_ff = TendonController(4, _gains(), ActuationMap.identity(), (2, 3))
+    without = TendonController(4, _gains(), ActuationMap.identity(), (2, 3), feedforward=False)
+    assert np.allclose(with_ff.update(0.0, s, 0 * s), 0.05)          # no reference: pretension
+    for tc in (with_ff, without):
+        tc.set_reference(s, [0.3, 0.4, 1.5, 2.5])                     # on target: only u_ff left
+    assert np.allclose(with_ff.update(0.0, s, 0 * s), [0.3, 0.4, 1.5, 2.5])
+    assert np.allclose(without.update(0.0, s, 0 * s), [0.3, 0.4, 0.05, 0.05])
+    with pytest.raises(ValueError, match="finite"):
+        with_ff.set_reference([np.nan] * 4, [0.3] * 4)
