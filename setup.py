@@ -50,6 +50,7 @@ setup(
             "clik = soft_arm_control.clik_node:main",
             "task_runner = soft_arm_control.task_runner_node:main",
             "mocap_bridge = soft_arm_drivers.mocap_bridge_node:main",
+            "emulated_rig = soft_arm_drivers.emulated_rig:main",
             "motor_driver = soft_arm_drivers.motor_driver_node:main",
         ],
     },

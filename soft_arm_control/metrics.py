@@ -7,7 +7,7 @@ For each transition (one target held for one time window):
   displacement measured along the tip coordinates the task controls (a 2D task on the tip's x and z
   does not count its uncontrolled y); none when the displacement is within the band already;
 - the RMS of the task error norm over the steady-state part (the last ``steady_time`` seconds);
-- the peak tip speed [m/s].
+- the peak tip speed [m/s] (true, or from measured positions: :func:`measured_speed`).
 The summary row reports, like Table 1, the best (largest) task velocities over all transitions that
 reached the band, the peak tip speed, and the steady-state RMS error of the transitions with the
 longest window.
@@ -32,6 +32,23 @@ def settling_time(t, error, band: float) -> float | None:
     outside = np.flatnonzero(~inside)
     first = 0 if outside.size == 0 else outside[-1] + 1
     return float(t[first] - t[0])
+
+
+SPEED_BASELINE = 0.01  # s: measured tip speeds are differences over at least this long
+
+
+def measured_speed(t, positions, baseline: float = SPEED_BASELINE) -> np.ndarray:
+    """Speed [m/s] at each sample of measured positions (N, 3) [m] at times t (N,) [s]: the
+    displacement from the latest sample at least ``baseline`` earlier over the time between them
+    (0 before the first such sample). Mocap frames of a rig are not evenly spaced: two frames
+    0.1 ms apart would turn 0.2 mm of marker noise into 2 m/s."""
+    t = np.asarray(t, dtype=float)
+    p = np.asarray(positions, dtype=float)
+    j = np.searchsorted(t, t - baseline, side="right") - 1
+    speed = np.zeros(t.size)
+    ok = j >= 0
+    speed[ok] = np.linalg.norm(p[ok] - p[j[ok]], axis=1) / (t[ok] - t[j[ok]])
+    return speed
 
 
 @dataclass(frozen=True)

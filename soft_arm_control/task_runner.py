@@ -3,14 +3,14 @@
 The schedule starts at the first frame; at each window start the runner issues the goal (target
 coordinates and the phase's mode). It keeps the measured task coordinates and tip positions of
 every frame and, at the end, computes the paper's metrics (the peak tip speed from differences of
-the measured tip positions, as on the rig).
+the measured tip positions over at least 10 ms, as on the rig).
 """
 from __future__ import annotations
 
 import numpy as np
 
 from .config import TaskConfig
-from .metrics import summarise, transition_metrics
+from .metrics import measured_speed, summarise, transition_metrics
 
 
 class TaskRunner:
@@ -64,7 +64,7 @@ class TaskRunner:
                 continue
             t = np.array([x[0] for x in s])
             tip3 = np.array([x[5] for x in s])
-            speed = np.r_[0.0, np.linalg.norm(np.diff(tip3, axis=0), axis=1) / np.diff(t)]
+            speed = measured_speed(t, tip3)
             rows.append(transition_metrics(phase, k + 1, t, np.array([x[3] - x[2] for x in s]),
                                            np.array([x[4] for x in s]), speed,
                                            self.task.steady_time, window))

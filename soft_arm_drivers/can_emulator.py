@@ -102,6 +102,7 @@ class CanMotorEmulator:
         self._direction = np.array([m.direction for m in motors], dtype=float)
         self._base, self._k, self._now = float(start_time), 0, float(start_time)
         self._replies: deque = deque()              # (due time [s], motor index), due times ascending
+        self._last_arrival = float(start_time)
         self.tensions = np.zeros(len(motors))       # applied to the plant in the latest step [N]
         self.replies_sent = 0
         if plant is not None:
@@ -177,17 +178,26 @@ class CanMotorEmulator:
         return min(step, self._replies[0][0]) if self._replies else step
 
     def serve(self, clock: Callable[[], float], stop: threading.Event, max_wait: float = 0.01):
-        """Real-time loop until ``stop`` is set: frames are taken as they arrive (time ``clock()``),
-        the plant and the replies follow ``clock`` (which must match ``start_time``)."""
+        """Real-time loop until ``stop`` is set: frames are taken as they arrive (at their bus time
+        stamps), the plant and the replies follow ``clock`` (which must match ``start_time`` and the
+        bus's stamps)."""
         while not stop.is_set():
             wait = min(self.next_event() - clock(), max_wait)
             msg = self.bus.recv(timeout=max(wait, 0.0))
             now = max(clock(), self._now)
             self._run(now)
-            if msg is not None:
-                self._handle(msg, now)
-            self._drain(now)
-            self._run(now)
+            while msg is not None:
+                self._handle(msg, self._arrival(msg, clock()))
+                msg = self.bus.recv(timeout=0.0)
+            self._run(max(clock(), self._now))
+
+    def _arrival(self, msg: can.Message, now: float) -> float:
+        """Real time: when a frame reached the bus, from its time stamp (frames read together after
+        this thread was held keep their own times), else ``now`` [s]; never before the previous
+        frame's."""
+        t = msg.timestamp if now - 1.0 < msg.timestamp <= now else now
+        self._last_arrival = max(t, self._last_arrival)
+        return self._last_arrival
 
     def _run(self, t_end: float):
         while True:

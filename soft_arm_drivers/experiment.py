@@ -4,8 +4,11 @@ graph on the simulator, records the bag, writes the metrics and the figures.
 By default all nodes (simulator, inner_loop, clik, task_runner, recorder) are composed in this
 process and run in lockstep waves (deterministic: the same seed gives the same messages);
 ``--processes`` starts each node as its own process with the same parameters instead (the
-simulator still steps once per command, over DDS). Output (``--output DIR``, default
-``runs/<task>-<UTC time>``): ``bag/`` (rosbag2, MCAP), ``metrics.json``, ``figures/*.png``.
+simulator still steps once per command, over DDS). ``--emulated-hardware`` runs the rig's graph in
+real time, one process per node, with the motor driver and the mocap bridge talking to emulated
+CAN motors and an emulated Motive server in the simulator's place (:mod:`.emulated_rig`).
+Output (``--output DIR``, default ``runs/<task>-<UTC time>``): ``bag/`` (rosbag2, MCAP),
+``metrics.json``, ``figures/*.png``.
 Prints a progress line, the paper-style table and the paths (``--json``: the metrics as JSON on
 stdout). Ctrl-C stops everything cleanly and keeps what was recorded. A bad parameter or an
 unreachable target exits with status 2.
@@ -17,12 +20,12 @@ import datetime
 import json
 import os
 import signal
+import socket
 import subprocess
 import sys
 import threading
 import time
 
-import numpy as np
 
 from soft_arm_control.metrics import TransitionMetrics, Summary, format_table
 from soft_arm_model.config import ConfigError, default_config_dir
@@ -135,136 +138,247 @@ def run_composed(ros_args: list, out: dict, progress=None, config_dir: str | Non
         _shut_down(nodes, executor)
 
 
-def run_emulated_hardware(ros_args: list, out: dict, progress=None, config_dir: str | None = None,
-                          duration: float = 0.0) -> dict:
-    """The rig's graph in real time against emulated hardware, all in this process: the motor
-    driver on a python-can ``virtual`` bus with the CAN motor emulator behind it (the plant of
-    plant.yaml, stepped in real time by the emulator), the mocap bridge receiving NatNet frames of
-    the same plant from the server emulator over UDP on 127.0.0.1; inner_loop, clik, task_runner and
-    recorder unchanged."""
-    import can
+def _free_udp_port() -> int:
+    """A UDP port of 127.0.0.1 free right now (for the emulated Motive server)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+def _wait_for_graph(node, children, flowing: tuple = (), settle: float = 0.0,
+                    timeout: float = 120.0):
+    """Until the graph is wired: a publisher on each of the controller's and the plant's topics (a
+    node creates them once its set-up is done), a recorder, messages arriving on the ``flowing``
+    topics (names of ``TOPICS``: e.g. the controller answering the motors' state), and, with
+    ``settle`` [s], no endpoint appearing or going for that long (discovery over). RuntimeError
+    when a node exits or after ``timeout`` [s]."""
     import rclpy
-    from rclpy.executors import SingleThreadedExecutor
-    from rclpy.parameter import Parameter
-    from rclpy.signals import SignalHandlerOptions
 
-    from soft_arm_control.clik_node import ClikNode
-    from soft_arm_control.inner_loop_node import InnerLoopNode
-    from soft_arm_control.task_runner_node import TaskRunnerNode
-    from soft_arm_model import ArmData, marker_positions
-
-    from .can_emulator import CanMotorEmulator, EmulatorThread, arm_plant
-    from .mocap_bridge import load_mocap_config
-    from .mocap_bridge_node import MocapBridgeNode
-    from .motor_driver import load_driver_config
-    from .motor_driver_node import MotorDriverNode
-    from .natnet_emulator import NatNetEmulator
-    from .recorder_node import RecorderNode
-
-    d = config_dir or default_config_dir()
-    channel = f"soft_arm_{os.getpid()}"
-    plant = arm_plant(d, tension=0.05)
-    # the emulated motors are flashed with a 0.5 N m torque range (0.024 N of tension per step) and
-    # zeroed on the hanging arm, whose shortening the controller's model predicts
-    from soft_arm_model import build_model, solve_equilibrium, tendon_lengths
-    from soft_arm_control.harness import load_setup
-    setup = load_setup("coiling", d)
-    model = build_model(setup.arm)
-    hanging = solve_equilibrium(model, np.full(model.n_tendons, setup.control.tension_min)).q
-    zero = list(model.rest_tendon_lengths - tendon_lengths(model, hanging))
-    rig_overrides = {"interface": '"virtual"', "channel": f'"{channel}"',
-                     "torque_ranges": [0.5] * model.n_tendons, "zero_shortening": zero}
-    driver_config = load_driver_config(os.path.join(d, "rig.yaml"), rig_overrides,
-                                       plant.model.n_tendons)
-    emulator_bus = can.Bus(interface="virtual", channel=channel, preserve_timestamps=True)
-    emulator = CanMotorEmulator.for_config(driver_config, emulator_bus, plant,
-                                           start_time=time.time())
-    mocap = load_mocap_config(os.path.join(d, "mocap.yaml"))
-    data = ArmData(plant.model)
-    natnet = NatNetEmulator(lambda t: marker_positions(plant.model, plant.q, data),
-                            calibration=mocap.calibration, rate=240.0).start()
-    # Ctrl-C stays Python's KeyboardInterrupt (no rclpy handler shutting the context mid-wave), so
-    # that the shutdown below always runs in order.
-    rclpy.init(args=["soft-arm-experiment"] + ros_args, signal_handler_options=SignalHandlerOptions.NO)
-    nodes, executor, can_thread = [], None, None
+    from soft_arm_control.ros_interface import QOS, TOPICS, TYPES
+    topics = ["/" + TOPICS[k] for k in ("command", "reference", "state", "markers")]
+    counts = {}
+    subscriptions = []
+    for key in flowing:
+        topic = TOPICS[key]
+        package, _, name = TYPES[topic].split("/")
+        kind = getattr(__import__(f"{package}.msg", fromlist=[name]), name)
+        counts[topic] = 0
+        subscriptions.append(node.create_subscription(
+            kind, topic, lambda msg, topic=topic: counts.__setitem__(topic, counts[topic] + 1),
+            QOS[topic]))
+    deadline = time.monotonic() + timeout
+    graph, since = None, time.monotonic()
     try:
-        can_thread = EmulatorThread(emulator).start()
-        # One Python process serves the emulated motors, the driver and the controller, so a CLIK
-        # precomputation can hold the interpreter for tens of ms: a longer watchdog than the rig's.
-        driver = MotorDriverNode(d, parameter_overrides=[
-            Parameter("rig.motors.interface", value="virtual"),
-            Parameter("rig.motors.channel", value=channel),
-            Parameter("rig.motors.watchdog_timeout", value=0.2),
-            Parameter("rig.motors.reply_timeout", value=0.2),
-            Parameter("rig.motors.torque_ranges", value=[0.5] * model.n_tendons),
-            Parameter("rig.motors.zero_shortening", value=[float(z) for z in zero])])
-        bridge = MocapBridgeNode(d, parameter_overrides=[
-            Parameter("rig.mocap.command_port", value=natnet.command_port),
-            Parameter("rig.mocap.data_port", value=0)])
-        nodes += [driver, bridge, InnerLoopNode(d), ClikNode(d)]
-        runner = TaskRunnerNode(d, parameter_overrides=[Parameter("output", value=out["metrics"])])
-        recorder = RecorderNode(d, parameter_overrides=[Parameter("output", value=out["bag"])])
-        nodes += [runner, recorder]
-        driver.driver.zero()                                 # the tendons hang slack
-        driver.driver.enable(time.monotonic())
-        executor = SingleThreadedExecutor()
-        for node in nodes:
-            executor.add_node(node)
-        start = time.monotonic()
-        reported = 0
-        while not runner.done and not STOP.is_set() and (
-                not duration or time.monotonic() - start < duration):
-            executor.spin_once(timeout_sec=0.01)
-            if progress is not None and runner.core.t0 is not None and \
-                    time.monotonic() - start >= reported + 1.0:
-                reported = int(time.monotonic() - start)
-                progress(time.monotonic() - start, runner.core.duration)
-        return {"wall_s": time.monotonic() - start, "emulated_hardware": True}
+        while not STOP.is_set():
+            children.check()
+            missing = [t for t in topics if node.count_publishers(t) == 0]
+            missing += [f"{t} (no messages yet)" for t, n in counts.items() if n < 10]
+            if "recorder" not in node.get_node_names():
+                missing.append("the recorder")
+            now = _endpoints(node)
+            if now != graph:
+                graph, since = now, time.monotonic()
+            if not missing and time.monotonic() - since >= settle:
+                return
+            if time.monotonic() > deadline:
+                raise RuntimeError(f"the graph is not up after {timeout:g} s: nothing on {missing}")
+            rclpy.spin_once(node, timeout_sec=0.05)
     finally:
-        _shut_down(nodes, executor)
-        if can_thread is not None:
-            can_thread.stop()
-        natnet.close()
-        emulator_bus.shutdown()
+        for subscription in subscriptions:
+            node.destroy_subscription(subscription)
 
 
-def run_processes(ros_args: list, out: dict) -> dict:
-    """Each node its own process (console scripts), the same parameters; waits for the task
-    runner, then stops the others with SIGINT."""
-    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
-    procs = {}
-    start = time.monotonic()
-    try:
-        for name in ("recorder", "inner_loop", "clik", "task_runner", "simulator"):
-            extra = []
-            if name == "recorder":
-                extra = ["-p", f"output:={out['bag']}", "-p", "use_sim_time:=true"]
-            elif name == "task_runner":
-                extra = ["-p", f"output:={out['metrics']}"]
-            procs[name] = subprocess.Popen(
-                [sys.executable, "-m", _MODULES[name]] + ros_args + extra, env=env)
-        while procs["task_runner"].poll() is None and not STOP.is_set():
-            for name, proc in procs.items():
-                if proc.poll() is not None and name != "task_runner":
-                    raise RuntimeError(f"node {name} exited with status {proc.returncode}")
-            time.sleep(0.2)
-        if not STOP.is_set() and procs["task_runner"].returncode != 0:
-            raise RuntimeError(f"task_runner exited with status {procs['task_runner'].returncode}")
-    finally:
-        for proc in procs.values():
+def _endpoints(node) -> tuple:
+    """The graph's nodes, and its topics with their publisher and subscriber counts."""
+    return (tuple(sorted(node.get_node_names_and_namespaces())),
+            tuple((topic, node.count_publishers(topic), node.count_subscribers(topic))
+                  for topic, _ in sorted(node.get_topic_names_and_types())))
+
+
+def _call(node, client, request, timeout: float = 10.0):
+    """Call a service through ``client`` and return its response; RuntimeError if it is not there
+    or does not answer, or if it answers ``success = False``."""
+    import rclpy
+    if not client.wait_for_service(timeout_sec=timeout):
+        raise RuntimeError(f"service {client.srv_name} is not available")
+    future = client.call_async(request)
+    rclpy.spin_until_future_complete(node, future, timeout_sec=timeout)
+    if not future.done() or future.result() is None:
+        raise RuntimeError(f"service {client.srv_name} did not answer within {timeout:g} s")
+    response = future.result()
+    if not response.success:
+        raise RuntimeError(f"{client.srv_name} refused: {response.message}")
+    return response
+
+
+class _Children:
+    """The node processes of one run (the console scripts' modules with the run's arguments), on
+    loopback; ``realtime``: the SCHED_FIFO priorities of the processes that have one."""
+
+    def __init__(self, ros_args: list, extra: dict, realtime: dict | None = None):
+        self.ros_args, self.extra, self.realtime = ros_args, extra, realtime or {}
+        self.env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+        self.procs: dict = {}
+
+    def start(self, name: str):
+        priority = self.realtime.get(name)
+        self.procs[name] = subprocess.Popen(
+            [sys.executable, "-m", _MODULES[name]] + self.ros_args + self.extra.get(name, []),
+            env=self.env, preexec_fn=None if priority is None else
+            (lambda: os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))))
+
+    def check(self, may_end=()):
+        """RuntimeError if a node exited (those in ``may_end`` with status 0 may)."""
+        for name, proc in self.procs.items():
+            if proc.poll() is not None and not (name in may_end and proc.returncode == 0):
+                raise RuntimeError(f"node {name} exited with status {proc.returncode}")
+
+    def stop(self):
+        """SIGINT to every node still running; SIGKILL to those not gone after 10 s."""
+        for proc in self.procs.values():
             if proc.poll() is None:
                 proc.send_signal(signal.SIGINT)
-        for proc in procs.values():
+        for proc in self.procs.values():
             try:
                 proc.wait(timeout=10)
             except subprocess.TimeoutExpired:
                 proc.kill()
+
+
+def _init_rclpy():
+    import rclpy
+    from rclpy.signals import SignalHandlerOptions
+    rclpy.init(args=["soft-arm-experiment"], signal_handler_options=SignalHandlerOptions.NO)
+    return rclpy.create_node("soft_arm_experiment", start_parameter_services=False)
+
+
+def run_processes(ros_args: list, out: dict) -> dict:
+    """Each node its own process, the same parameters: recorder, inner_loop, clik and simulator
+    start; once the graph is wired (the controller's, the plant's and the recorder's endpoints
+    exist) the task runner starts. Waits for it, then stops the others with SIGINT."""
+    import rclpy
+    children = _Children(ros_args, {"recorder": ["-p", f"output:={out['bag']}", "-p", "use_sim_time:=true"],
+                                    "task_runner": ["-p", f"output:={out['metrics']}"]})
+    start = time.monotonic()
+    node = _init_rclpy()
+    try:
+        for name in ("recorder", "inner_loop", "clik", "simulator"):
+            children.start(name)
+        _wait_for_graph(node, children)
+        if not STOP.is_set():
+            children.start("task_runner")
+        while not STOP.is_set() and children.procs["task_runner"].poll() is None:
+            children.check(may_end=("task_runner",))
+            rclpy.spin_once(node, timeout_sec=0.2)
+        if not STOP.is_set():
+            children.check(may_end=("task_runner",))
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+        children.stop()
     return {"wall_s": time.monotonic() - start}
+
+
+def run_emulated_hardware(ros_args: list, out: dict) -> dict:
+    """The rig's graph in real time, each node its own process, with the ``emulated_rig`` (the
+    motor_driver node with the CAN motor emulators and the NatNet server emulator behind it,
+    :mod:`.emulated_rig`) and the ``mocap_bridge`` in the simulator's place.
+
+    As an operator runs the rig: every node starts (the task runner waiting for ``~/start``); once
+    the graph is wired and the controller answers the motors' state, the motors are zeroed (tendons
+    slack) and enabled through the driver's services and the task starts; when the task runner has
+    written the metrics the motors are disabled, then the nodes are stopped. No process joins or
+    leaves the graph while the motors are enabled: DDS discovery can hold a publisher, the driver's
+    included, for a few hundred ms. The driver's latched faults are printed as they come and listed
+    in the run facts (``driver_faults``: those latched while the motors were enabled)."""
+    import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+    from std_srvs.srv import SetBool, Trigger
+
+    port = _free_udp_port()
+    realtime = _realtime_permitted()
+    if not realtime:
+        print("soft-arm-experiment: real-time scheduling is not permitted here (it needs root, "
+              "CAP_SYS_NICE or an rtprio limit): a busy computer may hold the emulated hardware "
+              "long enough for the motor driver's watchdog to trip", file=sys.stderr)
+    children = _Children(ros_args, {
+        "recorder": ["-p", f"output:={out['bag']}"],
+        "task_runner": ["-p", f"output:={out['metrics']}", "-p", "wait_for_start:=true"],
+        "emulated_rig": ["-p", f"rig.mocap.command_port:={port}"],
+        "mocap_bridge": ["-p", f"rig.mocap.command_port:={port}", "-p", "rig.mocap.data_port:=0"]},
+        _REALTIME if realtime else None)
+    faults = []
+    start = time.monotonic()
+    node = _init_rclpy()
+
+    def on_diagnostics(msg):
+        """Report the motor driver's faults as they latch (the run goes on: it is the operator's
+        call on the rig, and the metrics will show it)."""
+        for status in msg.status:
+            if status.name == "motor_driver" and status.level == DiagnosticStatus.ERROR \
+                    and status.message not in faults:
+                faults.append(status.message)
+                print(f"\nsoft-arm-experiment: motor_driver {status.message}", file=sys.stderr)
+
+    node.create_subscription(DiagnosticArray, "/diagnostics", on_diagnostics, 10)
+    zero = node.create_client(Trigger, "/motor_driver/zero")
+    enable = node.create_client(SetBool, "/motor_driver/enable")
+    begin = node.create_client(Trigger, "/task_runner/start")
+    enabled = False
+    try:
+        for name in ("recorder", "emulated_rig", "mocap_bridge", "inner_loop", "clik", "task_runner"):
+            children.start(name)
+        _wait_for_graph(node, children, ("command", "markers"), settle=2.0)
+        for client in (zero, enable, begin):
+            if not client.wait_for_service(timeout_sec=10.0):
+                raise RuntimeError(f"service {client.srv_name} is not available")
+        if not STOP.is_set():
+            _call(node, zero, Trigger.Request())
+            enabled = True
+            response = _call(node, enable, SetBool.Request(data=True))
+            if response.message != "enabled":              # a fault latched while disabled
+                print(f"soft-arm-experiment: motor_driver {response.message}", file=sys.stderr)
+            faults.clear()
+            _call(node, begin, Trigger.Request())
+        while not STOP.is_set() and not os.path.exists(out["metrics"]):
+            children.check()
+            rclpy.spin_once(node, timeout_sec=0.1)
+    finally:
+        try:
+            if enabled:
+                _call(node, enable, SetBool.Request(data=False), timeout=2.0)
+        finally:
+            node.destroy_node()
+            rclpy.try_shutdown()
+            children.stop()
+    return {"wall_s": time.monotonic() - start, "emulated_hardware": True, "realtime": realtime,
+            "driver_faults": faults}
+
+
+# Real time on a shared computer. The emulated hardware (plant, motors and Motive in one process)
+# and the processes the loop closes through run under SCHED_FIFO where the system permits it: under
+# the normal policy a busy two-core computer holds one of them, or a DDS thread it waits on while it
+# publishes, for 0.1-0.3 s now and then, and the motor driver's watchdog rightly trips. On the rig,
+# run motor_driver, mocap_bridge and inner_loop the same way (README, "Running on the rig").
+_REALTIME = {"emulated_rig": 30, "inner_loop": 20, "mocap_bridge": 20}
+
+
+def _realtime_permitted() -> bool:
+    """Whether this process may give its children SCHED_FIFO (tried on itself, then undone)."""
+    try:
+        policy, param = os.sched_getscheduler(0), os.sched_getparam(0)
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(max(_REALTIME.values())))
+        os.sched_setscheduler(0, policy, param)
+        return True
+    except (AttributeError, OSError):
+        return False
 
 
 _MODULES = {"simulator": "soft_arm_drivers.simulator_node", "recorder": "soft_arm_drivers.recorder_node",
             "inner_loop": "soft_arm_control.inner_loop_node", "clik": "soft_arm_control.clik_node",
-            "task_runner": "soft_arm_control.task_runner_node"}
+            "task_runner": "soft_arm_control.task_runner_node",
+            "emulated_rig": "soft_arm_drivers.emulated_rig",
+            "mocap_bridge": "soft_arm_drivers.mocap_bridge_node"}
 
 
 def _load_metrics(path: str):
@@ -311,7 +425,7 @@ def main(argv=None) -> int:
     signal.signal(signal.SIGTERM, _request_stop)
     try:
         if args.emulated_hardware:
-            facts = run_emulated_hardware(ros_args, out, progress, args.config)
+            facts = run_emulated_hardware(ros_args, out)
         elif args.processes:
             facts = run_processes(ros_args, out)
         else:

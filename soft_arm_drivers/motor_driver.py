@@ -39,6 +39,7 @@ thread-safe: one thread calls everything.
 """
 from __future__ import annotations
 
+import functools
 import math
 import os
 from dataclasses import dataclass, replace
@@ -109,8 +110,9 @@ class Motor:
             raise ValueError(f"Motor.direction must be 1 or -1, got {self.direction!r}")
         MotorLimits.preset(self.model)
 
-    @property
+    @functools.cached_property
     def limits(self) -> MotorLimits:
+        """The model's preset with the torque range, built once (it is read for every frame)."""
         preset = MOTOR_PRESETS[self.model]
         if not self.torque_range:
             return preset

@@ -44,14 +44,17 @@ DIAGNOSTICS_PERIOD = 0.5        # s between /diagnostics messages when nothing c
 
 
 class MotorDriverNode(Node):
-    def __init__(self, config_dir: str | None = None, **node_options):
+    """``defaults``: ``rig.motors`` values (dotted, relative to it) laid over rig.yaml beneath the
+    node's own parameters (the emulated rig's motors)."""
+
+    def __init__(self, config_dir: str | None = None, defaults: dict | None = None, **node_options):
         super().__init__("motor_driver", allow_undeclared_parameters=True,
                          automatically_declare_parameters_from_overrides=True, **node_options)
         d = config_dir or default_config_dir()
         arm = load_arm_config(os.path.join(d, "arm.yaml"), node_overrides(self)["arm"])
         self.names = tuple(t.name for t in arm.tendons)
         self.config = c = load_driver_config(os.path.join(d, "rig.yaml"),
-                                             parameter_overrides(self, NAMESPACE),
+                                             {**(defaults or {}), **parameter_overrides(self, NAMESPACE)},
                                              len(self.names))
         try:
             self.driver = MotorDriver(c)

@@ -23,7 +23,8 @@ Marker positions come from ``markers(t)``: (n, 3) [m] in ``arm_base`` at the mid
 ``t`` [s, emulator clock]; :func:`plant_markers` reads a ``soft_arm_control.rig.Plant`` (of a
 ``SimulatedRig``: ``rig.plant``). Either :meth:`NatNetEmulator.start` streams at ``rate`` on a
 thread (real time), or ``start(stream=False)`` only serves requests and the caller sends each frame
-with :meth:`NatNetEmulator.send_frame` (stepped, e.g. once per exposure of a ``SimulatedRig``).
+with :meth:`NatNetEmulator.send_frame` (stepped, e.g. once per exposure of a ``SimulatedRig``). The
+stream exposes on a fixed grid of ``1 / rate`` and sends each frame ``latency`` later.
 """
 from __future__ import annotations
 
@@ -34,7 +35,7 @@ import socket
 import struct
 import threading
 import time
-from collections import OrderedDict
+from collections import OrderedDict, deque
 from dataclasses import dataclass
 from typing import Callable, Optional, Sequence
 
@@ -145,7 +146,8 @@ class NatNetEmulator:
         self.faults, self.accept_bitstream = faults, accept_bitstream
         self.client_timeout, self.app_name = client_timeout, app_name
         self.counters = dict.fromkeys(("connects", "requests", "bad_requests", "frames", "sent",
-                                       "dropped", "duplicated", "reordered", "occluded", "absent"), 0)
+                                       "dropped", "duplicated", "reordered", "occluded", "absent",
+                                       "missed"), 0)
         self._rng = random.Random(faults.seed)
         self._start = clock()
         self._frame_number = 0
@@ -202,19 +204,36 @@ class NatNetEmulator:
         self.close()
 
     def _run(self, stream: bool):
+        """Serve requests; streaming, expose a frame on a fixed grid of periods, as cameras do
+        (markers read when the thread wakes for it, stamped with the grid time; exposures the
+        thread slept through are counted as missed) and send it ``latency`` later."""
         period = 1.0 / self.rate
         due = time.monotonic()
+        pending: deque = deque()                 # (send time [monotonic s], markers, exposure time)
         while not self._stop.is_set():
-            wait = max(0.0, due - time.monotonic()) if stream else 0.05
+            wake = min(due, pending[0][0]) if pending else due
+            wait = max(0.0, wake - time.monotonic()) if stream else 0.05
             try:
                 ready, _, _ = select.select([self._socket], [], [], wait)
             except (OSError, ValueError):          # closed under us
                 return
             if ready:
                 self.serve_requests()
-            if stream and time.monotonic() >= due:
-                self.send_frame()
-                due = max(due + period, time.monotonic() - period)
+            if not stream:
+                continue
+            now = time.monotonic()
+            if now >= due:
+                late = now - due
+                if late >= period:             # held past whole periods: those exposures are lost
+                    missed = int(late // period)
+                    self.counters["missed"] += missed
+                    due, late = due + missed * period, late - missed * period
+                exposure = self._clock() - late    # on the camera's grid; markers as read now
+                pending.append((due + self.latency, self._arm_markers(exposure), exposure))
+                due += period
+            while pending and time.monotonic() >= pending[0][0]:
+                _, markers, exposure = pending.popleft()
+                self.send_frame(markers, exposure)
 
     # -- requests --
 

@@ -23,7 +23,9 @@ P_STEP = 25.0 / 65535                       # rad, position LSB (+-12.5 rad)
 
 def config(**overrides):
     channel = f"motor_driver_{os.getpid()}_{next(_CHANNELS)}"
-    return load_driver_config(overrides={"interface": "virtual", "channel": channel, **overrides})
+    # shortenings counted from the zeroing pose here (rig.yaml counts them from the straight arm)
+    return load_driver_config(overrides={"interface": "virtual", "channel": channel,
+                                         "zero_shortening": [0.0] * 4, **overrides})
 
 
 class Rig:

@@ -128,7 +128,9 @@ def test_node_drives_the_emulated_rig_through_topics_and_services(rig):
     assert not any(m.motor_mode for m in emulator.motors)
 
     assert call(executor, harness, "zero").success
-    spin_until(executor, lambda: np.allclose(harness.latest("position"), 0.0, atol=1e-5))
+    # from then on the shortenings count from the zeroing pose's (rig.yaml's zero_shortening)
+    spin_until(executor, lambda: np.allclose(harness.latest("position"), node.config.zero_shortening,
+                                             atol=1e-5))
 
     response = call(executor, harness, "enable", data=True)
     assert response.success and response.message == "enabled"

@@ -1,0 +1,168 @@
+"""``emulated_rig`` node: the ``motor_driver`` node with emulated hardware behind it, and an emulated
+Motive server, so that the rig's graph runs without the rig.
+
+In one process (python-can's ``virtual`` bus does not leave it):
+
+- the ``motor_driver`` node, unchanged, on a ``virtual`` bus;
+- behind that bus, the CAN motor emulator (:mod:`.can_emulator`): MIT-protocol motors with the plant
+  of ``plant.yaml`` (model error, rotors' reflected inertia, encoder resolution) driven by their
+  torques through the pulleys, stepped in real time on a thread, replying after
+  ``rig.emulator.reply_delay``; its motors start out of motor mode with arbitrary zeros, the arm
+  hanging with slack tendons;
+- a NatNet server emulator (:mod:`.natnet_emulator`) streaming the same plant's markers, with the
+  noise, rate and latency of ``plant.mocap``, to 127.0.0.1 where ``rig.mocap`` says the Motive
+  server is (``server_address``, which must be a loopback address, and ``command_port``).
+
+Run the ``mocap_bridge`` node against it and the controller nodes as on the rig; zero and enable the
+motors with the driver's services (``/motor_driver/zero``, ``/motor_driver/enable``) as on the rig.
+``soft-arm-experiment <task> --emulated-hardware`` does all of that.
+
+Parameters: ``config/emulator.yaml`` holds ``rig.emulator.*`` (validated, see ``SCHEMA``) and the
+``rig.motors`` values of the emulated motors (interface ``virtual``, their firmware torque range),
+laid over ``rig.yaml`` beneath the node's own ``rig.motors.*``; ``rig.mocap.*`` as the bridge reads
+them; ``plant.*`` and ``arm.*``. A bad value names the key and what is allowed (exit status 2).
+"""
+from __future__ import annotations
+
+import ipaddress
+import os
+import sys
+import time
+
+import can
+import numpy as np
+
+from soft_arm_control.ros_interface import NodeConfig, parameter_overrides, run_node
+from soft_arm_control.rig import Plant
+from soft_arm_model import ArmData, build_model, marker_positions
+from soft_arm_model.config import (ConfigError, apply_overrides, default_config_dir, read_parameters,
+                                   validate_tree)
+
+from .can_emulator import CanMotorEmulator, EmulatorThread
+from .mocap_bridge import load_mocap_config
+from .motor_driver_node import MotorDriverNode
+from .natnet import SUPPORTED_VERSIONS
+from .natnet_emulator import NatNetEmulator
+
+NAMESPACE = "rig.emulator"
+_VERSIONS = [f"{v.major}.{v.minor}" for v in SUPPORTED_VERSIONS]
+SCHEMA = {
+    "reply_delay": ("float", lambda v: 0 <= v <= 0.01, "a delay in [0, 0.01] s from a frame to its reply"),
+    "zero_spread": ("float", lambda v: 0 <= v <= 10,
+                    "an angle in [0, 10] rad: the motors' zeros at power-up are uniform in +-zero_spread"),
+    "natnet_version": ("str", lambda v: v in _VERSIONS, f"a NatNet stream version among {_VERSIONS}"),
+    "seed": ("int", lambda v: v >= 0, "an integer >= 0"),
+}
+
+
+def read_emulator_file(path: str | None = None) -> tuple[dict, dict]:
+    """``config/emulator.yaml`` (or ``path``): its ``rig.emulator`` tree and its ``rig.motors``
+    values (dotted, relative to rig.motors; validated when laid over rig.yaml)."""
+    path = path or os.path.join(default_config_dir(), "emulator.yaml")
+    rig = read_parameters(path).get("rig")
+    emulator = rig.get("emulator") if isinstance(rig, dict) else None
+    motors = rig.get("motors", {}) if isinstance(rig, dict) else None
+    if not isinstance(emulator, dict) or not isinstance(motors, dict):
+        raise ConfigError(f"{path}: expected 'rig.emulator' and 'rig.motors' parameters under "
+                          f"/**.ros__parameters")
+    return emulator, _dotted(motors)
+
+
+def load_emulator_config(path: str | None = None, overrides: dict | None = None) -> dict:
+    """``rig.emulator`` of ``config/emulator.yaml`` (or ``path``) with dotted overrides relative to
+    it: validated values by key. Raises ConfigError naming ``rig.emulator.<key>``."""
+    tree, _ = read_emulator_file(path)
+    return validate_tree(apply_overrides(tree, overrides, SCHEMA, NAMESPACE), SCHEMA, NAMESPACE)
+
+
+def _dotted(tree: dict, prefix: str = "") -> dict:
+    out = {}
+    for key, value in tree.items():
+        if isinstance(value, dict):
+            out.update(_dotted(value, f"{prefix}{key}."))
+        else:
+            out[f"{prefix}{key}"] = value
+    return out
+
+
+class EmulatedRigNode(MotorDriverNode):
+    """The ``motor_driver`` node (same name, topics, services and parameters) with the emulated
+    motors on its bus and the NatNet server emulator of the same plant. :meth:`close` closes the
+    driver first (its zero-torque and exit-motor-mode frames reach the emulated motors), then the
+    emulators."""
+
+    def __init__(self, config_dir: str | None = None, **node_options):
+        d = config_dir or default_config_dir()
+        path = os.path.join(d, "emulator.yaml")
+        _, motors = read_emulator_file(path)
+        self._can_thread = self._natnet = self._bus = None
+        super().__init__(d, defaults=motors, **node_options)
+        try:
+            self._start_emulators(d, path)
+        except BaseException:
+            self.close()
+            raise
+
+    def _start_emulators(self, d: str, path: str):
+        c = self.config
+        if c.interface != "virtual":
+            raise ConfigError(f"rig.motors.interface = {c.interface!r} is not valid for the emulated "
+                              f"rig: expected 'virtual' (the emulated motors share the bus in this process)")
+        emulator = load_emulator_config(path, parameter_overrides(self, NAMESPACE))
+        mocap = load_mocap_config(os.path.join(d, "mocap.yaml"), {
+            f"mocap.{k}": v for k, v in parameter_overrides(self, "rig.mocap").items()})
+        if not ipaddress.IPv4Address(mocap.server_address).is_loopback:
+            raise ConfigError(f"rig.mocap.server_address = {mocap.server_address!r} is not valid for "
+                              f"the emulated rig: expected a loopback address (127.0.0.1)")
+        nc = NodeConfig(self, d)
+        p = nc.plant
+        plant = Plant(build_model(p.plant_arm(nc.arm)), p.timestep, p.rotor_mass)
+        plant.settle(np.zeros(plant.model.n_tendons))           # hanging, tendons slack
+        self._bus = can.Bus(interface="virtual", channel=c.channel, preserve_timestamps=True)
+        motors = CanMotorEmulator.for_config(
+            c, self._bus, plant, reply_delay=emulator["reply_delay"],
+            encoder_resolution=p.encoder_resolution, zero_spread=emulator["zero_spread"],
+            seed=emulator["seed"], start_time=time.time())
+        self._can_thread = EmulatorThread(motors).start()
+        rng = np.random.default_rng(p.mocap_seed)
+        data = ArmData(plant.model)
+
+        def markers(t: float) -> np.ndarray:
+            """On the NatNet thread: the plant's latest state (each step replaces plant.q)."""
+            true = marker_positions(plant.model, plant.q, data)
+            return true + rng.normal(0.0, p.mocap_noise, true.shape)
+
+        ids = {"rigid_body_ids" if mocap.source == "rigid_bodies" else "labeled_marker_ids": mocap.ids}
+        self._natnet = NatNetEmulator(
+            markers, version=emulator["natnet_version"], rate=p.mocap_rate, layout="both",
+            calibration=mocap.calibration, address=mocap.server_address,
+            command_port=mocap.command_port, latency=p.mocap_latency, **ids).start()
+        self.motors = motors
+        self.get_logger().info(
+            f"emulated rig: motors on virtual bus {c.channel!r} with the plant of plant.yaml, NatNet "
+            f"server on {mocap.server_address}:{self._natnet.command_port} at {p.mocap_rate:g} Hz")
+
+    def close(self):
+        """The driver's close (zero torque, exit motor mode), then the emulators; idempotent."""
+        try:
+            super().close()
+        finally:
+            if self._can_thread is not None:
+                thread, self._can_thread = self._can_thread, None
+                thread.stop()
+            if self._natnet is not None:
+                self._natnet.close()
+            if self._bus is not None:
+                self._bus.shutdown()
+                self._bus = None
+
+
+def main(args=None) -> int:
+    # three threads share the interpreter (driver, motors, Motive): hand it over every 0.5 ms
+    # rather than every 5 ms, so that a waiting thread is not held for a whole driver period
+    sys.setswitchinterval(5e-4)
+    return run_node(EmulatedRigNode, "emulated_rig", args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,92 @@
+"""Hardware in the loop, emulated: the rig's graph (motor_driver on a CAN bus with the motor
+emulator behind it, mocap_bridge reading the NatNet server emulator over UDP on 127.0.0.1,
+inner_loop, clik, task_runner, recorder, each its own process) closes the loop like the
+simulator-only graph; and the emulated rig's configuration."""
+import json
+import time
+
+import numpy as np
+import pytest
+from rosbags.highlevel import AnyReader
+from rosbags.typesys import Stores, get_typestore
+
+from soft_arm_drivers.emulated_rig import SCHEMA, load_emulator_config, read_emulator_file
+from soft_arm_drivers.experiment import _ros_arguments, main, run_composed
+from soft_arm_drivers.motor_driver import load_driver_config
+from soft_arm_model import build_model, load_arm_config, solve_equilibrium, tendon_lengths
+from soft_arm_model.config import ConfigError
+
+ONE_TARGET = ["tasks.coiling.phases=[upward]", "tasks.coiling.phase.upward.sequence=[1]",
+              "tasks.coiling.phase.upward.window=8.0"]
+
+
+def test_the_motors_zero_shortening_is_the_models_slack_hanging_pose():
+    """rig.yaml's zero_shortening is what the controller's model predicts for the pose the motors
+    are zeroed in (hanging, tendons slack), to 0.01 mm."""
+    model = build_model(load_arm_config())
+    hanging = solve_equilibrium(model, np.zeros(model.n_tendons)).q
+    predicted = model.rest_tendon_lengths - tendon_lengths(model, hanging)
+    np.testing.assert_allclose(load_driver_config().zero_shortening, predicted, atol=1e-5)
+
+
+def test_emulator_config_is_validated_and_laid_over_the_rig():
+    values = load_emulator_config()
+    assert set(values) == set(SCHEMA)
+    _, motors = read_emulator_file()
+    driver = load_driver_config(overrides=motors)
+    assert driver.interface == "virtual" and all(m.limits.t_max == 0.5 for m in driver.motors)
+    with pytest.raises(ConfigError, match=r"rig\.emulator\.reply_delay = 0\.5 .*\[0, 0\.01\] s"):
+        load_emulator_config(overrides={"reply_delay": 0.5})
+    with pytest.raises(ConfigError, match=r"rig\.emulator\.natnet_version .*among"):
+        load_emulator_config(overrides={"natnet_version": '"2.9"'})
+    with pytest.raises(ConfigError, match="did you mean"):
+        load_emulator_config(overrides={"reply_dealy": 0.001})
+
+
+def _topics(bag_dir):
+    """Per topic: header stamps [s] of its messages."""
+    out = {}
+    with AnyReader([__import__("pathlib").Path(bag_dir)],
+                   default_typestore=get_typestore(Stores.ROS2_JAZZY)) as reader:
+        for conn, _, raw in reader.messages():
+            msg = reader.deserialize(raw, conn.msgtype)
+            stamp = getattr(msg, "header", None)
+            out.setdefault(conn.topic, []).append(
+                stamp.stamp.sec + 1e-9 * stamp.stamp.nanosec if stamp is not None else None)
+    return out
+
+
+def test_closed_loop_through_the_emulated_hardware_reaches_the_target_like_the_simulator(tmp_path):
+    out = tmp_path / "hil"
+    sets = [a for s in ONE_TARGET for a in ("--set", s)]
+    before = time.time()
+    assert main(["coiling", "--emulated-hardware", "--quiet", "--output", str(out)] + sets) == 0
+    after = time.time()
+    with open(out / "metrics.json", encoding="utf-8") as fh:
+        hil = json.load(fh)
+    assert hil["run"]["emulated_hardware"] and hil["run"]["driver_faults"] == []
+
+    sim_dir = tmp_path / "sim"
+    sim_dir.mkdir()
+    run_composed(_ros_arguments("coiling", ONE_TARGET, None),
+                 {"bag": str(sim_dir / "bag"), "metrics": str(sim_dir / "metrics.json")})
+    with open(sim_dir / "metrics.json", encoding="utf-8") as fh:
+        sim = json.load(fh)
+
+    h, s = hil["transitions"][0], sim["transitions"][0]
+    # the same move (from the hanging arm to target 1), into the mm band, ending as close
+    assert h["displacement"] == pytest.approx(s["displacement"], abs=3e-3)
+    assert h["time_mm"] is not None and h["time_mm"] < 6.0
+    assert h["final_error"] < 2e-3 and s["final_error"] < 2e-3
+    assert h["rms_steady"] < 2e-3
+    assert h["peak_speed"] < 3.0                      # measured, not a frame-timing artefact
+
+    # what the drivers published, on the system clock: the motors' state at about 500 Hz (the
+    # replies' stamps), the mocap at about 240 Hz (mid-exposure stamps), the controller answering
+    topics = _topics(out / "bag")
+    state = np.array(topics["/tendon/state"])
+    markers = np.array(topics["/mocap/markers"])
+    assert 0.0015 < np.median(np.diff(state)) < 0.003 and np.all(np.diff(state) > 0)
+    assert 0.0035 < np.median(np.diff(markers)) < 0.005
+    assert len(topics["/tendon/command"]) > 0.8 * len(state)
+    assert before < state[0] and state[-1] < after and before < markers[0] and markers[-1] < after
