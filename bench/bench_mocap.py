@@ -116,8 +116,9 @@ def bench_core_latency(duration: float = 5.0) -> dict:
 def bench_ros_latency(duration: float = 5.0) -> dict:
     import rclpy
     from geometry_msgs.msg import PoseArray
-    from rclpy.executors import SingleThreadedExecutor
     from rclpy.parameter import Parameter
+
+    from soft_arm_control.ros_interface import make_executor
 
     from soft_arm_drivers.mocap_bridge_node import MocapBridgeNode
 
@@ -136,7 +137,7 @@ def bench_ros_latency(duration: float = 5.0) -> dict:
                 PoseArray, "mocap/markers",
                 lambda msg: received.append((time.time(), stamp_to_seconds(msg.header.stamp))),
                 QOS["mocap/markers"])
-            executor = SingleThreadedExecutor()
+            executor = make_executor()
             executor.add_node(listener)
             emulator.start()
             start = time.monotonic()

@@ -9,8 +9,8 @@ emulator answers from a thread of the same process (real time, 0.2 ms reply dela
 arm behind it (``soft_arm_control.rig.Plant`` stepped every 1 ms: it competes for the GIL) or with
 static tendons (the bus alone). Two ways of waiting for the next period: ``sleep`` (``time.sleep``
 up to the deadline) and ``sleep+spin`` (sleep to 0.3 ms before it, then poll the clock, yielding the
-GIL). Then the ``motor_driver`` node itself: its rclpy timer driven by a ``spin_once`` loop as in
-``run_node``, with the arm emulator.
+GIL). Then the ``motor_driver`` node itself: its rclpy timer driven by the executor ``run_node``
+spins (``make_executor``: the events executor), with the arm emulator.
 
 Reported per run: the period between successive cycle starts minus the nominal period (jitter:
 p50 and p99 of its absolute value, max), the lateness of each start behind its deadline, the time
@@ -101,10 +101,11 @@ def bench_core(rate: float, plant, strategy: str, seconds: float) -> dict:
 
 
 def bench_node(rate: float, plant, seconds: float) -> dict:
-    """The node's timer under a ``spin_once`` loop (as run_node spins it), with a tick hook."""
+    """The node's timer under the executor run_node spins, with a tick hook."""
     import rclpy
     from rclpy.parameter import Parameter
 
+    from soft_arm_control.ros_interface import make_executor
     from soft_arm_drivers.motor_driver_node import MotorDriverNode
 
     cfg, bus, emulator = _rig(rate, plant)
@@ -129,7 +130,7 @@ def bench_node(rate: float, plant, seconds: float) -> dict:
                 return result
             node.driver.cycle = timed_cycle
             node.driver.enable(time.monotonic())
-            executor = rclpy.executors.SingleThreadedExecutor(context=context)
+            executor = make_executor(context=context)
             executor.add_node(node)
             end = time.monotonic() + seconds
             while time.monotonic() < end:

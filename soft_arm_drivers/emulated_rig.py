@@ -103,11 +103,14 @@ class EmulatedRigNode(MotorDriverNode):
             self.close()
             raise
 
+    def check_config(self, config):
+        if config.interface != "virtual":
+            raise ConfigError(f"rig.motors.interface = {config.interface!r} is not valid for the "
+                              f"emulated rig: expected 'virtual' (the emulated motors share the bus "
+                              f"in this process)")
+
     def _start_emulators(self, d: str, path: str):
         c = self.config
-        if c.interface != "virtual":
-            raise ConfigError(f"rig.motors.interface = {c.interface!r} is not valid for the emulated "
-                              f"rig: expected 'virtual' (the emulated motors share the bus in this process)")
         emulator = load_emulator_config(path, parameter_overrides(self, NAMESPACE))
         mocap = load_mocap_config(os.path.join(d, "mocap.yaml"), {
             f"mocap.{k}": v for k, v in parameter_overrides(self, "rig.mocap").items()})

@@ -56,6 +56,7 @@ class MotorDriverNode(Node):
         self.config = c = load_driver_config(os.path.join(d, "rig.yaml"),
                                              {**(defaults or {}), **parameter_overrides(self, NAMESPACE)},
                                              len(self.names))
+        self.check_config(c)
         try:
             self.driver = MotorDriver(c)
         except (can.CanError, OSError) as exc:
@@ -77,6 +78,9 @@ class MotorDriverNode(Node):
         self.get_logger().info(
             f"motor driver ready: {len(c.motors)} motors on {c.interface} {c.channel} at {c.rate:g} Hz, "
             f"disabled (call ~/enable)")
+
+    def check_config(self, config):
+        """Further checks of the validated configuration before the bus is opened (ConfigError)."""
 
     def on_command(self, msg: JointState):
         try:

@@ -1,6 +1,7 @@
 """Each node alone, as its own process with real rclpy: parameters from YAML, a bad parameter stops
 it with a clear message and status 2, SIGINT shuts it down cleanly; the recorder survives SIGTERM
 with a closed bag and SIGKILL with a readable one."""
+import json
 import os
 import pathlib
 import signal
@@ -204,6 +205,58 @@ def test_clik_node_rejects_bad_goals_and_keeps_the_last_reference():
         node.destroy_node()
     finally:
         rclpy.try_shutdown()
+
+
+def test_task_runner_waits_for_start_and_stays_up_after_the_last_window(tmp_path):
+    """wait_for_start: frames before ~/start are ignored; the schedule starts with the first frame
+    after it; the metrics are written whole at the end and the node stays up (done is False)."""
+    import rclpy
+    from rclpy.parameter import Parameter
+    from std_srvs.srv import Trigger
+
+    from soft_arm_control.ros_interface import pose_array
+    from soft_arm_control.task_runner_node import TaskRunnerNode
+    out = tmp_path / "metrics.json"
+    rclpy.init()
+    try:
+        node = TaskRunnerNode(parameter_overrides=[
+            Parameter("graph.task", value="coiling"), Parameter("output", value=str(out)),
+            Parameter("wait_for_start", value=True),
+            Parameter("tasks.coiling.phases", value=["upward"]),
+            Parameter("tasks.coiling.phase.upward.sequence", value=[1]),
+            Parameter("tasks.coiling.phase.upward.window", value=1.0)])
+        goals = []
+        node.pub.publish = goals.append
+        markers = [[0.0, 0.0, -0.1 * k] for k in range(1, 5)]
+        node.on_markers(pose_array(markers, 10.0))
+        assert goals == [] and node.core.t0 is None
+        response = node.on_start(Trigger.Request(), Trigger.Response())
+        assert response.success and "coiling" in response.message
+        assert not node.on_start(Trigger.Request(), Trigger.Response()).success
+        for k in range(60):                                    # 1.2 s of frames at 50 Hz
+            node.on_markers(pose_array(markers, 11.0 + 0.02 * k))
+        assert len(goals) == 1 and node.core.t0 == 11.0
+        assert node.finished and not node.done
+        assert json.loads(out.read_text())["task"] == "coiling"
+        assert not (tmp_path / "metrics.json.partial").exists()
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown()
+
+
+@pytest.mark.parametrize("param, message", [
+    ("rig.motors.interface:=socketcan", "rig.motors.interface = 'socketcan' is not valid for the "
+                                        "emulated rig"),
+    ("rig.mocap.server_address:=192.0.2.1", "rig.mocap.server_address = '192.0.2.1' is not valid"),
+    ("rig.emulator.reply_delay:=0.5", "rig.emulator.reply_delay = 0.5 is not valid"),
+])
+def test_emulated_rig_refuses_what_is_not_an_emulation(param, message):
+    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    proc = subprocess.run([sys.executable, "-m", "soft_arm_drivers.emulated_rig"] + _params()
+                          + ["-p", param],
+                          capture_output=True, text=True, env=env, timeout=120)
+    assert proc.returncode == 2, proc.stdout + proc.stderr
+    assert message in proc.stdout + proc.stderr
 
 
 def test_ctrl_c_stops_the_experiment_and_keeps_the_bag(tmp_path):
