@@ -10,6 +10,7 @@ logs the key, the value and the allowed range and exits with status 2.
 from __future__ import annotations
 
 import gc
+import importlib
 import json
 import os
 import signal
@@ -65,6 +66,15 @@ FILES = {"arm": "arm.yaml", "control": "control.yaml", "plant": "plant.yaml", "t
          "graph": "graph.yaml"}
 SCHEMAS = {"control": cfg.CONTROL_SCHEMA, "plant": cfg.PLANT_SCHEMA, "tasks": cfg.TASK_SCHEMA,
            "graph": GRAPH_SCHEMA}
+
+
+def message_class(type_name: str):
+    """The rclpy message class of ``pkg/msg/Type``; ConfigError if it is not installed."""
+    package, _, name = type_name.partition("/msg/")
+    try:
+        return getattr(importlib.import_module(f"{package}.msg"), name)
+    except (ImportError, AttributeError, ValueError):
+        raise ConfigError(f"unknown message type {type_name!r}") from None
 
 
 # -- parameters ----------------------------------------------------------------------------------

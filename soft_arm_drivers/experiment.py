@@ -154,18 +154,16 @@ def _wait_for_graph(node, children, flowing: tuple = (), settle: float = 0.0,
     when a node exits or after ``timeout`` [s]."""
     import rclpy
 
-    from soft_arm_control.ros_interface import QOS, TOPICS, TYPES
+    from soft_arm_control.ros_interface import QOS, TOPICS, TYPES, message_class
     topics = ["/" + TOPICS[k] for k in ("command", "reference", "state", "markers")]
     counts = {}
     subscriptions = []
     for key in flowing:
         topic = TOPICS[key]
-        package, _, name = TYPES[topic].split("/")
-        kind = getattr(__import__(f"{package}.msg", fromlist=[name]), name)
         counts[topic] = 0
         subscriptions.append(node.create_subscription(
-            kind, topic, lambda msg, topic=topic: counts.__setitem__(topic, counts[topic] + 1),
-            QOS[topic]))
+            message_class(TYPES[topic]), topic,
+            lambda msg, topic=topic: counts.__setitem__(topic, counts[topic] + 1), QOS[topic]))
     deadline = time.monotonic() + timeout
     graph, since = None, time.monotonic()
     try:

@@ -12,26 +12,16 @@ cleanly, and after SIGKILL everything but the last chunk can still be read.
 from __future__ import annotations
 
 import datetime
-import importlib
 import os
 import sys
 
 from rclpy.node import Node
 from rclpy.qos import QoSProfile
 
-from soft_arm_control.ros_interface import QOS, TYPES, NodeConfig, run_node
+from soft_arm_control.ros_interface import QOS, TYPES, NodeConfig, message_class, run_node
 from soft_arm_model.config import ConfigError
 
 from .rosbag_writer import QosProfile, RosbagWriter, TopicSpec
-
-
-def message_class(type_name: str):
-    """The rclpy message class of ``pkg/msg/Type``; ConfigError if it is not installed."""
-    package, _, name = type_name.partition("/msg/")
-    try:
-        return getattr(importlib.import_module(f"{package}.msg"), name)
-    except (ImportError, AttributeError, ValueError):
-        raise ConfigError(f"unknown message type {type_name!r}") from None
 
 
 def _qos(profile) -> QosProfile:

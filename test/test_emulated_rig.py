@@ -3,6 +3,7 @@ emulator behind it, mocap_bridge reading the NatNet server emulator over UDP on 
 inner_loop, clik, task_runner, recorder, each its own process) closes the loop like the
 simulator-only graph; and the emulated rig's configuration."""
 import json
+import pathlib
 import time
 
 import numpy as np
@@ -46,7 +47,7 @@ def test_emulator_config_is_validated_and_laid_over_the_rig():
 def _topics(bag_dir):
     """Per topic: header stamps [s] of its messages."""
     out = {}
-    with AnyReader([__import__("pathlib").Path(bag_dir)],
+    with AnyReader([pathlib.Path(bag_dir)],
                    default_typestore=get_typestore(Stores.ROS2_JAZZY)) as reader:
         for conn, _, raw in reader.messages():
             msg = reader.deserialize(raw, conn.msgtype)

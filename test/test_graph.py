@@ -2,6 +2,7 @@
 lockstep determinism, remapping, and the recorded bag read back with rosbags."""
 import json
 import os
+import pathlib
 
 import pytest
 from rosbags.highlevel import AnyReader
@@ -29,7 +30,7 @@ def _run(tmp_path, name, sets, node_args=None):
 def _messages(bag_dir):
     """Per topic: the list of raw CDR payloads, and the connection types."""
     out, types = {}, {}
-    with AnyReader([__import__("pathlib").Path(bag_dir)],
+    with AnyReader([pathlib.Path(bag_dir)],
                    default_typestore=get_typestore(Stores.ROS2_JAZZY)) as reader:
         for conn, _, raw in reader.messages():
             out.setdefault(conn.topic, []).append(bytes(raw))
