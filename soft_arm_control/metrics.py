@@ -38,10 +38,12 @@ SPEED_BASELINE = 0.01  # s: measured tip speeds are differences over at least th
 
 
 def measured_speed(t, positions, baseline: float = SPEED_BASELINE) -> np.ndarray:
-    """Speed [m/s] at each sample of measured positions (N, 3) [m] at times t (N,) [s]: the
-    displacement from the latest sample at least ``baseline`` earlier over the time between them
-    (0 before the first such sample). Mocap frames of a rig are not evenly spaced: two frames
-    0.1 ms apart would turn 0.2 mm of marker noise into 2 m/s."""
+    """Speed [m/s] at each sample of measured positions (N, 3) [m] at ascending times t (N,) [s]:
+    the displacement from the latest sample at least ``baseline`` > 0 [s] earlier over the time
+    between them (0 before the first such sample). Mocap frames of a rig are not evenly spaced: two
+    frames 0.1 ms apart would turn 0.2 mm of marker noise into 2 m/s."""
+    if not baseline > 0:
+        raise ValueError(f"baseline must be > 0 s, got {baseline}")
     t = np.asarray(t, dtype=float)
     p = np.asarray(positions, dtype=float)
     j = np.searchsorted(t, t - baseline, side="right") - 1

@@ -145,10 +145,11 @@ def run_node(factory, name: str, args=None) -> int:
     until it sets ``done``; a ConfigError while creating it is logged and gives exit status 2.
 
     The first SIGINT or SIGTERM ends the spin between two callbacks (a callback is never cut short
-    and the context stays valid while it runs; a second signal interrupts at once). What the set-up
-    allocated is frozen out of the garbage collector (``gc.freeze``). A node's
-    ``close()`` (if any) then runs, whatever ended the spin (a signal during start-up included),
-    before the node, the executor and the context go."""
+    and the context stays valid while it runs); a second one interrupts the spin at once. A node's
+    ``close()`` (if any) then runs, whatever ended the spin (a signal during start-up included), with
+    signals ignored so that nothing cuts it short (a driver's zero torque), before the node, the
+    executor and the context go; the previous signal handlers come back at the end. What the set-up
+    allocated is frozen out of the garbage collector (``gc.freeze``)."""
     stop = []
 
     def request_stop(signum, frame):
@@ -156,10 +157,10 @@ def run_node(factory, name: str, args=None) -> int:
             raise KeyboardInterrupt
         stop.append(signum)
 
-    previous = {s: signal.signal(s, request_stop) for s in (signal.SIGINT, signal.SIGTERM)}
-    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    previous = {sig: signal.signal(sig, request_stop) for sig in (signal.SIGINT, signal.SIGTERM)}
     node = executor = None
     try:
+        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
         node = factory()
         # The set-up leaves some 10^5 long-lived objects (models, compiled kernels, rclpy): a full
         # collection would walk them all, some 50 ms at a time, in the middle of a control period.
@@ -176,6 +177,8 @@ def run_node(factory, name: str, args=None) -> int:
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
+        for sig in previous:
+            signal.signal(sig, signal.SIG_IGN)
         try:
             if node is not None:
                 close = getattr(node, "close", None)
@@ -187,8 +190,8 @@ def run_node(factory, name: str, args=None) -> int:
             if node is not None:
                 node.destroy_node()
             rclpy.try_shutdown()
-            for s, handler in previous.items():
-                signal.signal(s, handler)
+            for sig, handler in previous.items():
+                signal.signal(sig, handler)
     return 0
 
 

@@ -25,6 +25,7 @@ them; ``plant.*`` and ``arm.*``. A bad value names the key and what is allowed (
 from __future__ import annotations
 
 import ipaddress
+import json
 import os
 import sys
 import time
@@ -39,7 +40,7 @@ from soft_arm_model.config import (ConfigError, apply_overrides, default_config_
                                    validate_tree)
 
 from .can_emulator import CanMotorEmulator, EmulatorThread
-from .mocap_bridge import load_mocap_config
+from .mocap_bridge_node import load_node_config
 from .motor_driver_node import MotorDriverNode
 from .natnet import SUPPORTED_VERSIONS
 from .natnet_emulator import NatNetEmulator
@@ -76,12 +77,13 @@ def load_emulator_config(path: str | None = None, overrides: dict | None = None)
 
 
 def _dotted(tree: dict, prefix: str = "") -> dict:
+    """Dotted keys of a parameter tree, strings quoted (overrides read a string value as YAML)."""
     out = {}
     for key, value in tree.items():
         if isinstance(value, dict):
             out.update(_dotted(value, f"{prefix}{key}."))
         else:
-            out[f"{prefix}{key}"] = value
+            out[f"{prefix}{key}"] = json.dumps(value) if isinstance(value, str) else value
     return out
 
 
@@ -92,34 +94,36 @@ class EmulatedRigNode(MotorDriverNode):
     emulators."""
 
     def __init__(self, config_dir: str | None = None, **node_options):
-        d = config_dir or default_config_dir()
-        path = os.path.join(d, "emulator.yaml")
-        _, motors = read_emulator_file(path)
+        self._dir = config_dir or default_config_dir()
+        _, motors = read_emulator_file(os.path.join(self._dir, "emulator.yaml"))
         self._can_thread = self._natnet = self._bus = None
-        super().__init__(d, defaults=motors, **node_options)
+        self._reported_error = False
+        super().__init__(self._dir, defaults=motors, **node_options)
         try:
-            self._start_emulators(d, path)
+            self._start_emulators()
         except BaseException:
             self.close()
             raise
+        self.create_timer(1.0, self._check_emulators)
 
     def check_config(self, config):
+        """Everything the emulation needs is checked before the driver opens its bus."""
         if config.interface != "virtual":
             raise ConfigError(f"rig.motors.interface = {config.interface!r} is not valid for the "
                               f"emulated rig: expected 'virtual' (the emulated motors share the bus "
                               f"in this process)")
+        self.emulator_config = load_emulator_config(os.path.join(self._dir, "emulator.yaml"),
+                                                    parameter_overrides(self, NAMESPACE))
+        self.mocap_config = load_node_config(self, self._dir)
+        if not ipaddress.IPv4Address(self.mocap_config.server_address).is_loopback:
+            raise ConfigError(f"rig.mocap.server_address = {self.mocap_config.server_address!r} is "
+                              f"not valid for the emulated rig: expected a loopback address (127.0.0.1)")
+        self.node_config = NodeConfig(self, self._dir)
 
-    def _start_emulators(self, d: str, path: str):
-        c = self.config
-        emulator = load_emulator_config(path, parameter_overrides(self, NAMESPACE))
-        mocap = load_mocap_config(os.path.join(d, "mocap.yaml"), {
-            f"mocap.{k}": v for k, v in parameter_overrides(self, "rig.mocap").items()})
-        if not ipaddress.IPv4Address(mocap.server_address).is_loopback:
-            raise ConfigError(f"rig.mocap.server_address = {mocap.server_address!r} is not valid for "
-                              f"the emulated rig: expected a loopback address (127.0.0.1)")
-        nc = NodeConfig(self, d)
-        p = nc.plant
-        plant = Plant(build_model(p.plant_arm(nc.arm)), p.timestep, p.rotor_mass)
+    def _start_emulators(self):
+        c, emulator, mocap = self.config, self.emulator_config, self.mocap_config
+        p = self.node_config.plant
+        plant = Plant(build_model(p.plant_arm(self.node_config.arm)), p.timestep, p.rotor_mass)
         plant.settle(np.zeros(plant.model.n_tendons))           # hanging, tendons slack
         self._bus = can.Bus(interface="virtual", channel=c.channel, preserve_timestamps=True)
         motors = CanMotorEmulator.for_config(
@@ -136,28 +140,43 @@ class EmulatedRigNode(MotorDriverNode):
             return true + rng.normal(0.0, p.mocap_noise, true.shape)
 
         ids = {"rigid_body_ids" if mocap.source == "rigid_bodies" else "labeled_marker_ids": mocap.ids}
-        self._natnet = NatNetEmulator(
-            markers, version=emulator["natnet_version"], rate=p.mocap_rate, layout="both",
-            calibration=mocap.calibration, address=mocap.server_address,
-            command_port=mocap.command_port, latency=p.mocap_latency, **ids).start()
-        self.motors = motors
+        try:
+            self._natnet = NatNetEmulator(
+                markers, version=emulator["natnet_version"], rate=p.mocap_rate, layout="both",
+                calibration=mocap.calibration, address=mocap.server_address,
+                command_port=mocap.command_port, latency=p.mocap_latency, **ids).start()
+        except OSError as exc:
+            raise ConfigError(f"rig.mocap.command_port = {mocap.command_port}: the emulated Motive "
+                              f"server cannot bind {mocap.server_address}:{mocap.command_port}: "
+                              f"{exc.strerror}") from None
         self.get_logger().info(
             f"emulated rig: motors on virtual bus {c.channel!r} with the plant of plant.yaml, NatNet "
             f"server on {mocap.server_address}:{self._natnet.command_port} at {p.mocap_rate:g} Hz")
 
+    def _check_emulators(self):
+        """An emulator thread that died is hardware gone: the driver faults on the silence; say why."""
+        error = self._can_thread.error if self._can_thread is not None else None
+        if error is not None and not self._reported_error:
+            self._reported_error = True
+            self.get_logger().fatal(f"the emulated motors stopped: {error!r}")
+
     def close(self):
         """The driver's close (zero torque, exit motor mode), then the emulators; idempotent."""
+        thread, natnet, bus = self._can_thread, self._natnet, self._bus
+        self._can_thread = self._natnet = self._bus = None
         try:
             super().close()
         finally:
-            if self._can_thread is not None:
-                thread, self._can_thread = self._can_thread, None
-                thread.stop()
-            if self._natnet is not None:
-                self._natnet.close()
-            if self._bus is not None:
-                self._bus.shutdown()
-                self._bus = None
+            try:
+                if thread is not None:
+                    thread.stop()
+            finally:
+                try:
+                    if natnet is not None:
+                        natnet.close()
+                finally:
+                    if bus is not None:
+                        bus.shutdown()
 
 
 def main(args=None) -> int:

@@ -8,16 +8,17 @@ simulator still steps once per command, over DDS). ``--emulated-hardware`` runs 
 real time, one process per node, with the motor driver and the mocap bridge talking to emulated
 CAN motors and an emulated Motive server in the simulator's place (:mod:`.emulated_rig`).
 Output (``--output DIR``, default ``runs/<task>-<UTC time>``): ``bag/`` (rosbag2, MCAP),
-``metrics.json``, ``figures/*.png``.
-Prints a progress line, the paper-style table and the paths (``--json``: the metrics as JSON on
-stdout). Ctrl-C stops everything cleanly and keeps what was recorded. A bad parameter or an
-unreachable target exits with status 2.
+``metrics.json``, ``figures/*.png``. Prints a progress line (composed runs), the paper-style table
+and the paths (``--json``: the metrics as JSON on stdout). Ctrl-C stops everything cleanly (the
+emulated motors are disabled first) and keeps what was recorded (exit status 130). A bad parameter
+or an unreachable target exits with status 2; a node that dies or a run that cannot go on, with 1.
 """
 from __future__ import annotations
 
 import argparse
 import datetime
 import json
+import math
 import os
 import signal
 import socket
@@ -150,40 +151,37 @@ def _wait_for_graph(node, children, flowing: tuple = (), settle: float = 0.0,
     """Until the graph is wired: a publisher on each of the controller's and the plant's topics (a
     node creates them once its set-up is done), a recorder, messages arriving on the ``flowing``
     topics (names of ``TOPICS``: e.g. the controller answering the motors' state), and, with
-    ``settle`` [s], no endpoint appearing or going for that long (discovery over). RuntimeError
-    when a node exits or after ``timeout`` [s]."""
+    ``settle`` [s], no endpoint appearing or going for that long (discovery over). The probe
+    subscriptions stay (they go with ``node``). RuntimeError when a node exits or after ``timeout``
+    [s]."""
     import rclpy
 
     from soft_arm_control.ros_interface import QOS, TOPICS, TYPES, message_class
     topics = ["/" + TOPICS[k] for k in ("command", "reference", "state", "markers")]
     counts = {}
-    subscriptions = []
     for key in flowing:
         topic = TOPICS[key]
         counts[topic] = 0
-        subscriptions.append(node.create_subscription(
-            message_class(TYPES[topic]), topic,
-            lambda msg, topic=topic: counts.__setitem__(topic, counts[topic] + 1), QOS[topic]))
+        node.create_subscription(message_class(TYPES[topic]), topic,
+                                 lambda msg, topic=topic: counts.__setitem__(topic, counts[topic] + 1),
+                                 QOS[topic])
     deadline = time.monotonic() + timeout
     graph, since = None, time.monotonic()
-    try:
-        while not STOP.is_set():
-            children.check()
-            missing = [t for t in topics if node.count_publishers(t) == 0]
-            missing += [f"{t} (no messages yet)" for t, n in counts.items() if n < 10]
-            if "recorder" not in node.get_node_names():
-                missing.append("the recorder")
-            now = _endpoints(node)
-            if now != graph:
-                graph, since = now, time.monotonic()
-            if not missing and time.monotonic() - since >= settle:
-                return
-            if time.monotonic() > deadline:
-                raise RuntimeError(f"the graph is not up after {timeout:g} s: nothing on {missing}")
-            rclpy.spin_once(node, timeout_sec=0.05)
-    finally:
-        for subscription in subscriptions:
-            node.destroy_subscription(subscription)
+    while not STOP.is_set():
+        children.check()
+        missing = [t for t in topics if node.count_publishers(t) == 0]
+        missing += [f"{t} (no messages yet)" for t, n in counts.items() if n < 10]
+        if "recorder" not in node.get_node_names():
+            missing.append("the recorder")
+        now = _endpoints(node)
+        if now != graph:
+            graph, since = now, time.monotonic()
+        if not missing and time.monotonic() - since >= settle:
+            return
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"the graph is not up after {timeout:g} s: "
+                               + (f"nothing on {missing}" if missing else "its endpoints keep changing"))
+        rclpy.spin_once(node, timeout_sec=0.05)
 
 
 def _endpoints(node) -> tuple:
@@ -219,11 +217,15 @@ class _Children:
         self.procs: dict = {}
 
     def start(self, name: str):
-        priority = self.realtime.get(name)
-        self.procs[name] = subprocess.Popen(
+        """Start a node in its own session (a Ctrl-C in the terminal reaches this process only,
+        which stops the nodes in order), under SCHED_FIFO if it has a priority: set before the
+        interpreter has started a thread, so that every thread of the node inherits it."""
+        proc = subprocess.Popen(
             [sys.executable, "-m", _MODULES[name]] + self.ros_args + self.extra.get(name, []),
-            env=self.env, preexec_fn=None if priority is None else
-            (lambda: os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))))
+            env=self.env, start_new_session=True)
+        self.procs[name] = proc
+        if name in self.realtime:
+            os.sched_setscheduler(proc.pid, os.SCHED_FIFO, os.sched_param(self.realtime[name]))
 
     def check(self, may_end=()):
         """RuntimeError if a node exited (those in ``may_end`` with status 0 may)."""
@@ -271,28 +273,38 @@ def run_processes(ros_args: list, out: dict) -> dict:
         if not STOP.is_set():
             children.check(may_end=("task_runner",))
     finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
-        children.stop()
+        try:
+            node.destroy_node()
+            rclpy.try_shutdown()
+        finally:
+            children.stop()
     return {"wall_s": time.monotonic() - start}
 
 
-def run_emulated_hardware(ros_args: list, out: dict) -> dict:
+def run_emulated_hardware(ros_args: list, out: dict, duration: float,
+                          config_dir: str | None = None) -> dict:
     """The rig's graph in real time, each node its own process, with the ``emulated_rig`` (the
     motor_driver node with the CAN motor emulators and the NatNet server emulator behind it,
-    :mod:`.emulated_rig`) and the ``mocap_bridge`` in the simulator's place.
+    :mod:`.emulated_rig`) and the ``mocap_bridge`` in the simulator's place; ``duration`` [s]: the
+    task's, ``config_dir``: where rig.yaml, mocap.yaml and emulator.yaml are (default: the package's).
 
     As an operator runs the rig: every node starts (the task runner waiting for ``~/start``); once
-    the graph is wired and the controller answers the motors' state, the motors are zeroed (tendons
-    slack) and enabled through the driver's services and the task starts; when the task runner has
-    written the metrics the motors are disabled, then the nodes are stopped. No process joins or
-    leaves the graph while the motors are enabled: DDS discovery can hold a publisher, the driver's
-    included, for a few hundred ms. The driver's latched faults are printed as they come and listed
-    in the run facts (``driver_faults``: those latched while the motors were enabled)."""
+    the graph is wired and settled and the controller answers the motors' state, the motors are
+    zeroed (tendons slack) and enabled through the driver's services and the task starts; when the
+    task runner has written the metrics (RuntimeError if not within ``duration`` + 60 s) the motors
+    are disabled, then the nodes are stopped. No process joins or leaves the graph while the motors
+    are enabled: DDS discovery can hold a publisher, the driver's included, for a few hundred ms.
+    The driver's faults are printed as they latch and those latched while the motors were enabled
+    are listed in the run facts (``driver_faults``)."""
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
     from std_srvs.srv import SetBool, Trigger
 
+    from soft_arm_control.ros_interface import stamp_to_seconds
+
+    d = config_dir or default_config_dir()
+    files = [a for name in ("rig.yaml", "mocap.yaml", "emulator.yaml")
+             for a in ("--params-file", os.path.join(d, name))]
     port = _free_udp_port()
     realtime = _realtime_permitted()
     if not realtime:
@@ -302,23 +314,25 @@ def run_emulated_hardware(ros_args: list, out: dict) -> dict:
     children = _Children(ros_args, {
         "recorder": ["-p", f"output:={out['bag']}"],
         "task_runner": ["-p", f"output:={out['metrics']}", "-p", "wait_for_start:=true"],
-        "emulated_rig": ["-p", f"rig.mocap.command_port:={port}"],
-        "mocap_bridge": ["-p", f"rig.mocap.command_port:={port}", "-p", "rig.mocap.data_port:=0"]},
+        "emulated_rig": files + ["-p", f"rig.mocap.command_port:={port}"],
+        "mocap_bridge": files + ["-p", f"rig.mocap.command_port:={port}", "-p", "rig.mocap.data_port:=0"]},
         _REALTIME if realtime else None)
     faults = []
+    enabled_at = math.inf                  # system time [s] from which a fault counts
     start = time.monotonic()
     node = _init_rclpy()
 
     def on_diagnostics(msg):
-        """Report the motor driver's faults as they latch (the run goes on: it is the operator's
-        call on the rig, and the metrics will show it)."""
+        """Print the motor driver's faults as they latch (the run goes on: it is the operator's
+        call on the rig, and the metrics will show it); keep those latched while enabled."""
         for status in msg.status:
-            if status.name == "motor_driver" and status.level == DiagnosticStatus.ERROR \
-                    and status.message not in faults:
-                faults.append(status.message)
-                print(f"\nsoft-arm-experiment: motor_driver {status.message}", file=sys.stderr)
+            if status.name == "motor_driver" and status.level == DiagnosticStatus.ERROR:
+                if stamp_to_seconds(msg.header.stamp) >= enabled_at and status.message not in faults:
+                    faults.append(status.message)
+                    print(f"\nsoft-arm-experiment: motor_driver {status.message}", file=sys.stderr)
 
     node.create_subscription(DiagnosticArray, "/diagnostics", on_diagnostics, 10)
+    # every client is created, and its server discovered, before the motors are enabled
     zero = node.create_client(Trigger, "/motor_driver/zero")
     enable = node.create_client(SetBool, "/motor_driver/enable")
     begin = node.create_client(Trigger, "/task_runner/start")
@@ -328,26 +342,32 @@ def run_emulated_hardware(ros_args: list, out: dict) -> dict:
             children.start(name)
         _wait_for_graph(node, children, ("command", "markers"), settle=2.0)
         for client in (zero, enable, begin):
-            if not client.wait_for_service(timeout_sec=10.0):
+            if not STOP.is_set() and not client.wait_for_service(timeout_sec=10.0):
                 raise RuntimeError(f"service {client.srv_name} is not available")
         if not STOP.is_set():
             _call(node, zero, Trigger.Request())
             enabled = True
             response = _call(node, enable, SetBool.Request(data=True))
+            enabled_at = time.time()
             if response.message != "enabled":              # a fault latched while disabled
                 print(f"soft-arm-experiment: motor_driver {response.message}", file=sys.stderr)
-            faults.clear()
             _call(node, begin, Trigger.Request())
+        deadline = time.monotonic() + duration + 60.0
         while not STOP.is_set() and not os.path.exists(out["metrics"]):
             children.check()
+            if time.monotonic() > deadline:
+                raise RuntimeError(f"the task runner wrote no metrics within {duration + 60.0:g} s")
             rclpy.spin_once(node, timeout_sec=0.1)
     finally:
         try:
             if enabled:
-                _call(node, enable, SetBool.Request(data=False), timeout=2.0)
-        finally:
+                try:
+                    _call(node, enable, SetBool.Request(data=False), timeout=2.0)
+                except RuntimeError as exc:
+                    print(f"soft-arm-experiment: could not disable the motors: {exc}", file=sys.stderr)
             node.destroy_node()
             rclpy.try_shutdown()
+        finally:
             children.stop()
     return {"wall_s": time.monotonic() - start, "emulated_hardware": True, "realtime": realtime,
             "driver_faults": faults}
@@ -357,7 +377,7 @@ def run_emulated_hardware(ros_args: list, out: dict) -> dict:
 # and the processes the loop closes through run under SCHED_FIFO where the system permits it: under
 # the normal policy a busy two-core computer holds one of them, or a DDS thread it waits on while it
 # publishes, for 0.1-0.3 s now and then, and the motor driver's watchdog rightly trips. On the rig,
-# run motor_driver, mocap_bridge and inner_loop the same way (README, "Running on the rig").
+# run motor_driver, mocap_bridge and inner_loop the same way (README, "On the rig, and on the emulated rig").
 _REALTIME = {"emulated_rig": 30, "inner_loop": 20, "mocap_bridge": 20}
 
 
@@ -398,7 +418,7 @@ def main(argv=None) -> int:
     parser.add_argument("--set", dest="sets", action="append", default=[], metavar="NS.KEY=VALUE",
                         help="override one parameter (repeatable)")
     parser.add_argument("--json", action="store_true", help="print the metrics as JSON")
-    parser.add_argument("--quiet", action="store_true", help="no progress line")
+    parser.add_argument("--quiet", action="store_true", help="no progress line (composed runs print one)")
     args = parser.parse_args(argv)
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     try:
@@ -417,13 +437,23 @@ def main(argv=None) -> int:
     os.makedirs(run_dir, exist_ok=True)
     out = {"bag": os.path.join(run_dir, "bag"), "metrics": os.path.join(run_dir, "metrics.json"),
            "figures": os.path.join(run_dir, "figures")}
-    progress = None if args.quiet else _progress
     STOP.clear()
-    signal.signal(signal.SIGINT, _request_stop)
-    signal.signal(signal.SIGTERM, _request_stop)
+    previous = {sig: signal.signal(sig, _request_stop) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        return _run(args, setup, ros_args, out)
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
+def _run(args, setup, ros_args: list, out: dict) -> int:
+    """Run the graph the way ``args`` says, then report; the exit status."""
+    progress = None if args.quiet else _progress
+    failed = None
     try:
         if args.emulated_hardware:
-            facts = run_emulated_hardware(ros_args, out)
+            duration = sum(ph.window * len(ph.sequence) for ph in setup.task.phases)
+            facts = run_emulated_hardware(ros_args, out, duration, args.config)
         elif args.processes:
             facts = run_processes(ros_args, out)
         else:
@@ -433,6 +463,9 @@ def main(argv=None) -> int:
     except ConfigError as exc:
         print(f"\nsoft-arm-experiment: {exc}", file=sys.stderr)
         return 2
+    except RuntimeError as exc:            # a node died, a service refused, a deadline passed
+        facts, failed = {}, str(exc)
+        print(f"\nsoft-arm-experiment: {exc}", file=sys.stderr)
     interrupted = STOP.is_set()
     if progress is not None:
         print(file=sys.stderr)
@@ -440,9 +473,10 @@ def main(argv=None) -> int:
     if os.path.isdir(out["bag"]):
         from .figures import make_figures
         figures = make_figures(out["bag"], setup.task, out["figures"])
-    if not os.path.exists(out["metrics"]):
-        print(f"soft-arm-experiment: {'interrupted; ' if interrupted else ''}no metrics written; "
-              f"bag: {out['bag']}", file=sys.stderr)
+    if failed is not None or not os.path.exists(out["metrics"]):
+        print(f"soft-arm-experiment: {'interrupted; ' if interrupted else ''}"
+              f"{'no metrics written' if failed is None else 'the run failed'}; bag: {out['bag']}",
+              file=sys.stderr)
         return 130 if interrupted else 1
     data, rows, summary = _load_metrics(out["metrics"])
     data["run"] = facts

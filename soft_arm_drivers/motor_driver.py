@@ -351,8 +351,8 @@ class MotorDriver:
         self._send_all(EXIT_MOTOR_MODE)
 
     def zero(self):
-        """Set every motor's current angle as its zero (shortening 0 from then on). Only with the
-        tendons slack: RuntimeError while enabled."""
+        """Set every motor's current angle as its zero: the shortenings read ``zero_shortening`` there
+        from then on. Only with the tendons slack: RuntimeError while enabled."""
         if self.mode == "enabled":
             raise RuntimeError("zeroing needs slack tendons: disable the motors first")
         self._send_all(SET_ZERO_POSITION)

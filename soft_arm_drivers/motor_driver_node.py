@@ -4,8 +4,9 @@ A thin shell around :class:`~soft_arm_drivers.motor_driver.MotorDriver`; a timer
 runs one driver cycle, on a monotonic clock, and
 
 - publishes ``tendon/state`` (sensor_msgs/JointState over ``arm.tendons.names``: position =
-  shortening [m] from the motors' zero, velocity [m/s], effort = measured tension [N]), stamped with
-  the oldest sensor time stamp of the cycle's replies, in every mode, whenever every motor replied;
+  shortening [m] from the straight arm, ``rig.motors.zero_shortening`` at the zeroing pose;
+  velocity [m/s]; effort = measured tension [N]), stamped with the oldest sensor time stamp of the
+  cycle's replies, in every mode, whenever every motor replied;
 - publishes ``/diagnostics`` (diagnostic_msgs/DiagnosticArray: one status for the driver with mode,
   fault reason and command counters, one per motor with temperature, error code and reply age) every
   0.5 s and at once when the mode or the fault changes.
@@ -97,8 +98,8 @@ class MotorDriverNode(Node):
     def tick(self):
         state, diagnostics = self.driver.cycle(time.monotonic())
         if state.complete:
-            self._publish(self.state_pub, joint_state(self.names, state.stamp, position=state.shortening,
-                                                      velocity=state.rate, effort=state.tension))
+            self.state_pub.publish(joint_state(self.names, state.stamp, position=state.shortening,
+                                               velocity=state.rate, effort=state.tension))
         else:
             self.incomplete_cycles += 1
         self._report(diagnostics)
@@ -110,16 +111,7 @@ class MotorDriverNode(Node):
             self.get_logger().error(f"fault, all motors at zero torque: {diagnostics.fault}")
         if force or status != self._status or now - self._last_diagnostics >= DIAGNOSTICS_PERIOD:
             self._status, self._last_diagnostics = status, now
-            self._publish(self.diagnostics_pub, self.diagnostic_array(diagnostics))
-
-    def _publish(self, publisher, msg):
-        """Publish, unless a signal shut the context down during this callback (run_node then
-        closes the driver)."""
-        try:
-            publisher.publish(msg)
-        except RuntimeError:                    # rclpy's RCLError: publisher's context is invalid
-            if self.context.ok():
-                raise
+            self.diagnostics_pub.publish(self.diagnostic_array(diagnostics))
 
     def diagnostic_array(self, diag: Diagnostics) -> DiagnosticArray:
         out = DiagnosticArray()

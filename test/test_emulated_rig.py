@@ -3,7 +3,11 @@ emulator behind it, mocap_bridge reading the NatNet server emulator over UDP on 
 inner_loop, clik, task_runner, recorder, each its own process) closes the loop like the
 simulator-only graph; and the emulated rig's configuration."""
 import json
+import os
 import pathlib
+import signal
+import subprocess
+import sys
 import time
 
 import numpy as np
@@ -11,7 +15,7 @@ import pytest
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 
-from soft_arm_drivers.emulated_rig import SCHEMA, load_emulator_config, read_emulator_file
+from soft_arm_drivers.emulated_rig import load_emulator_config, read_emulator_file
 from soft_arm_drivers.experiment import _ros_arguments, main, run_composed
 from soft_arm_drivers.motor_driver import load_driver_config
 from soft_arm_model import build_model, load_arm_config, solve_equilibrium, tendon_lengths
@@ -32,7 +36,8 @@ def test_the_motors_zero_shortening_is_the_models_slack_hanging_pose():
 
 def test_emulator_config_is_validated_and_laid_over_the_rig():
     values = load_emulator_config()
-    assert set(values) == set(SCHEMA)
+    assert values["reply_delay"] == 3e-4 and values["natnet_version"] == "4.1"
+    assert load_emulator_config(overrides={"natnet_version": '"3.1"'})["natnet_version"] == "3.1"
     _, motors = read_emulator_file()
     driver = load_driver_config(overrides=motors)
     assert driver.interface == "virtual" and all(m.limits.t_max == 0.5 for m in driver.motors)
@@ -80,7 +85,7 @@ def test_closed_loop_through_the_emulated_hardware_reaches_the_target_like_the_s
     assert h["time_mm"] is not None and h["time_mm"] < 6.0
     assert h["final_error"] < 2e-3 and s["final_error"] < 2e-3
     assert h["rms_steady"] < 2e-3
-    assert h["peak_speed"] < 3.0                      # measured, not a frame-timing artefact
+    assert h["peak_speed"] < 1.5 * s["peak_speed"]    # measured, not a frame-timing artefact
 
     # what the drivers published, on the system clock: the motors' state at about 500 Hz (the
     # replies' stamps), the mocap at about 240 Hz (mid-exposure stamps), the controller answering
@@ -91,3 +96,35 @@ def test_closed_loop_through_the_emulated_hardware_reaches_the_target_like_the_s
     assert 0.0035 < np.median(np.diff(markers)) < 0.005
     assert len(topics["/tendon/command"]) > 0.8 * len(state)
     assert before < state[0] and state[-1] < after and before < markers[0] and markers[-1] < after
+
+
+def test_ctrl_c_disables_the_emulated_motors_then_stops_every_node(tmp_path):
+    """A Ctrl-C reaches the experiment only (the nodes run in their own sessions): it disables the
+    motors, stops the nodes, keeps the bag and exits with 130; no node is left running."""
+    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYTHONUNBUFFERED="1")
+    out = tmp_path / "run"
+    sets = [a for s in ONE_TARGET for a in ("--set", s)]
+    proc = subprocess.Popen([sys.executable, "-m", "soft_arm_drivers.experiment", "coiling",
+                             "--emulated-hardware", "--output", str(out)] + sets,
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+    seen = []
+    try:
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and not any("[motor_driver]: enabled" in s for s in seen):
+            line = proc.stdout.readline()
+            if not line and proc.poll() is not None:
+                break
+            seen.append(line)
+        assert any("[motor_driver]: enabled" in s for s in seen), "".join(seen)
+        time.sleep(2.0)
+        proc.send_signal(signal.SIGINT)
+        output, _ = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    output = "".join(seen) + output
+    assert proc.returncode == 130, output
+    assert "[motor_driver]: disabled" in output
+    assert len(_topics(out / "bag")["/tendon/state"]) > 500
+    left = subprocess.run(["pgrep", "-f", str(out)], capture_output=True, text=True).stdout
+    assert left == "", left

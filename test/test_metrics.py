@@ -65,4 +65,6 @@ def test_measured_speed_is_exact_on_uniform_motion_and_ignores_uneven_frame_spac
     noisy = exact + rng.normal(0.0, 2e-4, exact.shape)
     frame_to_frame = np.linalg.norm(np.diff(noisy, axis=0), axis=1) / np.diff(t)
     assert frame_to_frame.max() > 2.0
-    assert np.abs(measured_speed(t, noisy)[3:] - 0.5).max() < 0.12            # 5 sigma
+    assert np.abs(measured_speed(t, noisy)[3:] - 0.5).max() < 0.12        # 4-5 sigma of one sample
+    with pytest.raises(ValueError, match="baseline"):
+        measured_speed(t, exact, baseline=0.0)
