@@ -25,6 +25,7 @@ an error code, or reports a temperature.
 """
 from __future__ import annotations
 
+import bisect
 import os
 import threading
 import time
@@ -46,6 +47,7 @@ from .motor_driver import HOST_ID, DriverConfig, Motor
 __all__ = ["CanMotorEmulator", "EmulatedMotor", "EmulatorThread", "arm_plant"]
 
 _EPS = 1e-9                     # s, tolerance of time comparisons
+HISTORY = 500                   # plant steps kept for configuration_at (0.5 s at 1 ms)
 _NO_COMMAND = MotorCommand(0.0, 0.0, 0.0, 0.0, 0.0)
 
 
@@ -103,6 +105,7 @@ class CanMotorEmulator:
         self._base, self._k, self._now = float(start_time), 0, float(start_time)
         self._replies: deque = deque()              # (due time [s], motor index), due times ascending
         self._last_arrival = float(start_time)
+        self._history: deque = deque(maxlen=HISTORY)  # (time [s], q) after each plant step
         self.tensions = np.zeros(len(motors))       # applied to the plant in the latest step [N]
         self.replies_sent = 0
         if plant is not None:
@@ -184,11 +187,13 @@ class CanMotorEmulator:
         while not stop.is_set():
             wait = min(self.next_event() - clock(), max_wait)
             msg = self.bus.recv(timeout=max(wait, 0.0))
-            now = max(clock(), self._now)
-            self._run(now)
+            frames = []
             while msg is not None:
-                self._handle(msg, self._arrival(msg, clock()))
+                frames.append((msg, self._arrival(msg, clock())))
                 msg = self.bus.recv(timeout=0.0)
+            for msg, arrival in frames:          # each frame acts from its arrival on
+                self._run(max(arrival, self._now))
+                self._handle(msg, arrival)
             self._run(max(clock(), self._now))
 
     def _arrival(self, msg: can.Message, now: float) -> float:
@@ -216,6 +221,20 @@ class CanMotorEmulator:
             self.plant.sense()
             self._s, self._sd = self.plant.tendons()
         self._k += 1
+        if self.plant is not None:
+            self._history.append((self._base + self._k * self.dt, self.plant.q))
+
+    def configuration_at(self, t: float) -> np.ndarray:
+        """The plant's configuration q at time ``t`` [s, the emulator's clock]: the latest of the
+        last ``HISTORY`` steps at or before ``t`` (the oldest kept if ``t`` is older). For another
+        thread sampling the plant at its own times (a camera exposure)."""
+        if self.plant is None:
+            raise RuntimeError("an emulator without a plant has no configuration")
+        history = list(self._history)
+        if not history:
+            return self.plant.q
+        k = bisect.bisect_right([h[0] for h in history], t + _EPS) - 1
+        return history[max(k, 0)][1]
 
     # -- frames ----------------------------------------------------------------------------------
     def _drain(self, arrival: float):

@@ -135,8 +135,8 @@ class EmulatedRigNode(MotorDriverNode):
         data = ArmData(plant.model)
 
         def markers(t: float) -> np.ndarray:
-            """On the NatNet thread: the plant's latest state (each step replaces plant.q)."""
-            true = marker_positions(plant.model, plant.q, data)
+            """On the NatNet thread: the plant at the exposure time ``t`` [s, system time]."""
+            true = marker_positions(plant.model, motors.configuration_at(t), data)
             return true + rng.normal(0.0, p.mocap_noise, true.shape)
 
         ids = {"rigid_body_ids" if mocap.source == "rigid_bodies" else "labeled_marker_ids": mocap.ids}
