@@ -13,13 +13,11 @@ Measures, on one core, with the default configuration (config/*.yaml):
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import platform
 import time
 
 import numpy as np
-from timing import best_of
+from timing import best_of, write_results
 
 from soft_arm_control.clik import equilibrium_seeds
 from soft_arm_control.harness import TwoLevelController, load_setup, run_experiment
@@ -103,13 +101,7 @@ def main():
     print(format_table(result.metrics, result.summary))
     print(f"\ntriangle protocol: {table['simulated_s']:.0f} s simulated in {table['wall_s']:.1f} s, "
           f"real-time factor {table['real_time_factor']:.2f} (target >= 5)")
-    out = {"machine": {"python": platform.python_version(), "processor": platform.processor(),
-                       "cpus": os.cpu_count()},
-           "steps": steps, "table1": table, "paper": PAPER}
-    os.makedirs(os.path.dirname(args.output), exist_ok=True)
-    with open(args.output, "w", encoding="utf-8") as fh:
-        json.dump(out, fh, indent=2, default=float)
-    print(f"wrote {args.output}")
+    write_results(args.output, {"steps": steps, "table1": table, "paper": PAPER})
 
 
 if __name__ == "__main__":

@@ -31,6 +31,7 @@ from sensor_msgs.msg import JointState  # noqa: E402
 from soft_arm_control.harness import load_setup, run_experiment  # noqa: E402
 from soft_arm_control.ros_interface import QOS, joint_state, seconds_to_stamp  # noqa: E402
 from soft_arm_model.config import default_config_dir  # noqa: E402
+from timing import write_results  # noqa: E402
 
 NAMES = ["tendon_1", "tendon_2", "tendon_3", "tendon_4"]
 
@@ -133,10 +134,7 @@ def main():
         print(f"  {name:8s} RMS {s['rms_error'] * 1e3:.2f} mm, mm band {s['velocity_mm']} m/s, "
               f"cm band {s['velocity_cm']} m/s, peak {s['peak_speed']:.2f} m/s, "
               f"{s['reached_mm']} transitions in the mm band")
-    os.makedirs(os.path.dirname(args.output), exist_ok=True)
-    with open(args.output, "w", encoding="utf-8") as fh:
-        json.dump({"latency": latency, "triangle": tri}, fh, indent=2)
-    print(f"wrote {args.output}")
+    write_results(args.output, {"latency": latency, "triangle": tri})
 
 
 if __name__ == "__main__":

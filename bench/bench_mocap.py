@@ -18,9 +18,7 @@ from __future__ import annotations
 
 import argparse
 import bisect
-import json
 import os
-import platform
 import socket
 import time
 from dataclasses import replace
@@ -34,6 +32,7 @@ from soft_arm_drivers.mocap_bridge import MocapBridge, load_mocap_config  # noqa
 from soft_arm_drivers.natnet import (ServerInfo, Version, build_connect_request,  # noqa: E402
                                      build_server_info, parse_frame_of_data)
 from soft_arm_drivers.natnet_emulator import NatNetEmulator  # noqa: E402
+from timing import write_results  # noqa: E402
 
 MARKERS = np.array([[0.002, 0.001, -0.094], [0.008, 0.006, -0.187], [0.020, 0.027, -0.274],
                     [0.041, 0.092, -0.335]])
@@ -178,13 +177,7 @@ def main():
                        ("mid-exposure stamp error (late if > 0)", core["stamp_error"]),
                        ("mid-exposure -> mocap/markers received", ros["to_mocap_markers"])):
         print(f"{label:46} {row['p50_ms']:7.3f}  {row['p99_ms']:7.3f}  {row['max_ms']:7.3f} ms")
-    out = {"machine": {"python": platform.python_version(), "processor": platform.processor(),
-                       "cpus": os.cpu_count()},
-           "parse": parse, "core": core, "ros": ros}
-    os.makedirs(os.path.dirname(args.output), exist_ok=True)
-    with open(args.output, "w", encoding="utf-8") as fh:
-        json.dump(out, fh, indent=2)
-    print(f"wrote {args.output}")
+    write_results(args.output, {"parse": parse, "core": core, "ros": ros})
 
 
 if __name__ == "__main__":

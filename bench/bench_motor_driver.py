@@ -21,9 +21,7 @@ from __future__ import annotations
 
 import argparse
 import itertools
-import json
 import os
-import platform
 import time
 
 import numpy as np
@@ -34,6 +32,7 @@ import can  # noqa: E402
 
 from soft_arm_drivers.can_emulator import CanMotorEmulator, EmulatorThread, arm_plant  # noqa: E402
 from soft_arm_drivers.motor_driver import MotorDriver, load_driver_config  # noqa: E402
+from timing import write_results  # noqa: E402
 
 SPIN_MARGIN = 3e-4          # s before a deadline where sleep+spin stops sleeping
 _CHANNELS = itertools.count()
@@ -171,13 +170,7 @@ def main():
               f"{r['jitter_p99_us']:6.0f}us {r['jitter_max_us']:6.0f}us {r['late_p99_us']:7.0f}us "
               f"{r['cycle_p50_us']:7.0f}us {r['cycle_p99_us']:5.0f}us {r['complete_share']:8.1%}  "
               f"{r['fault'] or '-'}")
-    out = {"machine": {"python": platform.python_version(), "processor": platform.processor(),
-                       "cpus": os.cpu_count()},
-           "seconds_per_run": args.seconds, "reply_delay_s": 2e-4, "runs": runs}
-    os.makedirs(os.path.dirname(args.output), exist_ok=True)
-    with open(args.output, "w", encoding="utf-8") as fh:
-        json.dump(out, fh, indent=2)
-    print(f"wrote {args.output}")
+    write_results(args.output, {"seconds_per_run": args.seconds, "reply_delay_s": 2e-4, "runs": runs})
 
 
 if __name__ == "__main__":

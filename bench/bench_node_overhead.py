@@ -15,9 +15,7 @@ from __future__ import annotations
 
 import argparse
 import gc
-import json
 import os
-import platform
 import time
 
 os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
@@ -28,6 +26,7 @@ from rclpy.parameter import Parameter  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
 
 from soft_arm_control.ros_interface import QOS, joint_state, make_executor  # noqa: E402
+from timing import write_results  # noqa: E402
 
 NAMES = ["tendon_1", "tendon_2", "tendon_3", "tendon_4"]
 RATE = 500.0     # Hz
@@ -115,13 +114,8 @@ def main():
     print(f"\nfull collection with the inner-loop and CLIK nodes built ({collector['objects']} "
           f"objects): {collector['full_collection_ms']:.1f} ms; after gc.freeze(): "
           f"{collector['after_freeze_ms']:.2f} ms")
-    out = {"machine": {"python": platform.python_version(), "processor": platform.processor(),
-                       "cpus": os.cpu_count()},
-           "rate_hz": RATE, "seconds_per_run": args.seconds, "executors": executors, "gc": collector}
-    os.makedirs(os.path.dirname(args.output), exist_ok=True)
-    with open(args.output, "w", encoding="utf-8") as fh:
-        json.dump(out, fh, indent=2)
-    print(f"wrote {args.output}")
+    write_results(args.output, {"rate_hz": RATE, "seconds_per_run": args.seconds, "executors": executors,
+                                "gc": collector})
 
 
 if __name__ == "__main__":

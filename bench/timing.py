@@ -1,4 +1,7 @@
-"""Timing helper shared by the benchmark scripts."""
+"""Helpers shared by the benchmark scripts: timing, and writing the results."""
+import json
+import os
+import platform
 import time
 
 import numpy as np
@@ -13,3 +16,13 @@ def best_of(fn, repeats: int = 7, inner: int = 500) -> float:
             fn()
         best = min(best, (time.perf_counter() - t0) / inner)
     return best
+
+
+def write_results(path: str, results: dict):
+    """Write ``results`` as JSON to ``path`` with the machine they were measured on; say where."""
+    machine = {"python": platform.python_version(), "processor": platform.processor(),
+               "cpus": os.cpu_count()}
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    with open(path, "w", encoding="utf-8") as fh:
+        json.dump({"machine": machine, **results}, fh, indent=2, default=float)
+    print(f"wrote {path}")
