@@ -13,11 +13,10 @@ Measures, on one core, with the default configuration (config/*.yaml):
 from __future__ import annotations
 
 import argparse
-import os
 import time
 
 import numpy as np
-from timing import best_of, write_results
+from timing import best_of, results_path, write_results
 
 from soft_arm_control.clik import equilibrium_seeds
 from soft_arm_control.harness import TwoLevelController, load_setup, run_experiment
@@ -77,8 +76,7 @@ def bench_table1():
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--output", default=os.path.join(os.path.dirname(__file__), "results",
-                                                         "control.json"))
+    parser.add_argument("--output", default=results_path("control.json"))
     args = parser.parse_args()
     steps = bench_steps()
     print(f"inner-loop step (P-satI-D+, thetabar_a map)  {steps['inner_loop_step_us']:8.1f} us"

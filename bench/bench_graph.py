@@ -31,7 +31,7 @@ from sensor_msgs.msg import JointState  # noqa: E402
 from soft_arm_control.harness import load_setup, run_experiment  # noqa: E402
 from soft_arm_control.ros_interface import QOS, joint_state, seconds_to_stamp  # noqa: E402
 from soft_arm_model.config import default_config_dir  # noqa: E402
-from timing import write_results  # noqa: E402
+from timing import results_path, write_results  # noqa: E402
 
 NAMES = ["tendon_1", "tendon_2", "tendon_3", "tendon_4"]
 
@@ -116,8 +116,7 @@ def bench_triangle() -> dict:
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--output", default=os.path.join(os.path.dirname(__file__), "results",
-                                                         "graph.json"))
+    parser.add_argument("--output", default=results_path("graph.json"))
     args = parser.parse_args()
     latency = bench_latency()
     for rate, r in latency.items():

@@ -32,7 +32,7 @@ from soft_arm_drivers.mocap_bridge import MocapBridge, load_mocap_config  # noqa
 from soft_arm_drivers.natnet import (ServerInfo, Version, build_connect_request,  # noqa: E402
                                      build_server_info, parse_frame_of_data)
 from soft_arm_drivers.natnet_emulator import NatNetEmulator  # noqa: E402
-from timing import write_results  # noqa: E402
+from timing import results_path, write_results  # noqa: E402
 
 MARKERS = np.array([[0.002, 0.001, -0.094], [0.008, 0.006, -0.187], [0.020, 0.027, -0.274],
                     [0.041, 0.092, -0.335]])
@@ -162,8 +162,7 @@ def bench_ros_latency(duration: float = 5.0) -> dict:
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--output", default=os.path.join(os.path.dirname(__file__), "results",
-                                                         "mocap.json"))
+    parser.add_argument("--output", default=results_path("mocap.json"))
     args = parser.parse_args()
     parse = bench_parse()
     print(f"{'version':8} {'bytes':>6} {'codec frames/s':>15} {'bridge frames/s':>16}")

@@ -24,7 +24,7 @@ import sys
 import time
 
 import numpy as np
-from timing import best_of
+from timing import best_of, results_path
 
 from soft_arm_model import ArmData, build_model, load_arm_config, simulate, solve_equilibrium, tip_frame
 from soft_arm_model import kernels
@@ -167,7 +167,7 @@ def bench_cantilever(duration=3.0, elastica=True, n_elements=40, elastica_dt=2e-
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--output", default=os.path.join(os.path.dirname(__file__), "results", "model.json"))
+    ap.add_argument("--output", default=results_path("model.json"))
     ap.add_argument("--skip-elastica", action="store_true")
     args = ap.parse_args(argv)
     res = {"machine": {"python": sys.version.split()[0], "platform": platform.platform(),

@@ -32,7 +32,7 @@ import can  # noqa: E402
 
 from soft_arm_drivers.can_emulator import CanMotorEmulator, EmulatorThread, arm_plant  # noqa: E402
 from soft_arm_drivers.motor_driver import MotorDriver, load_driver_config  # noqa: E402
-from timing import write_results  # noqa: E402
+from timing import results_path, write_results  # noqa: E402
 
 SPIN_MARGIN = 3e-4          # s before a deadline where sleep+spin stops sleeping
 _CHANNELS = itertools.count()
@@ -150,8 +150,7 @@ def bench_node(rate: float, plant, seconds: float) -> dict:
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seconds", type=float, default=5.0, help="duration of each run [s]")
-    parser.add_argument("--output", default=os.path.join(os.path.dirname(__file__), "results",
-                                                         "motor_driver.json"))
+    parser.add_argument("--output", default=results_path("motor_driver.json"))
     args = parser.parse_args()
     plant = arm_plant()
     runs = []

@@ -26,7 +26,7 @@ from rclpy.parameter import Parameter  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
 
 from soft_arm_control.ros_interface import QOS, joint_state, make_executor  # noqa: E402
-from timing import write_results  # noqa: E402
+from timing import results_path, write_results  # noqa: E402
 
 NAMES = ["tendon_1", "tendon_2", "tendon_3", "tendon_4"]
 RATE = 500.0     # Hz
@@ -102,8 +102,7 @@ def bench_gc() -> dict:
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seconds", type=float, default=5.0, help="duration of each executor run [s]")
-    parser.add_argument("--output", default=os.path.join(os.path.dirname(__file__), "results",
-                                                         "node_overhead.json"))
+    parser.add_argument("--output", default=results_path("node_overhead.json"))
     args = parser.parse_args()
     executors = [bench_executor(kind, args.seconds) for kind in ("single_threaded", "events")]
     collector = bench_gc()

@@ -18,6 +18,11 @@ def best_of(fn, repeats: int = 7, inner: int = 500) -> float:
     return best
 
 
+def results_path(name: str) -> str:
+    """The default output of a benchmark: ``bench/results/<name>``."""
+    return os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", name)
+
+
 def write_results(path: str, results: dict):
     """Write ``results`` as JSON to ``path`` with the machine they were measured on; say where."""
     machine = {"python": platform.python_version(), "processor": platform.processor(),

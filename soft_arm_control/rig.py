@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from soft_arm_model import ImexStepper, solve_equilibrium
+from soft_arm_model import ImexStepper, build_model, solve_equilibrium
 
 from .config import PlantConfig
 
@@ -31,6 +31,12 @@ class Plant:
         self.stepper = ImexStepper(model, timestep, rotor_mass=np.full(model.n_tendons, rotor_mass))
         self.q = np.zeros(model.n)
         self.qd = np.zeros(model.n)
+
+    @classmethod
+    def of(cls, arm, config: PlantConfig) -> "Plant":
+        """The plant of ``config`` (plant.yaml) for the controller's ``arm``: its model error,
+        time step and rotors."""
+        return cls(build_model(config.plant_arm(arm)), config.timestep, config.rotor_mass)
 
     def settle(self, u):
         """Put the arm at rest at the static equilibrium of tensions u [N]."""

@@ -38,7 +38,7 @@ import numpy as np
 
 from soft_arm_control.config import load_plant_config
 from soft_arm_control.rig import Plant
-from soft_arm_model import build_model, load_arm_config
+from soft_arm_model import load_arm_config
 
 from .mit_protocol import (COMMAND_LENGTH, ENTER_MOTOR_MODE, EXIT_MOTOR_MODE, SET_ZERO_POSITION,
                            MotorCommand, decode_command, encode_reply)
@@ -315,7 +315,6 @@ def arm_plant(config_dir: Optional[str] = None, tension: float = 0.0):
     rotor inertia included), at rest under ``tension`` [N] on every tendon."""
     arm = load_arm_config(os.path.join(config_dir, "arm.yaml") if config_dir else None)
     pc = load_plant_config(arm, os.path.join(config_dir, "plant.yaml") if config_dir else None)
-    model = build_model(pc.plant_arm(arm))
-    plant = Plant(model, pc.timestep, pc.rotor_mass)
-    plant.settle(np.full(model.n_tendons, float(tension)))
+    plant = Plant.of(arm, pc)
+    plant.settle(np.full(plant.model.n_tendons, float(tension)))
     return plant

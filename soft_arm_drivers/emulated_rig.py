@@ -35,9 +35,9 @@ import numpy as np
 
 from soft_arm_control.ros_interface import NodeConfig, parameter_overrides, run_node
 from soft_arm_control.rig import Plant
-from soft_arm_model import ArmData, build_model, marker_positions
-from soft_arm_model.config import (ConfigError, apply_overrides, default_config_dir, read_parameters,
-                                   validate_tree)
+from soft_arm_model import ArmData, marker_positions
+from soft_arm_model.config import (ConfigError, apply_overrides, default_config_dir, flatten_tree,
+                                   read_parameters, validate_tree)
 
 from .can_emulator import CanMotorEmulator, EmulatorThread
 from .mocap_bridge_node import load_node_config
@@ -66,7 +66,9 @@ def read_emulator_file(path: str | None = None) -> tuple[dict, dict]:
     if not isinstance(emulator, dict) or not isinstance(motors, dict):
         raise ConfigError(f"{path}: expected 'rig.emulator' and 'rig.motors' parameters under "
                           f"/**.ros__parameters")
-    return emulator, _dotted(motors)
+    # strings quoted: an override's string value is read as YAML
+    return emulator, {k: json.dumps(v) if isinstance(v, str) else v
+                      for k, v in flatten_tree(motors).items()}
 
 
 def load_emulator_config(path: str | None = None, overrides: dict | None = None) -> dict:
@@ -74,17 +76,6 @@ def load_emulator_config(path: str | None = None, overrides: dict | None = None)
     it: validated values by key. Raises ConfigError naming ``rig.emulator.<key>``."""
     tree, _ = read_emulator_file(path)
     return validate_tree(apply_overrides(tree, overrides, SCHEMA, NAMESPACE), SCHEMA, NAMESPACE)
-
-
-def _dotted(tree: dict, prefix: str = "") -> dict:
-    """Dotted keys of a parameter tree, strings quoted (overrides read a string value as YAML)."""
-    out = {}
-    for key, value in tree.items():
-        if isinstance(value, dict):
-            out.update(_dotted(value, f"{prefix}{key}."))
-        else:
-            out[f"{prefix}{key}"] = json.dumps(value) if isinstance(value, str) else value
-    return out
 
 
 class EmulatedRigNode(MotorDriverNode):
@@ -123,7 +114,7 @@ class EmulatedRigNode(MotorDriverNode):
     def _start_emulators(self):
         c, emulator, mocap = self.config, self.emulator_config, self.mocap_config
         p = self.node_config.plant
-        plant = Plant(build_model(p.plant_arm(self.node_config.arm)), p.timestep, p.rotor_mass)
+        plant = Plant.of(self.node_config.arm, p)
         plant.settle(np.zeros(plant.model.n_tendons))           # hanging, tendons slack
         self._bus = can.Bus(interface="virtual", channel=c.channel, preserve_timestamps=True)
         motors = CanMotorEmulator.for_config(

@@ -16,6 +16,7 @@ or an unreachable target exits with status 2; a node that dies or a run that can
 from __future__ import annotations
 
 import argparse
+import contextlib
 import datetime
 import json
 import math
@@ -245,11 +246,24 @@ class _Children:
                 proc.kill()
 
 
-def _init_rclpy():
+@contextlib.contextmanager
+def _orchestrating(children: _Children):
+    """This process's node (graph queries, service calls) for a run of ``children``; on the way
+    out, whatever happened, the node and rclpy go, then the children are stopped."""
     import rclpy
     from rclpy.signals import SignalHandlerOptions
     rclpy.init(args=["soft-arm-experiment"], signal_handler_options=SignalHandlerOptions.NO)
-    return rclpy.create_node("soft_arm_experiment", start_parameter_services=False)
+    try:
+        node = rclpy.create_node("soft_arm_experiment", start_parameter_services=False)
+        try:
+            yield node
+        finally:
+            node.destroy_node()
+    finally:
+        try:
+            rclpy.try_shutdown()
+        finally:
+            children.stop()
 
 
 def run_processes(ros_args: list, out: dict) -> dict:
@@ -260,8 +274,7 @@ def run_processes(ros_args: list, out: dict) -> dict:
     children = _Children(ros_args, {"recorder": ["-p", f"output:={out['bag']}", "-p", "use_sim_time:=true"],
                                     "task_runner": ["-p", f"output:={out['metrics']}"]})
     start = time.monotonic()
-    node = _init_rclpy()
-    try:
+    with _orchestrating(children) as node:
         for name in ("recorder", "inner_loop", "clik", "simulator"):
             children.start(name)
         _wait_for_graph(node, children)
@@ -272,12 +285,6 @@ def run_processes(ros_args: list, out: dict) -> dict:
             rclpy.spin_once(node, timeout_sec=0.2)
         if not STOP.is_set():
             children.check(may_end=("task_runner",))
-    finally:
-        try:
-            node.destroy_node()
-            rclpy.try_shutdown()
-        finally:
-            children.stop()
     return {"wall_s": time.monotonic() - start}
 
 
@@ -320,57 +327,53 @@ def run_emulated_hardware(ros_args: list, out: dict, duration: float,
     faults = []
     enabled_at = math.inf                  # system time [s] from which a fault counts
     start = time.monotonic()
-    node = _init_rclpy()
+
+    def facts():
+        return {"wall_s": time.monotonic() - start, "emulated_hardware": True, "realtime": realtime,
+                "driver_faults": faults}
 
     def on_diagnostics(msg):
         """Print the motor driver's faults as they latch (the run goes on: it is the operator's
         call on the rig, and the metrics will show it); keep those latched while enabled."""
         for status in msg.status:
-            if status.name == "motor_driver" and status.level == DiagnosticStatus.ERROR:
-                if stamp_to_seconds(msg.header.stamp) >= enabled_at and status.message not in faults:
-                    faults.append(status.message)
-                    print(f"\nsoft-arm-experiment: motor_driver {status.message}", file=sys.stderr)
+            if status.name == "motor_driver" and status.level == DiagnosticStatus.ERROR \
+                    and stamp_to_seconds(msg.header.stamp) >= enabled_at and status.message not in faults:
+                faults.append(status.message)
+                print(f"\nsoft-arm-experiment: motor_driver {status.message}", file=sys.stderr)
 
-    node.create_subscription(DiagnosticArray, "/diagnostics", on_diagnostics, 10)
-    # every client is created, and its server discovered, before the motors are enabled
-    zero = node.create_client(Trigger, "/motor_driver/zero")
-    enable = node.create_client(SetBool, "/motor_driver/enable")
-    begin = node.create_client(Trigger, "/task_runner/start")
-    enabled = False
-    try:
+    with _orchestrating(children) as node:
+        node.create_subscription(DiagnosticArray, "/diagnostics", on_diagnostics, 10)
+        # every client is created, and its server discovered, before the motors are enabled
+        zero = node.create_client(Trigger, "/motor_driver/zero")
+        enable = node.create_client(SetBool, "/motor_driver/enable")
+        begin = node.create_client(Trigger, "/task_runner/start")
         for name in ("recorder", "emulated_rig", "mocap_bridge", "inner_loop", "clik", "task_runner"):
             children.start(name)
         _wait_for_graph(node, children, ("command", "markers"), settle=2.0)
         for client in (zero, enable, begin):
             if not STOP.is_set() and not client.wait_for_service(timeout_sec=10.0):
                 raise RuntimeError(f"service {client.srv_name} is not available")
-        if not STOP.is_set():
-            _call(node, zero, Trigger.Request())
-            enabled = True
+        if STOP.is_set():
+            return facts()
+        _call(node, zero, Trigger.Request())
+        try:
             response = _call(node, enable, SetBool.Request(data=True))
             enabled_at = time.time()
             if response.message != "enabled":              # a fault latched while disabled
                 print(f"soft-arm-experiment: motor_driver {response.message}", file=sys.stderr)
             _call(node, begin, Trigger.Request())
-        deadline = time.monotonic() + duration + 60.0
-        while not STOP.is_set() and not os.path.exists(out["metrics"]):
-            children.check()
-            if time.monotonic() > deadline:
-                raise RuntimeError(f"the task runner wrote no metrics within {duration + 60.0:g} s")
-            rclpy.spin_once(node, timeout_sec=0.1)
-    finally:
-        try:
-            if enabled:
-                try:
-                    _call(node, enable, SetBool.Request(data=False), timeout=2.0)
-                except RuntimeError as exc:
-                    print(f"soft-arm-experiment: could not disable the motors: {exc}", file=sys.stderr)
-            node.destroy_node()
-            rclpy.try_shutdown()
+            deadline = time.monotonic() + duration + 60.0
+            while not STOP.is_set() and not os.path.exists(out["metrics"]):
+                children.check()
+                if time.monotonic() > deadline:
+                    raise RuntimeError(f"the task runner wrote no metrics within {duration + 60.0:g} s")
+                rclpy.spin_once(node, timeout_sec=0.1)
         finally:
-            children.stop()
-    return {"wall_s": time.monotonic() - start, "emulated_hardware": True, "realtime": realtime,
-            "driver_faults": faults}
+            try:
+                _call(node, enable, SetBool.Request(data=False), timeout=2.0)
+            except RuntimeError as exc:
+                print(f"soft-arm-experiment: could not disable the motors: {exc}", file=sys.stderr)
+    return facts()
 
 
 # Real time on a shared computer. The emulated hardware (plant, motors and Motive in one process)

@@ -153,12 +153,13 @@ for _mode in STRAIN_MODES:
     _SCHEMA[f"discretisation.modes.{_mode}"] = ("bool", None, "true or false")
 
 
-def _flatten(tree: Mapping, prefix: str = "") -> dict:
+def flatten_tree(tree: Mapping, prefix: str = "") -> dict:
+    """The leaves of a nested parameter tree by dotted key."""
     flat = {}
     for k, v in tree.items():
         key = f"{prefix}{k}"
         if isinstance(v, Mapping):
-            flat.update(_flatten(v, key + "."))
+            flat.update(flatten_tree(v, key + "."))
         else:
             flat[key] = v
     return flat
@@ -240,7 +241,7 @@ def validate_tree(params: Mapping, schema: Mapping, namespace: str) -> dict:
     check raise :class:`ConfigError` naming ``namespace.key``, the value and what is allowed.
     Patterns with a ``*`` element match any name there; they are optional as a group.
     """
-    flat = _flatten(params)
+    flat = flatten_tree(params)
     for key in flat:
         if not any(_matches(key, k) for k in schema):
             raise _unknown_key(namespace, key, schema)
@@ -259,7 +260,7 @@ def validate_tree(params: Mapping, schema: Mapping, namespace: str) -> dict:
 
 def parse_arm_config(params: Mapping) -> ArmConfig:
     """Validate an ``arm`` parameter tree (the mapping under ``ros__parameters.arm``)."""
-    flat = _flatten(params)
+    flat = flatten_tree(params)
     v = validate_tree(params, _SCHEMA, NAMESPACE)
 
     def require(ok, key, allowed):

@@ -1,5 +1,6 @@
 """Shared fixtures. Every rclpy process in the suite stays on loopback with its own domain id."""
 import os
+import time
 
 import numpy as np
 import pytest
@@ -35,3 +36,18 @@ def full_model():
 @pytest.fixture
 def rng():
     return np.random.default_rng(1234)
+
+
+def wait_for_output(proc, text: str, timeout: float = 60.0) -> str:
+    """Read a process's text output (stdout, stderr merged) line by line until ``text`` appears;
+    what was read. AssertionError with the output if it ends or ``timeout`` [s] passes first."""
+    seen = []
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        line = proc.stdout.readline()
+        if not line and proc.poll() is not None:
+            break
+        seen.append(line)
+        if text in line:
+            return "".join(seen)
+    raise AssertionError(f"{text!r} not seen; output:\n{''.join(seen)}")

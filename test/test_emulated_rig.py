@@ -4,7 +4,6 @@ inner_loop, clik, task_runner, recorder, each its own process) closes the loop l
 simulator-only graph; and the emulated rig's configuration."""
 import json
 import os
-import pathlib
 import signal
 import subprocess
 import sys
@@ -12,11 +11,11 @@ import time
 
 import numpy as np
 import pytest
-from rosbags.highlevel import AnyReader
-from rosbags.typesys import Stores, get_typestore
 
+from conftest import wait_for_output
 from soft_arm_drivers.emulated_rig import load_emulator_config, read_emulator_file
 from soft_arm_drivers.experiment import _ros_arguments, main, run_composed
+from soft_arm_drivers.figures import read_series
 from soft_arm_drivers.motor_driver import load_driver_config
 from soft_arm_model import build_model, load_arm_config, solve_equilibrium, tendon_lengths
 from soft_arm_model.config import ConfigError
@@ -49,19 +48,6 @@ def test_emulator_config_is_validated_and_laid_over_the_rig():
         load_emulator_config(overrides={"reply_dealy": 0.001})
 
 
-def _topics(bag_dir):
-    """Per topic: header stamps [s] of its messages."""
-    out = {}
-    with AnyReader([pathlib.Path(bag_dir)],
-                   default_typestore=get_typestore(Stores.ROS2_JAZZY)) as reader:
-        for conn, _, raw in reader.messages():
-            msg = reader.deserialize(raw, conn.msgtype)
-            stamp = getattr(msg, "header", None)
-            out.setdefault(conn.topic, []).append(
-                stamp.stamp.sec + 1e-9 * stamp.stamp.nanosec if stamp is not None else None)
-    return out
-
-
 def test_closed_loop_through_the_emulated_hardware_reaches_the_target_like_the_simulator(tmp_path):
     out = tmp_path / "hil"
     sets = [a for s in ONE_TARGET for a in ("--set", s)]
@@ -89,12 +75,12 @@ def test_closed_loop_through_the_emulated_hardware_reaches_the_target_like_the_s
 
     # what the drivers published, on the system clock: the motors' state at about 500 Hz (the
     # replies' stamps), the mocap at about 240 Hz (mid-exposure stamps), the controller answering
-    topics = _topics(out / "bag")
-    state = np.array(topics["/tendon/state"])
-    markers = np.array(topics["/mocap/markers"])
+    series = read_series(str(out / "bag"))
+    state = np.array([t for t, _ in series["tendon/state"]])
+    markers = np.array([t for t, _ in series["mocap/markers"]])
     assert 0.0015 < np.median(np.diff(state)) < 0.003 and np.all(np.diff(state) > 0)
     assert 0.0035 < np.median(np.diff(markers)) < 0.005
-    assert len(topics["/tendon/command"]) > 0.8 * len(state)
+    assert len(series["tendon/command"]) > 0.8 * len(state)
     assert before < state[0] and state[-1] < after and before < markers[0] and markers[-1] < after
 
 
@@ -107,24 +93,17 @@ def test_ctrl_c_disables_the_emulated_motors_then_stops_every_node(tmp_path):
     proc = subprocess.Popen([sys.executable, "-m", "soft_arm_drivers.experiment", "coiling",
                              "--emulated-hardware", "--output", str(out)] + sets,
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
-    seen = []
     try:
-        deadline = time.monotonic() + 120
-        while time.monotonic() < deadline and not any("[motor_driver]: enabled" in s for s in seen):
-            line = proc.stdout.readline()
-            if not line and proc.poll() is not None:
-                break
-            seen.append(line)
-        assert any("[motor_driver]: enabled" in s for s in seen), "".join(seen)
+        seen = wait_for_output(proc, "[motor_driver]: enabled", timeout=120)
         time.sleep(2.0)
         proc.send_signal(signal.SIGINT)
         output, _ = proc.communicate(timeout=60)
     finally:
         if proc.poll() is None:
             proc.kill()
-    output = "".join(seen) + output
+    output = seen + output
     assert proc.returncode == 130, output
     assert "[motor_driver]: disabled" in output
-    assert len(_topics(out / "bag")["/tendon/state"]) > 500
+    assert len(read_series(str(out / "bag"))["tendon/state"]) > 500
     left = subprocess.run(["pgrep", "-f", str(out)], capture_output=True, text=True).stdout
     assert left == "", left

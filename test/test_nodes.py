@@ -13,6 +13,7 @@ import pytest
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 
+from conftest import wait_for_output
 from soft_arm_model.config import default_config_dir
 
 MODULES = {"simulator": "soft_arm_drivers.simulator_node", "inner_loop": "soft_arm_control.inner_loop_node",
@@ -35,27 +36,13 @@ def _start(node, *extra, cwd=None):
                             cwd=cwd)
 
 
-def _wait_for(proc, text, timeout=60.0):
-    """Read the node's output until ``text`` appears; returns what was read."""
-    seen = []
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        line = proc.stdout.readline()
-        if not line and proc.poll() is not None:
-            break
-        seen.append(line)
-        if text in line:
-            return "".join(seen)
-    raise AssertionError(f"{text!r} not seen; output:\n{''.join(seen)}")
-
-
 @pytest.mark.parametrize("node", sorted(MODULES))
 def test_node_starts_from_yaml_and_stops_cleanly(node, tmp_path):
     extra = ["-p", f"output:={tmp_path / 'out'}"] if node in ("recorder", "task_runner") else []
     proc = _start(node, "-p", "graph.task:=coiling", *extra)
     try:
-        log = _wait_for(proc, "ready" if node not in ("recorder", "task_runner") else
-                        ("recording" if node == "recorder" else "windows"))
+        log = wait_for_output(proc, "ready" if node not in ("recorder", "task_runner") else
+                              ("recording" if node == "recorder" else "windows"))
         assert "coiling" in log or node in ("simulator", "inner_loop", "recorder")
         proc.send_signal(signal.SIGINT)
         assert proc.wait(timeout=20) == 0
@@ -107,7 +94,7 @@ def test_recorder_closes_the_bag_on_signals(tmp_path, sig):
     bag = tmp_path / "bag"
     proc = _start("recorder", "-p", f"output:={bag}", "-p", "graph.recorder.topics:=[tendon/state]")
     try:
-        _wait_for(proc, "recording")
+        wait_for_output(proc, "recording")
         _publish_states(200)
         proc.send_signal(sig)
         assert proc.wait(timeout=20) == 0
@@ -127,7 +114,7 @@ def test_recorder_bag_survives_sigkill(tmp_path):
     proc = _start("recorder", "-p", f"output:={bag}", "-p", "graph.recorder.topics:=[tendon/state]",
                   "-p", "graph.recorder.chunk_size:=2048")
     try:
-        _wait_for(proc, "recording")
+        wait_for_output(proc, "recording")
         _publish_states(300)
         proc.send_signal(signal.SIGKILL)
         proc.wait(timeout=20)
@@ -266,7 +253,7 @@ def test_ctrl_c_stops_the_experiment_and_keeps_the_bag(tmp_path):
                              "--output", str(out)], stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True, env=env)
     try:
-        _wait_for(proc, "recording", timeout=90)            # the recorder is up: it runs
+        wait_for_output(proc, "recording", timeout=90)            # the recorder is up: it runs
         time.sleep(3.0)
         proc.send_signal(signal.SIGINT)
         output, _ = proc.communicate(timeout=60)
