@@ -230,10 +230,10 @@ class CanMotorEmulator:
         thread sampling the plant at its own times (a camera exposure)."""
         if self.plant is None:
             raise RuntimeError("an emulator without a plant has no configuration")
-        history = list(self._history)
+        history = list(self._history)              # a snapshot: the stepping thread appends
         if not history:
             return self.plant.q
-        k = bisect.bisect_right([h[0] for h in history], t + _EPS) - 1
+        k = bisect.bisect_right(history, t + _EPS, key=lambda h: h[0]) - 1
         return history[max(k, 0)][1]
 
     # -- frames ----------------------------------------------------------------------------------
