@@ -8,8 +8,9 @@ PACKAGE = "soft_arm"
 setup(
     name=PACKAGE,
     version="0.1.0",
-    packages=find_packages(include=["soft_arm_model", "soft_arm_model.*", "soft_arm_control",
-                                    "soft_arm_control.*", "soft_arm_drivers", "soft_arm_drivers.*"]),
+    packages=find_packages(include=["soft_arm_model", "soft_arm_model.*", "soft_arm_ros", "soft_arm_ros.*",
+                                    "soft_arm_control", "soft_arm_control.*", "soft_arm_drivers",
+                                    "soft_arm_drivers.*"]),
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),
@@ -42,16 +43,16 @@ setup(
     entry_points={
         "console_scripts": [
             "soft-arm-model = soft_arm_model.cli:main",
-            "soft-arm-harness = soft_arm_control.cli:main",
-            "soft-arm-experiment = soft_arm_drivers.experiment:main",
-            "simulator = soft_arm_drivers.simulator_node:main",
-            "recorder = soft_arm_drivers.recorder_node:main",
+            "soft-arm-harness = soft_arm_drivers.experiments.harness_cli:main",
+            "soft-arm-experiment = soft_arm_drivers.experiments.experiment:main",
+            "simulator = soft_arm_drivers.sim.simulator_node:main",
+            "recorder = soft_arm_drivers.recording.recorder_node:main",
             "inner_loop = soft_arm_control.inner_loop_node:main",
             "clik = soft_arm_control.clik_node:main",
-            "task_runner = soft_arm_control.task_runner_node:main",
-            "mocap_bridge = soft_arm_drivers.mocap_bridge_node:main",
-            "emulated_rig = soft_arm_drivers.emulated_rig:main",
-            "motor_driver = soft_arm_drivers.motor_driver_node:main",
+            "task_runner = soft_arm_drivers.experiments.task_runner_node:main",
+            "mocap_bridge = soft_arm_drivers.mocap.mocap_bridge_node:main",
+            "emulated_rig = soft_arm_drivers.sim.emulated_rig:main",
+            "motor_driver = soft_arm_drivers.can.motor_driver_node:main",
         ],
     },
 )

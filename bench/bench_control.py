@@ -16,12 +16,13 @@ import argparse
 import time
 
 import numpy as np
-from timing import best_of, results_path, write_results
 
 from soft_arm_control.clik import equilibrium_seeds
-from soft_arm_control.harness import TwoLevelController, load_setup, run_experiment
-from soft_arm_control.metrics import format_table, to_json
+from soft_arm_drivers.experiments.harness import TwoLevelController, load_setup, run_experiment
+from soft_arm_drivers.experiments.metrics import format_table, to_json
 from soft_arm_model import build_model, solve_equilibrium
+
+from timing import best_of, results_path, write_results
 
 PAPER = {"rms_error_mm": 0.67, "velocity_mm_band": 0.063, "velocity_cm_band": 0.384}
 

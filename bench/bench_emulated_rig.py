@@ -22,8 +22,9 @@ import time
 
 import numpy as np
 
-from soft_arm_control.harness import load_setup
-from soft_arm_drivers.figures import read_series
+from soft_arm_drivers.experiments.figures import read_series
+from soft_arm_drivers.experiments.harness import load_setup
+
 from timing import results_path, write_results
 
 TICKS = os.sysconf("SC_CLK_TCK")

@@ -28,9 +28,11 @@ os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
 import rclpy  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
 
-from soft_arm_control.harness import load_setup, run_experiment  # noqa: E402
-from soft_arm_control.ros_interface import QOS, joint_state, seconds_to_stamp  # noqa: E402
-from soft_arm_model.config import default_config_dir  # noqa: E402
+from soft_arm_drivers.experiments.harness import load_setup, run_experiment  # noqa: E402
+from soft_arm_model.parameters import default_config_dir  # noqa: E402
+from soft_arm_ros.contract import QOS  # noqa: E402
+from soft_arm_ros.conversions import joint_state, seconds_to_stamp  # noqa: E402
+
 from timing import results_path, write_results  # noqa: E402
 
 NAMES = ["tendon_1", "tendon_2", "tendon_3", "tendon_4"]

@@ -27,11 +27,13 @@ import numpy as np
 
 os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
 
-from soft_arm_control.ros_interface import QOS, stamp_to_seconds  # noqa: E402
-from soft_arm_drivers.mocap_bridge import MocapBridge, load_mocap_config  # noqa: E402
-from soft_arm_drivers.natnet import (ServerInfo, Version, build_connect_request,  # noqa: E402
-                                     build_server_info, parse_frame_of_data)
-from soft_arm_drivers.natnet_emulator import NatNetEmulator  # noqa: E402
+from soft_arm_drivers.mocap.mocap_bridge import MocapBridge, load_mocap_config  # noqa: E402
+from soft_arm_drivers.mocap.natnet import (ServerInfo, Version, build_connect_request,  # noqa: E402
+                                           build_server_info, parse_frame_of_data)
+from soft_arm_drivers.sim.natnet_emulator import NatNetEmulator  # noqa: E402
+from soft_arm_ros.contract import QOS  # noqa: E402
+from soft_arm_ros.conversions import stamp_to_seconds  # noqa: E402
+
 from timing import results_path, write_results  # noqa: E402
 
 MARKERS = np.array([[0.002, 0.001, -0.094], [0.008, 0.006, -0.187], [0.020, 0.027, -0.274],
@@ -117,9 +119,8 @@ def bench_ros_latency(duration: float = 5.0) -> dict:
     from geometry_msgs.msg import PoseArray
     from rclpy.parameter import Parameter
 
-    from soft_arm_control.ros_interface import make_executor
-
-    from soft_arm_drivers.mocap_bridge_node import MocapBridgeNode
+    from soft_arm_drivers.mocap.mocap_bridge_node import MocapBridgeNode
+    from soft_arm_ros.runtime import make_executor
 
     calibration = load_mocap_config().calibration
     with NatNetEmulator(lambda t: MARKERS, version="4.1", rate=RATE, layout="both", latency=0.0,

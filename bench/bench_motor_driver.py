@@ -30,8 +30,9 @@ os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
 
 import can  # noqa: E402
 
-from soft_arm_drivers.can_emulator import CanMotorEmulator, EmulatorThread, arm_plant  # noqa: E402
-from soft_arm_drivers.motor_driver import MotorDriver, load_driver_config  # noqa: E402
+from soft_arm_drivers.can.motor_driver import MotorDriver, load_driver_config  # noqa: E402
+from soft_arm_drivers.sim.can_emulator import CanMotorEmulator, EmulatorThread, arm_plant  # noqa: E402
+
 from timing import results_path, write_results  # noqa: E402
 
 SPIN_MARGIN = 3e-4          # s before a deadline where sleep+spin stops sleeping
@@ -104,8 +105,8 @@ def bench_node(rate: float, plant, seconds: float) -> dict:
     import rclpy
     from rclpy.parameter import Parameter
 
-    from soft_arm_control.ros_interface import make_executor
-    from soft_arm_drivers.motor_driver_node import MotorDriverNode
+    from soft_arm_drivers.can.motor_driver_node import MotorDriverNode
+    from soft_arm_ros.runtime import make_executor
 
     cfg, bus, emulator = _rig(rate, plant)
     period = 1.0 / rate

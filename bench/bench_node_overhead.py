@@ -25,7 +25,10 @@ from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
 
-from soft_arm_control.ros_interface import QOS, joint_state, make_executor  # noqa: E402
+from soft_arm_ros.contract import QOS  # noqa: E402
+from soft_arm_ros.conversions import joint_state  # noqa: E402
+from soft_arm_ros.runtime import make_executor  # noqa: E402
+
 from timing import results_path, write_results  # noqa: E402
 
 NAMES = ["tendon_1", "tendon_2", "tendon_3", "tendon_4"]

@@ -19,22 +19,26 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
 from soft_arm_model import build_model
+from soft_arm_ros.contract import QOS, TOPICS
+from soft_arm_ros.conversions import float_array, joint_state, markers_of, stamp_to_seconds
+from soft_arm_ros.parameters import NodeParameters
+from soft_arm_ros.runtime import run_node
 
 from .clik import TargetError
 from .collocated import full_tensions
+from .config import control_of, task_of
 from .outer_loop import outer_loop_for
-from .ros_interface import (QOS, TOPICS, NodeConfig, float_array, joint_state, markers_of, run_node,
-                            stamp_to_seconds)
 
 
 class ClikNode(Node):
     def __init__(self, config_dir: str | None = None, **node_options):
         super().__init__("clik", allow_undeclared_parameters=True,
                          automatically_declare_parameters_from_overrides=True, **node_options)
-        self.config = c = NodeConfig(self, config_dir)
-        self.model = build_model(c.arm)
-        self.task = c.task
-        self.outer = outer_loop_for(self.model, c.control, c.task)
+        params = NodeParameters(self, config_dir)
+        self.control = control_of(params, params.arm)
+        self.task = task_of(params, params.arm)
+        self.model = build_model(params.arm)
+        self.outer = outer_loop_for(self.model, self.control, self.task)
         self.names = self.model.tendon_names
         self.now = 0.0
         self.rejected_goals = 0
@@ -43,8 +47,8 @@ class ClikNode(Node):
                                            QOS["arm/configuration_reference"])
         self.create_subscription(Float64MultiArray, TOPICS["goal"], self.on_goal, QOS["task/goal"])
         self.create_subscription(PoseArray, TOPICS["markers"], self.on_markers, QOS["mocap/markers"])
-        self.get_logger().info(f"clik ready for task {c.task.name} "
-                               f"({', '.join(c.task.space.labels())})")
+        self.get_logger().info(f"clik ready for task {self.task.name} "
+                               f"({', '.join(self.task.space.labels())})")
 
     def publish(self, ref):
         self.ref_pub.publish(joint_state(self.names, self.now, position=ref.shortening,

@@ -1,4 +1,4 @@
-"""Controller, plant and task parameters (``config/control.yaml``, ``plant.yaml``, ``tasks.yaml``).
+"""Controller and task parameters (``config/control.yaml``, ``tasks.yaml``).
 
 Each file is in ROS 2 parameter layout (``/**: ros__parameters: <namespace>: ...``) and is validated
 like the arm description: every key required, every value checked, a bad value raises
@@ -9,11 +9,10 @@ from __future__ import annotations
 
 import math
 import os
-from dataclasses import dataclass, replace
-from typing import Any, Mapping
+from dataclasses import dataclass
 
-from soft_arm_model.config import (ArmConfig, ConfigError, apply_overrides, default_config_dir,
-                                   read_parameters, validate_tree)
+from soft_arm_model.config import ArmConfig
+from soft_arm_model.parameters import ConfigError, default_config_dir, load_section
 
 from .task_space import AXES, TaskSpace
 
@@ -57,22 +56,6 @@ CONTROL_SCHEMA = {
                          "tensions in [0, 100] N (may be empty)"),
 }
 
-PLANT_SCHEMA = {
-    "youngs_modulus_scale": ("float", lambda v: 0.1 <= v <= 10, "a factor in [0.1, 10]"),
-    "viscosity_scale": ("float", lambda v: 0 <= v <= 10, "a factor in [0, 10]"),
-    "friction": ("floats", lambda v: all(0 <= a <= 10 for a in v),
-                 "friction coefficients in [0, 10], one per tendon"),
-    "timestep": ("float", lambda v: 1e-5 <= v <= 0.01, "a time step in [1e-5, 0.01] s"),
-    "motor.rotor_inertia": ("float", lambda v: 0 <= v <= 1, "an inertia in [0, 1] kg m^2"),
-    "encoder.pulley_radius": ("float", lambda v: 0 < v <= 1, "a radius in (0, 1] m"),
-    "encoder.resolution": ("float", lambda v: 0 <= v <= 1, "an angle step in [0, 1] rad"),
-    "encoder.velocity_resolution": ("float", lambda v: 0 <= v <= 10, "a rate step in [0, 10] rad/s"),
-    "mocap.rate": ("float", lambda v: 1 <= v <= 2000, "a frame rate in [1, 2000] Hz"),
-    "mocap.noise": ("float", lambda v: 0 <= v <= 0.1, "a standard deviation in [0, 0.1] m"),
-    "mocap.latency": ("float", lambda v: 0 <= v <= 1, "a latency in [0, 1] s"),
-    "mocap.seed": ("int", lambda v: v >= 0, "a seed >= 0"),
-}
-
 TASK_SCHEMA = {
     "*.tendons": ("strs", lambda v: len(v) >= 1 and len(set(v)) == len(v),
                   "one or more distinct tendon names"),
@@ -91,20 +74,6 @@ TASK_SCHEMA = {
     "*.payload.attach_times": ("floats", lambda v: all(0 <= a for a in v),
                                "times >= 0 s from the start, one per payload mass"),
 }
-
-
-def load_section(filename: str, namespace: str, schema: Mapping, path: str | None = None,
-                 overrides: Mapping[str, Any] | None = None, node: str = "/**") -> dict:
-    """Validated values (dotted key -> value) of ``namespace`` in a parameter file of the config dir."""
-    path = path or os.path.join(default_config_dir(), filename)
-    params = read_parameters(path, node)
-    if namespace not in params or not isinstance(params[namespace], dict):
-        raise ConfigError(f"{path}: no '{namespace}' parameters under {node}.ros__parameters")
-    try:
-        return validate_tree(apply_overrides(params[namespace], overrides, schema, namespace),
-                             schema, namespace)
-    except ConfigError as exc:
-        raise ConfigError(f"{path}: {exc}") from None
 
 
 @dataclass(frozen=True)
@@ -159,57 +128,8 @@ def parse_control(v: dict, arm: ArmConfig) -> ControlConfig:
 
 def load_control_config(arm: ArmConfig, path: str | None = None, overrides=None) -> ControlConfig:
     """Load ``control.yaml`` (default: the package's) and validate it against ``arm``."""
-    return parse_control(load_section("control.yaml", "control", CONTROL_SCHEMA, path, overrides), arm)
-
-
-@dataclass(frozen=True)
-class PlantConfig:
-    """The simulated plant: material scale factors and friction relative to the controller's arm,
-    the time step [s], the motor rotor inertia [kg m^2], the encoder (pulley radius [m], angle and
-    rate resolution [rad], [rad/s]) and the mocap (frame rate [Hz], noise standard deviation [m],
-    latency [s], seed)."""
-    youngs_modulus_scale: float
-    viscosity_scale: float
-    friction: tuple
-    timestep: float
-    rotor_inertia: float
-    pulley_radius: float
-    encoder_resolution: float
-    velocity_resolution: float
-    mocap_rate: float
-    mocap_noise: float
-    mocap_latency: float
-    mocap_seed: int
-
-    def plant_arm(self, arm: ArmConfig) -> ArmConfig:
-        """The plant's arm: the controller's description with E and viscosity scaled and the
-        plant's friction coefficients."""
-        material = replace(arm.material,
-                           youngs_modulus=arm.material.youngs_modulus * self.youngs_modulus_scale,
-                           viscosity=arm.material.viscosity * self.viscosity_scale)
-        tendons = tuple(replace(t, friction=f) for t, f in zip(arm.tendons, self.friction))
-        return replace(arm, material=material, tendons=tendons)
-
-    @property
-    def rotor_mass(self) -> float:
-        """The rotor inertia reflected onto the tendon: J / r^2 [kg]."""
-        return self.rotor_inertia / self.pulley_radius ** 2
-
-
-def parse_plant(v: dict, arm: ArmConfig) -> PlantConfig:
-    """Cross-checks of the ``plant`` values against the arm (one friction coefficient per tendon)."""
-    if len(v["friction"]) != len(arm.tendons):
-        raise ConfigError(f"plant.friction = {list(v['friction'])} is not valid: expected "
-                          f"{len(arm.tendons)} values, one per tendon in arm.tendons.names")
-    return PlantConfig(v["youngs_modulus_scale"], v["viscosity_scale"], v["friction"], v["timestep"],
-                       v["motor.rotor_inertia"], v["encoder.pulley_radius"], v["encoder.resolution"],
-                       v["encoder.velocity_resolution"], v["mocap.rate"], v["mocap.noise"],
-                       v["mocap.latency"], v["mocap.seed"])
-
-
-def load_plant_config(arm: ArmConfig, path: str | None = None, overrides=None) -> PlantConfig:
-    """Load ``plant.yaml`` and check it against ``arm``."""
-    return parse_plant(load_section("plant.yaml", "plant", PLANT_SCHEMA, path, overrides), arm)
+    path = path or os.path.join(default_config_dir(), "control.yaml")
+    return parse_control(load_section(path, "control", CONTROL_SCHEMA, overrides), arm)
 
 
 @dataclass(frozen=True)
@@ -290,8 +210,20 @@ def parse_task(name: str, v: dict, arm: ArmConfig) -> TaskConfig:
 
 def load_task_config(name: str, arm: ArmConfig, path: str | None = None, overrides=None) -> TaskConfig:
     """Load task ``name`` from ``tasks.yaml``; an unknown name lists the known ones."""
-    v = load_section("tasks.yaml", "tasks", TASK_SCHEMA, path, overrides)
+    v = load_section(path or os.path.join(default_config_dir(), "tasks.yaml"), "tasks", TASK_SCHEMA,
+                     overrides)
     known = sorted({k.split(".")[0] for k in v})
     if name not in known:
         raise ConfigError(f"unknown task {name!r}; the tasks are: {', '.join(known)}")
     return parse_task(name, v, arm)
+
+
+def control_of(params, arm: ArmConfig) -> ControlConfig:
+    """``control`` of a node's parameters (:class:`soft_arm_ros.parameters.NodeParameters`)."""
+    return parse_control(params.section("control", CONTROL_SCHEMA), arm)
+
+
+def task_of(params, arm: ArmConfig) -> TaskConfig:
+    """The task ``graph.task`` names, from a node's parameters (``tasks.yaml`` + its own values)."""
+    values = params.section("tasks", TASK_SCHEMA)
+    return parse_task(params.task_name({k.split(".")[0] for k in values}), values, arm)

@@ -12,10 +12,14 @@ from rclpy.node import Node
 from sensor_msgs.msg import JointState
 
 from soft_arm_model import build_model
+from soft_arm_ros.contract import QOS, TOPICS
+from soft_arm_ros.conversions import joint_state, ordered, stamp_to_seconds
+from soft_arm_ros.parameters import NodeParameters
+from soft_arm_ros.runtime import run_node
 
 from .actuation_map import ActuationMap, actuation_map_for
+from .config import control_of, task_of
 from .inner_loop import tendon_controller_for
-from .ros_interface import QOS, TOPICS, NodeConfig, joint_state, ordered, run_node, stamp_to_seconds
 
 
 class InnerLoopNode(Node):
@@ -23,12 +27,13 @@ class InnerLoopNode(Node):
                  **node_options):
         super().__init__("inner_loop", allow_undeclared_parameters=True,
                          automatically_declare_parameters_from_overrides=True, **node_options)
-        self.config = c = NodeConfig(self, config_dir)
-        model = build_model(c.arm)
-        ctl = c.control
+        params = NodeParameters(self, config_dir)
+        model = build_model(params.arm)
+        self.control = ctl = control_of(params, params.arm)
+        task = task_of(params, params.arm)
         actuation_map = actuation_map or actuation_map_for(model, ctl)
         self.names = model.tendon_names
-        self.core = tendon_controller_for(model.n_tendons, ctl, c.task.tendons, actuation_map)
+        self.core = tendon_controller_for(model.n_tendons, ctl, task.tendons, actuation_map)
         self.rejected = 0
         self.pub = self.create_publisher(JointState, TOPICS["command"], QOS["tendon/command"])
         self.create_subscription(JointState, TOPICS["reference"], self.on_reference,

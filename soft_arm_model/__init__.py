@@ -10,14 +10,14 @@ Public API (Pinocchio style: an immutable model, a scratch workspace, algorithms
 See :mod:`soft_arm_model.dynamics` for kinematics and dynamics terms, :mod:`~.statics`,
 :mod:`~.integrators` and :mod:`~.workspace`.
 """
-from .config import ArmConfig, ConfigError, load_arm_config
+from .config import ArmConfig, load_arm_config
 from .dynamics import (CORIOLIS, DYNAMICS, KINEMATICS, STATICS, Frame, OutOfDomainError,
-                       actuation_coordinates, actuation_matrix, coriolis_matrix, elastic_force,
-                       evaluate, forward_dynamics, frame_at, gravity_force, marker_positions,
-                       mass_matrix, potential_energies, tendon_lengths, tip_frame,
-                       total_energy)
+                       actuation_coordinates, actuation_matrix, coriolis_matrix, elastic_force, evaluate,
+                       forward_dynamics, frame_at, gravity_force, marker_positions, mass_matrix,
+                       potential_energies, tendon_lengths, tip_frame, total_energy)
 from .integrators import ImexStepper, Trajectory, simulate
 from .model import ArmData, ArmModel, build_model
+from .parameters import ConfigError
 from .statics import Equilibrium, EquilibriumError, residual_jacobian, solve_equilibrium
 
 __all__ = [

@@ -14,9 +14,10 @@ import sys
 import numpy as np
 from scipy.linalg import eig
 
-from .config import ConfigError, load_arm_config
+from .config import load_arm_config
 from .dynamics import DYNAMICS, KINEMATICS, evaluate, frame_at
 from .model import ArmData, build_model
+from .parameters import ConfigError
 from .statics import EquilibriumError, solve_equilibrium
 from .workspace import sample_workspace
 

@@ -15,7 +15,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import kernels
+from soft_arm_model import kernels
+
 from .model import XI_STAR, ArmData, ArmModel, _substep
 
 KINEMATICS, STATICS, DYNAMICS, CORIOLIS = 0, 1, 2, 3

@@ -25,7 +25,8 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from . import kernels
+from soft_arm_model import kernels
+
 from .dynamics import OutOfDomainError
 from .model import ArmData, ArmModel
 

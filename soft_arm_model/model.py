@@ -16,7 +16,8 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from numpy.polynomial import legendre as npleg
 
-from . import kernels
+from soft_arm_model import kernels
+
 from .config import STRAIN_MODES, ArmConfig, load_arm_config
 
 # arm_base <- section frame at the clamp: the section's x axis (the arm axis) points along -z,

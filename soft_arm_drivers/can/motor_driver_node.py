@@ -1,0 +1,193 @@
+"""``motor_driver`` node: the rig's CAN motors (MIT protocol, torque mode) in the simulator's place.
+
+A thin shell around :class:`~soft_arm_drivers.can.motor_driver.MotorDriver`; a timer at ``rig.motors.rate``
+runs one driver cycle, on a monotonic clock, and
+
+- publishes ``tendon/state`` (sensor_msgs/JointState over ``arm.tendons.names``: position =
+  shortening [m] from the straight arm, ``rig.motors.zero_shortening`` at the zeroing pose;
+  velocity [m/s]; effort = measured tension [N]), stamped with the oldest sensor time stamp of the
+  cycle's replies, in every mode, whenever every motor replied;
+- publishes ``/diagnostics`` (diagnostic_msgs/DiagnosticArray: one status for the driver with mode,
+  fault reason and command counters, one per motor with temperature, error code and reply age) every
+  0.5 s and at once when the mode or the fault changes.
+
+Subscribes ``tendon/command`` (effort = tensions [N]; a command missing a tendon or with NaN or
+infinity is counted and dropped: the previous one ages until the watchdog latches a fault).
+Services: ``~/enable`` (std_srvs/SetBool: true enters motor mode and clears a latched fault, false
+disables), ``~/estop`` (std_srvs/Trigger: zero torque and out of motor mode, latched) and ``~/zero``
+(std_srvs/Trigger: the current angles become the zero; refused while enabled: zero with the tendons
+slack).
+
+Parameters: ``rig.motors.*`` of the package's ``config/rig.yaml`` overlaid with the node's own
+(``--params-file``, ``-p rig.motors.key:=value``), ``arm.*`` for the tendon names. A bad value logs the
+key, the value and the allowed range and exits with status 2. Leaving (Ctrl-C, SIGTERM, an exception)
+sends zero torque and exit-motor-mode to every motor.
+"""
+from __future__ import annotations
+
+import os
+import sys
+import time
+
+import can
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rclpy.node import Node
+from sensor_msgs.msg import JointState
+from std_srvs.srv import SetBool, Trigger
+
+from soft_arm_model.config import load_arm_config
+from soft_arm_model.parameters import ConfigError, default_config_dir
+from soft_arm_ros.contract import QOS, TOPICS
+from soft_arm_ros.conversions import joint_state, ordered
+from soft_arm_ros.parameters import parameter_overrides
+from soft_arm_ros.runtime import run_node
+
+from .motor_driver import NAMESPACE, Diagnostics, MotorDriver, bus_load, load_driver_config
+
+DIAGNOSTICS_PERIOD = 0.5        # s between /diagnostics messages when nothing changes
+
+
+class MotorDriverNode(Node):
+    """``defaults``: ``rig.motors`` values (dotted, relative to it) laid over rig.yaml beneath the
+    node's own parameters (the emulated rig's motors)."""
+
+    def __init__(self, config_dir: str | None = None, defaults: dict | None = None, **node_options):
+        super().__init__("motor_driver", allow_undeclared_parameters=True,
+                         automatically_declare_parameters_from_overrides=True, **node_options)
+        d = config_dir or default_config_dir()
+        arm = load_arm_config(os.path.join(d, "arm.yaml"), parameter_overrides(self, "arm"))
+        self.names = tuple(t.name for t in arm.tendons)
+        self.config = c = load_driver_config(os.path.join(d, "rig.yaml"),
+                                             {**(defaults or {}), **parameter_overrides(self, NAMESPACE)},
+                                             len(self.names))
+        self.check_config(c)
+        try:
+            self.driver = MotorDriver(c)
+        except (can.CanError, OSError) as exc:
+            raise ConfigError(f"{NAMESPACE}: cannot open {c.interface} channel {c.channel!r}: "
+                              f"{exc}") from None
+        self.incomplete_cycles = self.malformed_commands = 0
+        self._status, self._last_diagnostics = None, -float("inf")
+        self.state_pub = self.create_publisher(JointState, TOPICS["state"], QOS["tendon/state"])
+        self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self.create_subscription(JointState, TOPICS["command"], self.on_command, QOS["tendon/command"])
+        self.create_service(SetBool, "~/enable", self.on_enable)
+        self.create_service(Trigger, "~/estop", self.on_estop)
+        self.create_service(Trigger, "~/zero", self.on_zero)
+        self.create_timer(1.0 / c.rate, self.tick)
+        load, worst = bus_load(c)
+        if worst > 0.8:
+            self.get_logger().warning(f"the motors take {load:.0%} of the bus ({worst:.0%} with worst-case "
+                                      f"bit stuffing) at {c.rate:g} Hz: lower rig.motors.rate")
+        self.get_logger().info(
+            f"motor driver ready: {len(c.motors)} motors on {c.interface} {c.channel} at {c.rate:g} Hz, "
+            f"disabled (call ~/enable)")
+
+    def check_config(self, config):
+        """Further checks of the validated configuration before the bus is opened (ConfigError)."""
+
+    def on_command(self, msg: JointState):
+        try:
+            tensions = ordered(msg, "effort", self.names)
+        except ValueError as exc:
+            self.malformed_commands += 1
+            self.get_logger().warning(f"command ignored: {exc}", throttle_duration_sec=1.0)
+            return
+        try:
+            self.driver.command(tensions, time.monotonic())
+        except ValueError as exc:
+            self.get_logger().warning(f"command rejected: {exc}", throttle_duration_sec=1.0)
+
+    def tick(self):
+        state, diagnostics = self.driver.cycle(time.monotonic())
+        if state.complete:
+            self.state_pub.publish(joint_state(self.names, state.stamp, position=state.shortening,
+                                               velocity=state.rate, effort=state.tension))
+        else:
+            self.incomplete_cycles += 1
+        self._report(diagnostics)
+
+    def _report(self, diagnostics: Diagnostics, force: bool = False):
+        """Publish /diagnostics if forced, on a change of mode or fault, or every DIAGNOSTICS_PERIOD."""
+        status, now = (diagnostics.mode, diagnostics.fault), time.monotonic()
+        if status != self._status and diagnostics.fault is not None:
+            self.get_logger().error(f"fault, all motors at zero torque: {diagnostics.fault}")
+        if force or status != self._status or now - self._last_diagnostics >= DIAGNOSTICS_PERIOD:
+            self._status, self._last_diagnostics = status, now
+            self.diagnostics_pub.publish(self.diagnostic_array(diagnostics))
+
+    def diagnostic_array(self, diag: Diagnostics) -> DiagnosticArray:
+        out = DiagnosticArray()
+        out.header.stamp = self.get_clock().now().to_msg()
+        bus = f"{self.config.interface}:{self.config.channel}"
+        driver = DiagnosticStatus(name="motor_driver", hardware_id=bus)
+        driver.level = DiagnosticStatus.ERROR if diag.fault else DiagnosticStatus.OK
+        driver.message = f"fault: {diag.fault}" if diag.fault else diag.mode
+        driver.values = _values(mode=diag.mode, fault=diag.fault or "", command_age=diag.command_age,
+                                stale_commands=diag.stale_commands, rejected_commands=diag.rejected_commands,
+                                malformed_commands=self.malformed_commands,
+                                foreign_frames=diag.foreign_frames, error_frames=diag.error_frames,
+                                late_cycles=diag.late_cycles, incomplete_cycles=self.incomplete_cycles,
+                                cycles=diag.cycles, zeroed=diag.zeroed)
+        out.status.append(driver)
+        for name, m in zip(self.names, diag.motors):
+            s = DiagnosticStatus(name=f"motor_driver: {name}", hardware_id=f"{bus}:{m.can_id}")
+            problem = m.reply_age > self.config.reply_timeout or bool(m.error) or (
+                m.temperature is not None and m.temperature > self.config.max_temperature)
+            s.level = DiagnosticStatus.ERROR if problem else DiagnosticStatus.OK
+            s.message = m.error_text if m.error else (
+                f"silent for {m.reply_age:.3f} s" if m.reply_age > self.config.reply_timeout else "ok")
+            s.values = _values(can_id=m.can_id, temperature="" if m.temperature is None else m.temperature,
+                               error="" if m.error is None else m.error, error_text=m.error_text or "",
+                               reply_age=m.reply_age, replies=m.replies)
+            out.status.append(s)
+        return out
+
+    def on_enable(self, request, response):
+        was = self.driver.fault
+        if request.data:
+            self.driver.enable(time.monotonic())
+            response.message = "enabled" + (f" (cleared fault: {was})" if was else "")
+        else:
+            self.driver.disable()
+            response.message = "disabled" + (f" (fault still latched: {was})" if was else "")
+        response.success = True
+        self.get_logger().info(response.message)
+        self._report(self.driver.diagnostics(time.monotonic()), force=True)
+        return response
+
+    def on_estop(self, request, response):
+        was = self.driver.fault
+        self.driver.estop()
+        response.success = True
+        response.message = "e-stop: zero torque, motors out of motor mode; ~/enable to resume" + (
+            f" (already in fault: {was})" if was else "")
+        self.get_logger().warning(response.message)
+        self._report(self.driver.diagnostics(time.monotonic()), force=True)
+        return response
+
+    def on_zero(self, request, response):
+        try:
+            self.driver.zero()
+        except RuntimeError as exc:
+            response.success, response.message = False, str(exc)
+            return response
+        response.success, response.message = True, "zero set on every motor at the current angle"
+        self.get_logger().info(response.message)
+        return response
+
+    def close(self):
+        """Zero torque and exit motor mode on every motor, close the bus."""
+        self.driver.close()
+
+
+def _values(**items) -> list:
+    return [KeyValue(key=k, value=f"{v:.6g}" if isinstance(v, float) else str(v)) for k, v in items.items()]
+
+
+def main(args=None) -> int:
+    return run_node(MotorDriverNode, "motor_driver", args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,233 @@
+"""The closed-loop harness (ROS-free): plant, sensors, the two-level controller and the paper's protocols.
+
+- Plant: the Variable-Strain model with its own parameters (``plant.yaml``: scaled E and viscosity,
+  its own friction), stepped by the IMEX integrator at ``plant.timestep``.
+- Sensors: encoders (tendon shortening from the motor angle through the pulley, quantised, zeroed at
+  start-up on the hanging arm and offset by the controller model's prediction of that pose) and
+  motion capture (markers at ``mocap.rate``, Gaussian noise, delivered ``mocap.latency`` late).
+- Controller: P-satI-D+ at ``control.inner_loop.rate`` on the measured shortenings; the CLIK
+  precomputed (every target is solved before anything moves) then online at ``control.clik.rate``
+  from ``control.clik.switch_delay`` after each target change, as in the paper's protocol; replay
+  phases give the configurations stored at the end of the CLIK windows straight to the inner loop.
+
+All times are simulated seconds on one clock; every rate is realised on the plant's time grid.
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from soft_arm_control.actuation_map import ActuationMap, actuation_map_for
+from soft_arm_control.clik import ClikPoint
+from soft_arm_control.collocated import full_tensions
+from soft_arm_control.config import ControlConfig, TaskConfig, load_control_config, load_task_config
+from soft_arm_control.inner_loop import tendon_controller_for
+from soft_arm_control.outer_loop import OuterLoop, outer_loop_for
+from soft_arm_drivers.sim.plant_config import PlantConfig, load_plant_config
+from soft_arm_drivers.sim.simulated_rig import SimulatedRig
+from soft_arm_model import ArmConfig, build_model, load_arm_config
+from soft_arm_model.parameters import default_config_dir
+
+from .metrics import summarise, transition_metrics
+
+
+@dataclass(frozen=True)
+class Setup:
+    """Everything a run needs: the controller's arm, controller, plant and task parameters."""
+    arm: ArmConfig
+    control: ControlConfig
+    plant: PlantConfig
+    task: TaskConfig
+
+
+def split_overrides(pairs) -> dict:
+    """Group ``namespace.key=value`` strings (namespaces arm, control, plant, tasks) by namespace."""
+    groups = {"arm": {}, "control": {}, "plant": {}, "tasks": {}}
+    for pair in pairs or ():
+        key, sep, value = pair.partition("=")
+        ns = key.split(".", 1)[0]
+        if not sep or ns not in groups or "." not in key:
+            raise ValueError(f"--set expects namespace.key=value with namespace one of "
+                             f"{', '.join(groups)}; got {pair!r}")
+        groups[ns][key.split(".", 1)[1]] = value
+    return groups
+
+
+def load_setup(task: str, config_dir: str | None = None, overrides=None) -> Setup:
+    """Load the four parameter files from ``config_dir`` (default: the package's) with overrides
+    (``namespace.key=value`` strings)."""
+    d = config_dir or default_config_dir()
+    groups = split_overrides(overrides)
+    arm = load_arm_config(os.path.join(d, "arm.yaml"), groups["arm"])
+    return Setup(arm,
+                 load_control_config(arm, os.path.join(d, "control.yaml"), groups["control"]),
+                 load_plant_config(arm, os.path.join(d, "plant.yaml"), groups["plant"]),
+                 load_task_config(task, arm, os.path.join(d, "tasks.yaml"), groups["tasks"]))
+
+
+class TwoLevelController:
+    """The paper's controller for one task, as the nodes run it: the outer loop (CLIK, its
+    precomputed/online/replay protocol) and the inner loop (P-satI-D+ on the task's tendons).
+
+    Setting ``reference`` (a ClikPoint) hands the inner loop its shortenings and feedforward;
+    ``inner`` computes tensions for all tendons from measured shortenings.
+    """
+
+    def __init__(self, model, control: ControlConfig, task: TaskConfig,
+                 actuation_map: ActuationMap | None = None):
+        self.model, self.control, self.task = model, control, task
+        self.outer = outer_loop_for(model, control, task)
+        self.clik = self.outer.clik
+        self.actuation_map = actuation_map or actuation_map_for(model, control)
+        self.tendons = tendon_controller_for(model.n_tendons, control, task.tendons,
+                                             self.actuation_map)
+        self._reference = None
+
+    @property
+    def reference(self) -> ClikPoint | None:
+        return self._reference
+
+    @reference.setter
+    def reference(self, ref: ClikPoint):
+        self._reference = ref
+        self.tendons.set_reference(ref.shortening, full_tensions(self.clik.cm, ref.u_ff))
+
+    def inner(self, t: float, s, s_dot) -> np.ndarray:
+        """Tensions [N] of all tendons at time t [s] from measured shortenings [m] and rates [m/s]."""
+        return self.tendons.update(t, s, s_dot)
+
+
+@dataclass
+class Record:
+    """Time series of a run. Inner-loop rate: t_inner, tension, shortening (measured), shortening_ref,
+    theta (thetabar_a of the measured shortenings), theta_ref. Mocap rate: t_mocap (exposure times),
+    x (measured task coordinates), x_true, x_d, tip (the measured tip coordinates the task controls;
+    all three if it controls none), tip_speed (true), window (index of the transition). All SI."""
+    t_inner: list = field(default_factory=list)
+    tension: list = field(default_factory=list)
+    shortening: list = field(default_factory=list)
+    shortening_ref: list = field(default_factory=list)
+    theta: list = field(default_factory=list)
+    theta_ref: list = field(default_factory=list)
+    t_mocap: list = field(default_factory=list)
+    x: list = field(default_factory=list)
+    x_true: list = field(default_factory=list)
+    x_d: list = field(default_factory=list)
+    tip: list = field(default_factory=list)
+    tip_speed: list = field(default_factory=list)
+    window: list = field(default_factory=list)
+
+    def arrays(self) -> dict:
+        return {k: np.asarray(v) for k, v in self.__dict__.items()}
+
+
+@dataclass(frozen=True)
+class Transition:
+    """One window of the protocol: phase, mode, target index (0-based), x_d [m], start and end [s]."""
+    phase: str
+    mode: str
+    target: int
+    x_d: np.ndarray
+    start: float
+    end: float
+
+
+@dataclass
+class RunResult:
+    """The outcome of :func:`run_experiment`: transitions, per-transition metrics, summary, record,
+    the actuation-map fit errors [m] and the stored configurations per target."""
+    transitions: list
+    metrics: list
+    summary: object
+    record: Record
+    map_rms: float
+    map_max: float
+    stored: dict
+
+
+def schedule(task: TaskConfig) -> list:
+    """The protocol as (phase, mode, target, window) tuples in order."""
+    return [(ph.name, ph.mode, k, ph.window) for ph in task.phases for k in ph.sequence]
+
+
+def precompute_targets(outer: OuterLoop, task: TaskConfig) -> dict:
+    """Precomputed references of every target a clik phase visits, each solved from the start-up
+    pose (or the nearest seed equilibrium), so that a reference does not depend on the visiting
+    order. Raises TargetError, before anything moves, for an unreachable or infeasible target."""
+    return {k: outer.precompute(np.array(task.targets[k]))
+            for _, mode, k, _ in schedule(task) if mode in ("clik", "precomputed")}
+
+
+def run_experiment(setup: Setup, progress=None, actuation_map: ActuationMap | None = None) -> RunResult:
+    """Run the task's protocol on the simulated rig and compute the paper's metrics.
+
+    ``progress(t, t_end)`` is called about once per simulated second.
+    """
+    ctl, task, pc = setup.control, setup.task, setup.plant
+    model = build_model(setup.arm)
+    ctrl = TwoLevelController(model, ctl, task, actuation_map)
+    pretension = np.full(model.n_tendons, ctl.tension_min)
+    outer = ctrl.outer
+    start = ctrl.reference = outer.start           # the controller's view of start-up
+    points = precompute_targets(outer, task)
+    rig = SimulatedRig(build_model(pc.plant_arm(setup.arm)), pc, start.shortening, pretension,
+                       task.payload)
+
+    dt = pc.timestep
+    inner_every = max(1, int(round(1.0 / (ctl.inner_rate * dt))))
+    rec = Record()
+    transitions, rows = [], []
+    tip_index = model.marker_X.size - 1
+    tip_axes = [a for k, a in zip(task.space.markers, task.space.axes) if k == tip_index] or [0, 1, 2]
+    space = task.space
+    u = pretension.copy()
+    total = sum(w for *_, w in schedule(task))
+    second = int(round(1.0 / dt))
+    t_start = 0.0
+    for w_index, (phase, mode, k, window) in enumerate(schedule(task)):
+        x_d = np.array(task.targets[k])
+        ctrl.reference = outer.goal(rig.t, x_d, mode, points.get(k))
+        t_end = t_start + window
+        while rig.t < t_end - 1e-9:
+            t = rig.t
+            frame, delivered = rig.begin_step()
+            if frame is not None:
+                rec.t_mocap.append(frame.stamp)
+                rec.x.append(space.from_markers(frame.markers))
+                rec.x_true.append(space.from_markers(frame.true_markers))
+                rec.x_d.append(x_d)
+                rec.tip.append(frame.markers[tip_index, tip_axes])
+                rec.tip_speed.append(frame.tip_speed)
+                rec.window.append(w_index)
+            if delivered:
+                ref = outer.frame(t, space.from_markers(delivered[-1].markers))
+                if ref is not None:
+                    ctrl.reference = ref
+            if rig.step_index % inner_every == 0:
+                s, sd = rig.tendons()
+                u = ctrl.inner(t, s, sd)
+                rec.t_inner.append(t)
+                rec.tension.append(u)
+                rec.shortening.append(s)
+                rec.shortening_ref.append(ctrl.reference.shortening)
+            rig.end_step(u)
+            if progress is not None and rig.step_index % second == 0:
+                progress(rig.t, total)
+        transitions.append(Transition(phase, mode, k, x_d, t_start, t_end))
+        t_start = t_end
+    outer.finish()
+    rec.theta = list(ctrl.actuation_map.batch(rec.shortening))
+    rec.theta_ref = list(ctrl.actuation_map.batch(rec.shortening_ref))
+    arrays = rec.arrays()
+    for w_index, tr in enumerate(transitions):
+        sel = arrays["window"] == w_index
+        rows.append(transition_metrics(tr.phase, tr.target + 1, arrays["t_mocap"][sel],
+                                       arrays["x_d"][sel] - arrays["x"][sel], arrays["tip"][sel],
+                                       arrays["tip_speed"][sel], task.steady_time,
+                                       tr.end - tr.start))
+    stored = {k: outer.stored[outer.key(x)] for k, x in enumerate(task.targets)
+              if outer.key(x) in outer.stored}
+    return RunResult(transitions, rows, summarise(rows), rec, ctrl.actuation_map.rms_error,
+                     ctrl.actuation_map.max_error, stored)

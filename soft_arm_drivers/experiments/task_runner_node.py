@@ -1,0 +1,87 @@
+"""``task_runner`` node: plays the experiment named by ``graph.task`` on ``mocap/markers`` time,
+publishes ``task/goal`` at each window start and, at the end, logs the paper-style table and
+writes the metrics as JSON to the node parameter ``output`` (if given; written whole or not at
+all); then it stops.
+
+With the parameter ``wait_for_start`` true (on the rig: the motors are enabled first), the first
+window starts with the first frame after a call of ``~/start`` (std_srvs/Trigger), and the node
+stays up after the last window until it is stopped (the caller disables the motors first).
+"""
+from __future__ import annotations
+
+import json
+import os
+import sys
+
+from geometry_msgs.msg import PoseArray
+from rclpy.node import Node
+from std_msgs.msg import Float64MultiArray
+from std_srvs.srv import Trigger
+
+from soft_arm_control.config import task_of
+from soft_arm_ros.contract import QOS, TOPICS
+from soft_arm_ros.conversions import float_array, markers_of, stamp_to_seconds
+from soft_arm_ros.parameters import NodeParameters
+from soft_arm_ros.runtime import run_node
+
+from .metrics import format_table, to_json
+from .task_runner import TaskRunner
+
+
+class TaskRunnerNode(Node):
+    def __init__(self, config_dir: str | None = None, **node_options):
+        super().__init__("task_runner", allow_undeclared_parameters=True,
+                         automatically_declare_parameters_from_overrides=True, **node_options)
+        params = NodeParameters(self, config_dir)
+        self.task = task = task_of(params, params.arm)
+        self.core = TaskRunner(task, len(params.arm.marker_positions) - 1)
+        self.output = self.get_parameter("output").value if self.has_parameter("output") else ""
+        self.wait_for_start = bool(self.get_parameter("wait_for_start").value) \
+            if self.has_parameter("wait_for_start") else False
+        self.started = not self.wait_for_start
+        self.finished = self.done = False
+        self.create_service(Trigger, "~/start", self.on_start)
+        self.pub = self.create_publisher(Float64MultiArray, TOPICS["goal"], QOS["task/goal"])
+        self.create_subscription(PoseArray, TOPICS["markers"], self.on_markers, QOS["mocap/markers"])
+        self.get_logger().info(f"task {task.name}: {len(self.core.windows)} windows, "
+                               f"{self.core.duration:.1f} s")
+
+    def on_start(self, request, response):
+        response.success = not self.started
+        response.message = "already started" if self.started else \
+            f"task {self.core.task.name} starts with the next mocap frame"
+        self.started = True
+        return response
+
+    def on_markers(self, msg: PoseArray):
+        if not self.started or self.finished:
+            return
+        goal = self.core.frame(stamp_to_seconds(msg.header.stamp), markers_of(msg))
+        if goal is not None:
+            x_d, mode = goal
+            self.pub.publish(float_array(x_d, mode))
+        if self.core.done:
+            self.finish()
+
+    def finish(self):
+        rows, summary = self.core.metrics()
+        if summary is not None:
+            self.get_logger().info(
+                f"done: RMS {summary.rms_error * 1e3:.2f} mm, {summary.reached_mm}/"
+                f"{summary.transitions} transitions in the mm band")
+            self.get_logger().debug("\n" + format_table(rows, summary))
+            if self.output:
+                partial = self.output + ".partial"
+                with open(partial, "w", encoding="utf-8") as fh:
+                    json.dump({"task": self.core.task.name, **to_json(rows, summary)}, fh, indent=2)
+                os.replace(partial, self.output)
+        self.finished = True
+        self.done = not self.wait_for_start
+
+
+def main(args=None) -> int:
+    return run_node(TaskRunnerNode, "task_runner", args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,669 @@
+"""NatNet (OptiTrack Motive) motion-capture client for the arm, without ROS.
+
+:class:`MocapBridge` speaks NatNet over UDP (the codec is :mod:`soft_arm_drivers.mocap.natnet`):
+
+- a command socket (bound to ``local_address``, any port) sends the connect request, the
+  ``Bitstream,<major>.<minor>`` version request and, in unicast, a keep-alive every
+  ``keepalive_period``; all of it goes to ``server_address:command_port`` only;
+- a data socket bound to ``data_port`` receives the frames; with ``multicast_group`` set it joins
+  that group on ``multicast_interface`` (Motive's multicast mode). Frames are taken from both
+  sockets, because unicast servers differ in where they send them: Motive's own Python sample
+  reads them on its command socket (the address the connect came from), other servers send them to
+  the client's data port.
+
+Each frame is parsed for the stream version the server announced (or the one it accepted after the
+version request), passed through :class:`~soft_arm_drivers.mocap.natnet.FrameFilter` (duplicates and late
+frames are dropped), and the arm's markers are selected: rigid bodies or labelled markers by id,
+ordered base to tip (``ids``). They are transformed into ``arm_base`` with the calibration
+``p_arm = R p_mocap + t`` (the pose of the mocap system's frame in ``arm_base``) and stamped with
+the mid-exposure time on the local clock (see :class:`ClockMap`).
+
+A frame in which a selected marker is occluded (labelled marker with the occluded bit, rigid body
+without the tracking-valid bit) or absent is skipped, never filled in, and recorded in
+:attr:`MocapBridge.last_skipped`. Every datagram ends in exactly one of :data:`PACKET_OUTCOMES`
+(malformed, truncated and unknown packets included; the handler never raises for received bytes),
+and the counts are in :attr:`MocapBridge.counters` for diagnostics.
+
+The configuration is ``rig.mocap`` in ``config/mocap.yaml`` (ROS parameter layout), validated with
+:data:`MOCAP_SCHEMA` by :func:`load_mocap_config`; a bad value raises ConfigError naming
+``rig.mocap.<key>``, the value and what is allowed.
+"""
+from __future__ import annotations
+
+import ipaddress
+import math
+import os
+import select
+import socket
+import struct
+import time
+from collections import deque
+from dataclasses import dataclass
+from functools import cached_property
+from typing import Callable, Mapping, Optional, Sequence
+
+import numpy as np
+
+from soft_arm_model.parameters import (ConfigError, apply_overrides, default_config_dir, read_parameters,
+                                       validate_tree)
+
+from .natnet import (SUPPORTED_VERSIONS, FrameFilter, FrameOfData, MessageId, NatNetParseError, ServerInfo,
+                     Version, build_connect_request, build_packet, build_request, parse_frame_of_data,
+                     parse_packet, parse_server_info)
+
+__all__ = ["BridgeConfig", "Calibration", "ClockMap", "MOCAP_SCHEMA", "MarkerFrame", "MocapBridge",
+           "PACKET_OUTCOMES", "SOURCES", "SkippedFrame", "load_mocap_config", "rotation_matrix"]
+
+NAMESPACE = "rig"
+SOURCES = ("rigid_bodies", "labeled_markers")
+VERSION_NAMES = tuple(f"{v.major}.{v.minor}" for v in SUPPORTED_VERSIONS)
+#: What becomes of a received datagram; each one is counted in exactly one of these.
+PACKET_OUTCOMES = ("delivered", "occluded", "missing", "invalid", "duplicates", "out_of_order",
+                   "malformed", "before_handshake", "control")
+_RECV_SIZE = 65535
+_MAX_BATCH = 256          # datagrams read from one socket per poll, so that no socket starves
+_QUATERNION_TOLERANCE = 1e-3
+_MATRIX_TOLERANCE = 1e-5
+_RESPONSE_CODE = struct.Struct("<i")
+
+
+# --- calibration ---------------------------------------------------------------------------------
+
+def rotation_matrix(rotation: Sequence[float]) -> np.ndarray:
+    """A proper rotation matrix from 4 values (quaternion x, y, z, w; norm within 1e-3 of 1, then
+    normalised) or 9 (row-major matrix, orthonormal within 1e-5, determinant +1); ValueError else."""
+    r = np.asarray(rotation, dtype=float).ravel()
+    if not np.all(np.isfinite(r)):
+        raise ValueError(f"rotation has non-finite values: {list(r)}")
+    if r.size == 4:
+        norm = float(np.linalg.norm(r))
+        if abs(norm - 1.0) > _QUATERNION_TOLERANCE:
+            raise ValueError(f"quaternion norm {norm:.6g} is not 1 (within {_QUATERNION_TOLERANCE})")
+        x, y, z, w = r / norm
+        return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                         [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                         [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+    if r.size == 9:
+        m = r.reshape(3, 3)
+        error = float(np.abs(m.T @ m - np.eye(3)).max())
+        if error > _MATRIX_TOLERANCE or np.linalg.det(m) <= 0:
+            raise ValueError(f"matrix is not a rotation (|R^T R - I| = {error:.3g}, "
+                             f"det = {np.linalg.det(m):.6g})")
+        return m.copy()
+    raise ValueError(f"rotation needs 4 values (quaternion x, y, z, w) or 9 (row-major matrix), "
+                     f"got {r.size}")
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """The pose of the mocap system's frame in ``arm_base``: ``p_arm = rotation @ p_mocap +
+    translation``, rotation a proper rotation matrix, translation [m]."""
+
+    rotation: np.ndarray
+    translation: np.ndarray
+
+    def __post_init__(self):
+        rotation = rotation_matrix(np.asarray(self.rotation, dtype=float).ravel())
+        translation = np.array(self.translation, dtype=float).reshape(-1)
+        if translation.shape != (3,) or not np.all(np.isfinite(translation)):
+            raise ValueError(f"translation must be three finite coordinates [m], got "
+                             f"{self.translation!r}")
+        rotation.setflags(write=False)
+        translation.setflags(write=False)
+        object.__setattr__(self, "rotation", rotation)
+        object.__setattr__(self, "translation", translation)
+
+    @classmethod
+    def identity(cls) -> "Calibration":
+        return cls(np.eye(3), np.zeros(3))
+
+    def to_arm(self, points) -> np.ndarray:
+        """Points (n, 3) [m] in the mocap frame -> ``arm_base``."""
+        return np.asarray(points, dtype=float) @ self.rotation.T + self.translation
+
+    def to_mocap(self, points) -> np.ndarray:
+        """Points (n, 3) [m] in ``arm_base`` -> the mocap frame (the inverse of :meth:`to_arm`)."""
+        return (np.asarray(points, dtype=float) - self.translation) @ self.rotation
+
+
+# --- configuration -------------------------------------------------------------------------------
+
+def _ipv4(value) -> Optional[ipaddress.IPv4Address]:
+    if not isinstance(value, str):
+        return None
+    try:
+        return ipaddress.IPv4Address(value)
+    except (ipaddress.AddressValueError, ValueError, TypeError):
+        return None
+
+
+def _unicast(value) -> bool:
+    address = _ipv4(value)
+    return address is not None and not address.is_multicast
+
+
+def _is_rotation(value) -> bool:
+    try:
+        rotation_matrix(value)
+    except (ValueError, TypeError):
+        return False
+    return True
+
+
+#: ``rig`` keys of the bridge (dotted, relative to ``rig``): kind, check, what is allowed.
+MOCAP_SCHEMA = {
+    "mocap.server_address": ("str", _unicast, "the IPv4 unicast address of the NatNet server "
+                             "(Motive's computer; 127.0.0.1 for the emulator)"),
+    "mocap.command_port": ("int", lambda v: 1 <= v <= 65535,
+                           "the server's command port in [1, 65535] (Motive: 1510)"),
+    "mocap.data_port": ("int", lambda v: 0 <= v <= 65535,
+                        "a local UDP port in [0, 65535] for frames (Motive: 1511; 0: any free port)"),
+    "mocap.local_address": ("str", _unicast, "an IPv4 address of this computer on the mocap "
+                            "network (0.0.0.0: every interface)"),
+    "mocap.multicast_group": ("str", lambda v: v == "" or (_ipv4(v) is not None and _ipv4(v).is_multicast),
+                              "empty (unicast) or an IPv4 multicast group (Motive: 239.255.42.99)"),
+    "mocap.multicast_interface": ("str", lambda v: v == "" or _unicast(v),
+                                  "empty (local_address) or the IPv4 address of the interface that "
+                                  "joins the group"),
+    "mocap.natnet_version": ("str", lambda v: v == "" or v in VERSION_NAMES,
+                             f"empty (the server's) or one of {', '.join(VERSION_NAMES)}, as a "
+                             f"quoted string"),
+    "mocap.keepalive_period": ("float", lambda v: 0 < v <= 60, "a period in (0, 60] s"),
+    "mocap.timeout": ("float", lambda v: 0 < v <= 60,
+                      "a time in (0, 60] s without an answer or a frame before reconnecting"),
+    "mocap.clock_window": ("float", lambda v: 0.1 <= v <= 3600, "a window in [0.1, 3600] s"),
+    "mocap.markers.source": ("str", lambda v: v in SOURCES, " or ".join(SOURCES)),
+    "mocap.markers.ids": ("ints", lambda v: len(v) >= 1 and len(set(v)) == len(v)
+                          and all(0 <= a <= 0x7FFFFFFF for a in v),
+                          "one or more distinct ids in [0, 2^31), base to tip (rigid body ids, or "
+                          "labelled marker ids: asset id << 16 | marker number)"),
+    "mocap.calibration.translation": ("floats", lambda v: len(v) == 3 and all(abs(a) <= 100 for a in v),
+                                      "three coordinates [m] within 100 m: the mocap origin in "
+                                      "arm_base"),
+    "mocap.calibration.rotation": ("floats", _is_rotation,
+                                   f"a unit quaternion x, y, z, w (norm within {_QUATERNION_TOLERANCE}"
+                                   f" of 1) or a row-major rotation matrix (9 values, orthonormal "
+                                   f"within {_MATRIX_TOLERANCE})"),
+}
+_FIELDS = {"server_address": "server_address", "command_port": "command_port",
+           "data_port": "data_port", "local_address": "local_address",
+           "multicast_group": "multicast_group", "multicast_interface": "multicast_interface",
+           "natnet_version": "natnet_version", "keepalive_period": "keepalive_period",
+           "timeout": "timeout", "clock_window": "clock_window", "source": "markers.source",
+           "ids": "markers.ids", "translation": "calibration.translation",
+           "rotation": "calibration.rotation"}
+
+
+@dataclass(frozen=True)
+class BridgeConfig:
+    """The bridge's settings (``rig.mocap`` of ``config/mocap.yaml``; the defaults here are Motive's
+    ports and an identity calibration). Every field is checked against :data:`MOCAP_SCHEMA`; a bad
+    one raises ConfigError naming ``rig.mocap.<key>``.
+
+    ``natnet_version``: the stream version to request (``""``: keep the server's). ``ids``: base to
+    tip. ``translation`` [m] and ``rotation`` (quaternion x, y, z, w or row-major matrix): the
+    calibration, see :class:`Calibration`. Periods and windows in seconds.
+    """
+
+    server_address: str = "127.0.0.1"
+    command_port: int = 1510
+    data_port: int = 1511
+    local_address: str = "127.0.0.1"
+    multicast_group: str = ""
+    multicast_interface: str = ""
+    natnet_version: str = ""
+    keepalive_period: float = 1.0
+    timeout: float = 2.0
+    clock_window: float = 2.0
+    source: str = "rigid_bodies"
+    ids: tuple = (1, 2, 3, 4)
+    translation: tuple = (0.0, 0.0, 0.0)
+    rotation: tuple = (0.0, 0.0, 0.0, 1.0)
+
+    def __post_init__(self):
+        for name in ("ids", "translation", "rotation"):
+            object.__setattr__(self, name, tuple(getattr(self, name)))
+        for name, key in _FIELDS.items():
+            value = getattr(self, name)
+            _, check, allowed = MOCAP_SCHEMA[f"mocap.{key}"]
+            try:
+                ok = bool(check(value))
+            except (TypeError, ValueError):
+                ok = False
+            if not ok:
+                shown = list(value) if isinstance(value, tuple) else value
+                raise ConfigError(f"{NAMESPACE}.mocap.{key} = {shown!r} is not valid: expected {allowed}")
+
+    @cached_property
+    def calibration(self) -> Calibration:
+        return Calibration(rotation_matrix(self.rotation), self.translation)
+
+    @property
+    def requested_version(self) -> Optional[Version]:
+        if not self.natnet_version:
+            return None
+        major, minor = self.natnet_version.split(".")
+        return Version(int(major), int(minor))
+
+    @property
+    def multicast(self) -> bool:
+        return bool(self.multicast_group)
+
+
+def load_mocap_config(path: Optional[str] = None, overrides: Optional[Mapping] = None,
+                      node: str = "/**") -> BridgeConfig:
+    """``rig.mocap`` of a parameter file (default: the package's ``config/mocap.yaml``) with dotted
+    overrides relative to ``rig`` (``{"mocap.command_port": 1510}``), validated. Other ``rig.*``
+    entries (other drivers' parameters) are left alone."""
+    path = path or os.path.join(default_config_dir(), "mocap.yaml")
+    params = read_parameters(path, node)
+    rig = params.get(NAMESPACE)
+    if not isinstance(rig, dict) or not isinstance(rig.get("mocap"), dict):
+        raise ConfigError(f"{path}: no '{NAMESPACE}.mocap' parameters under {node}.ros__parameters")
+    try:
+        tree = apply_overrides({"mocap": rig["mocap"]}, overrides, MOCAP_SCHEMA, NAMESPACE)
+        values = validate_tree(tree, MOCAP_SCHEMA, NAMESPACE)
+    except ConfigError as exc:
+        raise ConfigError(f"{path}: {exc}") from None
+    return BridgeConfig(**{name: values[f"mocap.{key}"] for name, key in _FIELDS.items()})
+
+
+def _name(version: Version) -> str:
+    """``major.minor`` of a NatNet version."""
+    return f"{version.major}.{version.minor}"
+
+
+# --- clock mapping -------------------------------------------------------------------------------
+
+class ClockMap:
+    """Maps ticks of the NatNet server's high-resolution clock onto the local clock [s].
+
+    A frame carries, in server ticks (``ServerInfo.clock_frequency`` f per second), its camera
+    mid-exposure time and the time the server sent it. For each accepted frame, with ``r`` the
+    local time the datagram was read and ``s`` its transmit ticks (data-received ticks, then
+    mid-exposure ticks if the server leaves them zero), the sample ``o = r - s / f`` is the
+    offset between the two clocks plus the frame's transport delay (network, kernel, this process),
+    which is never negative. The minimum over the last ``window`` seconds therefore estimates the
+    offset plus the smallest transport delay, and a frame exposed at ``m`` ticks is stamped
+    ``m / f + min(o)`` on the local clock.
+
+    The server's own latency (exposure to transmit, Motive's processing) is measured on one clock
+    and kept exactly; queueing delays of single frames do not move the stamps. What remains is a
+    bias: the stamps are late by the smallest one-way delay, which one-way packets cannot separate
+    from the offset (tens of microseconds on loopback and a switched LAN), and the drift of the two
+    clocks: an offset that shrinks is followed at once, one that grows (the local clock runs faster)
+    within a window, so the stamps can be late by up to the drift over one window (2 s at 50 ppm:
+    0.1 ms). A new stream (server info, frame-number restart) starts a new map.
+    """
+
+    def __init__(self, frequency: int, window: float):
+        if not frequency or frequency <= 0:
+            raise ValueError(f"clock frequency must be a positive number of ticks/s, got {frequency!r}")
+        if not window > 0:
+            raise ValueError(f"window must be positive [s], got {window!r}")
+        self.frequency = int(frequency)
+        self.window = float(window)
+        self._base: Optional[int] = None
+        self._samples: deque = deque()   # (local time, offset), offsets increasing
+
+    def seconds(self, ticks: int) -> float:
+        """Server ticks as seconds since the first observed tick (small numbers keep precision)."""
+        return (ticks - self._base) / self.frequency
+
+    def observe(self, ticks: int, local: float):
+        """One offset sample: server ``ticks`` read at ``local`` [s]."""
+        if self._base is None:
+            self._base = ticks
+        offset = local - self.seconds(ticks)
+        samples = self._samples
+        while samples and samples[-1][1] >= offset:
+            samples.pop()
+        samples.append((local, offset))
+        while samples[0][0] < local - self.window:
+            samples.popleft()
+
+    @property
+    def offset(self) -> Optional[float]:
+        """Local time minus server time [s] (plus the smallest transport delay); None before any
+        sample."""
+        return self._samples[0][1] if self._samples else None
+
+    def to_local(self, ticks: int) -> float:
+        """Server ``ticks`` on the local clock [s]; ValueError before the first sample."""
+        if not self._samples:
+            raise ValueError("no clock sample yet")
+        return self.seconds(ticks) + self._samples[0][1]
+
+
+# --- bridge --------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class MarkerFrame:
+    """The arm's markers in one mocap frame: ``markers`` (n, 3) [m] in ``arm_base``, base to tip;
+    ``stamp``: mid-exposure on the local clock [s]; ``received_at``: when the datagram was read
+    [s, local clock]; ``frame_number``: the server's."""
+
+    stamp: float
+    markers: np.ndarray
+    frame_number: int
+    received_at: float
+
+    @property
+    def latency(self) -> float:
+        """Mid-exposure to reception [s]."""
+        return self.received_at - self.stamp
+
+
+@dataclass(frozen=True)
+class SkippedFrame:
+    """A frame that was not delivered: its number, the reason (``occluded``, ``missing`` or
+    ``invalid``) and the selected ids concerned (empty for ``invalid``)."""
+
+    frame_number: int
+    reason: str
+    ids: tuple
+
+
+class MocapBridge:
+    """NatNet client that turns frames into :class:`MarkerFrame` s of the arm.
+
+    ``clock()`` is the local clock the stamps are mapped onto [s] (default ``time.time``; the ROS node
+    passes its clock). Opens the sockets (OSError if they cannot be bound); :meth:`connect` starts
+    the handshake and :meth:`poll` does the rest: read datagrams, handle them, resend the connect
+    request when the server is silent for ``timeout``, send unicast keep-alives.
+
+    Usage::
+
+        with MocapBridge(BridgeConfig(command_port=emulator.command_port, data_port=0)) as bridge:
+            bridge.connect()
+            while True:
+                for frame in bridge.poll(timeout=0.1):
+                    use(frame.stamp, frame.markers)
+    """
+
+    def __init__(self, config: BridgeConfig, clock: Callable[[], float] = time.time):
+        self.config = config
+        self._clock = clock
+        self._wanted = {marker_id: k for k, marker_id in enumerate(config.ids)}
+        self._server = (config.server_address, config.command_port)
+        self._counts = dict.fromkeys(PACKET_OUTCOMES + ("restarts", "lost", "foreign",
+                                                        "socket_errors", "connect_requests"), 0)
+        self._filter = FrameFilter()
+        self._outbox: deque = deque(maxlen=8)
+        self.state = "disconnected"
+        self.note = ""
+        self.server_info: Optional[ServerInfo] = None
+        self.version: Optional[Version] = None
+        self.clock_map: Optional[ClockMap] = None
+        self.last_skipped: Optional[SkippedFrame] = None
+        self._last_heard = self._last_connect = self._last_keepalive = self._asked_at = -math.inf
+        self._command = self._data = None
+        try:
+            self._command = self._open_command_socket()
+            self._data = self._open_data_socket()
+        except OSError:
+            self.close()
+            raise
+
+    # -- sockets --
+
+    def _open_command_socket(self) -> socket.socket:
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM, socket.IPPROTO_UDP)
+        try:
+            sock.setblocking(False)
+            sock.bind((self.config.local_address, 0))
+        except OSError:
+            sock.close()
+            raise
+        return sock
+
+    def _open_data_socket(self) -> socket.socket:
+        c = self.config
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM, socket.IPPROTO_UDP)
+        try:
+            sock.setblocking(False)
+            if c.multicast:
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+                sock.bind(("", c.data_port))
+                interface = c.multicast_interface or c.local_address
+                sock.setsockopt(socket.IPPROTO_IP, socket.IP_ADD_MEMBERSHIP,
+                                socket.inet_aton(c.multicast_group) + socket.inet_aton(interface))
+            else:
+                sock.bind((c.local_address, c.data_port))
+        except OSError:
+            sock.close()
+            raise
+        return sock
+
+    @property
+    def command_address(self) -> tuple:
+        """(host, port) of the command socket: where unicast servers may send frames."""
+        return self._command.getsockname()
+
+    @property
+    def data_address(self) -> tuple:
+        """(host, port) of the data socket."""
+        return self._data.getsockname()
+
+    def close(self):
+        """Tell a unicast server that this client leaves, close the sockets (idempotent)."""
+        if self._command is not None and self._command.fileno() >= 0 \
+                and self.server_info is not None and not self.config.multicast:
+            self._send(build_packet(MessageId.NAT_DISCONNECT))
+        for sock in (self._command, self._data):
+            if sock is not None:
+                sock.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    # -- protocol --
+
+    def connect(self):
+        """Send the connect request now (the handshake finishes in :meth:`poll`)."""
+        self.state = "connecting"
+        self._send_connect(self._clock())
+
+    def _send_connect(self, now: float):
+        self._counts["connect_requests"] += 1
+        self._last_connect = now
+        self._send(build_connect_request(bitstream_version=self.config.requested_version))
+
+    def _send(self, packet: bytes):
+        try:
+            self._command.sendto(packet, self._server)
+        except OSError:
+            self._counts["socket_errors"] += 1
+
+    def _service(self, now: float):
+        """Queued requests out; reconnect after ``timeout`` of silence; unicast keep-alives."""
+        while self._outbox:
+            self._send(self._outbox.popleft())
+        c = self.config
+        if self.state == "disconnected":
+            return
+        if self.state == "negotiating" and now - self._asked_at > c.timeout:
+            self._keep_served_version("did not answer the request for")
+        if now - max(self._last_heard, self._last_connect) > c.timeout:
+            if self.state in ("streaming", "negotiating"):
+                self.state = "stale"
+                self.note = f"nothing from the server for {c.timeout:g} s; reconnecting"
+            self._send_connect(now)
+        if not c.multicast and self.server_info is not None \
+                and now - self._last_keepalive >= c.keepalive_period:
+            self._last_keepalive = now
+            self._send(build_packet(MessageId.NAT_KEEPALIVE))
+
+    def poll(self, timeout: float = 0.0) -> list:
+        """Wait up to ``timeout`` [s] for datagrams, handle every one that is queued, and return the
+        :class:`MarkerFrame` s they gave, in the order they were read. Datagrams from another host than
+        ``server_address`` are counted as ``foreign`` and dropped."""
+        self._service(self._clock())
+        try:
+            ready, _, _ = select.select([self._command, self._data], [], [], timeout)
+        except (OSError, ValueError):       # a socket closed by another thread
+            return []
+        frames = []
+        for sock in ready:
+            for _ in range(_MAX_BATCH):
+                try:
+                    data, (host, _) = sock.recvfrom(_RECV_SIZE)
+                except BlockingIOError:
+                    break
+                except OSError:
+                    self._counts["socket_errors"] += 1
+                    break
+                received_at = self._clock()
+                if host != self.config.server_address:
+                    self._counts["foreign"] += 1
+                    continue
+                frame = self.handle_packet(data, received_at)
+                if frame is not None:
+                    frames.append(frame)
+        if self._outbox:
+            self._service(self._clock())
+        return frames
+
+    def handle_packet(self, data: bytes, received_at: float) -> Optional[MarkerFrame]:
+        """Handle one datagram read at ``received_at`` [s, local clock]; the arm's markers if it was
+        a new, complete frame, else None. Never raises for any bytes; each datagram is counted in
+        exactly one of :data:`PACKET_OUTCOMES`. Replies it needs (the version request) are queued
+        and sent by :meth:`poll`."""
+        self._last_heard = received_at
+        try:
+            message_id, payload = parse_packet(data)
+            if message_id == MessageId.NAT_FRAMEOFDATA:
+                return self._on_frame(data, received_at)
+            if message_id == MessageId.NAT_SERVERINFO:
+                self._on_server_info(parse_server_info(data), received_at)
+            elif message_id in (MessageId.NAT_RESPONSE, MessageId.NAT_UNRECOGNIZED_REQUEST):
+                self._on_response(payload if message_id == MessageId.NAT_RESPONSE else None)
+        except NatNetParseError as exc:
+            self._counts["malformed"] += 1
+            self.note = f"malformed packet: {exc}"
+            return None
+        self._counts["control"] += 1
+        return None
+
+    def _on_server_info(self, info: ServerInfo, now: float):
+        """A (new) stream: pick its version, request ours if it differs and the server can switch."""
+        self.server_info = info
+        self._new_filter()
+        served = Version(info.natnet_version.major, info.natnet_version.minor)
+        requested = self.config.requested_version
+        self.version = served if served in SUPPORTED_VERSIONS else None
+        self.clock_map = None
+        self.state, self.note = "streaming", ""
+        if not info.clock_frequency:
+            self.version = None
+            self.state, self.note = "unsupported", (f"unsupported NatNet version {_name(served)}: "
+                                                    f"its server info has no clock frequency")
+            return
+        self.clock_map = ClockMap(info.clock_frequency, self.config.clock_window)
+        if requested is not None and requested != served:
+            if served >= (4, 0) and not self.config.multicast:
+                self.state, self._asked_at = "negotiating", now
+                self._outbox.append(build_request(f"Bitstream,{requested.major}.{requested.minor}"))
+                return
+            self.note = (f"NatNet {_name(served)} cannot switch to {_name(requested)} (multicast "
+                         f"or before 4.0)")
+        if self.version is None:
+            self.state, self.note = "unsupported", f"unsupported NatNet version {_name(served)}"
+
+    def _new_filter(self):
+        """A fresh frame filter for a new stream; the old one's counts are kept."""
+        for key in ("duplicates", "out_of_order", "restarts"):
+            self._counts[key] += getattr(self._filter, key)
+        self._filter = FrameFilter()
+
+    def _on_response(self, payload: Optional[bytes]):
+        """The answer to the version request: a NAT_RESPONSE int32 0 is success, anything else (or
+        NAT_UNRECOGNIZED_REQUEST, ``payload`` None) a refusal."""
+        if self.state != "negotiating":
+            return
+        if payload is not None and len(payload) == _RESPONSE_CODE.size \
+                and _RESPONSE_CODE.unpack(payload)[0] == 0:
+            self.version = self.config.requested_version
+            self.state, self.note = "streaming", ""
+            return
+        self._keep_served_version("refused")
+
+    def _keep_served_version(self, why: str):
+        """The version request failed (``why``): stream the server's version if it is supported."""
+        requested = _name(self.config.requested_version)
+        if self.version is None:
+            self.state, self.note = "unsupported", (f"the server {why} NatNet {requested} and streams "
+                                                    f"an unsupported version")
+        else:
+            self.state, self.note = "streaming", (f"the server {why} NatNet {requested}; streaming "
+                                                  f"{_name(self.version)}")
+
+    def _on_frame(self, data: bytes, received_at: float) -> Optional[MarkerFrame]:
+        if self.version is None:
+            self._counts["before_handshake"] += 1
+            return None
+        frame = parse_frame_of_data(data, self.version)
+        newest, restarts = self._filter.newest, self._filter.restarts
+        if not self._filter.accept(frame.frame_number):
+            return None                                     # counted by the filter
+        if self._filter.restarts != restarts:
+            self.clock_map = ClockMap(self.clock_map.frequency, self.config.clock_window)
+        elif newest is not None:
+            self._counts["lost"] += frame.frame_number - newest - 1
+        reference = frame.transmit_timestamp or frame.camera_data_received or frame.camera_mid_exposure
+        if self.state == "stale":
+            self.state, self.note = "streaming", ""
+        if not 0 < frame.camera_mid_exposure <= reference:
+            return self._skip(frame.frame_number, "invalid", ())
+        self.clock_map.observe(reference, received_at)
+        positions, problems = self._select(frame)
+        if problems:
+            reason = "missing" if "missing" in problems.values() else "occluded"
+            return self._skip(frame.frame_number, reason, tuple(problems))
+        if not np.all(np.isfinite(positions)):
+            return self._skip(frame.frame_number, "invalid", ())
+        self._counts["delivered"] += 1
+        return MarkerFrame(self.clock_map.to_local(frame.camera_mid_exposure),
+                           self.config.calibration.to_arm(positions), frame.frame_number, received_at)
+
+    def _select(self, frame: FrameOfData):
+        """Positions (n, 3) in the mocap frame, base to tip, and {id: "occluded" | "missing"}."""
+        positions = np.empty((len(self._wanted), 3))
+        found = set()
+        if self.config.source == "rigid_bodies":
+            items = ((b.id, b.position, not b.tracking_valid) for b in frame.rigid_bodies)
+        else:
+            items = ((m.id, m.position, m.occluded) for m in frame.labeled_markers)
+        problems = {}
+        for marker_id, position, occluded in items:
+            k = self._wanted.get(marker_id)
+            if k is None or marker_id in found:
+                continue
+            found.add(marker_id)
+            positions[k] = position
+            if occluded:
+                problems[marker_id] = "occluded"
+        for marker_id in self._wanted:
+            if marker_id not in found:
+                problems[marker_id] = "missing"
+        return positions, {i: problems[i] for i in self.config.ids if i in problems}
+
+    def _skip(self, frame_number: int, reason: str, ids: tuple) -> None:
+        self._counts[reason] += 1
+        self.last_skipped = SkippedFrame(frame_number, reason, ids)
+        return None
+
+    @property
+    def counters(self) -> dict:
+        """Datagram outcomes (:data:`PACKET_OUTCOMES`, from the frame filter: ``duplicates``,
+        ``out_of_order``) and ``packets`` (their sum), ``lost`` (frame numbers skipped by the
+        stream: lost or late), ``restarts`` (the stream's frame numbers jumped back), ``foreign``
+        (datagrams from other hosts), ``socket_errors`` and ``connect_requests``."""
+        counts = dict(self._counts)
+        for key in ("duplicates", "out_of_order", "restarts"):
+            counts[key] += getattr(self._filter, key)
+        counts["packets"] = sum(counts[k] for k in PACKET_OUTCOMES)
+        return counts

@@ -1,0 +1,185 @@
+"""``emulated_rig`` node: the ``motor_driver`` node with emulated hardware behind it, and an emulated
+Motive server, so that the rig's graph runs without the rig.
+
+In one process (python-can's ``virtual`` bus does not leave it):
+
+- the ``motor_driver`` node, unchanged, on a ``virtual`` bus;
+- behind that bus, the CAN motor emulator (:mod:`.can_emulator`): MIT-protocol motors with the plant
+  of ``plant.yaml`` (model error, rotors' reflected inertia, encoder resolution) driven by their
+  torques through the pulleys, stepped in real time on a thread, replying after
+  ``rig.emulator.reply_delay``; its motors start out of motor mode with arbitrary zeros, the arm
+  hanging with slack tendons;
+- a NatNet server emulator (:mod:`.natnet_emulator`) streaming the same plant's markers, with the
+  noise, rate and latency of ``plant.mocap``, to 127.0.0.1 where ``rig.mocap`` says the Motive
+  server is (``server_address``, which must be a loopback address, and ``command_port``).
+
+Run the ``mocap_bridge`` node against it and the controller nodes as on the rig; zero and enable the
+motors with the driver's services (``/motor_driver/zero``, ``/motor_driver/enable``) as on the rig.
+``soft-arm-experiment <task> --emulated-hardware`` does all of that.
+
+Parameters: ``config/emulator.yaml`` holds ``rig.emulator.*`` (validated, see ``SCHEMA``) and the
+``rig.motors`` values of the emulated motors (interface ``virtual``, their firmware torque range),
+laid over ``rig.yaml`` beneath the node's own ``rig.motors.*``; ``rig.mocap.*`` as the bridge reads
+them; ``plant.*`` and ``arm.*``. A bad value names the key and what is allowed (exit status 2).
+"""
+from __future__ import annotations
+
+import ipaddress
+import json
+import os
+import sys
+import time
+
+import can
+import numpy as np
+
+from soft_arm_drivers.can.motor_driver_node import MotorDriverNode
+from soft_arm_drivers.mocap.mocap_bridge_node import load_node_config
+from soft_arm_drivers.mocap.natnet import SUPPORTED_VERSIONS
+from soft_arm_model import ArmData, marker_positions
+from soft_arm_model.parameters import (ConfigError, apply_overrides, default_config_dir, flatten_tree,
+                                       read_parameters, validate_tree)
+from soft_arm_ros.parameters import NodeParameters, parameter_overrides
+from soft_arm_ros.runtime import run_node
+
+from .can_emulator import CanMotorEmulator, EmulatorThread
+from .natnet_emulator import NatNetEmulator
+from .plant_config import plant_of
+from .simulated_rig import Plant
+
+NAMESPACE = "rig.emulator"
+_VERSIONS = [f"{v.major}.{v.minor}" for v in SUPPORTED_VERSIONS]
+SCHEMA = {
+    "reply_delay": ("float", lambda v: 0 <= v <= 0.01, "a delay in [0, 0.01] s from a frame to its reply"),
+    "zero_spread": ("float", lambda v: 0 <= v <= 10,
+                    "an angle in [0, 10] rad: the motors' zeros at power-up are uniform in +-zero_spread"),
+    "natnet_version": ("str", lambda v: v in _VERSIONS, f"a NatNet stream version among {_VERSIONS}"),
+    "seed": ("int", lambda v: v >= 0, "an integer >= 0"),
+}
+
+
+def read_emulator_file(path: str | None = None) -> tuple[dict, dict]:
+    """``config/emulator.yaml`` (or ``path``): its ``rig.emulator`` tree and its ``rig.motors``
+    values (dotted, relative to rig.motors; validated when laid over rig.yaml)."""
+    path = path or os.path.join(default_config_dir(), "emulator.yaml")
+    rig = read_parameters(path).get("rig")
+    emulator = rig.get("emulator") if isinstance(rig, dict) else None
+    motors = rig.get("motors", {}) if isinstance(rig, dict) else None
+    if not isinstance(emulator, dict) or not isinstance(motors, dict):
+        raise ConfigError(f"{path}: expected 'rig.emulator' and 'rig.motors' parameters under "
+                          f"/**.ros__parameters")
+    # strings quoted: an override's string value is read as YAML
+    return emulator, {k: json.dumps(v) if isinstance(v, str) else v
+                      for k, v in flatten_tree(motors).items()}
+
+
+def load_emulator_config(path: str | None = None, overrides: dict | None = None) -> dict:
+    """``rig.emulator`` of ``config/emulator.yaml`` (or ``path``) with dotted overrides relative to
+    it: validated values by key. Raises ConfigError naming ``rig.emulator.<key>``."""
+    tree, _ = read_emulator_file(path)
+    return validate_tree(apply_overrides(tree, overrides, SCHEMA, NAMESPACE), SCHEMA, NAMESPACE)
+
+
+class EmulatedRigNode(MotorDriverNode):
+    """The ``motor_driver`` node (same name, topics, services and parameters) with the emulated
+    motors on its bus and the NatNet server emulator of the same plant. :meth:`close` closes the
+    driver first (its zero-torque and exit-motor-mode frames reach the emulated motors), then the
+    emulators."""
+
+    def __init__(self, config_dir: str | None = None, **node_options):
+        self._dir = config_dir or default_config_dir()
+        _, motors = read_emulator_file(os.path.join(self._dir, "emulator.yaml"))
+        self._can_thread = self._natnet = self._bus = None
+        self._reported_error = False
+        super().__init__(self._dir, defaults=motors, **node_options)
+        try:
+            self._start_emulators()
+        except BaseException:
+            self.close()
+            raise
+        self.create_timer(1.0, self._check_emulators)
+
+    def check_config(self, config):
+        """Everything the emulation needs is checked before the driver opens its bus."""
+        if config.interface != "virtual":
+            raise ConfigError(f"rig.motors.interface = {config.interface!r} is not valid for the "
+                              f"emulated rig: expected 'virtual' (the emulated motors share the bus "
+                              f"in this process)")
+        self.emulator_config = load_emulator_config(os.path.join(self._dir, "emulator.yaml"),
+                                                    parameter_overrides(self, NAMESPACE))
+        self.mocap_config = load_node_config(self, self._dir)
+        if not ipaddress.IPv4Address(self.mocap_config.server_address).is_loopback:
+            raise ConfigError(f"rig.mocap.server_address = {self.mocap_config.server_address!r} is "
+                              f"not valid for the emulated rig: expected a loopback address (127.0.0.1)")
+        params = NodeParameters(self, self._dir)
+        self.arm = params.arm
+        self.plant_config = plant_of(params, self.arm)
+
+    def _start_emulators(self):
+        c, emulator, mocap = self.config, self.emulator_config, self.mocap_config
+        p = self.plant_config
+        plant = Plant.of(self.arm, p)
+        plant.settle(np.zeros(plant.model.n_tendons))           # hanging, tendons slack
+        self._bus = can.Bus(interface="virtual", channel=c.channel, preserve_timestamps=True)
+        motors = CanMotorEmulator.for_config(
+            c, self._bus, plant, reply_delay=emulator["reply_delay"],
+            encoder_resolution=p.encoder_resolution, zero_spread=emulator["zero_spread"],
+            seed=emulator["seed"], start_time=time.time())
+        self._can_thread = EmulatorThread(motors).start()
+        rng = np.random.default_rng(p.mocap_seed)
+        data = ArmData(plant.model)
+
+        def markers(t: float) -> np.ndarray:
+            """On the NatNet thread: the plant at the exposure time ``t`` [s, system time]."""
+            true = marker_positions(plant.model, motors.configuration_at(t), data)
+            return true + rng.normal(0.0, p.mocap_noise, true.shape)
+
+        ids = {"rigid_body_ids" if mocap.source == "rigid_bodies" else "labeled_marker_ids": mocap.ids}
+        try:
+            self._natnet = NatNetEmulator(
+                markers, version=emulator["natnet_version"], rate=p.mocap_rate, layout="both",
+                calibration=mocap.calibration, address=mocap.server_address,
+                command_port=mocap.command_port, latency=p.mocap_latency, **ids).start()
+        except OSError as exc:
+            raise ConfigError(f"rig.mocap.command_port = {mocap.command_port}: the emulated Motive "
+                              f"server cannot bind {mocap.server_address}:{mocap.command_port}: "
+                              f"{exc.strerror}") from None
+        self.get_logger().info(
+            f"emulated rig: motors on virtual bus {c.channel!r} with the plant of plant.yaml, NatNet "
+            f"server on {mocap.server_address}:{self._natnet.command_port} at {p.mocap_rate:g} Hz")
+
+    def _check_emulators(self):
+        """An emulator thread that died is hardware gone: the driver faults on the silence; say why."""
+        error = self._can_thread.error if self._can_thread is not None else None
+        if error is not None and not self._reported_error:
+            self._reported_error = True
+            self.get_logger().fatal(f"the emulated motors stopped: {error!r}")
+
+    def close(self):
+        """The driver's close (zero torque, exit motor mode), then the emulators; idempotent."""
+        thread, natnet, bus = self._can_thread, self._natnet, self._bus
+        self._can_thread = self._natnet = self._bus = None
+        try:
+            super().close()
+        finally:
+            try:
+                if thread is not None:
+                    thread.stop()
+            finally:
+                try:
+                    if natnet is not None:
+                        natnet.close()
+                finally:
+                    if bus is not None:
+                        bus.shutdown()
+
+
+def main(args=None) -> int:
+    # three threads share the interpreter (driver, motors, Motive): hand it over every 0.5 ms
+    # rather than every 5 ms, so that a waiting thread is not held for a whole driver period
+    sys.setswitchinterval(5e-4)
+    return run_node(EmulatedRigNode, "emulated_rig", args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

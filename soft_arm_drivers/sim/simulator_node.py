@@ -1,0 +1,170 @@
+"""``simulator`` node: the Variable-Strain model as the plant, standing in for the rig.
+
+Publishes what the motor driver and the mocap bridge publish on the rig: ``tendon/state``
+(position: encoder shortening [m], velocity [m/s], effort: applied tension [N]), ``mocap/markers``
+and ``mocap/tip`` (mid-exposure stamps, at the mocap rate, with noise and latency), plus ``/clock``
+and ``arm/shape`` (MarkerArray). Subscribes ``tendon/command`` (effort: tensions [N]).
+
+Modes (``graph.simulator.mode``): ``lockstep`` advances one inner-loop period per received command
+(deterministic, as fast as the graph answers); ``realtime`` advances on the wall clock. A command
+that is missing (lockstep: none within ``command_timeout`` of wall time; realtime: older than
+``command_timeout`` of sim time) or malformed holds the last tension and is counted, never a crash.
+The plant's parameters are ``plant.*`` over ``arm.*``, so plant and controller models differ.
+"""
+from __future__ import annotations
+
+import sys
+import time
+
+import numpy as np
+from geometry_msgs.msg import Point, PoseArray, PoseStamped
+from rclpy.node import Node
+from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import JointState
+from visualization_msgs.msg import Marker, MarkerArray
+
+from soft_arm_control.config import control_of, task_of
+from soft_arm_model import build_model, solve_equilibrium, tendon_lengths
+from soft_arm_ros.contract import FRAME, QOS, TOPICS
+from soft_arm_ros.conversions import (joint_state, ordered, pose_array, pose_stamped, seconds_to_stamp,
+                                      stamp_to_seconds)
+from soft_arm_ros.parameters import NodeParameters
+from soft_arm_ros.runtime import run_node
+
+from .plant_config import plant_of
+from .simulated_rig import SimulatedRig
+
+
+class SimulatorNode(Node):
+    def __init__(self, config_dir: str | None = None, watchdog: bool = True, **node_options):
+        """``watchdog``: in lockstep, step on the held tension when no command comes within
+        ``command_timeout`` of wall time (off when a wave executor guarantees delivery)."""
+        super().__init__("simulator", allow_undeclared_parameters=True,
+                         automatically_declare_parameters_from_overrides=True, **node_options)
+        params = NodeParameters(self, config_dir)
+        arm, graph = params.arm, params.graph
+        self.control = control = control_of(params, arm)
+        self.plant = plant = plant_of(params, arm)
+        task = task_of(params, arm)
+        model = build_model(arm)                       # the controller's view of start-up
+        pretension = np.full(model.n_tendons, control.tension_min)
+        q_rest = solve_equilibrium(model, pretension).q
+        offset = model.rest_tendon_lengths - tendon_lengths(model, q_rest)
+        self.rig = SimulatedRig(build_model(plant.plant_arm(arm)), plant, offset, pretension,
+                                task.payload)
+        self.names = model.tendon_names
+        self.steps_per_command = max(1, int(round(1.0 / (control.inner_rate * plant.timestep))))
+        self.mode = graph["simulator.mode"]
+        self.timeout = graph["simulator.command_timeout"]
+        shape_rate = graph["simulator.shape_rate"]
+        self.shape_every = max(1, int(round(1.0 / (shape_rate * plant.timestep)))) if shape_rate else 0
+        self.tension = pretension
+        self.last_command_t = None
+        self.missing_commands = 0
+        self.bad_commands = 0
+        self.state_pub = self.create_publisher(JointState, TOPICS["state"], QOS["tendon/state"])
+        self.markers_pub = self.create_publisher(PoseArray, TOPICS["markers"], QOS["mocap/markers"])
+        self.tip_pub = self.create_publisher(PoseStamped, TOPICS["tip"], QOS["mocap/tip"])
+        self.clock_pub = self.create_publisher(Clock, TOPICS["clock"], QOS["/clock"])
+        self.shape_pub = self.create_publisher(MarkerArray, TOPICS["shape"], QOS["arm/shape"])
+        sub = self.create_subscription(JointState, TOPICS["command"], self.on_command,
+                                       QOS["tendon/command"])
+        self.command_topic = sub.topic_name
+        self.waiting_since = time.monotonic()
+        period = 1.0 / control.inner_rate
+        if self.mode == "realtime":
+            self.create_timer(period, self.advance)
+        elif watchdog:
+            self.create_timer(self.timeout, self.watchdog)
+        self._started = False
+        self.start_timer = self.create_timer(0.01, self.start)
+        self.get_logger().info(
+            f"simulator ({self.mode}) ready: plant E x{plant.youngs_modulus_scale}, viscosity "
+            f"x{plant.viscosity_scale}, friction {list(plant.friction)}")
+
+    def start(self):
+        """Publish the state at t = 0 once, as soon as a controller (a publisher of
+        ``tendon/command``) and a mocap consumer are there; lockstep: the first command answers it."""
+        if self._started or self.count_publishers(self.command_topic) == 0 \
+                or self.markers_pub.get_subscription_count() == 0:
+            return
+        self.start_timer.cancel()
+        self._started = True
+        self.publish_state()
+
+    def on_command(self, msg: JointState):
+        try:
+            u = ordered(msg, "effort", self.names)
+            if not np.all(np.isfinite(u)):
+                raise ValueError("non-finite tension")
+        except ValueError as exc:
+            self.bad_commands += 1
+            self.get_logger().warning(f"command ignored: {exc}", throttle_duration_sec=1.0)
+            return
+        self.tension = np.clip(u, 0.0, None)
+        self.last_command_t = stamp_to_seconds(msg.header.stamp)
+        if self.mode == "lockstep":
+            self.advance()
+
+    def watchdog(self):
+        """Lockstep: no command for ``command_timeout`` of wall time: step on the held tension."""
+        if self._started and time.monotonic() - self.waiting_since > self.timeout:
+            self.missing_commands += 1
+            self.advance()
+
+    def advance(self):
+        """One inner-loop period of the plant under the current tension, then publish."""
+        if self.mode == "realtime" and (self.last_command_t is None
+                                        or self.rig.t - self.last_command_t > self.timeout):
+            self.missing_commands += 1
+        for _ in range(self.steps_per_command):
+            self._step()
+        self.publish_state()
+
+    def _publish_frames(self, frames):
+        for frame in frames:
+            self.markers_pub.publish(pose_array(frame.markers, frame.stamp))
+            self.tip_pub.publish(pose_stamped(frame.markers[-1], frame.stamp))
+
+    def _step(self):
+        _, delivered = self.rig.begin_step()
+        self._publish_frames(delivered)
+        if self.shape_every and self.rig.step_index % self.shape_every == 0:
+            self.shape_pub.publish(self.shape())
+        self.rig.end_step(self.tension)
+
+    def publish_state(self):
+        """Sense the current state (mocap frames due now go out first), publish state and clock."""
+        _, delivered = self.rig.begin_step()
+        self._publish_frames(delivered)
+        t = self.rig.t
+        s, sd = self.rig.tendons()
+        self.state_pub.publish(joint_state(self.names, t, position=s, velocity=sd,
+                                           effort=self.rig.tension))
+        clock = Clock()
+        seconds_to_stamp(clock.clock, t)
+        self.clock_pub.publish(clock)
+        self.waiting_since = time.monotonic()
+
+    def shape(self) -> MarkerArray:
+        """The backbone at the sensed state as a line strip in arm_base."""
+        m = Marker()
+        m.header.frame_id = FRAME
+        seconds_to_stamp(m.header.stamp, self.rig.t)
+        m.ns, m.id, m.type, m.action = "backbone", 0, Marker.LINE_STRIP, Marker.ADD
+        m.scale.x = 0.01
+        m.color.r, m.color.g, m.color.b, m.color.a = 0.9, 0.5, 0.1, 1.0
+        m.pose.orientation.w = 1.0
+        m.points = [Point(x=float(p[0]), y=float(p[1]), z=float(p[2]))
+                    for p in self.rig.plant.stepper.data.p]
+        out = MarkerArray()
+        out.markers.append(m)
+        return out
+
+
+def main(args=None) -> int:
+    return run_node(SimulatorNode, "simulator", args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

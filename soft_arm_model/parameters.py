@@ -1,0 +1,192 @@
+"""The parameter engine every soft_arm config file goes through (ROS 2 parameter layout).
+
+A parameter file holds ``<node>: {ros__parameters: {<namespace>: {...}}}`` (``/**`` applies to every
+node). A schema maps dotted keys to ``(kind, check, allowed)``; kinds are float, int, bool, str and
+their lists floats, ints, strs. Every key is required (a value is never silently defaulted), every
+value is checked, and a bad one raises :class:`ConfigError` naming ``namespace.key``, the value and
+what is allowed. Overrides are dotted keys relative to the namespace, applied before validation so
+that an override is checked like a value from the file. Numbers follow ROS 2's YAML rules.
+"""
+from __future__ import annotations
+
+import copy
+import difflib
+import math
+import os
+import re
+import sys
+from typing import Any, Mapping
+
+import yaml
+
+
+class _RosYamlLoader(yaml.SafeLoader):
+    """Safe YAML loader that reads ``1.5e5`` as a float, as ROS 2's parameter parser does
+    (PyYAML's YAML 1.1 resolver would read it as a string)."""
+
+
+_RosYamlLoader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"^[-+]?(?:[0-9][0-9_]*)(?:\.[0-9_]*)?[eE][-+]?[0-9]+$"),
+    list("-+0123456789"))
+
+
+def parse_yaml(text):
+    """Parse YAML text with ROS 2's number rules."""
+    return yaml.load(text, Loader=_RosYamlLoader)  # noqa: S506 - a SafeLoader subclass
+
+
+class ConfigError(ValueError):
+    """A configuration value is missing, unknown or out of range."""
+
+
+def flatten_tree(tree: Mapping, prefix: str = "") -> dict:
+    """The leaves of a nested parameter tree by dotted key."""
+    flat = {}
+    for k, v in tree.items():
+        key = f"{prefix}{k}"
+        if isinstance(v, Mapping):
+            flat.update(flatten_tree(v, key + "."))
+        else:
+            flat[key] = v
+    return flat
+
+
+def _coerce(full_key: str, value: Any, kind: str, allowed: str):
+    def bad():
+        return ConfigError(f"{full_key} = {value!r} is not valid: expected {allowed}")
+
+    def scalar(v, k):
+        if k == "float":
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(float(v)):
+                raise bad()
+            return float(v)
+        if k == "int":
+            if isinstance(v, bool) or not isinstance(v, int):
+                raise bad()
+            return int(v)
+        if k == "bool":
+            if not isinstance(v, bool):
+                raise bad()
+            return v
+        if not isinstance(v, str):
+            raise bad()
+        return v
+
+    if kind in ("floats", "ints", "strs"):
+        if not isinstance(value, (list, tuple)):
+            raise bad()
+        return tuple(scalar(v, kind[:-1]) for v in value)
+    return scalar(value, kind)
+
+
+def _unknown_key(namespace: str, key: str, known) -> ConfigError:
+    close = difflib.get_close_matches(key, list(known), n=3)
+    hint = f"; did you mean {', '.join(namespace + '.' + c for c in close)}?" if close else ""
+    return ConfigError(f"unknown key {namespace}.{key}{hint}")
+
+
+def apply_overrides(params: dict, overrides: Mapping[str, Any] | None, schema: Mapping,
+                    namespace: str) -> dict:
+    """Return a copy of a parameter tree with dotted-key overrides applied.
+
+    Keys are relative to ``namespace`` (a leading ``namespace.`` is accepted). String values are
+    parsed as YAML (``"2e5"`` -> 200000.0, ``"[1, 2]"`` -> list). A key that ``schema`` does not
+    know raises :class:`ConfigError` with the closest known keys.
+    """
+    out = copy.deepcopy(params)
+    for key, value in (overrides or {}).items():
+        key = key[len(namespace) + 1:] if key.startswith(namespace + ".") else key
+        if not any(_matches(key, k) for k in schema):
+            raise _unknown_key(namespace, key, schema)
+        if isinstance(value, str):
+            try:
+                value = parse_yaml(value)
+            except yaml.YAMLError as exc:
+                raise ConfigError(f"{namespace}.{key}: cannot parse {value!r}: {exc}") from None
+        node = out
+        *parents, leaf = key.split(".")
+        for part in parents:
+            node = node.setdefault(part, {})
+        node[leaf] = value
+    return out
+
+
+def _matches(key: str, pattern: str) -> bool:
+    """Schema keys may hold one ``*`` path element (a name chosen by the user, e.g. a task name)."""
+    if "*" not in pattern:
+        return key == pattern
+    parts, pparts = key.split("."), pattern.split(".")
+    return len(parts) == len(pparts) and all(p == "*" or p == k for k, p in zip(parts, pparts))
+
+
+def validate_tree(params: Mapping, schema: Mapping, namespace: str) -> dict:
+    """Check a parameter tree against ``schema`` (dotted key -> (kind, check, allowed)).
+
+    Returns the coerced values by dotted key. Unknown and missing keys and values that fail their
+    check raise :class:`ConfigError` naming ``namespace.key``, the value and what is allowed.
+    Patterns with a ``*`` element match any name there; they are optional as a group.
+    """
+    flat = flatten_tree(params)
+    for key in flat:
+        if not any(_matches(key, k) for k in schema):
+            raise _unknown_key(namespace, key, schema)
+    missing = [k for k in schema if "*" not in k and k not in flat]
+    if missing:
+        raise ConfigError(f"missing key {namespace}.{missing[0]} (expected {schema[missing[0]][2]})")
+    values = {}
+    for key, raw in flat.items():
+        pattern = next(k for k in schema if _matches(key, k))
+        kind, check, allowed = schema[pattern]
+        values[key] = _coerce(f"{namespace}.{key}", raw, kind, allowed)
+        if check is not None and not check(values[key]):
+            raise ConfigError(f"{namespace}.{key} = {raw!r} is not valid: expected {allowed}")
+    return values
+
+
+def default_config_dir() -> str:
+    """The package's ``config/`` directory: the source tree, or ``share/soft_arm/config`` once installed."""
+    here = os.path.dirname(os.path.abspath(__file__))
+    candidates = [os.path.join(os.path.dirname(here), "config"),
+                  os.path.join(sys.prefix, "share", "soft_arm", "config")]
+    try:  # a sourced ROS 2 installation (colcon install space)
+        from ament_index_python.packages import get_package_share_directory
+        candidates.insert(0, os.path.join(get_package_share_directory("soft_arm"), "config"))
+    except Exception:  # noqa: BLE001 - ament_index is optional outside a ROS installation
+        pass
+    for path in candidates:
+        if os.path.isfile(os.path.join(path, "arm.yaml")):
+            return path
+    raise ConfigError("cannot find the soft_arm config directory (looked in: " + ", ".join(candidates) + ")")
+
+
+def read_parameters(path: str, node: str = "/**") -> dict:
+    """Return the ``ros__parameters`` mapping of ``node`` in a ROS 2 parameter file."""
+    try:
+        with open(path, encoding="utf-8") as fh:
+            doc = parse_yaml(fh)
+    except OSError as exc:
+        raise ConfigError(f"cannot read config file {path}: {exc.strerror}") from None
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{path} is not valid YAML: {exc}") from None
+    if not isinstance(doc, dict) or node not in doc or "ros__parameters" not in (doc[node] or {}):
+        raise ConfigError(f"{path}: expected '{node}: {{ros__parameters: ...}}' (ROS 2 parameter layout)")
+    return doc[node]["ros__parameters"]
+
+
+def load_section(path: str, namespace: str, schema: Mapping, overrides: Mapping[str, Any] | None = None,
+                 node: str = "/**") -> dict:
+    """Validated values (dotted key -> value) of ``namespace`` in the parameter file ``path``, with
+    ``overrides`` applied first; a ConfigError names the file."""
+    params = read_parameters(path, node)
+    tree = params
+    for part in namespace.split("."):
+        if not isinstance(tree, dict) or part not in tree:
+            raise ConfigError(f"{path}: no '{namespace}' parameters under {node}.ros__parameters")
+        tree = tree[part]
+    if not isinstance(tree, dict):
+        raise ConfigError(f"{path}: no '{namespace}' parameters under {node}.ros__parameters")
+    try:
+        return validate_tree(apply_overrides(tree, overrides, schema, namespace), schema, namespace)
+    except ConfigError as exc:
+        raise ConfigError(f"{path}: {exc}") from None

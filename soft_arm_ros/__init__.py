@@ -1,0 +1,11 @@
+"""ROS 2 plumbing shared by every soft_arm node, controller and drivers alike.
+
+- :mod:`.contract`: topic names, message types, QoS, the ``arm_base`` frame;
+- :mod:`.conversions`: messages to and from numpy;
+- :mod:`.parameters`: a node's validated parameters (package config files + its own values);
+- :mod:`.runtime`: the executor and the process life of a node (signals, clean exit, status 2 on a
+  bad parameter).
+
+It sits below both ``soft_arm_control`` and ``soft_arm_drivers`` and imports neither; the ROS-free
+parameter engine it builds on is :mod:`soft_arm_model.parameters`.
+"""

@@ -1,0 +1,45 @@
+"""The graph's contract: topic names, their message types and QoS, the frame of every pose.
+
+Topics are relative names (a node moved under a namespace, or remapped, keeps the wiring). Streams
+(state, command, mocap, shape, clock) are best effort with depth 1: a late sample is worth nothing.
+Goals and references are state: reliable and transient-local, so that the last one reaches a node
+that starts late. The README's topic table is this module in prose.
+"""
+from __future__ import annotations
+
+import importlib
+
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+from soft_arm_model.parameters import ConfigError
+
+FRAME = "arm_base"
+TOPICS = {
+    "command": "tendon/command", "state": "tendon/state", "reference": "tendon/reference",
+    "markers": "mocap/markers", "tip": "mocap/tip", "goal": "task/goal",
+    "configuration": "arm/configuration_reference", "shape": "arm/shape", "clock": "/clock",
+}
+TYPES = {
+    "tendon/command": "sensor_msgs/msg/JointState", "tendon/state": "sensor_msgs/msg/JointState",
+    "tendon/reference": "sensor_msgs/msg/JointState", "mocap/markers": "geometry_msgs/msg/PoseArray",
+    "mocap/tip": "geometry_msgs/msg/PoseStamped", "task/goal": "std_msgs/msg/Float64MultiArray",
+    "arm/configuration_reference": "std_msgs/msg/Float64MultiArray",
+    "arm/shape": "visualization_msgs/msg/MarkerArray", "/clock": "rosgraph_msgs/msg/Clock",
+}
+STREAM = QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT,
+                    history=HistoryPolicy.KEEP_LAST)
+# goals and references are state: the last one is kept for subscribers that join late
+RELIABLE = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                      history=HistoryPolicy.KEEP_LAST, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+QOS = {"tendon/command": STREAM, "tendon/state": STREAM, "mocap/markers": STREAM, "mocap/tip": STREAM,
+       "arm/shape": STREAM, "/clock": STREAM, "tendon/reference": RELIABLE, "task/goal": RELIABLE,
+       "arm/configuration_reference": RELIABLE}
+
+
+def message_class(type_name: str):
+    """The rclpy message class of ``pkg/msg/Type``; ConfigError if it is not installed."""
+    package, _, name = type_name.partition("/msg/")
+    try:
+        return getattr(importlib.import_module(f"{package}.msg"), name)
+    except (ImportError, AttributeError, ValueError):
+        raise ConfigError(f"unknown message type {type_name!r}") from None

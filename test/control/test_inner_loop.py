@@ -1,0 +1,128 @@
+"""P-satI-D+: the law itself, and regulation of a simulated arm with and without model error."""
+import numpy as np
+import pytest
+
+from soft_arm_control.actuation_map import ActuationMap
+from soft_arm_control.collocated import CollocatedData, build_collocated, evaluate_collocated
+from soft_arm_control.inner_loop import InnerLoopGains, PSatID
+from soft_arm_drivers.sim.simulated_rig import Plant
+from soft_arm_model import solve_equilibrium
+
+ALL = (0, 1, 2, 3)
+NO_FRICTION = {"tendons.friction": [0.0] * 4}
+
+
+def _gains(kp=1500.0, kd=120.0, ki=3000.0, u_max=5.0, rate=0.0, n=4):
+    return InnerLoopGains(np.full(n, kp), np.full(n, kd), np.full(n, ki), 0.01, 0.05, u_max, rate)
+
+
+def test_one_step_is_the_paper_law():
+    g = InnerLoopGains(np.array([100.0, 200.0]), np.array([3.0, 4.0]), np.array([10.0, 20.0]), 0.01,
+                       0.0, 50.0)
+    pid = PSatID(g, ActuationMap.identity(), (1, 3), 4)
+    s, sd, s_ref, u_ff = np.array([0, 0.01, 0, 0.02]), np.array([0, 0.1, 0, -0.2]), \
+        np.array([0, 0.015, 0, 0.01]), np.array([1.0, 2.0])
+    pid.update(0.0, s, sd, s_ref, u_ff)
+    u = pid.update(0.5, s, sd, s_ref, u_ff)
+    e = np.array([0.005, -0.01])
+    xi = 0.5 * 0.01 * np.tanh(e / 0.01)
+    expected = g.proportional * e - g.derivative * np.array([0.1, -0.2]) + g.integral * xi + u_ff
+    assert np.allclose(u[[1, 3]], expected)
+    assert np.allclose(u[[0, 2]], 0.0)      # inactive tendons hold the pretension (0 here)
+    assert np.allclose(pid.xi, xi)
+
+
+def test_rejects_bad_input_and_keeps_its_state():
+    pid = PSatID(_gains(), ActuationMap.identity(), ALL, 4)
+    z = np.zeros(4)
+    pid.update(1.0, z, z, z + 0.001, z)
+    xi = pid.xi.copy()
+    with pytest.raises(ValueError, match="non-finite"):
+        pid.update(1.1, np.array([0, np.nan, 0, 0]), z, z, z)
+    with pytest.raises(ValueError, match="earlier"):
+        pid.update(0.5, z, z, z, z)
+    assert np.array_equal(pid.xi, xi) and pid.t == 1.0
+    with pytest.raises(ValueError, match=">= 0"):
+        _gains(kp=-1.0)
+    with pytest.raises(ValueError, match="tension_min < tension_max"):
+        InnerLoopGains(np.ones(4), np.ones(4), np.ones(4), 0.01, 5.0, 1.0)
+
+
+def test_rate_limit_and_clipping():
+    pid = PSatID(_gains(rate=10.0), ActuationMap.identity(), ALL, 4)
+    z = np.zeros(4)
+    u0 = pid.update(0.0, z, z, z, z)
+    u1 = pid.update(0.01, z, z, z + 1.0, z)          # a huge error asks for far more than 5 N
+    assert np.allclose(u1 - u0, 0.1)                   # 10 N/s over 10 ms
+    for k in range(2, 200):
+        u = pid.update(0.01 * k, z, z, z + 1.0, z)
+        assert np.all(u <= 5.0) and np.all(u >= 0.05)
+    assert np.allclose(u, 5.0)
+
+
+def _regulate(ctrl_model, plant_model, u_target, gains, duration, rotor_mass=0.6, dt=1e-3):
+    """Inner loop alone on a simulated plant, reference = the controller model's equilibrium at
+    u_target. Returns (times, shortening errors, tensions, integral states, plant, q_d)."""
+    cm = build_collocated(ctrl_model, ALL, friction=False)
+    q_d = solve_equilibrium(ctrl_model, np.asarray(u_target, dtype=float), friction=False).q
+    cd = evaluate_collocated(cm, CollocatedData(cm), q_d)
+    s_d, u_ff = cd.shortening.copy(), cd.u_eq.copy()
+    plant = Plant(plant_model, dt, rotor_mass)
+    plant.settle(np.full(4, gains.tension_min))
+    pid = PSatID(gains, ActuationMap.identity(), ALL, 4)
+    log = []
+    for k in range(int(round(duration / dt))):
+        t = k * dt
+        plant.sense()
+        if k % 2 == 0:
+            s, sd = plant.tendons()
+            u = pid.update(t, s, sd, s_d, u_ff)
+            log.append((t, s - s_d, u, pid.xi.copy()))
+        plant.step(u)
+    t, e, u, xi = (np.array(v) for v in zip(*log))
+    return t, e, u, xi, plant, q_d
+
+
+def test_exact_model_regulates_to_zero_error(model_factory):
+    model = model_factory(**NO_FRICTION)
+    t, e, u, _, plant, q_d = _regulate(model, model, [1.2, 0.4, 0.9, 0.3], _gains(), 12.0)
+    assert np.abs(e[-1]).max() < 1e-5 * np.abs(e[0]).max()
+    assert np.abs(plant.q - q_d).max() < 1e-4        # theta_u lands on the model's equilibrium too
+    assert np.allclose(u[-1], [1.2, 0.4, 0.9, 0.3], atol=1e-3)
+
+
+def test_integral_removes_the_offset_under_model_error(model_factory):
+    model = model_factory(**NO_FRICTION)
+    stiffer = model_factory(**NO_FRICTION, **{"material.youngs_modulus": 1.8e5})
+    target = [1.2, 0.4, 0.9, 0.3]
+    _, e_i, _, _, _, _ = _regulate(model, stiffer, target, _gains(), 8.0)
+    _, e_p, _, _, _, _ = _regulate(model, stiffer, target, _gains(ki=0.0), 8.0)
+    assert np.abs(e_p[-1]).max() > 5e-5                # P-D with feedforward leaves an offset
+    assert np.abs(e_i[-1]).max() < 0.02 * np.abs(e_p[-1]).max()   # the integral removes it
+    assert np.abs(e_p[-1] - e_p[-100]).max() < 1e-6    # and the offset is a steady one
+
+
+def test_saturation_keeps_tensions_in_limits_and_the_integral_bounded(model_factory):
+    """A reference that needs 4.5 N with a 3 N ceiling: tensions stay in [0.05, 3] N and the
+    integral stops growing once the output saturates (conditional integration)."""
+    model = model_factory(**NO_FRICTION)
+    t, e, u, xi, _, _ = _regulate(model, model, [4.5, 0.3, 0.3, 0.3], _gains(u_max=3.0), 6.0)
+    assert u.min() >= 0.05 and u.max() <= 3.0
+    assert np.allclose(u[-1, 0], 3.0)
+    late = t > 3.0
+    assert np.abs(xi[late, 0] - xi[late][0, 0]).max() < 1e-12   # frozen on the saturated tendon
+    assert np.abs(xi).max() < 0.01 * 6.0               # below the rate bound e_sat x time
+
+
+def test_tendon_controller_regulates_the_task_tendons_and_honours_the_feedforward_switch():
+    from soft_arm_control.inner_loop import TendonController
+    s = np.array([0.01, 0.02, 0.03, 0.04])
+    with_ff = TendonController(4, _gains(), ActuationMap.identity(), (2, 3))
+    without = TendonController(4, _gains(), ActuationMap.identity(), (2, 3), feedforward=False)
+    assert np.allclose(with_ff.update(0.0, s, 0 * s), 0.05)          # no reference: pretension
+    for tc in (with_ff, without):
+        tc.set_reference(s, [0.3, 0.4, 1.5, 2.5])                     # on target: only u_ff left
+    assert np.allclose(with_ff.update(0.0, s, 0 * s), [0.3, 0.4, 1.5, 2.5])
+    assert np.allclose(without.update(0.0, s, 0 * s), [0.3, 0.4, 0.05, 0.05])
+    with pytest.raises(ValueError, match="finite"):
+        with_ff.set_reference([np.nan] * 4, [0.3] * 4)

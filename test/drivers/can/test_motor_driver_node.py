@@ -1,0 +1,298 @@
+"""The motor_driver node on real rclpy: in-process with the CAN emulator (and the arm behind it) on a
+python-can ``virtual`` bus served in real time; services, topics and diagnostics; rig.yaml through
+ROS's own parameter parser; a bad parameter; SIGTERM takes the motors out of motor mode."""
+import itertools
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import can
+import numpy as np
+import pytest
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.parameter import Parameter
+from sensor_msgs.msg import JointState
+from std_srvs.srv import SetBool, Trigger
+
+from soft_arm_drivers.can.motor_driver import load_driver_config
+from soft_arm_drivers.can.motor_driver_node import MotorDriverNode, main
+from soft_arm_drivers.sim.can_emulator import CanMotorEmulator, EmulatorThread, arm_plant
+from soft_arm_model.parameters import ConfigError, default_config_dir
+from soft_arm_ros.contract import QOS
+from soft_arm_ros.conversions import joint_state, ordered, stamp_to_seconds
+
+NAMES = ["tendon_1", "tendon_2", "tendon_3", "tendon_4"]
+RIG_YAML = os.path.join(default_config_dir(), "rig.yaml")
+_CHANNELS = itertools.count()
+
+
+def channel():
+    return f"motor_driver_node_{os.getpid()}_{next(_CHANNELS)}"
+
+
+def rig_parameters(name, **values):
+    """Node parameters: the virtual bus ``name`` and relaxed timeouts for a loaded test machine."""
+    values = {"interface": "virtual", "channel": name, "watchdog_timeout": 0.2, "reply_timeout": 0.2,
+              **values}
+    return [Parameter(f"rig.motors.{k}", value=v) for k, v in values.items()]
+
+
+class Harness:
+    """The other side of the node: answers every tendon/state with a command (like the inner loop)
+    while ``tension`` is set, records states and diagnostics, calls the services."""
+
+    def __init__(self, context):
+        self.node = rclpy.create_node("harness", context=context)
+        self.states, self.diagnostics, self.tension = [], [], None
+        self.pub = self.node.create_publisher(JointState, "tendon/command", QOS["tendon/command"])
+        self.node.create_subscription(JointState, "tendon/state", self.on_state, QOS["tendon/state"])
+        self.node.create_subscription(DiagnosticArray, "/diagnostics", self.diagnostics.append, 10)
+        self.clients = {"enable": self.node.create_client(SetBool, "/motor_driver/enable"),
+                        "estop": self.node.create_client(Trigger, "/motor_driver/estop"),
+                        "zero": self.node.create_client(Trigger, "/motor_driver/zero")}
+
+    def on_state(self, msg):
+        self.states.append(msg)
+        if self.tension is not None:
+            self.pub.publish(joint_state(NAMES, stamp_to_seconds(msg.header.stamp), effort=self.tension))
+
+    def latest(self, field):
+        return ordered(self.states[-1], field, NAMES)
+
+    def driver_status(self):
+        return self.diagnostics[-1].status[0] if self.diagnostics else None
+
+
+def spin_until(executor, predicate, timeout=10.0):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        executor.spin_once(timeout_sec=0.005)
+        if predicate():
+            return
+    raise AssertionError(f"timed out after {timeout} s")
+
+
+def call(executor, harness, service, **fields):
+    client = harness.clients[service]
+    spin_until(executor, client.service_is_ready)
+    request = client.srv_type.Request(**fields)
+    future = client.call_async(request)
+    spin_until(executor, future.done)
+    return future.result()
+
+
+@pytest.fixture
+def context():
+    ctx = Context()
+    rclpy.init(context=ctx)
+    yield ctx
+    rclpy.try_shutdown(context=ctx)
+
+
+@pytest.fixture
+def rig(context):
+    """Emulator with the arm, served in real time; the node and the harness on one executor."""
+    name = channel()
+    cfg = load_driver_config(overrides={"interface": "virtual", "channel": name})
+    bus = can.Bus(interface="virtual", channel=name, preserve_timestamps=True)
+    emulator = CanMotorEmulator.for_config(cfg, bus, arm_plant(), reply_delay=2e-4, start_time=time.time())
+    server = EmulatorThread(emulator).start()
+    node = MotorDriverNode(context=context, parameter_overrides=rig_parameters(name))
+    harness = Harness(context)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    executor.add_node(harness.node)
+    try:
+        yield executor, node, harness, emulator
+    finally:
+        executor.shutdown()
+        node.close()
+        node.destroy_node()
+        harness.node.destroy_node()
+        server.stop()
+        bus.shutdown()
+
+
+def test_node_drives_the_emulated_rig_through_topics_and_services(rig):
+    executor, node, harness, emulator = rig
+    # disabled: the motors are polled, the state flows, stamped with the replies' (wall) time
+    spin_until(executor, lambda: len(harness.states) >= 20 and harness.driver_status() is not None)
+    state = harness.states[-1]
+    assert list(state.name) == NAMES
+    assert abs(stamp_to_seconds(state.header.stamp) - time.time()) < 0.5
+    assert harness.driver_status().message == "disabled"
+    assert not any(m.motor_mode for m in emulator.motors)
+
+    assert call(executor, harness, "zero").success
+    # from then on the shortenings count from the zeroing pose's (rig.yaml's zero_shortening)
+    spin_until(executor, lambda: np.allclose(harness.latest("position"), node.config.zero_shortening,
+                                             atol=1e-5))
+
+    response = call(executor, harness, "enable", data=True)
+    assert response.success and response.message == "enabled"
+    harness.tension = [2.5, 0.0, 0.0, 0.0]
+    start = len(harness.states)
+    spin_until(executor, lambda: len(harness.states) > start + 150)          # 0.3 s at 500 Hz
+    assert all(m.motor_mode for m in emulator.motors)
+    assert emulator.tensions[0] == pytest.approx(2.5, abs=0.45)             # one torque step: 0.88 N
+    assert harness.latest("effort")[0] == pytest.approx(2.5, abs=0.9)
+    assert harness.latest("position")[0] > 5e-3                              # tendon 1 shortened
+    # sensor stamps, one per cycle: strictly increasing, at about the rate (this process also runs
+    # the harness, the arm and rclpy's Python executor: a late tick stretches one period, and the
+    # timer's fixed grid shortens the next)
+    periods = np.diff([stamp_to_seconds(m.header.stamp) for m in harness.states[start:]])
+    assert np.all(periods > 0) and 0.0015 < np.median(periods) < 0.005
+
+    refused = call(executor, harness, "zero")
+    assert not refused.success and "disable the motors first" in refused.message
+
+    assert call(executor, harness, "estop").success
+    spin_until(executor, lambda: harness.driver_status().level == DiagnosticStatus.ERROR)
+    assert harness.driver_status().message == "fault: e-stop"
+    spin_until(executor, lambda: not any(m.motor_mode for m in emulator.motors))
+    assert all(emulator.torque(i) == 0.0 for i in range(4))
+    per_motor = harness.diagnostics[-1].status[1:]
+    assert [s.name for s in per_motor] == [f"motor_driver: {n}" for n in NAMES]
+    assert {v.key: v.value for v in per_motor[0].values}["temperature"] == "30"
+
+    response = call(executor, harness, "enable", data=True)
+    assert response.success and response.message == "enabled (cleared fault: e-stop)"
+    spin_until(executor, lambda: harness.driver_status().message == "enabled")
+    spin_until(executor, lambda: emulator.tensions[0] > 2.0)
+
+    harness.tension = None                                                   # the controller stops
+    spin_until(executor, lambda: harness.driver_status().level == DiagnosticStatus.ERROR)
+    assert harness.driver_status().message.startswith("fault: stale command")
+    spin_until(executor, lambda: emulator.tensions.max() < 0.45)          # the next plant step
+
+    response = call(executor, harness, "enable", data=False)
+    assert response.success and response.message.startswith("disabled (fault still latched: stale command")
+    spin_until(executor, lambda: not any(m.motor_mode for m in emulator.motors))
+
+
+def test_malformed_commands_are_rejected_by_the_node(rig):
+    executor, node, harness, emulator = rig
+    assert call(executor, harness, "enable", data=True).success
+    spin_until(executor, lambda: harness.pub.get_subscription_count() > 0)
+
+    def send_until_counted(msg, count):
+        deadline = time.monotonic() + 10.0
+        while count() == 0:                          # best effort, depth 1: repeat until one lands
+            assert time.monotonic() < deadline, "the command never reached the node"
+            harness.pub.publish(msg)
+            spin_until(executor, lambda: True)
+    send_until_counted(joint_state(["tendon_1"], 0.0, effort=[1.0]), lambda: node.malformed_commands)
+    send_until_counted(joint_state(NAMES, 0.0, effort=[1.0, float("nan"), 1.0, 1.0]),
+                       lambda: node.driver.rejected_commands)
+    spin_until(executor, lambda: harness.driver_status().message.startswith("fault: stale command"))
+    values = {v.key: v.value for v in harness.driver_status().values}
+    assert int(values["malformed_commands"]) >= 1 and int(values["rejected_commands"]) >= 1
+    assert emulator.tensions.max() < 0.45                     # nothing but zero torque was applied
+
+
+def test_rig_yaml_parses_with_the_ros_parameter_parser():
+    ctx = Context()
+    rclpy.init(args=["x", "--ros-args", "--params-file", RIG_YAML], context=ctx)
+    try:
+        node = rclpy.create_node("motor_driver", context=ctx, allow_undeclared_parameters=True,
+                                 automatically_declare_parameters_from_overrides=True)
+        params = {k: p.value for k, p in node.get_parameters_by_prefix("rig.motors").items()}
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=ctx)
+    assert params["interface"] == "socketcan" and params["models"] == ["AK80-9"] * 4
+    assert list(params["ids"]) == [1, 2, 3, 4] and params["rate"] == 500.0
+
+
+def test_a_bad_parameter_raises_config_error_naming_it(context):
+    with pytest.raises(ConfigError, match=r"rig.motors.max_tension = -2.0 is not valid: expected a tension "
+                                          r"in \(0, 1000\] N"):
+        MotorDriverNode(context=context,
+                        parameter_overrides=rig_parameters(channel(), max_tension=-2.0))
+
+
+def test_strings_stay_strings(context):
+    """A channel YAML 1.1 would read as a boolean reaches python-can as the string it is."""
+    node = MotorDriverNode(context=context, parameter_overrides=rig_parameters("yes"))
+    try:
+        assert node.config.channel == "yes" and node.driver.bus.channel_id == "yes"
+    finally:
+        node.close()
+        node.destroy_node()
+
+
+def test_a_bad_parameter_exits_with_status_2():
+    assert main(["motor_driver", "--ros-args", "--params-file", RIG_YAML,
+                 "-p", "rig.motors.interface:=virtual", "-p", "rig.motors.directions:=[1, 2, 1, 1]"]) == 2
+
+
+SIGTERM_SCRIPT = """
+import sys, threading, time
+import can
+from soft_arm_drivers.sim.can_emulator import CanMotorEmulator, EmulatorThread
+from soft_arm_drivers.can.motor_driver import load_driver_config
+from soft_arm_drivers.can.motor_driver_node import main
+
+name = sys.argv[1]
+cfg = load_driver_config(overrides={"interface": "virtual", "channel": name})
+bus = can.Bus(interface="virtual", channel=name, preserve_timestamps=True)
+emulator = CanMotorEmulator.for_config(cfg, bus, start_time=time.time())
+done = threading.Event()
+
+def watch():
+    seen = None
+    while not done.is_set():
+        modes = [m.motor_mode for m in emulator.motors]
+        if modes != seen:
+            print("motor modes", modes, flush=True)
+            seen = modes
+        time.sleep(0.002)
+
+watcher = threading.Thread(target=watch, daemon=True)
+with EmulatorThread(emulator):
+    watcher.start()
+    try:
+        status = main(["motor_driver", "--ros-args", "-p", "rig.motors.interface:=virtual",
+                       "-p", "rig.motors.channel:=" + name, "-p", "rig.motors.watchdog_timeout:=1.0"])
+    finally:                            # what the motors were left with, however main ended
+        time.sleep(0.05)
+        done.set()
+        watcher.join()
+        print("torques", [emulator.torque(i) for i in range(4)], flush=True)
+bus.shutdown()
+sys.exit(status)
+"""
+
+
+def test_sigterm_takes_the_motors_out_of_motor_mode(context):
+    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYTHONUNBUFFERED="1")
+    proc = subprocess.Popen([sys.executable, "-c", SIGTERM_SCRIPT, channel()], env=env, text=True,
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+    try:
+        harness = Harness(context)
+        executor = SingleThreadedExecutor(context=context)
+        executor.add_node(harness.node)
+        assert call(executor, harness, "enable", data=True).success
+        executor.shutdown()
+        harness.node.destroy_node()
+        time.sleep(0.1)
+        proc.send_signal(signal.SIGTERM)
+        out, _ = proc.communicate(timeout=20)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            out, _ = proc.communicate()
+            raise AssertionError(f"the node did not exit on SIGTERM:\n{out}")
+    # Known race in the shared run_node (soft_arm_control/ros_interface.py): a signal landing between
+    # its rclpy.ok() check and the executor's wait set lets rclpy's RCLError out (status 1) after the
+    # node was closed. The motors must be safe either way; the status is 0 otherwise.
+    assert proc.returncode == 0 or "the given context is not valid" in out, out
+    modes = [line for line in out.splitlines() if line.startswith("motor modes")]
+    assert modes[-2:] == ["motor modes [True, True, True, True]",
+                          "motor modes [False, False, False, False]"], out
+    assert "torques [0.0, 0.0, 0.0, 0.0]" in out

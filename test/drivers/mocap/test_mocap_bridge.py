@@ -1,0 +1,495 @@
+"""NatNet mocap bridge core against the emulator over real UDP on 127.0.0.1 (ephemeral ports):
+handshake and version request, frames of every stream version, marker selection and ordering,
+calibration, mid-exposure stamps, occlusion, packet faults, foreign and random packets, config."""
+import contextlib
+import random
+import socket
+import time
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings, strategies as st
+
+from soft_arm_drivers.mocap.mocap_bridge import (PACKET_OUTCOMES, BridgeConfig, Calibration, ClockMap,
+                                                 MocapBridge, load_mocap_config, rotation_matrix)
+from soft_arm_drivers.mocap.natnet import (FrameOfData, LabeledMarker, MessageId, RigidBody, ServerInfo,
+                                           Version, build_frame_of_data, build_packet, build_server_info)
+from soft_arm_drivers.sim.natnet_emulator import Faults, NatNetEmulator, plant_markers
+from soft_arm_drivers.sim.simulated_rig import Plant
+from soft_arm_model import build_model
+from soft_arm_model.parameters import ConfigError
+
+# markers of a hanging, slightly bent arm in arm_base [m], base to tip
+TRUE = np.array([[0.002, 0.001, -0.094], [0.008, 0.006, -0.187], [0.020, 0.027, -0.274],
+                 [0.041, 0.092, -0.335]])
+Y_UP = (0.7071067811865476, 0.0, 0.0, 0.7071067811865476)     # Motive's y up -> arm_base z up
+SHIFT = (0.1, -0.2, -1.2)
+VERSIONS = ["3.1", "4.0", "4.1"]
+
+SERVER_INFO = build_server_info(ServerInfo("Motive", Version(3, 1), Version(4, 1),
+                                           clock_frequency=10_000_000, data_port=1511,
+                                           multicast=False, multicast_group="233.252.0.1"))
+VALID_41 = build_frame_of_data(Version(4, 1), FrameOfData(
+    frame_number=1, rigid_bodies=tuple(RigidBody(k, (0.0, 1.0, 0.0), (0.0, 0.0, 0.0, 1.0))
+                                       for k in (1, 2, 3, 4)),
+    camera_mid_exposure=10, transmit_timestamp=20))
+OTHERS = [SERVER_INFO, build_packet(MessageId.NAT_RESPONSE, bytes(4)),
+          build_packet(MessageId.NAT_UNRECOGNIZED_REQUEST), build_packet(MessageId.NAT_KEEPALIVE)]
+
+
+def static(t):
+    return TRUE
+
+
+def config(emulator, **kw):
+    """Bridge settings for ``emulator``: its port, any data port, its ids of the chosen source."""
+    source = kw.pop("source", "rigid_bodies")
+    ids = emulator.rigid_body_ids if source == "rigid_bodies" else emulator.labeled_marker_ids
+    values = dict(command_port=emulator.command_port, data_port=0, source=source, ids=ids,
+                  rotation=Y_UP, translation=SHIFT, keepalive_period=0.05)
+    values.update(kw)
+    return BridgeConfig(**values)
+
+
+def pump(bridge, until, timeout=3.0):
+    """Poll until ``until()`` holds; the frames delivered meanwhile."""
+    frames = []
+    deadline = time.monotonic() + timeout
+    while not until():
+        assert time.monotonic() < deadline, f"timed out: {bridge.state} {bridge.note} {bridge.counters}"
+        frames += bridge.poll(0.01)
+    return frames
+
+
+def frame_packets(bridge):
+    return sum(bridge.counters[k] for k in PACKET_OUTCOMES if k != "control")
+
+
+@contextlib.contextmanager
+def connected(stream=False, source="rigid_bodies", bridge_kw=None, **emulator_kw):
+    """A started emulator and a bridge that finished its handshake with it."""
+    emulator_kw.setdefault("calibration", Calibration(rotation_matrix(Y_UP), SHIFT))
+    with NatNetEmulator(static, **emulator_kw) as emulator:
+        with MocapBridge(config(emulator, source=source, **(bridge_kw or {}))) as bridge:
+            emulator.start(stream=stream)
+            bridge.connect()
+            pump(bridge, lambda: bridge.state == "streaming")
+            yield emulator, bridge
+
+
+def step(emulator, bridge, count):
+    """Send ``count`` frames one by one; the frames the bridge delivered once all arrived."""
+    frames = []
+    backlog = emulator.counters["sent"] - frame_packets(bridge)
+    for _ in range(count):
+        emulator.send_frame()
+        frames += bridge.poll(0.0)
+    frames += pump(bridge, lambda: emulator.counters["sent"] - frame_packets(bridge) == backlog)
+    return frames
+
+
+# --- handshake, versions, streaming --------------------------------------------------------------
+
+def test_handshake_keepalives_and_streaming_at_240_hz():
+    with connected(stream=True, version="4.1", rate=240.0) as (emulator, bridge):
+        assert bridge.version == Version(4, 1) and bridge.server_info.clock_frequency == 10_000_000
+        assert bridge.server_info.app_name == "soft_arm NatNet emulator"
+        assert emulator.clients == [bridge.command_address]
+        start = time.monotonic()
+        frames = pump(bridge, lambda: time.monotonic() - start > 0.5)
+        requests = emulator.counters["requests"]
+        bridge.close()                                     # says goodbye: the server forgets it
+        deadline = time.monotonic() + 2.0
+        while emulator.clients and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert emulator.clients == []
+    assert 0.5 * 240 * 0.8 < len(frames) < 0.5 * 240 * 1.2
+    assert requests >= 5                                   # the connect and unicast keep-alives
+    numbers = [f.frame_number for f in frames]
+    assert numbers == sorted(numbers) and len(set(numbers)) == len(numbers)
+    for frame in frames:
+        np.testing.assert_allclose(frame.markers, TRUE, atol=1e-6)   # float32 on the wire
+
+
+@pytest.mark.parametrize("source", ["rigid_bodies", "labeled_markers"])
+@pytest.mark.parametrize("version", VERSIONS)
+def test_frames_of_every_version_and_source(version, source):
+    with connected(version=version, layout="both", source=source) as (emulator, bridge):
+        frames = step(emulator, bridge, 20)
+    assert bridge.version == Version(*map(int, version.split(".")))
+    assert [f.frame_number for f in frames] == list(range(1, 21))
+    assert bridge.counters["delivered"] == 20 and bridge.counters["malformed"] == 0
+    for frame in frames:
+        np.testing.assert_allclose(frame.markers, TRUE, atol=1e-6)
+
+
+def test_version_request_switches_a_4x_server():
+    with connected(version="4.1", bridge_kw={"natnet_version": "4.0"}) as (emulator, bridge):
+        frames = step(emulator, bridge, 5)
+        assert emulator.version == Version(4, 0)
+    assert bridge.version == Version(4, 0) and len(frames) == 5 and bridge.note == ""
+
+
+def test_refused_version_request_keeps_the_servers_version():
+    with connected(version="4.1", accept_bitstream=False,
+                   bridge_kw={"natnet_version": "4.0"}) as (emulator, bridge):
+        assert len(step(emulator, bridge, 5)) == 5
+    assert bridge.version == Version(4, 1) and "refused NatNet 4.0" in bridge.note
+
+
+def test_no_version_request_to_a_3x_server():
+    with connected(version="3.1", bridge_kw={"natnet_version": "4.1"}) as (emulator, bridge):
+        assert len(step(emulator, bridge, 3)) == 3
+        assert emulator.version == Version(3, 1)             # a Bitstream request would switch it
+    assert bridge.version == Version(3, 1) and "cannot switch to 4.1" in bridge.note
+
+
+def test_unanswered_version_request_times_out():
+    now = [0.0]
+    with NatNetEmulator(static) as silent:                    # bound, never answers
+        with MocapBridge(config(silent, natnet_version="4.0", timeout=0.5),
+                         clock=lambda: now[0]) as bridge:
+            bridge.connect()
+            bridge.handle_packet(SERVER_INFO, 0.1)            # NatNet 4.1
+            bridge.poll()                                     # sends the version request
+            assert bridge.state == "negotiating" and bridge.version == Version(4, 1)
+            assert bridge.handle_packet(VALID_41, 0.5) is not None   # frames go on meanwhile
+            now[0] = 0.7
+            bridge.poll()
+    assert bridge.state == "streaming" and bridge.version == Version(4, 1)
+    assert "did not answer the request for NatNet 4.0" in bridge.note
+
+
+@pytest.mark.parametrize("version, frequency, note", [
+    (Version(2, 9), None, "unsupported NatNet version 2.9"),
+    (Version(4, 2), 10_000_000, "unsupported NatNet version 4.2"),
+])
+def test_unsupported_servers_are_reported_and_their_frames_not_parsed(version, frequency, note):
+    fields = dict(clock_frequency=frequency, data_port=1511, multicast=False,
+                  multicast_group="233.252.0.1") if frequency else {}
+    info = build_server_info(ServerInfo("Motive", Version(3, 1), version, **fields))
+    with NatNetEmulator(static) as silent:
+        with MocapBridge(config(silent)) as bridge:
+            bridge.handle_packet(info, 0.0)
+            assert bridge.handle_packet(VALID_41, 0.1) is None
+    assert bridge.state == "unsupported" and note in bridge.note and bridge.version is None
+    assert bridge.counters["before_handshake"] == 1
+
+
+def test_frames_sent_to_the_data_socket():
+    """Servers that send frames to the client's data port (not its command socket) work too."""
+    with NatNetEmulator(static, version="4.1") as emulator:
+        with MocapBridge(config(emulator, rotation=(0, 0, 0, 1), translation=(0, 0, 0))) as bridge:
+            emulator.data_port = bridge.data_address[1]
+            emulator.start(stream=False)
+            bridge.connect()
+            pump(bridge, lambda: bridge.state == "streaming")
+            frames = step(emulator, bridge, 5)
+    assert len(frames) == 5
+    np.testing.assert_allclose(frames[-1].markers, TRUE, atol=1e-6)
+
+
+def test_reconnects_when_the_server_goes_silent_and_follows_its_restart():
+    with NatNetEmulator(static, calibration=Calibration(rotation_matrix(Y_UP), SHIFT)) as first:
+        port = first.command_port
+        bridge = MocapBridge(config(first, timeout=0.1))
+        first.start(stream=False)
+        bridge.connect()
+        pump(bridge, lambda: bridge.state == "streaming")
+        step(first, bridge, 5)
+    with bridge:                                              # the server is gone
+        requests = bridge.counters["connect_requests"]
+        pump(bridge, lambda: bridge.state == "stale")
+        pump(bridge, lambda: bridge.counters["connect_requests"] >= requests + 2)
+        with NatNetEmulator(static, command_port=port,
+                            calibration=Calibration(rotation_matrix(Y_UP), SHIFT)) as second:
+            second.start(stream=False)
+            pump(bridge, lambda: bridge.state == "streaming")
+            frames = step(second, bridge, 3)                  # numbered from 1 again: a new stream
+    assert [f.frame_number for f in frames] == [1, 2, 3]
+    np.testing.assert_allclose(frames[-1].markers, TRUE, atol=1e-6)
+
+
+def test_server_silence_before_the_handshake_retries_the_connect():
+    with NatNetEmulator(static) as emulator:                      # bound but not serving yet
+        with MocapBridge(config(emulator, timeout=0.1)) as bridge:
+            bridge.connect()
+            pump(bridge, lambda: bridge.counters["connect_requests"] >= 3)
+            assert bridge.state == "connecting"
+            emulator.start(stream=False)
+            pump(bridge, lambda: bridge.state == "streaming")
+
+
+def test_stepped_without_threads_follows_a_moving_simulated_arm():
+    """The lockstep wiring: the stepping loop serves the emulator's requests and sends one frame per
+    exposure of the simulated plant; the bridge returns the plant's true markers of that step."""
+    plant = Plant(build_model(), 1e-3)
+    plant.settle([1.0, 0.0, 1.0, 0.0])
+    calibration = Calibration(rotation_matrix(Y_UP), SHIFT)
+    with NatNetEmulator(plant_markers(plant), layout="both", calibration=calibration) as emulator:
+        with MocapBridge(config(emulator, source="labeled_markers")) as bridge:
+            bridge.connect()
+            emulator.serve_requests()
+            pump(bridge, lambda: bridge.state == "streaming")
+            emulator.serve_requests()                         # the first keep-alive
+            truth, delivered = [], []
+            for k in range(40):
+                plant.sense(markers=True)
+                if k % 4 == 0:                                # a 250 Hz camera on a 1 kHz plant
+                    truth.append(plant.markers()[0])
+                    emulator.send_frame(exposure_time=time.time())
+                    delivered += pump(bridge, lambda: bridge.counters["delivered"] > len(delivered))
+                plant.step([3.0, 0.0, 0.0, 0.0])
+    assert len(delivered) == 10
+    for frame, markers in zip(delivered, truth):
+        np.testing.assert_allclose(frame.markers, markers, atol=1e-6)
+    assert np.linalg.norm(truth[-1][-1] - truth[0][-1]) > 1e-4         # the tip moved
+
+
+# --- selection, calibration, stamps --------------------------------------------------------------
+
+def test_marker_selection_and_ordering_by_id():
+    """Ids in any order, shuffled in every frame among markers of another asset: the bridge returns
+    the ones it was given, in its order."""
+    ids = (7 << 16 | 9, 7 << 16 | 2, 3, 7 << 16 | 12)
+    with connected(layout="labeled_markers", labeled_marker_ids=ids, extra_markers=5,
+                   source="labeled_markers") as (emulator, bridge):
+        frames = step(emulator, bridge, 5)
+    for frame in frames:
+        np.testing.assert_allclose(frame.markers, TRUE, atol=1e-6)
+    order = [2, 0, 3, 1]
+    with connected(source="labeled_markers", layout="labeled_markers", labeled_marker_ids=ids,
+                   bridge_kw={"ids": tuple(ids[k] for k in order)}) as (emulator, bridge):
+        frames = step(emulator, bridge, 3)
+    np.testing.assert_allclose(frames[-1].markers, TRUE[order], atol=1e-6)
+
+
+def test_calibration_round_trip_and_conventions():
+    rng = np.random.default_rng(5)
+    q = rng.normal(size=4)
+    q /= np.linalg.norm(q)
+    calibration = Calibration(rotation_matrix(q), rng.normal(size=3))
+    points = rng.normal(size=(10, 3))
+    np.testing.assert_allclose(calibration.to_arm(calibration.to_mocap(points)), points, atol=1e-12)
+    np.testing.assert_allclose(calibration.to_mocap(calibration.to_arm(points)), points, atol=1e-12)
+    matrix = rotation_matrix(q)
+    np.testing.assert_allclose(rotation_matrix(matrix.ravel()), matrix)
+    np.testing.assert_allclose(matrix.T @ matrix, np.eye(3), atol=1e-12)
+    assert np.linalg.det(matrix) == pytest.approx(1.0)
+    y_up = Calibration(rotation_matrix(Y_UP), (0.0, 0.0, -1.2))
+    np.testing.assert_allclose(y_up.to_arm([[0.0, 1.2, 0.0]]), [[0.0, 0.0, 0.0]], atol=1e-12)
+    np.testing.assert_allclose(y_up.to_arm([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]),
+                               [[1.0, 0.0, -1.2], [0.0, -1.0, -1.2]], atol=1e-12)
+
+
+@pytest.mark.parametrize("rotation, match", [
+    ((0, 0, 0, 2), "norm"), ((1, 0, 0, 0, 1, 0, 0, 0, -1), "not a rotation"),
+    ((1, 0, 0, 0, 2, 0, 0, 0, 1), "not a rotation"), ((0, 0, 1), "4 values"),
+    ((0, 0, float("nan"), 1), "non-finite"),
+])
+def test_bad_rotations_are_rejected(rotation, match):
+    with pytest.raises(ValueError, match=match):
+        rotation_matrix(rotation)
+
+
+def test_calibration_is_applied_end_to_end():
+    """The emulator streams in its frame; a bridge without the calibration sees those coordinates."""
+    calibration = Calibration(rotation_matrix(Y_UP), SHIFT)
+    with connected(bridge_kw={"rotation": (0, 0, 0, 1), "translation": (0, 0, 0)}) as (emulator, bridge):
+        frames = step(emulator, bridge, 2)
+    np.testing.assert_allclose(frames[-1].markers, calibration.to_mocap(TRUE), atol=1e-6)
+    assert not np.allclose(calibration.to_mocap(TRUE), TRUE, atol=0.1)
+
+
+def test_stamps_are_mid_exposure_on_the_local_clock():
+    with connected(stream=True, latency=0.004) as (emulator, bridge):
+        start = time.monotonic()
+        frames = pump(bridge, lambda: time.monotonic() - start > 0.3)
+        errors = [f.stamp - emulator.exposure_time(f.frame_number) for f in frames[5:]]
+    assert len(errors) > 40
+    assert 0.0 <= np.median(errors) < 2e-3                     # late by the smallest delay only
+    assert max(abs(e) for e in errors) < 5e-3
+    assert all(0.0039 <= f.latency < 0.05 for f in frames)
+
+
+def test_clock_map_takes_the_smallest_delay_in_its_window():
+    rng = random.Random(1)
+    clock = ClockMap(frequency=1_000_000, window=1.0)
+    offset, local = 1000.0, 1000.0
+    for k in range(500):                                      # 500 Hz, 2 ms apart
+        local = offset + 0.002 * k + 50e-6 + rng.expovariate(1 / 300e-6)
+        clock.observe(2000 * k, local)
+    clock.observe(2000 * 500, offset + 1.0 + 50e-6)           # one frame with the smallest delay
+    assert clock.offset == pytest.approx(offset + 50e-6, abs=1e-9)
+    assert clock.to_local(1000) == pytest.approx(offset + 1e-3 + 50e-6, abs=1e-9)
+    for k in range(501, 1200):                                # the server clock now runs 1 ms late
+        clock.observe(2000 * k, offset + 0.002 * k + 1e-3 + 50e-6 + rng.expovariate(1 / 300e-6))
+    assert clock.offset > offset + 1e-3                       # the old minimum left the window
+    with pytest.raises(ValueError):
+        ClockMap(frequency=0, window=1.0)
+
+
+# --- occlusion and packet faults -----------------------------------------------------------------
+
+@pytest.mark.parametrize("source", ["rigid_bodies", "labeled_markers"])
+@pytest.mark.parametrize("fault, reason", [("occlusion", "occluded"), ("absence", "missing")])
+def test_occluded_or_missing_marker_skips_and_flags_the_frame(source, fault, reason):
+    with connected(layout="both", source=source) as (emulator, bridge):
+        good = step(emulator, bridge, 5)
+        emulator.faults = Faults(**{fault: 1.0})
+        bad = step(emulator, bridge, 5)
+        emulator.faults = Faults()
+        good += step(emulator, bridge, 5)
+    assert bad == [] and len(good) == 10
+    assert bridge.counters[reason] == 5 and bridge.counters["delivered"] == 10
+    skipped = bridge.last_skipped
+    assert skipped.reason == reason and skipped.frame_number == 10 and len(skipped.ids) == 1
+    for frame in good:                                     # never filled in
+        np.testing.assert_allclose(frame.markers, TRUE, atol=1e-6)
+
+
+@pytest.mark.parametrize("fault", ["drop", "duplicate", "reorder"])
+def test_dropped_duplicated_and_reordered_frames_are_counted(fault):
+    n = 200
+    with connected(faults=Faults(seed=7)) as (emulator, bridge):
+        frames = step(emulator, bridge, 1)                  # gaps count from the first frame seen
+        emulator.faults = Faults(**{fault: 0.15})
+        frames += step(emulator, bridge, n)
+        emulator.faults = Faults()                          # a clean last frame releases a held one
+        frames += step(emulator, bridge, 1)
+    c, e = bridge.counters, emulator.counters
+    numbers = [f.frame_number for f in frames]
+    assert numbers == sorted(numbers) and len(set(numbers)) == len(numbers)
+    assert c["packets"] - c["control"] == e["sent"]
+    if fault == "drop":
+        assert e["dropped"] > 10 and c["lost"] == e["dropped"] and len(frames) == n + 2 - e["dropped"]
+    elif fault == "duplicate":
+        assert e["duplicated"] > 10 and c["duplicates"] == e["duplicated"] and len(frames) == n + 2
+    else:
+        assert e["reordered"] > 10 and c["out_of_order"] == c["lost"] == e["reordered"]
+        assert len(frames) == n + 2 - e["reordered"]
+
+
+def test_datagrams_from_other_hosts_are_dropped():
+    with connected() as (emulator, bridge):
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as stranger:
+            stranger.bind(("127.0.0.2", 0))
+            stranger.sendto(b"\x07\x00\x00\x00", bridge.command_address)
+            pump(bridge, lambda: bridge.counters["foreign"] == 1)
+        assert len(step(emulator, bridge, 2)) == 2
+    assert bridge.counters["malformed"] == 0
+
+
+# --- the packet handler never raises --------------------------------------------------------------
+
+float32s = st.floats(width=32, allow_nan=True, allow_infinity=True)
+vectors = st.tuples(float32s, float32s, float32s)
+
+
+@st.composite
+def frames(draw):
+    """A frame of the bridge's markers (ids 1 and 2, tracked or not, present or not) and others."""
+    ids = draw(st.permutations([1, 2, 3, 1 << 16 | 1]))[:draw(st.integers(0, 4))]
+    bodies = tuple(RigidBody(i, draw(vectors), (0.0, 0.0, 0.0, 1.0),
+                             params=draw(st.sampled_from([1, 1, 1, 0, 3]))) for i in ids)
+    markers = tuple(LabeledMarker(i, draw(vectors), 0.01, draw(st.sampled_from([0, 0, 1, 6])))
+                    for i in ids)
+    mid = draw(st.integers(0, 2**40))
+    transmit = max(0, mid + draw(st.integers(-10, 10**6)))
+    return FrameOfData(frame_number=draw(st.integers(-2**31, 2**31 - 1)), rigid_bodies=bodies,
+                       labeled_markers=markers, camera_mid_exposure=mid,
+                       camera_data_received=transmit, transmit_timestamp=transmit)
+
+
+@pytest.fixture(scope="module")
+def handler_bridge():
+    with NatNetEmulator(static) as emulator:
+        with MocapBridge(config(emulator, ids=(1, 2), natnet_version="")) as bridge:
+            yield bridge
+
+
+def _mutate(data, packet):
+    raw = bytearray(packet)
+    for _ in range(data.draw(st.integers(1, 6))):
+        kind = data.draw(st.sampled_from(["flip", "truncate", "insert", "size"]))
+        if kind == "flip" and raw:
+            raw[data.draw(st.integers(0, len(raw) - 1))] = data.draw(st.integers(0, 255))
+        elif kind == "truncate":
+            del raw[data.draw(st.integers(0, len(raw))):]
+        elif kind == "insert":
+            at = data.draw(st.integers(0, len(raw)))
+            raw[at:at] = data.draw(st.binary(min_size=1, max_size=8))
+        elif len(raw) >= 4:
+            raw[2:4] = data.draw(st.integers(0, 0xFFFF)).to_bytes(2, "little")
+    return bytes(raw)
+
+
+@settings(max_examples=400, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(data=st.data())
+def test_random_and_mutated_packets_never_raise_and_are_counted(handler_bridge, data):
+    """Any datagram, fed once or twice to a bridge on a fresh NatNet 4.1 stream: no exception, one
+    outcome counted per datagram, and only complete, finite frames delivered."""
+    bridge = handler_bridge
+    bridge.handle_packet(SERVER_INFO, 0.0)
+    kind = data.draw(st.sampled_from(["random", "frame", "mutated frame", "mutated other"]))
+    if kind == "random":
+        packet = data.draw(st.binary(max_size=200))
+    elif kind == "mutated other":
+        packet = _mutate(data, data.draw(st.sampled_from(OTHERS)))
+    else:
+        version = data.draw(st.sampled_from([Version(4, 1), Version(4, 1), Version(4, 0)]))
+        packet = build_frame_of_data(version, data.draw(frames()))
+        packet = _mutate(data, packet) if kind == "mutated frame" else packet
+    for _ in range(data.draw(st.integers(1, 2))):
+        before = bridge.counters
+        frame = bridge.handle_packet(packet, data.draw(st.floats(0, 1e9)))
+        after = bridge.counters
+        assert after["packets"] == before["packets"] + 1
+        assert sum(after[k] != before[k] for k in PACKET_OUTCOMES) == 1
+        assert (frame is not None) == (after["delivered"] == before["delivered"] + 1)
+        if frame is not None:
+            assert frame.markers.shape == (2, 3) and np.all(np.isfinite(frame.markers))
+
+
+# --- configuration -------------------------------------------------------------------------------
+
+def test_the_package_config_loads():
+    c = load_mocap_config()
+    assert (c.command_port, c.data_port, c.source, c.ids) == (1510, 1511, "rigid_bodies", (1, 2, 3, 4))
+    assert c.requested_version == Version(4, 1) and not c.multicast
+    np.testing.assert_allclose(c.calibration.to_arm([[0.0, 1.2, 0.0]]), [[0.0, 0.0, 0.0]], atol=1e-12)
+
+
+@pytest.mark.parametrize("key, value, message", [
+    ("mocap.command_port", 70000, "rig.mocap.command_port = 70000 is not valid: expected the "
+                                  "server's command port in [1, 65535]"),
+    ("mocap.server_address", "233.252.0.1", "rig.mocap.server_address = '233.252.0.1' is not valid"),
+    ("mocap.multicast_group", "10.0.0.1", "rig.mocap.multicast_group = '10.0.0.1' is not valid"),
+    ("mocap.natnet_version", '"2.9"', "rig.mocap.natnet_version = '2.9' is not valid: expected empty"),
+    ("mocap.markers.source", "points", "rig.mocap.markers.source = 'points' is not valid: expected "
+                                       "rigid_bodies or labeled_markers"),
+    ("mocap.markers.ids", [1, 1], "rig.mocap.markers.ids = [1, 1] is not valid: expected one or more "
+                                  "distinct ids"),
+    ("mocap.calibration.rotation", [1.0, 1.0, 0.0, 0.0], "rig.mocap.calibration.rotation = "
+                                                         "[1.0, 1.0, 0.0, 0.0] is not valid"),
+    ("mocap.calibration.translation", [0.0, 0.0], "expected three coordinates [m] within 100 m"),
+    ("mocap.timeout", 0.0, "rig.mocap.timeout = 0.0 is not valid: expected a time in (0, 60] s"),
+    ("mocap.port", 1, "unknown key rig.mocap.port"),
+])
+def test_bad_config_values_name_the_key_value_and_range(key, value, message):
+    with pytest.raises(ConfigError) as error:
+        load_mocap_config(overrides={key: value})
+    assert message in str(error.value)
+
+
+def test_bridge_config_checks_its_fields():
+    with pytest.raises(ConfigError, match=r"rig.mocap.data_port = -1 is not valid"):
+        BridgeConfig(data_port=-1)
+    with pytest.raises(ConfigError, match=r"rig.mocap.calibration.rotation = \[1, 2, 3\] is not valid"):
+        BridgeConfig(rotation=(1, 2, 3))
+    assert BridgeConfig(rotation=tuple(np.eye(3).ravel())).calibration.rotation.shape == (3, 3)
+
+
+def test_emulator_serves_loopback_only():
+    with pytest.raises(ValueError, match="loopback"):
+        NatNetEmulator(static, address="0.0.0.0")

@@ -1,0 +1,157 @@
+"""The mocap_bridge node on real rclpy, in this process, against the NatNet emulator on 127.0.0.1
+streaming the simulated arm: mocap/markers and mocap/tip as the simulator publishes them,
+/diagnostics with the counters, and bad parameters stopping it with the key and status 2."""
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from geometry_msgs.msg import PoseArray, PoseStamped
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.parameter import Parameter
+
+from soft_arm_drivers.mocap.mocap_bridge import load_mocap_config
+from soft_arm_drivers.mocap.mocap_bridge_node import DIAGNOSTICS_TOPIC, MocapBridgeNode, main
+from soft_arm_drivers.sim.natnet_emulator import NatNetEmulator, plant_markers
+from soft_arm_drivers.sim.simulated_rig import Plant
+from soft_arm_model import build_model
+from soft_arm_model.parameters import ConfigError, default_config_dir
+from soft_arm_ros.contract import FRAME, QOS
+from soft_arm_ros.conversions import markers_of, stamp_to_seconds
+
+
+@pytest.fixture
+def ros():
+    rclpy.init()
+    yield
+    rclpy.try_shutdown()
+
+
+@pytest.fixture(scope="module")
+def plant():
+    """The arm bent by tendons 1 and 3, its markers sensed."""
+    model = build_model()
+    plant = Plant(model, 1e-3)
+    plant.settle([2.0, 0.0, 2.0, 0.0])
+    plant.sense(markers=True)
+    return plant
+
+
+def test_node_publishes_the_arms_markers_in_arm_base(ros, plant):
+    truth = plant.markers()[0]
+    calibration = load_mocap_config().calibration             # the package's config/mocap.yaml
+    with NatNetEmulator(plant_markers(plant), version="4.1", rate=240.0, layout="both",
+                        calibration=calibration, latency=0.003) as emulator:
+        emulator.start()
+        bridge = MocapBridgeNode(parameter_overrides=[
+            Parameter("rig.mocap.command_port", value=emulator.command_port),
+            Parameter("rig.mocap.data_port", value=0)])
+        listener = rclpy.create_node("mocap_listener")
+        got = {"markers": [], "tip": [], "diagnostics": []}
+
+        def on(key):
+            return lambda msg: got[key].append((time.time(), msg))
+
+        listener.create_subscription(PoseArray, "mocap/markers", on("markers"), QOS["mocap/markers"])
+        listener.create_subscription(PoseStamped, "mocap/tip", on("tip"), QOS["mocap/tip"])
+        listener.create_subscription(DiagnosticArray, DIAGNOSTICS_TOPIC, on("diagnostics"), 10)
+        executor = SingleThreadedExecutor()
+        for node in (bridge, listener):
+            executor.add_node(node)
+        try:
+            deadline = time.monotonic() + 15.0
+            while (len(got["markers"]) < 50 or len(got["tip"]) < 50 or not got["diagnostics"]) \
+                    and time.monotonic() < deadline:
+                executor.spin_once(timeout_sec=0.05)
+            status = bridge.status(1)
+        finally:
+            executor.shutdown()
+            bridge.close()
+            bridge.destroy_node()
+            listener.destroy_node()
+    assert len(got["markers"]) >= 50 and len(got["tip"]) >= 50 and got["diagnostics"]
+    stamps = []
+    for received, msg in got["markers"]:
+        assert msg.header.frame_id == FRAME and len(msg.poses) == len(truth)
+        np.testing.assert_allclose(markers_of(msg), truth, atol=1e-6)   # base to tip, arm_base
+        assert all(p.orientation.w == 1.0 for p in msg.poses)
+        stamp = stamp_to_seconds(msg.header.stamp)
+        assert 0.003 <= received - stamp < 0.1            # mid-exposure, before the message arrived
+        stamps.append(stamp)
+    assert np.all(np.diff(stamps) > 0)
+    assert np.median(np.diff(stamps)) == pytest.approx(1 / 240, rel=0.2)
+    tips = {stamp_to_seconds(m.header.stamp): m for _, m in got["tip"]}
+    common = [s for s in stamps if s in tips]
+    assert common
+    tip = tips[common[-1]].pose.position
+    np.testing.assert_allclose([tip.x, tip.y, tip.z], truth[-1], atol=1e-6)
+    assert tips[common[-1]].header.frame_id == FRAME
+    diagnostics = got["diagnostics"][-1][1].status[0]
+    values = {kv.key: kv.value for kv in diagnostics.values}
+    assert diagnostics.name == "mocap_bridge: NatNet" and values["state"] == "streaming"
+    assert int(values["delivered"]) > 0 and values["natnet_version"] == "4.1"
+    assert {"occluded", "missing", "malformed", "duplicates", "out_of_order", "lost"} <= set(values)
+    assert status.level == DiagnosticStatus.OK
+
+
+@pytest.mark.parametrize("parameter, value, message", [
+    ("rig.mocap.command_port", 70000, "rig.mocap.command_port = 70000 is not valid: expected the "
+                                      "server's command port in [1, 65535]"),
+    ("rig.mocap.natnet_version", "4.2", "rig.mocap.natnet_version = '4.2' is not valid"),
+    ("rig.mocap.markers.ids", [1, 2, 3], "rig.mocap.markers.ids = [1, 2, 3] is not valid: expected "
+                                         "4 ids, one per marker of arm.markers.positions"),
+])
+def test_bad_parameter_raises_config_error(ros, parameter, value, message):
+    with pytest.raises(ConfigError) as error:
+        MocapBridgeNode(parameter_overrides=[Parameter(parameter, value=value),
+                                             Parameter("rig.mocap.data_port", value=0)])
+    assert message in str(error.value)
+
+
+def test_a_data_port_in_use_is_a_config_error(ros):
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as taken:
+        taken.bind(("127.0.0.1", 0))
+        port = taken.getsockname()[1]
+        with pytest.raises(ConfigError, match=rf"data_port = {port} is not valid: cannot open the NatNet"):
+            MocapBridgeNode(parameter_overrides=[Parameter("rig.mocap.data_port", value=port)])
+
+
+def test_bad_parameter_exits_with_status_2(capfd):
+    params = os.path.join(default_config_dir(), "mocap.yaml")
+    code = main(["mocap_bridge", "--ros-args", "--params-file", params,
+                 "-p", "rig.mocap.markers.source:=points"])
+    assert code == 2
+    assert "rig.mocap.markers.source = 'points' is not valid" in capfd.readouterr().err
+
+
+def test_node_process_streams_and_stops_cleanly_on_sigint(plant):
+    """As its own process (``ros2 run soft_arm mocap_bridge`` with the config file): Ctrl-C while
+    frames are being published ends it with status 0 and no traceback from the receive thread."""
+    params = os.path.join(default_config_dir(), "mocap.yaml")
+    with NatNetEmulator(plant_markers(plant), calibration=load_mocap_config().calibration) as emulator:
+        emulator.start()
+        env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYTHONUNBUFFERED="1")
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "soft_arm_drivers.mocap.mocap_bridge_node", "--ros-args", "--params-file",
+             params, "-p", f"rig.mocap.command_port:={emulator.command_port}",
+             "-p", "rig.mocap.data_port:=0"],
+            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+        try:
+            assert "mocap_bridge ready" in proc.stdout.readline()
+            deadline = time.monotonic() + 10.0
+            while emulator.counters["sent"] < 100 and time.monotonic() < deadline:
+                time.sleep(0.05)
+            proc.send_signal(signal.SIGINT)
+            out, _ = proc.communicate(timeout=20)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.communicate()
+    assert emulator.counters["sent"] >= 100
+    assert proc.returncode == 0 and "Traceback" not in out, out

@@ -1,0 +1,110 @@
+"""Hardware in the loop, emulated: the rig's graph (motor_driver on a CAN bus with the motor
+emulator behind it, mocap_bridge reading the NatNet server emulator over UDP on 127.0.0.1,
+inner_loop, clik, task_runner, recorder, each its own process) closes the loop like the
+simulator-only graph; and the emulated rig's configuration."""
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from soft_arm_drivers.can.motor_driver import load_driver_config
+from soft_arm_drivers.experiments.experiment import _ros_arguments, main, run_composed
+from soft_arm_drivers.experiments.figures import read_series
+from soft_arm_drivers.sim.emulated_rig import load_emulator_config, read_emulator_file
+from soft_arm_model import build_model, load_arm_config, solve_equilibrium, tendon_lengths
+from soft_arm_model.parameters import ConfigError
+
+from conftest import wait_for_output
+
+ONE_TARGET = ["tasks.coiling.phases=[upward]", "tasks.coiling.phase.upward.sequence=[1]",
+              "tasks.coiling.phase.upward.window=8.0"]
+
+
+def test_the_motors_zero_shortening_is_the_models_slack_hanging_pose():
+    """rig.yaml's zero_shortening is what the controller's model predicts for the pose the motors
+    are zeroed in (hanging, tendons slack), to 0.01 mm."""
+    model = build_model(load_arm_config())
+    hanging = solve_equilibrium(model, np.zeros(model.n_tendons)).q
+    predicted = model.rest_tendon_lengths - tendon_lengths(model, hanging)
+    np.testing.assert_allclose(load_driver_config().zero_shortening, predicted, atol=1e-5)
+
+
+def test_emulator_config_is_validated_and_laid_over_the_rig():
+    values = load_emulator_config()
+    assert values["reply_delay"] == 3e-4 and values["natnet_version"] == "4.1"
+    assert load_emulator_config(overrides={"natnet_version": '"3.1"'})["natnet_version"] == "3.1"
+    _, motors = read_emulator_file()
+    driver = load_driver_config(overrides=motors)
+    assert driver.interface == "virtual" and all(m.limits.t_max == 0.5 for m in driver.motors)
+    with pytest.raises(ConfigError, match=r"rig\.emulator\.reply_delay = 0\.5 .*\[0, 0\.01\] s"):
+        load_emulator_config(overrides={"reply_delay": 0.5})
+    with pytest.raises(ConfigError, match=r"rig\.emulator\.natnet_version .*among"):
+        load_emulator_config(overrides={"natnet_version": '"2.9"'})
+    with pytest.raises(ConfigError, match="did you mean"):
+        load_emulator_config(overrides={"reply_dealy": 0.001})
+
+
+def test_closed_loop_through_the_emulated_hardware_reaches_the_target_like_the_simulator(tmp_path):
+    out = tmp_path / "hil"
+    sets = [a for s in ONE_TARGET for a in ("--set", s)]
+    before = time.time()
+    assert main(["coiling", "--emulated-hardware", "--quiet", "--output", str(out)] + sets) == 0
+    after = time.time()
+    with open(out / "metrics.json", encoding="utf-8") as fh:
+        hil = json.load(fh)
+    assert hil["run"]["emulated_hardware"] and hil["run"]["driver_faults"] == []
+
+    sim_dir = tmp_path / "sim"
+    sim_dir.mkdir()
+    run_composed(_ros_arguments("coiling", ONE_TARGET, None),
+                 {"bag": str(sim_dir / "bag"), "metrics": str(sim_dir / "metrics.json")})
+    with open(sim_dir / "metrics.json", encoding="utf-8") as fh:
+        sim = json.load(fh)
+
+    h, s = hil["transitions"][0], sim["transitions"][0]
+    # the same move (from the hanging arm to target 1), into the mm band, ending as close
+    assert h["displacement"] == pytest.approx(s["displacement"], abs=3e-3)
+    assert h["time_mm"] is not None and h["time_mm"] < 6.0
+    assert h["final_error"] < 2e-3 and s["final_error"] < 2e-3
+    assert h["rms_steady"] < 2e-3
+    assert h["peak_speed"] < 1.5 * s["peak_speed"]    # measured, not a frame-timing artefact
+
+    # what the drivers published, on the system clock: the motors' state at about 500 Hz (the
+    # replies' stamps), the mocap at about 240 Hz (mid-exposure stamps), the controller answering
+    series = read_series(str(out / "bag"))
+    state = np.array([t for t, _ in series["tendon/state"]])
+    markers = np.array([t for t, _ in series["mocap/markers"]])
+    assert 0.0015 < np.median(np.diff(state)) < 0.003 and np.all(np.diff(state) > 0)
+    assert 0.0035 < np.median(np.diff(markers)) < 0.005
+    assert len(series["tendon/command"]) > 0.8 * len(state)
+    assert before < state[0] and state[-1] < after and before < markers[0] and markers[-1] < after
+
+
+def test_ctrl_c_disables_the_emulated_motors_then_stops_every_node(tmp_path):
+    """A Ctrl-C reaches the experiment only (the nodes run in their own sessions): it disables the
+    motors, stops the nodes, keeps the bag and exits with 130; no node is left running."""
+    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYTHONUNBUFFERED="1")
+    out = tmp_path / "run"
+    sets = [a for s in ONE_TARGET for a in ("--set", s)]
+    proc = subprocess.Popen([sys.executable, "-m", "soft_arm_drivers.experiments.experiment", "coiling",
+                             "--emulated-hardware", "--output", str(out)] + sets,
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+    try:
+        seen = wait_for_output(proc, "[motor_driver]: enabled", timeout=120)
+        time.sleep(2.0)
+        proc.send_signal(signal.SIGINT)
+        output, _ = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    output = seen + output
+    assert proc.returncode == 130, output
+    assert "[motor_driver]: disabled" in output
+    assert len(read_series(str(out / "bag"))["tendon/state"]) > 500
+    left = subprocess.run(["pgrep", "-f", str(out)], capture_output=True, text=True).stdout
+    assert left == "", left

@@ -1,0 +1,268 @@
+"""Each node alone, as its own process with real rclpy: parameters from YAML, a bad parameter stops
+it with a clear message and status 2, SIGINT shuts it down cleanly; the recorder survives SIGTERM
+with a closed bag and SIGKILL with a readable one."""
+import json
+import os
+import pathlib
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+from rosbags.highlevel import AnyReader
+from rosbags.typesys import Stores, get_typestore
+
+from soft_arm_drivers.experiments.experiment import node_module
+from soft_arm_model.parameters import default_config_dir
+
+from conftest import wait_for_output
+
+NODES = ("simulator", "inner_loop", "clik", "task_runner", "recorder")
+
+
+def _params():
+    d = default_config_dir()
+    out = ["--ros-args"]
+    for name in ("arm", "control", "plant", "tasks", "graph"):
+        out += ["--params-file", os.path.join(d, f"{name}.yaml")]
+    return out
+
+
+def _start(node, *extra, cwd=None):
+    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYTHONUNBUFFERED="1")
+    return subprocess.Popen([sys.executable, "-m", node_module(node)] + _params() + list(extra),
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env,
+                            cwd=cwd)
+
+
+@pytest.mark.parametrize("node", NODES)
+def test_node_starts_from_yaml_and_stops_cleanly(node, tmp_path):
+    extra = ["-p", f"output:={tmp_path / 'out'}"] if node in ("recorder", "task_runner") else []
+    proc = _start(node, "-p", "graph.task:=coiling", *extra)
+    try:
+        log = wait_for_output(proc, "ready" if node not in ("recorder", "task_runner") else
+                              ("recording" if node == "recorder" else "windows"))
+        assert "coiling" in log or node in ("simulator", "inner_loop", "recorder")
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=20) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+
+
+@pytest.mark.parametrize("node, param, message", [
+    ("simulator", "graph.simulator.mode:=fast", "graph.simulator.mode = 'fast' is not valid"),
+    ("inner_loop", "control.inner_loop.rate:=0.0", "control.inner_loop.rate = 0.0 is not valid"),
+    ("clik", "graph.task:=square", "graph.task = 'square' is not valid"),
+    ("task_runner", "tasks.coiling.targets:=[0.1]", "groups of 2 coordinates"),
+    ("recorder", "graph.recorder.topics:=[nowhere]", "graph.recorder.topics entry 'nowhere'"),
+])
+def test_bad_parameter_stops_the_node_with_status_2(node, param, message):
+    proc = _start(node, "-p", "graph.task:=coiling", "-p", param)
+    out, _ = proc.communicate(timeout=60)
+    assert proc.returncode == 2, out
+    assert message in out
+
+
+def _publish_states(count):
+    """Publish ``count`` JointStates on tendon/state from this process (rclpy)."""
+    import rclpy
+    from sensor_msgs.msg import JointState
+
+    from soft_arm_ros.contract import QOS
+    from soft_arm_ros.conversions import joint_state
+    rclpy.init()
+    node = rclpy.create_node("publisher_for_test")
+    pub = node.create_publisher(JointState, "tendon/state", QOS["tendon/state"])
+    deadline = time.monotonic() + 20
+    while pub.get_subscription_count() == 0 and time.monotonic() < deadline:
+        time.sleep(0.05)
+    for k in range(count):
+        pub.publish(joint_state(["a"], k * 0.002, position=[k * 1e-3]))
+        time.sleep(0.001)
+    time.sleep(0.5)
+    node.destroy_node()
+    rclpy.shutdown()
+
+
+def _read(bag):
+    with AnyReader([pathlib.Path(bag)], default_typestore=get_typestore(Stores.ROS2_JAZZY)) as reader:
+        return [reader.deserialize(raw, conn.msgtype) for conn, _, raw in reader.messages()]
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_recorder_closes_the_bag_on_signals(tmp_path, sig):
+    bag = tmp_path / "bag"
+    proc = _start("recorder", "-p", f"output:={bag}", "-p", "graph.recorder.topics:=[tendon/state]")
+    try:
+        wait_for_output(proc, "recording")
+        _publish_states(200)
+        proc.send_signal(sig)
+        assert proc.wait(timeout=20) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    from mcap.reader import make_reader
+    with open(bag / "bag_0.mcap", "rb") as fh:
+        assert make_reader(fh).get_summary() is not None          # closed: summary and footer
+    messages = _read(bag)
+    assert len(messages) >= 150                                   # best effort on loopback
+    assert [m.position[0] for m in messages] == sorted(m.position[0] for m in messages)
+
+
+def test_recorder_bag_survives_sigkill(tmp_path):
+    bag = tmp_path / "bag"
+    proc = _start("recorder", "-p", f"output:={bag}", "-p", "graph.recorder.topics:=[tendon/state]",
+                  "-p", "graph.recorder.chunk_size:=2048")
+    try:
+        wait_for_output(proc, "recording")
+        _publish_states(300)
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=20)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    messages = _read(bag)                       # no summary: the readers scan the chunks
+    assert len(messages) >= 200                 # all but the last chunk (a few dozen messages)
+    assert (bag / "metadata.yaml").exists()
+
+
+def test_simulator_in_realtime_holds_the_tension_and_counts_missing_commands():
+    import rclpy
+    from geometry_msgs.msg import PoseArray
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.parameter import Parameter
+    from sensor_msgs.msg import JointState
+
+    from soft_arm_drivers.sim.simulator_node import SimulatorNode
+    from soft_arm_ros.contract import QOS
+    from soft_arm_ros.conversions import joint_state
+    rclpy.init()
+    try:
+        sim = SimulatorNode(parameter_overrides=[Parameter("graph.simulator.mode", value="realtime"),
+                                                 Parameter("graph.task", value="coiling")])
+        peer = rclpy.create_node("peer")
+        command = peer.create_publisher(JointState, "tendon/command", QOS["tendon/command"])
+        frames = []
+        peer.create_subscription(PoseArray, "mocap/markers", frames.append, QOS["mocap/markers"])
+        executor = SingleThreadedExecutor()
+        executor.add_node(sim)
+        executor.add_node(peer)
+        end = time.monotonic() + 1.5
+        while time.monotonic() < end:
+            executor.spin_once(timeout_sec=0.01)
+        assert 0.3 < sim.rig.t < 2.0                     # steps on the wall clock
+        assert sim.missing_commands > 10                 # nobody commands: counted, not a crash
+        assert all(u == pytest.approx(0.05) for u in sim.rig.tension)
+        assert frames                                    # mocap keeps streaming
+        names = ["tendon_1", "tendon_2", "tendon_3", "tendon_4"]
+        for effort in ([0.05, 0.05, 1.0, float("nan")], [0.05, 0.05, 1.0, 0.5]):
+            command.publish(joint_state(names, sim.rig.t, effort=effort))
+            end = time.monotonic() + 0.3
+            while time.monotonic() < end:
+                executor.spin_once(timeout_sec=0.01)
+        assert sim.bad_commands == 1
+        assert list(sim.rig.tension) == [0.05, 0.05, 1.0, 0.5]
+        executor.shutdown()
+        sim.destroy_node()
+        peer.destroy_node()
+    finally:
+        rclpy.try_shutdown()
+
+
+def test_clik_node_rejects_bad_goals_and_keeps_the_last_reference():
+    import rclpy
+    from rclpy.parameter import Parameter
+
+    from soft_arm_control.clik_node import ClikNode
+    from soft_arm_ros.conversions import float_array
+    rclpy.init()
+    try:
+        node = ClikNode(parameter_overrides=[Parameter("graph.task", value="coiling")])
+        sent = []
+        node.ref_pub.publish = sent.append
+        node.q_pub.publish = lambda msg: None
+        node.on_goal(float_array([-0.009, -0.349], "clik"))
+        assert len(sent) == 1 and node.rejected_goals == 0
+        first = node.outer.reference
+        node.on_goal(float_array([0.3, 0.3], "clik"))             # unreachable
+        node.on_goal(float_array([0.01], "clik"))                 # wrong size
+        node.on_goal(float_array([0.0, -0.3], "sideways"))        # unknown mode
+        node.on_goal(float_array([0.017, -0.313], "replay"))      # never reached
+        assert node.rejected_goals == 4 and len(sent) == 1
+        assert node.outer.reference is first
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown()
+
+
+def test_task_runner_waits_for_start_and_stays_up_after_the_last_window(tmp_path):
+    """wait_for_start: frames before ~/start are ignored; the schedule starts with the first frame
+    after it; the metrics are written whole at the end and the node stays up (done is False)."""
+    import rclpy
+    from rclpy.parameter import Parameter
+    from std_srvs.srv import Trigger
+
+    from soft_arm_drivers.experiments.task_runner_node import TaskRunnerNode
+    from soft_arm_ros.conversions import pose_array
+    out = tmp_path / "metrics.json"
+    rclpy.init()
+    try:
+        node = TaskRunnerNode(parameter_overrides=[
+            Parameter("graph.task", value="coiling"), Parameter("output", value=str(out)),
+            Parameter("wait_for_start", value=True),
+            Parameter("tasks.coiling.phases", value=["upward"]),
+            Parameter("tasks.coiling.phase.upward.sequence", value=[1]),
+            Parameter("tasks.coiling.phase.upward.window", value=1.0)])
+        goals = []
+        node.pub.publish = goals.append
+        markers = [[0.0, 0.0, -0.1 * k] for k in range(1, 5)]
+        node.on_markers(pose_array(markers, 10.0))
+        assert goals == [] and node.core.t0 is None
+        response = node.on_start(Trigger.Request(), Trigger.Response())
+        assert response.success and "coiling" in response.message
+        assert not node.on_start(Trigger.Request(), Trigger.Response()).success
+        for k in range(60):                                    # 1.2 s of frames at 50 Hz
+            node.on_markers(pose_array(markers, 11.0 + 0.02 * k))
+        assert len(goals) == 1 and node.core.t0 == 11.0
+        assert node.finished and not node.done
+        assert json.loads(out.read_text())["task"] == "coiling"
+        assert not (tmp_path / "metrics.json.partial").exists()
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown()
+
+
+@pytest.mark.parametrize("param, message", [
+    ("rig.motors.interface:=socketcan", "rig.motors.interface = 'socketcan' is not valid for the "
+                                        "emulated rig"),
+    ("rig.mocap.server_address:=192.0.2.1", "rig.mocap.server_address = '192.0.2.1' is not valid"),
+    ("rig.emulator.reply_delay:=0.5", "rig.emulator.reply_delay = 0.5 is not valid"),
+])
+def test_emulated_rig_refuses_what_is_not_an_emulation(param, message):
+    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    proc = subprocess.run([sys.executable, "-m", node_module("emulated_rig")] + _params()
+                          + ["-p", param],
+                          capture_output=True, text=True, env=env, timeout=120)
+    assert proc.returncode == 2, proc.stdout + proc.stderr
+    assert message in proc.stdout + proc.stderr
+
+
+def test_ctrl_c_stops_the_experiment_and_keeps_the_bag(tmp_path):
+    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYTHONUNBUFFERED="1")
+    out = tmp_path / "run"
+    proc = subprocess.Popen([sys.executable, "-m", "soft_arm_drivers.experiments.experiment", "triangle",
+                             "--output", str(out)], stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True, env=env)
+    try:
+        wait_for_output(proc, "recording", timeout=90)            # the recorder is up: it runs
+        time.sleep(3.0)
+        proc.send_signal(signal.SIGINT)
+        output, _ = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 130, output
+    messages = _read(out / "bag")
+    assert len(messages) > 100

@@ -1,0 +1,107 @@
+"""The packages are layered one way: soft_arm_model < soft_arm_ros < soft_arm_control < soft_arm_drivers.
+
+The model is physics and knows nothing of ROS; the ROS plumbing knows nothing of the controller or
+the drivers; the controller knows nothing of the simulated rig, the hardware drivers, recording or
+the experiments, and never reads the simulated plant's parameters (``plant.yaml``).
+"""
+import ast
+import os
+import pathlib
+import shutil
+import subprocess
+import sys
+
+import pytest
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+PACKAGES = ("soft_arm_model", "soft_arm_ros", "soft_arm_control", "soft_arm_drivers")
+# what each package must not import (itself or anything below it)
+FORBIDDEN = {
+    "soft_arm_model": ("soft_arm_ros", "soft_arm_control", "soft_arm_drivers", "rclpy"),
+    "soft_arm_ros": ("soft_arm_control", "soft_arm_drivers"),
+    "soft_arm_control": ("soft_arm_drivers",),
+}
+
+
+def imported_modules(source: str, module: str) -> set:
+    """Absolute names of every module ``source`` (the text of ``module``) imports, at any depth."""
+    package = module.rsplit(".", 1)[0]
+    found = set()
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.Import):
+            found.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package.split(".")
+                base = base[:len(base) - node.level + 1]
+                name = ".".join(base + ([node.module] if node.module else []))
+            else:
+                name = node.module
+            found.add(name)
+            found.update(f"{name}.{alias.name}" for alias in node.names)
+    return found
+
+
+def violations(package: str) -> list:
+    """(module, imported name) pairs of ``package`` that break its layer."""
+    out = []
+    for path in sorted((ROOT / package).rglob("*.py")):
+        module = ".".join(path.relative_to(ROOT).with_suffix("").parts)
+        for name in imported_modules(path.read_text(), module):
+            if any(name == f or name.startswith(f + ".") for f in FORBIDDEN[package]):
+                out.append((module, name))
+    return out
+
+
+def test_the_checker_sees_relative_and_nested_imports():
+    src = "def f():\n    from ..drivers.sim import plant\nfrom . import clik\nimport rclpy.node\n"
+    names = imported_modules(src, "soft_arm_control.sub.mod")
+    assert "soft_arm_control.drivers.sim.plant" in names
+    assert "soft_arm_control.sub.clik" in names
+    assert "rclpy.node" in names
+
+
+@pytest.mark.parametrize("package", sorted(FORBIDDEN))
+def test_no_package_imports_a_layer_above_it(package):
+    assert violations(package) == []
+
+
+def test_importing_the_controller_loads_no_driver_or_simulated_rig():
+    modules = [".".join(p.relative_to(ROOT).with_suffix("").parts)
+               for p in sorted((ROOT / "soft_arm_control").rglob("*.py"))]
+    code = ("import sys\n" + "".join(f"import {m}\n" for m in modules)
+            + "print(sorted(m for m in sys.modules if m.startswith('soft_arm_drivers')))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                         env=dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST"))
+    assert out.stdout.strip() == "[]"
+
+
+def test_the_controller_package_never_names_the_plant_file():
+    for path in (ROOT / "soft_arm_control").rglob("*.py"):
+        text = path.read_text()
+        assert "plant.yaml" not in text and "PLANT_SCHEMA" not in text, path
+
+
+def test_controller_nodes_start_without_the_plant_file(tmp_path):
+    """The controller's nodes read arm, control, tasks and graph only: with no plant.yaml in the
+    config directory they still start (a node that read it would raise ConfigError)."""
+    import rclpy
+
+    from soft_arm_control.clik_node import ClikNode
+    from soft_arm_control.inner_loop_node import InnerLoopNode
+    from soft_arm_model.parameters import default_config_dir
+
+    config = tmp_path / "config"
+    shutil.copytree(default_config_dir(), config)
+    (config / "plant.yaml").unlink()
+    context = rclpy.Context()
+    rclpy.init(context=context, args=["--ros-args", "-p", "graph.task:=coiling"])
+    try:
+        for cls in (ClikNode, InnerLoopNode):
+            node = cls(str(config), context=context, start_parameter_services=False)
+            try:
+                assert node.get_name() in ("clik", "inner_loop")
+            finally:
+                node.destroy_node()
+    finally:
+        rclpy.shutdown(context=context)
