@@ -27,7 +27,8 @@ import numpy as np
 
 os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
 
-from soft_arm_drivers.mocap.mocap_bridge import MocapBridge, load_mocap_config  # noqa: E402
+from soft_arm_drivers.mocap.bridge_config import load_mocap_config  # noqa: E402
+from soft_arm_drivers.mocap.mocap_bridge import MocapBridge  # noqa: E402
 from soft_arm_drivers.mocap.natnet import (ServerInfo, Version, build_connect_request,  # noqa: E402
                                            build_server_info, parse_frame_of_data)
 from soft_arm_drivers.sim.natnet_emulator import NatNetEmulator  # noqa: E402

@@ -30,7 +30,8 @@ os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
 
 import can  # noqa: E402
 
-from soft_arm_drivers.can.motor_driver import MotorDriver, load_driver_config  # noqa: E402
+from soft_arm_drivers.can.driver_config import load_driver_config  # noqa: E402
+from soft_arm_drivers.can.motor_driver import MotorDriver  # noqa: E402
 from soft_arm_drivers.sim.can_emulator import CanMotorEmulator, EmulatorThread, arm_plant  # noqa: E402
 
 from timing import results_path, write_results  # noqa: E402

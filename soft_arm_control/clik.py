@@ -1,4 +1,4 @@
-"""Closed-loop inverse kinematics for underactuated systems (paper eq. CLIK; DESIGN.md section 4).
+"""Closed-loop inverse kinematics for underactuated systems (paper eq. CLIK).
 
 With task x = h_g(q) of dimension m = n_a, the stacked Jacobian ``Z = [J_x; dG_theta_u/dq]`` is square
 and the law

@@ -1,6 +1,6 @@
-"""Collocated coordinates of the arm (paper, "Low-level collocated control"; DESIGN.md section 4).
+"""Collocated coordinates of the arm (paper, "Low-level collocated control").
 
-The equation of motion is written with the paper's input matrix B = -A (DESIGN.md: tension u >= 0
+The equation of motion is written with the paper's input matrix B = -A (README, Conventions: tension u >= 0
 pulls, ``M qdd + C qd + D qd + G(q) = B(q) u`` with ``G = F_el - F_g``). Tendons that the task does not
 use are held at a constant tension (their pretension); their force is part of G.
 

@@ -1,6 +1,6 @@
 """Kinematics and dynamics of the arm as free functions of (model, data, q[, qd, u]).
 
-Equation of motion (DESIGN.md section 2; tension u >= 0 pulls):
+Equation of motion (README, Conventions; tension u >= 0 pulls):
 
     M(q) qdd + C(q, qd) qd + D qd + F_el(q) = F_g(q) - A(q) u
 

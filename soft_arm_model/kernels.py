@@ -1,6 +1,6 @@
 """Numba kernels of the Variable-Strain model: one pass over the quadrature points.
 
-The kernel follows the geometric variable-strain formulation (SoRoSim; DESIGN.md section 3):
+The kernel follows the geometric variable-strain formulation (SoRoSim):
 between consecutive points one 4th-order Magnus (Zanna) step, with exact recursions for the body
 Jacobian J, the body twist eta and the Jacobian rate Jdot; generalised terms by Gauss quadrature.
 Everything is in the body frame of each cross-section (axis = local x) except positions and

@@ -17,7 +17,7 @@ _EXP_SERIES_BELOW = 0.1
 _TANGENT_SERIES_BELOW = 0.5
 
 # Even-power Taylor coefficients (theta^0, theta^2, ...) of the tangent-operator weights f1..f4 and of
-# g_i = f_i'(theta) / theta (derived symbolically; see the notes in DESIGN.md section 3).
+# g_i = f_i'(theta) / theta (derived symbolically from the series of the SE(3) exponential).
 _F_SERIES = np.array([
     [1 / 2, 0.0, -1 / 720, 1 / 20160, -1 / 1209600, 1 / 119750400],
     [1 / 6, 0.0, -1 / 5040, 1 / 181440, -1 / 13305600, 1 / 1556755200],

@@ -70,7 +70,7 @@ def kirchhoff_cantilever_tip(cfg: ArmConfig, gravity: float = 9.81) -> np.ndarra
 
 
 def _tendon_offsets(cfg: ArmConfig, tendon, X):
-    """Offset d and dd/dX in the section frame (DESIGN.md: d = rho (0, sin th, cos th))."""
+    """Offset d and dd/dX in the section frame (README, Conventions: d = rho (0, sin th, cos th))."""
     g = cfg.geometry
     rp = (g.tip_radius - g.base_radius) / g.length
     th_p = (tendon.end_angle - tendon.start_angle) / tendon.end

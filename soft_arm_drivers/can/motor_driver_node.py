@@ -42,7 +42,8 @@ from soft_arm_ros.conversions import joint_state, ordered
 from soft_arm_ros.parameters import parameter_overrides
 from soft_arm_ros.runtime import run_node
 
-from .motor_driver import NAMESPACE, Diagnostics, MotorDriver, bus_load, load_driver_config
+from .driver_config import NAMESPACE, bus_load, load_driver_config
+from .motor_driver import Diagnostics, MotorDriver
 
 DIAGNOSTICS_PERIOD = 0.5        # s between /diagnostics messages when nothing changes
 

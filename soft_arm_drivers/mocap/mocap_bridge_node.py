@@ -31,7 +31,8 @@ from soft_arm_ros.conversions import pose_array, pose_stamped, seconds_to_stamp
 from soft_arm_ros.parameters import parameter_overrides
 from soft_arm_ros.runtime import run_node
 
-from .mocap_bridge import NAMESPACE, BridgeConfig, MocapBridge, load_mocap_config
+from .bridge_config import NAMESPACE, BridgeConfig, load_mocap_config
+from .mocap_bridge import MocapBridge
 
 DIAGNOSTICS_TOPIC = "/diagnostics"
 DIAGNOSTICS_PERIOD = 1.0   # s

@@ -36,9 +36,10 @@ from typing import Callable, Optional, Sequence
 import can
 import numpy as np
 
+from soft_arm_drivers.can.driver_config import DriverConfig, Motor
 from soft_arm_drivers.can.mit_protocol import (COMMAND_LENGTH, ENTER_MOTOR_MODE, EXIT_MOTOR_MODE,
                                                SET_ZERO_POSITION, MotorCommand, decode_command, encode_reply)
-from soft_arm_drivers.can.motor_driver import HOST_ID, DriverConfig, Motor
+from soft_arm_drivers.can.motor_driver import HOST_ID
 from soft_arm_model import load_arm_config
 
 from .plant_config import load_plant_config

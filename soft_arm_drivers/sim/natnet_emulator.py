@@ -41,7 +41,7 @@ from typing import Callable, Optional, Sequence
 
 import numpy as np
 
-from soft_arm_drivers.mocap.mocap_bridge import Calibration
+from soft_arm_drivers.mocap.bridge_config import Calibration
 from soft_arm_drivers.mocap.natnet import (SUPPORTED_VERSIONS, FrameOfData, LabeledMarker, MessageId,
                                            NatNetParseError, RigidBody, ServerInfo, Version,
                                            build_frame_of_data, build_packet, build_server_info, parse_packet)

@@ -13,7 +13,7 @@ import pytest
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 
-from soft_arm_drivers.experiments.experiment import node_module
+from soft_arm_drivers.experiments.orchestration import node_module
 from soft_arm_model.parameters import default_config_dir
 
 from conftest import wait_for_output

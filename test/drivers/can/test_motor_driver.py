@@ -9,8 +9,9 @@ import can
 import numpy as np
 import pytest
 
+from soft_arm_drivers.can.driver_config import Motor, load_driver_config
 from soft_arm_drivers.can.mit_protocol import MOTOR_PRESETS, decode_command, encode_command, encode_reply
-from soft_arm_drivers.can.motor_driver import Motor, MotorDriver, load_driver_config, tension_frame
+from soft_arm_drivers.can.motor_driver import MotorDriver, tension_frame
 from soft_arm_drivers.sim.can_emulator import CanMotorEmulator, arm_plant
 from soft_arm_model.parameters import ConfigError
 

@@ -19,7 +19,7 @@ from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
 from std_srvs.srv import SetBool, Trigger
 
-from soft_arm_drivers.can.motor_driver import load_driver_config
+from soft_arm_drivers.can.driver_config import load_driver_config
 from soft_arm_drivers.can.motor_driver_node import MotorDriverNode, main
 from soft_arm_drivers.sim.can_emulator import CanMotorEmulator, EmulatorThread, arm_plant
 from soft_arm_model.parameters import ConfigError, default_config_dir
@@ -235,7 +235,7 @@ SIGTERM_SCRIPT = """
 import sys, threading, time
 import can
 from soft_arm_drivers.sim.can_emulator import CanMotorEmulator, EmulatorThread
-from soft_arm_drivers.can.motor_driver import load_driver_config
+from soft_arm_drivers.can.driver_config import load_driver_config
 from soft_arm_drivers.can.motor_driver_node import main
 
 name = sys.argv[1]

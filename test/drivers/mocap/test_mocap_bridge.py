@@ -10,8 +10,9 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings, strategies as st
 
-from soft_arm_drivers.mocap.mocap_bridge import (PACKET_OUTCOMES, BridgeConfig, Calibration, ClockMap,
-                                                 MocapBridge, load_mocap_config, rotation_matrix)
+from soft_arm_drivers.mocap.bridge_config import BridgeConfig, Calibration, load_mocap_config, rotation_matrix
+from soft_arm_drivers.mocap.clock_map import ClockMap
+from soft_arm_drivers.mocap.mocap_bridge import PACKET_OUTCOMES, MocapBridge
 from soft_arm_drivers.mocap.natnet import (FrameOfData, LabeledMarker, MessageId, RigidBody, ServerInfo,
                                            Version, build_frame_of_data, build_packet, build_server_info)
 from soft_arm_drivers.sim.natnet_emulator import Faults, NatNetEmulator, plant_markers

@@ -16,7 +16,7 @@ from geometry_msgs.msg import PoseArray, PoseStamped
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 
-from soft_arm_drivers.mocap.mocap_bridge import load_mocap_config
+from soft_arm_drivers.mocap.bridge_config import load_mocap_config
 from soft_arm_drivers.mocap.mocap_bridge_node import DIAGNOSTICS_TOPIC, MocapBridgeNode, main
 from soft_arm_drivers.sim.natnet_emulator import NatNetEmulator, plant_markers
 from soft_arm_drivers.sim.simulated_rig import Plant

@@ -26,9 +26,10 @@ from std_msgs.msg import ColorRGBA, Float64MultiArray, Header
 from visualization_msgs.msg import Marker, MarkerArray
 
 from soft_arm_drivers.recording import rosbag_writer
+from soft_arm_drivers.recording.message_definitions import (UnknownMessageTypeError, message_definition,
+                                                            type_description_hash)
 from soft_arm_drivers.recording.rosbag_writer import (METADATA_FILE, QosProfile, RosbagWriter, TopicSpec,
-                                                      UnknownMessageTypeError, UnknownTopicError,
-                                                      message_definition, recover, type_description_hash)
+                                                      UnknownTopicError, recover)
 
 JAZZY = get_typestore(Stores.ROS2_JAZZY)
 T0 = 1_700_000_000_000_000_000  # ns

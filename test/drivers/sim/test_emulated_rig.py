@@ -12,7 +12,7 @@ import time
 import numpy as np
 import pytest
 
-from soft_arm_drivers.can.motor_driver import load_driver_config
+from soft_arm_drivers.can.driver_config import load_driver_config
 from soft_arm_drivers.experiments.experiment import _ros_arguments, main, run_composed
 from soft_arm_drivers.experiments.figures import read_series
 from soft_arm_drivers.sim.emulated_rig import load_emulator_config, read_emulator_file

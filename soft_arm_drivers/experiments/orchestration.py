@@ -1,0 +1,295 @@
+"""Running the graph one process per node, as on the rig: the node processes (console scripts in
+their own sessions, SCHED_FIFO where permitted), waiting until the graph is wired, the operator's
+service calls, and a teardown that always runs (motors disabled, then the nodes stopped).
+
+``STOP`` is set by the first Ctrl-C / SIGTERM of ``soft-arm-experiment``: the run loops end at their
+next turn.
+"""
+from __future__ import annotations
+
+import contextlib
+import importlib.metadata
+import math
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+
+from soft_arm_model.parameters import ConfigError, default_config_dir
+
+STOP = threading.Event()       # set by the first Ctrl-C / SIGTERM: the run loops end at their next turn
+
+
+def request_stop(signum, frame):
+    """First signal: stop at the next turn of the run loop; a second one interrupts at once."""
+    if STOP.is_set():
+        raise KeyboardInterrupt
+    STOP.set()
+
+
+def _free_udp_port() -> int:
+    """A UDP port of 127.0.0.1 free right now (for the emulated Motive server)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+def _wait_for_graph(node, children, flowing: tuple = (), settle: float = 0.0,
+                    timeout: float = 120.0):
+    """Until the graph is wired: a publisher on each of the controller's and the plant's topics (a
+    node creates them once its set-up is done), a recorder, messages arriving on the ``flowing``
+    topics (names of ``TOPICS``: e.g. the controller answering the motors' state), and, with
+    ``settle`` [s], no endpoint appearing or going for that long (discovery over). The probe
+    subscriptions stay (they go with ``node``). RuntimeError when a node exits or after ``timeout``
+    [s]."""
+    import rclpy
+
+    from soft_arm_ros.contract import QOS, TOPICS, TYPES, message_class
+    topics = ["/" + TOPICS[k] for k in ("command", "reference", "state", "markers")]
+    counts = {}
+    for key in flowing:
+        topic = TOPICS[key]
+        counts[topic] = 0
+        node.create_subscription(message_class(TYPES[topic]), topic,
+                                 lambda msg, topic=topic: counts.__setitem__(topic, counts[topic] + 1),
+                                 QOS[topic])
+    deadline = time.monotonic() + timeout
+    graph, since = None, time.monotonic()
+    while not STOP.is_set():
+        children.check()
+        missing = [t for t in topics if node.count_publishers(t) == 0]
+        missing += [f"{t} (no messages yet)" for t, n in counts.items() if n < 10]
+        if "recorder" not in node.get_node_names():
+            missing.append("the recorder")
+        now = _endpoints(node)
+        if now != graph:
+            graph, since = now, time.monotonic()
+        if not missing and time.monotonic() - since >= settle:
+            return
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"the graph is not up after {timeout:g} s: "
+                               + (f"nothing on {missing}" if missing else "its endpoints keep changing"))
+        rclpy.spin_once(node, timeout_sec=0.05)
+
+
+def _endpoints(node) -> tuple:
+    """The graph's nodes, and its topics with their publisher and subscriber counts."""
+    return (tuple(sorted(node.get_node_names_and_namespaces())),
+            tuple((topic, node.count_publishers(topic), node.count_subscribers(topic))
+                  for topic, _ in sorted(node.get_topic_names_and_types())))
+
+
+def _call(node, client, request, timeout: float = 10.0):
+    """Call a service through ``client`` and return its response; RuntimeError if it is not there
+    or does not answer, or if it answers ``success = False``."""
+    import rclpy
+    if not client.wait_for_service(timeout_sec=timeout):
+        raise RuntimeError(f"service {client.srv_name} is not available")
+    future = client.call_async(request)
+    rclpy.spin_until_future_complete(node, future, timeout_sec=timeout)
+    if not future.done() or future.result() is None:
+        raise RuntimeError(f"service {client.srv_name} did not answer within {timeout:g} s")
+    response = future.result()
+    if not response.success:
+        raise RuntimeError(f"{client.srv_name} refused: {response.message}")
+    return response
+
+
+class _Children:
+    """The node processes of one run (the console scripts' modules with the run's arguments), on
+    loopback; ``realtime``: the SCHED_FIFO priorities of the processes that have one."""
+
+    def __init__(self, ros_args: list, extra: dict, realtime: dict | None = None):
+        self.ros_args, self.extra, self.realtime = ros_args, extra, realtime or {}
+        self.env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+        self.procs: dict = {}
+
+    def start(self, name: str):
+        """Start a node in its own session (a Ctrl-C in the terminal reaches this process only,
+        which stops the nodes in order), under SCHED_FIFO if it has a priority: set before the
+        interpreter has started a thread, so that every thread of the node inherits it."""
+        proc = subprocess.Popen(
+            [sys.executable, "-m", node_module(name)] + self.ros_args + self.extra.get(name, []),
+            env=self.env, start_new_session=True)
+        self.procs[name] = proc
+        if name in self.realtime:
+            os.sched_setscheduler(proc.pid, os.SCHED_FIFO, os.sched_param(self.realtime[name]))
+
+    def check(self, may_end=()):
+        """RuntimeError if a node exited (those in ``may_end`` with status 0 may)."""
+        for name, proc in self.procs.items():
+            if proc.poll() is not None and not (name in may_end and proc.returncode == 0):
+                raise RuntimeError(f"node {name} exited with status {proc.returncode}")
+
+    def stop(self):
+        """SIGINT to every node still running; SIGKILL to those not gone after 10 s."""
+        for proc in self.procs.values():
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGINT)
+        for proc in self.procs.values():
+            try:
+                proc.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+
+
+@contextlib.contextmanager
+def _orchestrating(children: _Children):
+    """This process's node (graph queries, service calls) for a run of ``children``; on the way
+    out, whatever happened, the node and rclpy go, then the children are stopped."""
+    import rclpy
+    from rclpy.signals import SignalHandlerOptions
+    rclpy.init(args=["soft-arm-experiment"], signal_handler_options=SignalHandlerOptions.NO)
+    try:
+        node = rclpy.create_node("soft_arm_experiment", start_parameter_services=False)
+        try:
+            yield node
+        finally:
+            node.destroy_node()
+    finally:
+        try:
+            rclpy.try_shutdown()
+        finally:
+            children.stop()
+
+
+def run_processes(ros_args: list, out: dict) -> dict:
+    """Each node its own process, the same parameters: recorder, inner_loop, clik and simulator
+    start; once the graph is wired (the controller's, the plant's and the recorder's endpoints
+    exist) the task runner starts. Waits for it, then stops the others with SIGINT."""
+    import rclpy
+    children = _Children(ros_args, {"recorder": ["-p", f"output:={out['bag']}", "-p", "use_sim_time:=true"],
+                                    "task_runner": ["-p", f"output:={out['metrics']}"]})
+    start = time.monotonic()
+    with _orchestrating(children) as node:
+        for name in ("recorder", "inner_loop", "clik", "simulator"):
+            children.start(name)
+        _wait_for_graph(node, children)
+        if not STOP.is_set():
+            children.start("task_runner")
+        while not STOP.is_set() and children.procs["task_runner"].poll() is None:
+            children.check(may_end=("task_runner",))
+            rclpy.spin_once(node, timeout_sec=0.2)
+        if not STOP.is_set():
+            children.check(may_end=("task_runner",))
+    return {"wall_s": time.monotonic() - start}
+
+
+def run_emulated_hardware(ros_args: list, out: dict, duration: float,
+                          config_dir: str | None = None) -> dict:
+    """The rig's graph in real time, each node its own process, with the ``emulated_rig`` (the
+    motor_driver node with the CAN motor emulators and the NatNet server emulator behind it,
+    :mod:`.emulated_rig`) and the ``mocap_bridge`` in the simulator's place; ``duration`` [s]: the
+    task's, ``config_dir``: where rig.yaml, mocap.yaml and emulator.yaml are (default: the package's).
+
+    As an operator runs the rig: every node starts (the task runner waiting for ``~/start``); once
+    the graph is wired and settled and the controller answers the motors' state, the motors are
+    zeroed (tendons slack) and enabled through the driver's services and the task starts; when the
+    task runner has written the metrics (RuntimeError if not within ``duration`` + 60 s) the motors
+    are disabled, then the nodes are stopped. No process joins or leaves the graph while the motors
+    are enabled: DDS discovery can hold a publisher, the driver's included, for a few hundred ms.
+    The driver's faults are printed as they latch and those latched while the motors were enabled
+    are listed in the run facts (``driver_faults``)."""
+    import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+    from std_srvs.srv import SetBool, Trigger
+
+    from soft_arm_ros.conversions import stamp_to_seconds
+
+    d = config_dir or default_config_dir()
+    files = [a for name in ("rig.yaml", "mocap.yaml", "emulator.yaml")
+             for a in ("--params-file", os.path.join(d, name))]
+    port = _free_udp_port()
+    realtime = _realtime_permitted()
+    if not realtime:
+        print("soft-arm-experiment: real-time scheduling is not permitted here (it needs root, "
+              "CAP_SYS_NICE or an rtprio limit): a busy computer may hold the emulated hardware "
+              "long enough for the motor driver's watchdog to trip", file=sys.stderr)
+    children = _Children(ros_args, {
+        "recorder": ["-p", f"output:={out['bag']}"],
+        "task_runner": ["-p", f"output:={out['metrics']}", "-p", "wait_for_start:=true"],
+        "emulated_rig": files + ["-p", f"rig.mocap.command_port:={port}"],
+        "mocap_bridge": files + ["-p", f"rig.mocap.command_port:={port}", "-p", "rig.mocap.data_port:=0"]},
+        _REALTIME if realtime else None)
+    faults = []
+    enabled_at = math.inf                  # system time [s] from which a fault counts
+    start = time.monotonic()
+
+    def facts():
+        return {"wall_s": time.monotonic() - start, "emulated_hardware": True, "realtime": realtime,
+                "driver_faults": faults}
+
+    def on_diagnostics(msg):
+        """Print the motor driver's faults as they latch (the run goes on: it is the operator's
+        call on the rig, and the metrics will show it); keep those latched while enabled."""
+        for status in msg.status:
+            if status.name == "motor_driver" and status.level == DiagnosticStatus.ERROR \
+                    and stamp_to_seconds(msg.header.stamp) >= enabled_at and status.message not in faults:
+                faults.append(status.message)
+                print(f"\nsoft-arm-experiment: motor_driver {status.message}", file=sys.stderr)
+
+    with _orchestrating(children) as node:
+        node.create_subscription(DiagnosticArray, "/diagnostics", on_diagnostics, 10)
+        # every client is created, and its server discovered, before the motors are enabled
+        zero = node.create_client(Trigger, "/motor_driver/zero")
+        enable = node.create_client(SetBool, "/motor_driver/enable")
+        begin = node.create_client(Trigger, "/task_runner/start")
+        for name in ("recorder", "emulated_rig", "mocap_bridge", "inner_loop", "clik", "task_runner"):
+            children.start(name)
+        _wait_for_graph(node, children, ("command", "markers"), settle=2.0)
+        for client in (zero, enable, begin):
+            if not STOP.is_set() and not client.wait_for_service(timeout_sec=10.0):
+                raise RuntimeError(f"service {client.srv_name} is not available")
+        if STOP.is_set():
+            return facts()
+        _call(node, zero, Trigger.Request())
+        try:
+            response = _call(node, enable, SetBool.Request(data=True))
+            enabled_at = time.time()
+            if response.message != "enabled":              # a fault latched while disabled
+                print(f"soft-arm-experiment: motor_driver {response.message}", file=sys.stderr)
+            _call(node, begin, Trigger.Request())
+            deadline = time.monotonic() + duration + 60.0
+            while not STOP.is_set() and not os.path.exists(out["metrics"]):
+                children.check()
+                if time.monotonic() > deadline:
+                    raise RuntimeError(f"the task runner wrote no metrics within {duration + 60.0:g} s")
+                rclpy.spin_once(node, timeout_sec=0.1)
+        finally:
+            try:
+                _call(node, enable, SetBool.Request(data=False), timeout=2.0)
+            except RuntimeError as exc:
+                print(f"soft-arm-experiment: could not disable the motors: {exc}", file=sys.stderr)
+    return facts()
+
+
+# Real time on a shared computer. The emulated hardware (plant, motors and Motive in one process)
+# and the processes the loop closes through run under SCHED_FIFO where the system permits it: under
+# the normal policy a busy two-core computer holds one of them, or a DDS thread it waits on while it
+# publishes, for 0.1-0.3 s now and then, and the motor driver's watchdog rightly trips. On the rig,
+# run motor_driver, mocap_bridge and inner_loop the same way (README, "On the rig, and on the emulated rig").
+_REALTIME = {"emulated_rig": 30, "inner_loop": 20, "mocap_bridge": 20}
+
+
+def _realtime_permitted() -> bool:
+    """Whether this process may give its children SCHED_FIFO (tried on itself, then undone)."""
+    try:
+        policy, param = os.sched_getscheduler(0), os.sched_getparam(0)
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(max(_REALTIME.values())))
+        os.sched_setscheduler(0, policy, param)
+        return True
+    except (AttributeError, OSError):
+        return False
+
+
+def node_module(name: str) -> str:
+    """The module of the node console script ``name``, from the package's entry points (setup.py is
+    their one source); ConfigError if no such script is installed."""
+    found = [ep for ep in importlib.metadata.entry_points(group="console_scripts", name=name)
+             if ep.value.startswith("soft_arm_")]
+    if not found:
+        raise ConfigError(f"no soft_arm console script {name!r} is installed (pip install -e .)")
+    return found[0].value.partition(":")[0]
