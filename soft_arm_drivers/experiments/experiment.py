@@ -147,12 +147,16 @@ def main(argv=None) -> int:
     parser.add_argument("--config", metavar="DIR", help="directory with the parameter files")
     parser.add_argument("--set", dest="sets", action="append", default=[], metavar="NS.KEY=VALUE",
                         help="override one parameter (repeatable)")
+    parser.add_argument("--plant-file", metavar="FILE",
+                        help="simulate the arm described by FILE (the schema of arm.yaml) as the plant, "
+                             "whatever the controller believes")
     parser.add_argument("--json", action="store_true", help="print the metrics as JSON")
     parser.add_argument("--quiet", action="store_true", help="no progress line (composed runs print one)")
     args = parser.parse_args(argv)
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     try:
-        from .harness import load_setup
+        from .harness import load_setup, plant_file_override
+        args.sets += plant_file_override(args.plant_file)
         setup = load_setup(args.task, args.config,
                            [s for s in args.sets if not s.startswith("graph.")])
         ros_args = _ros_arguments(args.task, args.sets, args.config)

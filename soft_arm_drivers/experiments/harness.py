@@ -61,10 +61,17 @@ def load_setup(task: str, config_dir: str | None = None, overrides=None) -> Setu
     d = config_dir or default_config_dir()
     groups = split_overrides(overrides)
     arm = load_arm_config(os.path.join(d, "arm.yaml"), groups["arm"])
+    plant = load_plant_config(arm, os.path.join(d, "plant.yaml"), groups["plant"])
+    plant.plant_arm(arm)                  # a bad plant file is refused before anything runs
     return Setup(arm,
                  load_control_config(arm, os.path.join(d, "control.yaml"), groups["control"]),
-                 load_plant_config(arm, os.path.join(d, "plant.yaml"), groups["plant"]),
-                 load_task_config(task, arm, os.path.join(d, "tasks.yaml"), groups["tasks"]))
+                 plant, load_task_config(task, arm, os.path.join(d, "tasks.yaml"), groups["tasks"]))
+
+
+def plant_file_override(path: str | None) -> list:
+    """``--plant-file FILE`` as a ``plant.plant_file`` override (absolute, so that every process of a
+    run reads the same file); none without a file."""
+    return [f"plant.plant_file={os.path.abspath(path)}"] if path else []
 
 
 class TwoLevelController:

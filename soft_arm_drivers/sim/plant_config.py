@@ -8,14 +8,29 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass, replace
 
-from soft_arm_model.config import ArmConfig
+from soft_arm_model.config import STRAIN_MODES, ArmConfig, load_arm_config
 from soft_arm_model.parameters import ConfigError, default_config_dir, load_section
 
 PLANT_SCHEMA = {
+    "plant_file": ("str", None, "the path of a complete arm description in the schema of arm.yaml, "
+                                "or an empty string (the controller's arm with the differences below)"),
     "youngs_modulus_scale": ("float", lambda v: 0.1 <= v <= 10, "a factor in [0.1, 10]"),
     "viscosity_scale": ("float", lambda v: 0 <= v <= 10, "a factor in [0, 10]"),
+    "density_scale": ("float", lambda v: 0.5 <= v <= 2, "a factor in [0.5, 2]"),
     "friction": ("floats", lambda v: all(0 <= a <= 10 for a in v),
                  "friction coefficients in [0, 10], one per tendon"),
+    "tendon.offset_fraction": ("floats", lambda v: all(0 < a < 1 for a in v),
+                               "fractions of the local radius in (0, 1), one per tendon"),
+    "tendon.start_angle_error": ("floats", lambda v: all(abs(a) <= 0.5 for a in v),
+                                 "angle errors in [-0.5, 0.5] rad at the base, one per tendon"),
+    "tendon.end_angle_error": ("floats", lambda v: all(abs(a) <= 0.5 for a in v),
+                               "angle errors in [-0.5, 0.5] rad at the tendon end, one per tendon"),
+    "tip_payload": ("float", lambda v: 0 <= v <= 0.1, "a mass in [0, 0.1] kg hanging at the tip"),
+    "discretisation.legendre_order": ("ints", lambda v: all(0 <= a <= 8 for a in v),
+                                      "Legendre orders in [0, 8], one per division of the arm"),
+    "discretisation.gauss_points": ("ints", lambda v: all(1 <= a <= 20 for a in v),
+                                    "Gauss points in [1, 20], one per division of the arm"),
+    "discretisation.shear": ("bool", None, "true or false (the two shear strains)"),
     "timestep": ("float", lambda v: 1e-5 <= v <= 0.01, "a time step in [1e-5, 0.01] s"),
     "motor.rotor_inertia": ("float", lambda v: 0 <= v <= 1, "an inertia in [0, 1] kg m^2"),
     "encoder.pulley_radius": ("float", lambda v: 0 < v <= 1, "a radius in (0, 1] m"),
@@ -26,17 +41,25 @@ PLANT_SCHEMA = {
     "mocap.latency": ("float", lambda v: 0 <= v <= 1, "a latency in [0, 1] s"),
     "mocap.seed": ("int", lambda v: v >= 0, "a seed >= 0"),
 }
+# the keys that describe the plant's arm (ignored when plant_file names a complete description)
+ARM_KEYS = ("youngs_modulus_scale", "viscosity_scale", "density_scale", "friction",
+            "tendon.offset_fraction", "tendon.start_angle_error", "tendon.end_angle_error",
+            "discretisation.legendre_order", "discretisation.gauss_points", "discretisation.shear")
+_PER_TENDON = ("friction", "tendon.offset_fraction", "tendon.start_angle_error", "tendon.end_angle_error")
+_PER_DIVISION = ("discretisation.legendre_order", "discretisation.gauss_points")
+_SHEAR = (STRAIN_MODES.index("shear_y"), STRAIN_MODES.index("shear_z"))
 
 
 @dataclass(frozen=True)
 class PlantConfig:
-    """The simulated plant: material scale factors and friction relative to the controller's arm,
-    the time step [s], the motor rotor inertia [kg m^2], the encoder (pulley radius [m], angle and
-    rate resolution [rad], [rad/s]) and the mocap (frame rate [Hz], noise standard deviation [m],
-    latency [s], seed)."""
-    youngs_modulus_scale: float
-    viscosity_scale: float
-    friction: tuple
+    """The simulated plant: its arm (``arm_values``: the plant's differences from the controller's
+    arm, by key of :data:`PLANT_SCHEMA`, or ``plant_file``: a complete arm description), a tip
+    payload [kg], the time step [s], the motor rotor inertia [kg m^2], the encoder (pulley radius
+    [m], angle and rate resolution [rad], [rad/s]) and the mocap (frame rate [Hz], noise standard
+    deviation [m], latency [s], seed)."""
+    plant_file: str
+    arm_values: dict
+    tip_payload: float
     timestep: float
     rotor_inertia: float
     pulley_radius: float
@@ -48,13 +71,32 @@ class PlantConfig:
     mocap_seed: int
 
     def plant_arm(self, arm: ArmConfig) -> ArmConfig:
-        """The plant's arm: the controller's description with E and viscosity scaled and the
-        plant's friction coefficients."""
+        """The plant's arm: the description of ``plant_file``, or the controller's ``arm`` with E,
+        viscosity and density scaled, the plant's tendon geometry and friction, and its own strain
+        basis. ConfigError if a plant file does not fit the controller's arm (tendons, markers)."""
+        if self.plant_file:
+            plant = load_arm_config(self.plant_file)
+            if [t.name for t in plant.tendons] != [t.name for t in arm.tendons]:
+                raise ConfigError(f"plant.plant_file = {self.plant_file!r} is not valid: its "
+                                  f"tendons.names must be the controller's {[t.name for t in arm.tendons]}")
+            if len(plant.marker_positions) != len(arm.marker_positions):
+                raise ConfigError(f"plant.plant_file = {self.plant_file!r} is not valid: expected "
+                                  f"{len(arm.marker_positions)} markers, as in the controller's arm")
+            return plant
+        v = self.arm_values
         material = replace(arm.material,
-                           youngs_modulus=arm.material.youngs_modulus * self.youngs_modulus_scale,
-                           viscosity=arm.material.viscosity * self.viscosity_scale)
-        tendons = tuple(replace(t, friction=f) for t, f in zip(arm.tendons, self.friction))
-        return replace(arm, material=material, tendons=tendons)
+                           youngs_modulus=arm.material.youngs_modulus * v["youngs_modulus_scale"],
+                           viscosity=arm.material.viscosity * v["viscosity_scale"],
+                           density=arm.material.density * v["density_scale"])
+        tendons = tuple(replace(t, friction=f, offset_fraction=d, start_angle=t.start_angle + a0,
+                                end_angle=t.end_angle + a1)
+                        for t, f, d, a0, a1 in zip(arm.tendons, *(v[k] for k in _PER_TENDON)))
+        modes = list(arm.discretisation.modes)
+        for k in _SHEAR:
+            modes[k] = v["discretisation.shear"]
+        basis = replace(arm.discretisation, legendre_order=v["discretisation.legendre_order"],
+                        gauss_points=v["discretisation.gauss_points"], modes=tuple(modes))
+        return replace(arm, material=material, tendons=tendons, discretisation=basis)
 
     @property
     def rotor_mass(self) -> float:
@@ -63,11 +105,14 @@ class PlantConfig:
 
 
 def parse_plant(v: dict, arm: ArmConfig) -> PlantConfig:
-    """Cross-checks of the ``plant`` values against the arm (one friction coefficient per tendon)."""
-    if len(v["friction"]) != len(arm.tendons):
-        raise ConfigError(f"plant.friction = {list(v['friction'])} is not valid: expected "
-                          f"{len(arm.tendons)} values, one per tendon in arm.tendons.names")
-    return PlantConfig(v["youngs_modulus_scale"], v["viscosity_scale"], v["friction"], v["timestep"],
+    """Cross-checks of the ``plant`` values against the arm: one value per tendon, one per division."""
+    expect = {**{k: (len(arm.tendons), "one per tendon in arm.tendons.names") for k in _PER_TENDON},
+              **{k: (len(arm.discretisation.division_ends),
+                     "one per division in arm.discretisation.division_ends") for k in _PER_DIVISION}}
+    for key, (n, what) in expect.items():
+        if len(v[key]) != n:
+            raise ConfigError(f"plant.{key} = {list(v[key])} is not valid: expected {n} values, {what}")
+    return PlantConfig(v["plant_file"], {k: v[k] for k in ARM_KEYS}, v["tip_payload"], v["timestep"],
                        v["motor.rotor_inertia"], v["encoder.pulley_radius"], v["encoder.resolution"],
                        v["encoder.velocity_resolution"], v["mocap.rate"], v["mocap.noise"],
                        v["mocap.latency"], v["mocap.seed"])
@@ -82,3 +127,14 @@ def load_plant_config(arm: ArmConfig, path: str | None = None, overrides=None) -
 def plant_of(params, arm: ArmConfig) -> PlantConfig:
     """``plant`` of a node's parameters (:class:`soft_arm_ros.parameters.NodeParameters`)."""
     return parse_plant(params.section("plant", PLANT_SCHEMA), arm)
+
+
+def describe_plant(plant: PlantConfig) -> str:
+    """One line saying how the plant differs from the controller's arm (for a node's start-up log)."""
+    if plant.plant_file:
+        return f"the arm of {plant.plant_file}"
+    v = plant.arm_values
+    return (f"E x{v['youngs_modulus_scale']}, viscosity x{v['viscosity_scale']}, density "
+            f"x{v['density_scale']}, friction {list(v['friction'])}, offsets "
+            f"{list(v['tendon.offset_fraction'])}, strain order {list(v['discretisation.legendre_order'])}"
+            f"{' with shear' if v['discretisation.shear'] else ''}, tip payload {plant.tip_payload} kg")

@@ -31,7 +31,7 @@ from soft_arm_ros.conversions import (joint_state, ordered, pose_array, pose_sta
 from soft_arm_ros.parameters import NodeParameters
 from soft_arm_ros.runtime import run_node
 
-from .plant_config import plant_of
+from .plant_config import describe_plant, plant_of
 from .simulated_rig import SimulatedRig
 
 
@@ -79,8 +79,7 @@ class SimulatorNode(Node):
         self._started = False
         self.start_timer = self.create_timer(0.01, self.start)
         self.get_logger().info(
-            f"simulator ({self.mode}) ready: plant E x{plant.youngs_modulus_scale}, viscosity "
-            f"x{plant.viscosity_scale}, friction {list(plant.friction)}")
+            f"simulator ({self.mode}) ready: plant {describe_plant(plant)}")
 
     def start(self):
         """Publish the state at t = 0 once, as soon as a controller (a publisher of

@@ -1,0 +1,87 @@
+"""The simulated plant's description: structural differences from the controller's arm in
+plant.yaml, and a complete arm description (--plant-file) simulated whatever the controller believes."""
+import math
+import os
+import shutil
+
+import numpy as np
+import pytest
+
+from soft_arm_drivers.experiments.harness import load_setup, plant_file_override, run_experiment
+from soft_arm_drivers.experiments.harness_cli import main as harness_main
+from soft_arm_drivers.sim.plant_config import load_plant_config
+from soft_arm_model import build_model, load_arm_config
+from soft_arm_model.parameters import ConfigError, default_config_dir
+
+# the plant of plant.yaml with every difference from arm.yaml taken out
+NEUTRAL = ["plant.youngs_modulus_scale=1.0", "plant.viscosity_scale=1.0", "plant.density_scale=1.0",
+           "plant.friction=[0.1, 0.1, 0.1, 0.1]"]
+# a short coiling protocol: two clik windows and one replay
+SHORT = ["tasks.coiling.phases=[upward, downward]", "tasks.coiling.phase.upward.window=3.0",
+         "tasks.coiling.phase.upward.sequence=[1, 2]", "tasks.coiling.phase.downward.window=1.0",
+         "tasks.coiling.phase.downward.sequence=[1]", "control.clik.switch_delay=1.0"]
+
+
+def test_structural_differences_reach_the_plants_arm():
+    arm = load_arm_config()
+    plant = load_plant_config(arm, overrides={
+        "tendon.start_angle_error": "[0.05, 0, 0, -0.02]", "tendon.end_angle_error": "[0, 0.03, 0, 0]",
+        "tendon.offset_fraction": "[0.57, 0.6, 0.64, 0.6]", "density_scale": 1.05,
+        "friction": "[0.09, 0.16, 0.1, 0.12]", "discretisation.legendre_order": "[4, 1]",
+        "discretisation.shear": True, "youngs_modulus_scale": 0.88})
+    p = plant.plant_arm(arm)
+    assert p.tendons[0].start_angle == pytest.approx(arm.tendons[0].start_angle + 0.05)
+    assert p.tendons[3].start_angle == pytest.approx(arm.tendons[3].start_angle - 0.02)
+    assert p.tendons[1].end_angle == pytest.approx(arm.tendons[1].end_angle + 0.03)
+    assert [t.offset_fraction for t in p.tendons] == [0.57, 0.6, 0.64, 0.6]
+    assert [t.friction for t in p.tendons] == [0.09, 0.16, 0.1, 0.12]
+    assert p.material.density == pytest.approx(1.05 * arm.material.density)
+    assert p.material.youngs_modulus == pytest.approx(0.88 * arm.material.youngs_modulus)
+    assert p.enabled_modes == arm.enabled_modes + ("shear_y", "shear_z")
+    # six modes, orders 4 and 1: 6 * 5 + 6 * 2 coordinates against the controller's 4 * (4 + 1)
+    assert build_model(p).n == 42 and build_model(arm).n == 20
+
+
+@pytest.mark.parametrize("key, value, message", [
+    ("tendon.offset_fraction", "[0.6, 0.6, 0.6]", "plant.tendon.offset_fraction"),
+    ("discretisation.legendre_order", "[3]", "one per division"),
+    ("tendon.start_angle_error", "[0, 0, 0, 0.9]", "plant.tendon.start_angle_error"),
+    ("tip_payload", "-0.001", "plant.tip_payload"),
+])
+def test_bad_plant_values_name_the_key(key, value, message):
+    with pytest.raises(ConfigError, match=message.replace(".", r"\.")):
+        load_plant_config(load_arm_config(), overrides={key: value})
+
+
+def _arm_file(tmp_path, edit=None):
+    path = tmp_path / "plant_arm.yaml"
+    text = open(os.path.join(default_config_dir(), "arm.yaml"), encoding="utf-8").read()
+    path.write_text(edit(text) if edit else text)
+    return str(path)
+
+
+def test_a_plant_file_with_a_wrong_length_list_or_an_unknown_key_is_refused(tmp_path):
+    short = _arm_file(tmp_path, lambda t: t.replace("offset_fraction: [0.6, 0.6, 0.6, 0.6]",
+                                                    "offset_fraction: [0.6, 0.6, 0.6]"))
+    with pytest.raises(ConfigError, match=r"arm\.tendons\.offset_fraction"):
+        load_setup("coiling", overrides=plant_file_override(short))
+    (tmp_path / "unknown").mkdir()
+    unknown = _arm_file(tmp_path / "unknown", lambda t: t.replace("poisson_ratio:", "poison_ratio:"))
+    with pytest.raises(ConfigError, match=r"unknown key arm\.material\.poison_ratio.*poisson_ratio"):
+        load_setup("coiling", overrides=plant_file_override(unknown))
+    assert harness_main(["coiling", "--plant-file", str(tmp_path / "missing.yaml"), "--quiet"]) == 2
+
+
+def test_a_plant_file_equal_to_arm_yaml_reproduces_the_run_exactly(tmp_path):
+    """The file replaces the differences of plant.yaml: with the controller's own arm as the file,
+    the run is the one of plant.yaml with every difference taken out, sample for sample."""
+    neutral = run_experiment(load_setup("coiling", overrides=NEUTRAL + SHORT))
+    shutil.copy(os.path.join(default_config_dir(), "arm.yaml"), tmp_path / "arm.yaml")
+    from_file = run_experiment(load_setup("coiling", overrides=SHORT + plant_file_override(
+        str(tmp_path / "arm.yaml"))))
+    a, b = neutral.record.arrays(), from_file.record.arrays()
+    assert a["x"].shape == b["x"].shape and a["x"].size > 0
+    assert np.array_equal(a["x"], b["x"]) and np.array_equal(a["tension"], b["tension"])
+    default = run_experiment(load_setup("coiling", overrides=SHORT)).record.arrays()
+    assert not np.array_equal(default["x"], a["x"])       # plant.yaml's differences do matter
+    assert math.isfinite(neutral.summary.rms_error)
