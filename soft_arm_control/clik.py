@@ -15,6 +15,14 @@ Two variants: precomputed (x from the model; :meth:`Clik.precompute` solves for 
 offline, a damped Newton iteration on the same equations, i.e. the CLIK flow with unit gain-step) and
 online (x measured at the mocap rate; :meth:`Clik.step`). Targets are checked before anything moves:
 :class:`TargetError` says why a target cannot be reached or needs tensions outside the limits.
+
+Feasibility. An online step whose end point would need equilibrium tensions outside [u_min, u_max]
+is not dropped: it is replaced by the bounded least-squares step. On the equilibrium set the tension
+rate is linear in the task velocity v, ``udot = P v + c`` (``P = dG_theta_a/dq Z^-1[:, :m]``, c from
+the equilibrium term), so the step solves ``min |v - Gamma_Z e|`` subject to the tensions of its end
+point staying within the limits (``scipy.optimize.lsq_linear`` on the tension rate). Its fixed point
+is where the task error is orthogonal to every direction the free tensions can still move the task:
+the closest feasible point, to first order. Such steps are reported (``ClikStep.constrained``).
 """
 from __future__ import annotations
 
@@ -22,12 +30,16 @@ import itertools
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.optimize import lsq_linear
 
 from soft_arm_model import EquilibriumError, OutOfDomainError, solve_equilibrium
 
-from .collocated import (CollocatedData, CollocatedModel, equilibrium_jacobian, evaluate_collocated,
+from .collocated import (CollocatedData, CollocatedModel, collocated_jacobian, evaluate_collocated,
                          full_tensions)
 from .task_space import TaskSpace
+
+
+_LIMIT_MARGIN = 1e-3   # a bounded step aims this fraction of the tension range inside the limits
 
 
 class TargetError(ValueError):
@@ -68,6 +80,8 @@ class ClikStep:
     G_theta_u: np.ndarray
     condition: float
     damped: bool
+    constrained: bool = False
+    held: bool = False
 
 
 class Clik:
@@ -85,6 +99,7 @@ class Clik:
         self._at = None          # q of the last evaluation held in cd, _x, _Jx
         self._x = self._Jx = None
         self._Z = self._factor = None
+        self._Ga = None          # dG_theta_a/dq with the current Z: the tension rate per qdot
 
     # -- evaluation -------------------------------------------------------------------------------
     def _evaluate(self, q):
@@ -102,7 +117,8 @@ class Clik:
         residuals are always fresh, so the fixed point is unchanged: a chord iteration)."""
         x = self._evaluate(q)
         if refresh or self._Z is None:
-            self._Z = np.vstack([self._Jx, equilibrium_jacobian(self.cm, self.cd)])
+            dG = collocated_jacobian(self.cm, self.cd)
+            self._Z, self._Ga = np.vstack([self._Jx, dG[self.cm.n_a:]]), dG[:self.cm.n_a]
             self._factor = None
         return x, self._Z
 
@@ -160,17 +176,51 @@ class Clik:
     def step(self, q, x_d, dt: float, x=None, refresh: bool = True) -> tuple[ClikPoint | None, ClikStep]:
         """One explicit Euler step of length dt [s] from q_d = q; x: measured task coordinates [m]
         (online) or None (model); refresh: see :meth:`velocity`. Returns (the new reference,
-        diagnostics); the reference is None when the step would leave the model's domain or the
-        tension limits (keep the last one)."""
+        diagnostics). When the step would need tensions outside the limits, the bounded
+        least-squares step is taken instead (``constrained``); the reference is None (``held``: keep
+        the last one) only when no step within the limits and the model's domain is found."""
         info = self.velocity(q, x_d, x, refresh=refresh)
-        q_new = np.asarray(q, dtype=float) + dt * info.qdot
+        q = np.asarray(q, dtype=float)
+        ref = self._feasible_reference(q + dt * info.qdot)
+        if ref is not None:
+            return ref, info
+        qdot = self._bounded_velocity(q, dt, info)
+        for scale in (1.0, 0.5, 0.25, 0.125):
+            ref = self._feasible_reference(q + scale * dt * qdot)
+            if ref is not None:
+                return ref, ClikStep(qdot, info.error, info.G_theta_u, info.condition, info.damped,
+                                     constrained=True)
+        return None, ClikStep(info.qdot, info.error, info.G_theta_u, info.condition, info.damped,
+                              constrained=True, held=True)
+
+    def _feasible_reference(self, q) -> ClikPoint | None:
+        """The reference of q if q is in the model's domain and its tensions within the limits."""
         try:
-            ref = self.reference(q_new)
+            ref = self.reference(q)
         except (OutOfDomainError, ValueError):
-            return None, info
-        if self.feasibility_error(ref.u_ff) is not None:
-            return None, info
-        return ref, info
+            return None
+        return ref if self.feasibility_error(ref.u_ff) is None else None
+
+    def _bounded_velocity(self, q, dt: float, info: ClikStep) -> np.ndarray:
+        """qdot of the bounded least-squares step at q (see the module's docstring): the task
+        velocity closest to Gamma_Z e whose tension rate keeps u_eq + dt udot within the limits,
+        with the equilibrium term unchanged."""
+        m = self.task.m
+        Z, Ga = self._Z, self._Ga            # as used by velocity() for this step
+        self._evaluate(q)
+        u0 = self.cd.u_eq.copy()
+        n = Z.shape[0]
+        task_columns = np.column_stack([self._solve(Z, col)[0] for col in np.eye(n)[:, :m].T])
+        w = -self.gains.equilibrium * info.G_theta_u
+        qdot_eq = self._solve(Z, np.concatenate([np.zeros(m), w]))[0]
+        P = Ga @ task_columns                # tension rate per task velocity
+        c = Ga @ qdot_eq                     # tension rate of the equilibrium term
+        A = np.linalg.pinv(P)                # task velocity per tension rate
+        margin = _LIMIT_MARGIN * (self.u_max - self.u_min)      # room for the step's curvature
+        lo = (self.u_min + margin - u0) / dt
+        hi = (self.u_max - margin - u0) / dt
+        udot = lsq_linear(A, self.gains.task * info.error + A @ c, bounds=(lo, hi)).x
+        return task_columns @ (A @ (udot - c)) + qdot_eq
 
     # -- precomputed variant ----------------------------------------------------------------------
     def _newton(self, q, x_d, tol: float, max_iter: int):

@@ -166,6 +166,12 @@ def effective_stiffness(cm: CollocatedModel, cd: CollocatedData) -> np.ndarray:
     return H
 
 
+def collocated_jacobian(cm: CollocatedModel, cd: CollocatedData) -> np.ndarray:
+    """dG_theta/dq = J_h^-T H_eff at the last evaluated q, (n, n): the first n_a rows are the rates
+    of the feedforward tensions u_eq [N per unit of q], the others dG_theta_u/dq."""
+    return cd.solve_transposed(effective_stiffness(cm, cd))
+
+
 def equilibrium_jacobian(cm: CollocatedModel, cd: CollocatedData) -> np.ndarray:
     """dG_theta_u/dq = S J_h^-T H_eff at the last evaluated q, (n - n_a, n)."""
-    return cd.solve_transposed(effective_stiffness(cm, cd))[cm.n_a:]
+    return collocated_jacobian(cm, cd)[cm.n_a:]

@@ -123,3 +123,52 @@ def test_online_step_keeps_the_last_reference_when_a_step_is_infeasible(paper_mo
     assert ref is None and np.linalg.norm(info.error) > 0.01
     ref, _ = tight.step(q_eq, x_d, 1e-3, x=x_d)
     assert ref is not None and np.allclose(ref.q, q_eq, atol=1e-6)
+
+
+COILING = TaskSpace((3, 3), (0, 2))
+
+
+@pytest.fixture(scope="module")
+def coiling_clik(paper_model):
+    cm = build_collocated(paper_model, (2, 3), held_tension=0.05)
+    return Clik(cm, COILING, ClikGains(5.0, 20.0), (0.05, 5.0))
+
+
+def _model_x(model, u34):
+    u = np.concatenate([[0.05, 0.05], np.clip(u34, 0.05, 5.0)])
+    return COILING.evaluate(model, solve_equilibrium(model, u).q)[0]
+
+
+@pytest.mark.parametrize("x_d", [(0.06, -0.36), (-0.10, -0.30)])
+def test_an_infeasible_target_leads_to_the_closest_feasible_point_within_the_limits(
+        paper_model, coiling_clik, x_d):
+    """Targets out of the reach of tensions in [0.05, 5] N: every step's tensions stay within the
+    limits, the steps are reported as constrained, and the reference ends at the closest point the
+    limits allow (found independently by minimising the distance over the tensions)."""
+    from scipy.optimize import minimize
+    x_d = np.array(x_d)
+    q = solve_equilibrium(paper_model, np.full(4, 0.05)).q
+    constrained = 0
+    for _ in range(600):
+        ref, info = coiling_clik.step(q, x_d, 0.02)
+        assert ref is not None and not info.held
+        assert np.all(ref.u_ff >= 0.05) and np.all(ref.u_ff <= 5.0)
+        constrained += info.constrained
+        q = ref.q
+    assert constrained > 100
+    starts = [(0.1, 0.1), (2.0, 0.1), (0.1, 2.0), (2.0, 2.0), tuple(ref.u_ff)]
+    best = min((minimize(lambda u: np.linalg.norm(_model_x(paper_model, u) - x_d), s, method="Nelder-Mead",
+                         options={"xatol": 1e-5, "fatol": 1e-9}) for s in starts), key=lambda r: r.fun)
+    assert np.linalg.norm(ref.x - x_d) > 0.01                    # the target is out of reach
+    assert np.linalg.norm(ref.x - _model_x(paper_model, best.x)) < 5e-4
+    assert np.linalg.norm(ref.x - x_d) - best.fun < 5e-4
+
+
+def test_a_feasible_step_is_the_unconstrained_clik_step(paper_model, coiling_clik):
+    q = solve_equilibrium(paper_model, np.array([0.05, 0.05, 1.0, 0.5])).q
+    x_d = _model_x(paper_model, (1.3, 0.8))
+    info = coiling_clik.velocity(q, x_d)
+    expected = coiling_clik.reference(q + 0.01 * info.qdot)
+    ref, step = coiling_clik.step(q, x_d, 0.01)
+    assert not step.constrained and not step.held
+    assert np.array_equal(ref.q, expected.q) and np.array_equal(ref.u_ff, expected.u_ff)
