@@ -14,13 +14,14 @@ import sys
 
 import numpy as np
 from geometry_msgs.msg import PoseArray
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
 from soft_arm_model import build_model
 from soft_arm_ros.contract import QOS, TOPICS
-from soft_arm_ros.conversions import float_array, joint_state, markers_of, stamp_to_seconds
+from soft_arm_ros.conversions import float_array, joint_state, markers_of, seconds_to_stamp, stamp_to_seconds
 from soft_arm_ros.parameters import NodeParameters
 from soft_arm_ros.runtime import run_node
 
@@ -47,6 +48,9 @@ class ClikNode(Node):
                                            QOS["arm/configuration_reference"])
         self.create_subscription(Float64MultiArray, TOPICS["goal"], self.on_goal, QOS["task/goal"])
         self.create_subscription(PoseArray, TOPICS["markers"], self.on_markers, QOS["mocap/markers"])
+        self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self._reported = None                 # (goal index, status) last published
+        self.create_timer(1.0, self.publish_diagnostics)
         self.get_logger().info(f"clik ready for task {self.task.name} "
                                f"({', '.join(self.task.space.labels())})")
 
@@ -75,6 +79,30 @@ class ClikNode(Node):
         ref = self.outer.frame(self.now, self.task.space.from_markers(markers))
         if ref is not None:
             self.publish(ref)
+        if self.outer.reports and (len(self.outer.reports), self.outer.reports[-1].status) != self._reported:
+            self.publish_diagnostics()        # at once when a goal turns infeasible
+
+    def publish_diagnostics(self):
+        """The current goal's feasibility on ``/diagnostics`` (once a second and on every change):
+        OK; WARN while its online steps are projected onto the tension limits (the target is
+        infeasible for the model: the reference moves to the closest feasible point); ERROR when a
+        step found no feasible reference and the last one was held."""
+        if not self.outer.reports:
+            return
+        report = self.outer.reports[-1]
+        level = {"ok": DiagnosticStatus.OK, "constrained": DiagnosticStatus.WARN,
+                 "held": DiagnosticStatus.ERROR}[report.status]
+        message = {"ok": "target feasible",
+                   "constrained": "target infeasible for the model: moving to the closest feasible point",
+                   "held": "no feasible step: the last reference is held"}[report.status]
+        status = DiagnosticStatus(level=level, name="clik", hardware_id="soft_arm", message=message)
+        d = report.as_dict()
+        keys = ("target", "mode", "online_steps", "infeasible_steps", "held_steps", "closest_error")
+        status.values = [KeyValue(key=k, value=str(d[k])) for k in keys]
+        msg = DiagnosticArray(status=[status])
+        seconds_to_stamp(msg.header.stamp, self.now)
+        self.diagnostics_pub.publish(msg)
+        self._reported = (len(self.outer.reports), report.status)
 
 
 def main(args=None) -> int:

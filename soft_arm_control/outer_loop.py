@@ -18,10 +18,38 @@ import numpy as np
 
 from soft_arm_model import solve_equilibrium
 
-from .clik import Clik, ClikGains, ClikPoint, TargetError, equilibrium_seeds
+from .clik import Clik, ClikGains, ClikPoint, ClikStep, TargetError, equilibrium_seeds
 from .collocated import build_collocated
 
 MODES = ("clik", "replay", "precomputed", "online")
+
+
+class GoalReport:
+    """What the online CLIK did for one goal: ``target`` [m], ``mode``, online ``steps``, the steps
+    that had to be projected onto the tension limits (``constrained``: the target is infeasible for
+    the model from there) and those with no feasible step at all (``held``: the reference stayed),
+    and the smallest measured task error norm [m] since the goal arrived (``closest``)."""
+
+    def __init__(self, target, mode: str):
+        self.target, self.mode = [float(v) for v in target], mode
+        self.steps = self.constrained = self.held = 0
+        self.closest = float("inf")
+
+    def add(self, step: ClikStep):
+        self.steps += 1
+        self.constrained += step.constrained
+        self.held += step.held
+        self.closest = min(self.closest, float(np.linalg.norm(step.error)))
+
+    @property
+    def status(self) -> str:
+        """ok, constrained (the reference keeps moving towards the closest feasible point) or held."""
+        return "held" if self.held else "constrained" if self.constrained else "ok"
+
+    def as_dict(self) -> dict:
+        return {"target": self.target, "mode": self.mode, "online_steps": self.steps,
+                "infeasible_steps": self.constrained, "held_steps": self.held,
+                "closest_error": self.closest if self.steps else None, "status": self.status}
 
 
 class OuterLoop:
@@ -42,6 +70,8 @@ class OuterLoop:
         self.jacobian_every = max(1, int(jacobian_every))
         self.seed_levels, self.tolerance = tuple(seed_levels), float(tolerance)
         self.stored: dict = {}
+        self.reports: list = []             # a GoalReport per goal, in order
+        self.last_step: ClikStep | None = None
         self._seeds = None
         self._x_d = None
         self._mode = None
@@ -92,6 +122,7 @@ class OuterLoop:
         if mode == "replay":
             ref = self.stored[self.key(x_d)]
         self._x_d, self._mode = x_d, mode
+        self.reports.append(GoalReport(x_d, mode))
         self._online_from = {"clik": t + self.switch_delay, "online": t}.get(mode, np.inf)
         self._next_step = self._online_from
         if ref is not None:
@@ -106,7 +137,9 @@ class OuterLoop:
         self._next_step = max(self._next_step + self.period, t + 0.5 * self.period)
         refresh = self._steps % self.jacobian_every == 0
         self._steps += 1
-        ref, _ = self.clik.step(self.reference.q, self._x_d, self.period, x_measured, refresh)
+        ref, step = self.clik.step(self.reference.q, self._x_d, self.period, x_measured, refresh)
+        self.reports[-1].add(step)
+        self.last_step = step
         if ref is None:
             return None
         self.reference = ref

@@ -144,7 +144,8 @@ class Transition:
 @dataclass
 class RunResult:
     """The outcome of :func:`run_experiment`: transitions, per-transition metrics, summary, record,
-    the actuation-map fit errors [m] and the stored configurations per target."""
+    the actuation-map fit errors [m], the stored configurations per target and what the online CLIK
+    did per goal (:meth:`~soft_arm_control.outer_loop.GoalReport.as_dict`, in transition order)."""
     transitions: list
     metrics: list
     summary: object
@@ -152,6 +153,7 @@ class RunResult:
     map_rms: float
     map_max: float
     stored: dict
+    goals: list
 
 
 def schedule(task: TaskConfig) -> list:
@@ -237,4 +239,4 @@ def run_experiment(setup: Setup, progress=None, actuation_map: ActuationMap | No
     stored = {k: outer.stored[outer.key(x)] for k, x in enumerate(task.targets)
               if outer.key(x) in outer.stored}
     return RunResult(transitions, rows, summarise(rows), rec, ctrl.actuation_map.rms_error,
-                     ctrl.actuation_map.max_error, stored)
+                     ctrl.actuation_map.max_error, stored, [g.as_dict() for g in outer.reports])

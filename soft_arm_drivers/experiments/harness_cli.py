@@ -53,7 +53,7 @@ def main(argv=None) -> int:
     simulated = result.transitions[-1].end if result.transitions else 0.0
     if args.json:
         out = to_json(result.metrics, result.summary)
-        out.update(task=args.task, simulated_s=simulated, wall_s=wall,
+        out.update(task=args.task, simulated_s=simulated, wall_s=wall, targets=result.goals,
                    actuation_map={"rms_error": result.map_rms, "max_error": result.map_max})
         print(json.dumps(out, indent=2))
     else:
@@ -61,6 +61,12 @@ def main(argv=None) -> int:
         print(f"\nactuation map thetabar_a(L_c): validation RMS {result.map_rms * 1e3:.2f} mm, "
               f"max {result.map_max * 1e3:.2f} mm")
         print(f"simulated {simulated:.1f} s in {wall:.1f} s (real-time factor {simulated / wall:.1f})")
+    for goal in result.goals:
+        if goal["status"] != "ok":
+            print(f"soft-arm-harness: target {goal['target']} ({goal['mode']}) is infeasible for the model "
+                  f"from where the online CLIK got: {goal['infeasible_steps']} of {goal['online_steps']} "
+                  f"steps projected onto the tension limits, {goal['held_steps']} held; closest measured "
+                  f"error {goal['closest_error'] * 1e3:.2f} mm", file=sys.stderr)
     return 0
 
 

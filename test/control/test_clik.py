@@ -172,3 +172,22 @@ def test_a_feasible_step_is_the_unconstrained_clik_step(paper_model, coiling_cli
     ref, step = coiling_clik.step(q, x_d, 0.01)
     assert not step.constrained and not step.held
     assert np.array_equal(ref.q, expected.q) and np.array_equal(ref.u_ff, expected.u_ff)
+
+
+def test_the_outer_loop_reports_an_infeasible_goal_instead_of_holding(paper_model, coiling_clik):
+    from soft_arm_control.outer_loop import OuterLoop
+    start = coiling_clik.reference(solve_equilibrium(paper_model, np.full(4, 0.05)).q)
+    outer = OuterLoop(coiling_clik, start, switch_delay=0.0, rate=50.0)
+    outer.goal(0.0, np.array([0.06, -0.36]), "online")
+    moved = 0
+    for k in range(1, 200):
+        ref = outer.frame(k * 0.02, outer.reference.x)      # the model's x stands in for the mocap
+        moved += ref is not None
+    report = outer.reports[-1].as_dict()
+    assert moved == report["online_steps"] == 199
+    assert report["status"] == "constrained" and report["infeasible_steps"] > 100
+    assert report["held_steps"] == 0 and 0.04 < report["closest_error"] < 0.06
+    outer.goal(4.0, np.array(start.x), "online")             # a feasible goal is reported as such
+    for k in range(1, 20):
+        outer.frame(4.0 + k * 0.02, outer.reference.x)
+    assert outer.reports[-1].status == "ok" and len(outer.reports) == 2

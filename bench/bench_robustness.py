@@ -1,0 +1,131 @@
+"""Robustness benchmark: the controller, unchanged, on many randomly drawn plants. Prints a table per
+draw and the distribution, writes JSON.
+
+    python bench/bench_robustness.py [--draws 10] [--seed 0] [--tasks triangle coiling]
+                                     [--jobs 2] [--output bench/results/robustness.json]
+
+Each draw is a plant that differs from the controller's arm the way a cast silicone arm differs from
+its drawing (tolerances below, uniform within them, seeded): Young's modulus and viscosity +-20 %,
+density +-5 %, tendon angles +-3 deg at the base and at the end (each tendon its own), offsets
+0.6 +-0.05 of the radius, friction 0.05-0.2 per tendon, strain order 3-5 on the tendon span with
+and without shear, a 0-5 g tip payload. Every task runs on every draw with ``soft-arm-harness``, one
+process per run, ``--jobs`` at a time (both cores by default). Reported per run: steady-state RMS
+task error, transitions in the mm band, mm- and cm-band task velocities, and the CLIK's
+infeasibility events (online steps that had to be projected onto the tension limits); then the
+median and the worst draw per task.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+
+from timing import results_path, write_results
+
+TOLERANCES = {
+    "youngs_modulus_scale": (0.8, 1.2), "viscosity_scale": (0.8, 1.2), "density_scale": (0.95, 1.05),
+    "angle_error_deg": 3.0, "offset_fraction": (0.55, 0.65), "friction": (0.05, 0.2),
+    "legendre_order": (3, 5), "tip_payload": (0.0, 0.005),
+}
+N_TENDONS = 4
+
+
+def draw_plant(rng: np.random.Generator) -> dict:
+    """One plant, as ``plant.*`` overrides of plant.yaml."""
+    t = TOLERANCES
+    angle = np.deg2rad(t["angle_error_deg"])
+    return {
+        "youngs_modulus_scale": round(float(rng.uniform(*t["youngs_modulus_scale"])), 4),
+        "viscosity_scale": round(float(rng.uniform(*t["viscosity_scale"])), 4),
+        "density_scale": round(float(rng.uniform(*t["density_scale"])), 4),
+        "friction": [round(float(f), 4) for f in rng.uniform(*t["friction"], N_TENDONS)],
+        "tendon.offset_fraction": [round(float(f), 4)
+                                   for f in rng.uniform(*t["offset_fraction"], N_TENDONS)],
+        "tendon.start_angle_error": [round(float(a), 5) for a in rng.uniform(-angle, angle, N_TENDONS)],
+        "tendon.end_angle_error": [round(float(a), 5) for a in rng.uniform(-angle, angle, N_TENDONS)],
+        "discretisation.legendre_order": [int(rng.integers(t["legendre_order"][0],
+                                                           t["legendre_order"][1] + 1)), 0],
+        "discretisation.shear": bool(rng.integers(0, 2)),
+        "tip_payload": round(float(rng.uniform(*t["tip_payload"])), 5),
+    }
+
+
+def run_one(task: str, plant: dict) -> dict:
+    """``soft-arm-harness TASK --json`` on the plant; its summary, or the error."""
+    sets = []
+    for key, value in plant.items():
+        sets += ["--set", f"plant.{key}={json.dumps(value)}"]
+    t0 = time.perf_counter()
+    proc = subprocess.run([sys.executable, "-m", "soft_arm_drivers.experiments.harness_cli", task,
+                           "--json", "--quiet"] + sets, capture_output=True, text=True)
+    wall = time.perf_counter() - t0
+    if proc.returncode != 0:
+        return {"ok": False, "error": proc.stderr.strip().splitlines()[-1:] or [f"exit {proc.returncode}"],
+                "wall_s": wall}
+    out = json.loads(proc.stdout)
+    s = out["summary"]
+    return {"ok": True, "wall_s": wall, "rms_mm": s["rms_error"] * 1e3, "mm_band": s["reached_mm"],
+            "transitions": s["transitions"], "velocity_mm_band": s["velocity_mm"],
+            "velocity_cm_band": s["velocity_cm"],
+            "infeasible_steps": sum(t["infeasible_steps"] for t in out.get("targets", []))}
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--draws", type=int, default=10)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--tasks", nargs="+", default=["triangle", "coiling"])
+    parser.add_argument("--jobs", type=int, default=os.cpu_count() or 2)
+    parser.add_argument("--output", default=results_path("robustness.json"))
+    args = parser.parse_args(argv)
+    rng = np.random.default_rng(args.seed)
+    plants = [draw_plant(rng) for _ in range(args.draws)]
+    jobs = [(task, i) for i in range(args.draws) for task in args.tasks]
+    with ThreadPoolExecutor(args.jobs) as pool:
+        results = list(pool.map(lambda job: run_one(job[0], plants[job[1]]), jobs))
+    runs = [{"task": task, "draw": i, "plant": plants[i], **r} for (task, i), r in zip(jobs, results)]
+    print(f"{'task':9s} {'draw':>4s} {'E':>5s} {'order':>5s} {'shear':>5s} {'RMS mm':>7s} {'mm band':>8s} "
+          f"{'v_mm m/s':>8s} {'v_cm m/s':>8s} {'infeas.':>7s}")
+    for r in runs:
+        p = r["plant"]
+        head = (f"{r['task']:9s} {r['draw']:4d} {p['youngs_modulus_scale']:5.2f} "
+                f"{p['discretisation.legendre_order'][0]:5d} {str(p['discretisation.shear']):>5s}")
+        if not r["ok"]:
+            print(f"{head}  failed: {' '.join(r['error'])}")
+            continue
+        print(f"{head} {r['rms_mm']:7.2f} {r['mm_band']:4d}/{r['transitions']:<3d} "
+              f"{r['velocity_mm_band'] or 0:8.3f} {r['velocity_cm_band'] or 0:8.3f} "
+              f"{r['infeasible_steps']:7d}")
+    summary = {}
+    for task in args.tasks:
+        ok = [r for r in runs if r["task"] == task and r["ok"]]
+        failed = sum(1 for r in runs if r["task"] == task and not r["ok"])
+        if not ok:
+            summary[task] = {"failed": failed}
+            continue
+        rms = np.array([r["rms_mm"] for r in ok])
+        band = np.array([r["mm_band"] for r in ok])
+        vmm = np.array([r["velocity_mm_band"] or 0.0 for r in ok])
+        summary[task] = {"runs": len(ok), "failed": failed, "rms_mm_median": float(np.median(rms)),
+                         "rms_mm_worst": float(rms.max()), "mm_band_median": float(np.median(band)),
+                         "mm_band_worst": int(band.min()), "transitions": ok[0]["transitions"],
+                         "velocity_mm_band_median": float(np.median(vmm)),
+                         "draws_with_infeasibility": sum(r["infeasible_steps"] > 0 for r in ok)}
+        s = summary[task]
+        print(f"{task}: RMS median {s['rms_mm_median']:.2f} mm, worst {s['rms_mm_worst']:.2f} mm; mm band "
+              f"median {s['mm_band_median']:.0f}, worst {s['mm_band_worst']}/{s['transitions']}; "
+              f"mm-band velocity median {s['velocity_mm_band_median']:.3f} m/s; failed {failed}; "
+              f"draws with infeasible steps {s['draws_with_infeasibility']}")
+    write_results(args.output, {"tolerances": TOLERANCES, "seed": args.seed, "summary": summary,
+                                "runs": runs})
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
