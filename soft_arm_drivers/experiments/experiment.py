@@ -27,6 +27,7 @@ import time
 from soft_arm_model.parameters import ConfigError, default_config_dir
 
 from .metrics import Summary, TransitionMetrics, format_table
+from .harness import add_plant_file_argument
 from .orchestration import STOP, request_stop, run_emulated_hardware, run_processes
 
 NODES = ("simulator", "inner_loop", "clik", "task_runner", "recorder")
@@ -147,9 +148,7 @@ def main(argv=None) -> int:
     parser.add_argument("--config", metavar="DIR", help="directory with the parameter files")
     parser.add_argument("--set", dest="sets", action="append", default=[], metavar="NS.KEY=VALUE",
                         help="override one parameter (repeatable)")
-    parser.add_argument("--plant-file", metavar="FILE",
-                        help="simulate the arm described by FILE (the schema of arm.yaml) as the plant, "
-                             "whatever the controller believes")
+    add_plant_file_argument(parser)
     parser.add_argument("--json", action="store_true", help="print the metrics as JSON")
     parser.add_argument("--quiet", action="store_true", help="no progress line (composed runs print one)")
     args = parser.parse_args(argv)

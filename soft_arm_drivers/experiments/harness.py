@@ -68,6 +68,13 @@ def load_setup(task: str, config_dir: str | None = None, overrides=None) -> Setu
                  plant, load_task_config(task, arm, os.path.join(d, "tasks.yaml"), groups["tasks"]))
 
 
+def add_plant_file_argument(parser):
+    """``--plant-file FILE`` on a command line (soft-arm-harness, soft-arm-experiment)."""
+    parser.add_argument("--plant-file", metavar="FILE",
+                        help="simulate the arm described by FILE (the schema of arm.yaml) as the plant, "
+                             "whatever the controller believes")
+
+
 def plant_file_override(path: str | None) -> list:
     """``--plant-file FILE`` as a ``plant.plant_file`` override (absolute, so that every process of a
     run reads the same file); none without a file."""

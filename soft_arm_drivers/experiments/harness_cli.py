@@ -16,7 +16,7 @@ import time
 from soft_arm_control.clik import TargetError
 from soft_arm_model.parameters import ConfigError
 
-from .harness import load_setup, plant_file_override, run_experiment
+from .harness import add_plant_file_argument, load_setup, plant_file_override, run_experiment
 from .metrics import format_table, to_json
 
 
@@ -30,9 +30,7 @@ def main(argv=None) -> int:
     parser.add_argument("--config", metavar="DIR", help="directory with the four parameter files")
     parser.add_argument("--set", dest="sets", action="append", default=[], metavar="NS.KEY=VALUE",
                         help="override one parameter (repeatable), e.g. plant.youngs_modulus_scale=1")
-    parser.add_argument("--plant-file", metavar="FILE",
-                        help="simulate the arm described by FILE (the schema of arm.yaml) as the plant, "
-                             "whatever the controller believes")
+    add_plant_file_argument(parser)
     parser.add_argument("--json", action="store_true", help="print the metrics as JSON")
     parser.add_argument("--quiet", action="store_true", help="no progress line on stderr")
     args = parser.parse_args(argv)
