@@ -123,8 +123,9 @@ class Clik:
         return x, self._Z
 
     def _solve(self, Z, rhs):
-        """Z^-1 rhs with unit-norm rows; damped least squares below the singular threshold. The
-        factorisation of the current Z is kept for the chord steps that reuse it."""
+        """Z^-1 rhs (a vector or the columns of a matrix) with unit-norm rows; damped least squares
+        below the singular threshold. The factorisation of the current Z is kept for the chord steps
+        that reuse it."""
         if self._factor is None or self._factor[0] is not Z:
             w = 1.0 / np.linalg.norm(Z, axis=1)
             U, sig, Vt = np.linalg.svd(Z * w[:, None])
@@ -134,6 +135,8 @@ class Clik:
             cond = sig[0] / sig[-1] if sig[-1] > 0 else np.inf
             self._factor = (Z, w, U, inv, Vt, float(cond), bool(damped))
         _, w, U, inv, Vt, cond, damped = self._factor
+        if rhs.ndim == 2:
+            return Vt.T @ (inv[:, None] * (U.T @ (w[:, None] * rhs))), cond, damped
         return Vt.T @ (inv * (U.T @ (w * rhs))), cond, damped
 
     def velocity(self, q, x_d, x=None, xd_dot=None, refresh: bool = True) -> ClikStep:
@@ -180,16 +183,17 @@ class Clik:
         least-squares step is taken instead (``constrained``); the reference is None (``held``: keep
         the last one) only when no step within the limits and the model's domain is found."""
         info = self.velocity(q, x_d, x, refresh=refresh)
+        u0 = self.cd.u_eq.copy()             # the tensions at q, before the trial moves cd
         q = np.asarray(q, dtype=float)
         ref = self._feasible_reference(q + dt * info.qdot)
         if ref is not None:
             return ref, info
-        qdot = self._bounded_velocity(q, dt, info)
+        qdot = self._bounded_velocity(u0, dt, info)
         for scale in (1.0, 0.5, 0.25, 0.125):
             ref = self._feasible_reference(q + scale * dt * qdot)
             if ref is not None:
-                return ref, ClikStep(qdot, info.error, info.G_theta_u, info.condition, info.damped,
-                                     constrained=True)
+                return ref, ClikStep(scale * qdot, info.error, info.G_theta_u, info.condition,
+                                     info.damped, constrained=True)
         return None, ClikStep(info.qdot, info.error, info.G_theta_u, info.condition, info.damped,
                               constrained=True, held=True)
 
@@ -201,16 +205,14 @@ class Clik:
             return None
         return ref if self.feasibility_error(ref.u_ff) is None else None
 
-    def _bounded_velocity(self, q, dt: float, info: ClikStep) -> np.ndarray:
-        """qdot of the bounded least-squares step at q (see the module's docstring): the task
-        velocity closest to Gamma_Z e whose tension rate keeps u_eq + dt udot within the limits,
-        with the equilibrium term unchanged."""
+    def _bounded_velocity(self, u0, dt: float, info: ClikStep) -> np.ndarray:
+        """qdot of the bounded least-squares step from the configuration of ``info`` with
+        equilibrium tensions u0 [N] (see the module's docstring): the task velocity closest to
+        Gamma_Z e whose tension rate keeps u0 + dt udot within the limits, the equilibrium term
+        unchanged."""
         m = self.task.m
         Z, Ga = self._Z, self._Ga            # as used by velocity() for this step
-        self._evaluate(q)
-        u0 = self.cd.u_eq.copy()
-        n = Z.shape[0]
-        task_columns = np.column_stack([self._solve(Z, col)[0] for col in np.eye(n)[:, :m].T])
+        task_columns = self._solve(Z, np.eye(Z.shape[0])[:, :m])[0]
         w = -self.gains.equilibrium * info.G_theta_u
         qdot_eq = self._solve(Z, np.concatenate([np.zeros(m), w]))[0]
         P = Ga @ task_columns                # tension rate per task velocity

@@ -14,6 +14,8 @@ Times are the caller's [s] (simulated or wall). An unreachable or infeasible goa
 """
 from __future__ import annotations
 
+from dataclasses import asdict, dataclass
+
 import numpy as np
 
 from soft_arm_model import solve_equilibrium
@@ -24,32 +26,34 @@ from .collocated import build_collocated
 MODES = ("clik", "replay", "precomputed", "online")
 
 
+@dataclass
 class GoalReport:
-    """What the online CLIK did for one goal: ``target`` [m], ``mode``, online ``steps``, the steps
-    that had to be projected onto the tension limits (``constrained``: the target is infeasible for
-    the model from there) and those with no feasible step at all (``held``: the reference stayed),
-    and the smallest measured task error norm [m] since the goal arrived (``closest``)."""
-
-    def __init__(self, target, mode: str):
-        self.target, self.mode = [float(v) for v in target], mode
-        self.steps = self.constrained = self.held = 0
-        self.closest = float("inf")
+    """What the online CLIK did for one goal: ``target`` [m], ``mode``, its online steps, those that
+    had to be projected onto the tension limits (``infeasible_steps``: the target is infeasible for
+    the model from there) and those with no feasible step at all (``held_steps``: the reference
+    stayed), and the smallest measured task error norm [m] since the goal arrived (None before the
+    first online step)."""
+    target: list
+    mode: str
+    online_steps: int = 0
+    infeasible_steps: int = 0
+    held_steps: int = 0
+    closest_error: float | None = None
 
     def add(self, step: ClikStep):
-        self.steps += 1
-        self.constrained += step.constrained
-        self.held += step.held
-        self.closest = min(self.closest, float(np.linalg.norm(step.error)))
+        self.online_steps += 1
+        self.infeasible_steps += step.constrained
+        self.held_steps += step.held
+        error = float(np.linalg.norm(step.error))
+        self.closest_error = error if self.closest_error is None else min(self.closest_error, error)
 
     @property
     def status(self) -> str:
         """ok, constrained (the reference keeps moving towards the closest feasible point) or held."""
-        return "held" if self.held else "constrained" if self.constrained else "ok"
+        return "held" if self.held_steps else "constrained" if self.infeasible_steps else "ok"
 
     def as_dict(self) -> dict:
-        return {"target": self.target, "mode": self.mode, "online_steps": self.steps,
-                "infeasible_steps": self.constrained, "held_steps": self.held,
-                "closest_error": self.closest if self.steps else None, "status": self.status}
+        return {**asdict(self), "status": self.status}
 
 
 class OuterLoop:
@@ -122,7 +126,7 @@ class OuterLoop:
         if mode == "replay":
             ref = self.stored[self.key(x_d)]
         self._x_d, self._mode = x_d, mode
-        self.reports.append(GoalReport(x_d, mode))
+        self.reports.append(GoalReport([float(v) for v in x_d], mode))
         self._online_from = {"clik": t + self.switch_delay, "online": t}.get(mode, np.inf)
         self._next_step = self._online_from
         if ref is not None:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+from functools import cached_property
 from typing import Mapping
 
 from soft_arm_model.config import ArmConfig, load_arm_config
@@ -49,7 +50,6 @@ class NodeParameters:
     def __init__(self, node, config_dir: str | None = None):
         self.node = node
         self.config_dir = config_dir or default_config_dir()
-        self._arm = None
 
     def overrides(self, namespace: str) -> dict:
         """The node's own values under ``namespace`` as dotted overrides."""
@@ -62,13 +62,11 @@ class NodeParameters:
         return load_section(os.path.join(self.config_dir, name), namespace, schema,
                             self.overrides(namespace))
 
-    @property
+    @cached_property
     def arm(self) -> ArmConfig:
-        if self._arm is None:
-            self._arm = load_arm_config(os.path.join(self.config_dir, "arm.yaml"), self.overrides("arm"))
-        return self._arm
+        return load_arm_config(os.path.join(self.config_dir, "arm.yaml"), self.overrides("arm"))
 
-    @property
+    @cached_property
     def graph(self) -> dict:
         return self.section("graph", GRAPH_SCHEMA)
 

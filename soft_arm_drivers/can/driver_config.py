@@ -11,8 +11,7 @@ from typing import Any, Mapping, Optional
 
 import can
 
-from soft_arm_model.parameters import (ConfigError, apply_overrides, default_config_dir, read_parameters,
-                                       validate_tree)
+from soft_arm_model.parameters import ConfigError, default_config_dir, load_section
 
 from .mit_protocol import MOTOR_PRESETS, MotorLimits
 
@@ -145,12 +144,8 @@ def load_driver_config(path: Optional[str] = None, overrides: Optional[Mapping[s
     """Load ``rig.motors`` from a ROS 2 parameter file (default: the package's ``rig.yaml``) with
     dotted-key overrides relative to ``rig.motors``, validate and cross-check it."""
     path = path or os.path.join(default_config_dir(), "rig.yaml")
-    rig = read_parameters(path).get("rig")
-    tree = rig.get("motors") if isinstance(rig, dict) else None
-    if not isinstance(tree, dict):
-        raise ConfigError(f"{path}: no '{NAMESPACE}' parameters under /**.ros__parameters")
+    values = load_section(path, NAMESPACE, SCHEMA, overrides)
     try:
-        values = validate_tree(apply_overrides(tree, overrides, SCHEMA, NAMESPACE), SCHEMA, NAMESPACE)
         return parse_driver_config(values, n_tendons)
     except ConfigError as exc:
         raise ConfigError(f"{path}: {exc}") from None

@@ -27,7 +27,7 @@ import time
 from soft_arm_model.parameters import ConfigError, default_config_dir
 
 from .metrics import Summary, TransitionMetrics, format_table
-from .harness import add_plant_file_argument
+from .harness import add_setup_arguments, load_setup, setup_overrides
 from .orchestration import STOP, request_stop, run_emulated_hardware, run_processes
 
 NODES = ("simulator", "inner_loop", "clik", "task_runner", "recorder")
@@ -145,17 +145,13 @@ def main(argv=None) -> int:
     parser.add_argument("--emulated-hardware", action="store_true",
                         help="motor driver + CAN emulator and mocap bridge + NatNet emulator in the "
                              "simulator's place (real time)")
-    parser.add_argument("--config", metavar="DIR", help="directory with the parameter files")
-    parser.add_argument("--set", dest="sets", action="append", default=[], metavar="NS.KEY=VALUE",
-                        help="override one parameter (repeatable)")
-    add_plant_file_argument(parser)
+    add_setup_arguments(parser)
     parser.add_argument("--json", action="store_true", help="print the metrics as JSON")
     parser.add_argument("--quiet", action="store_true", help="no progress line (composed runs print one)")
     args = parser.parse_args(argv)
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     try:
-        from .harness import load_setup, plant_file_override
-        args.sets += plant_file_override(args.plant_file)
+        args.sets = setup_overrides(args)
         setup = load_setup(args.task, args.config,
                            [s for s in args.sets if not s.startswith("graph.")])
         ros_args = _ros_arguments(args.task, args.sets, args.config)

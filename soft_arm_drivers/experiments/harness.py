@@ -68,17 +68,22 @@ def load_setup(task: str, config_dir: str | None = None, overrides=None) -> Setu
                  plant, load_task_config(task, arm, os.path.join(d, "tasks.yaml"), groups["tasks"]))
 
 
-def add_plant_file_argument(parser):
-    """``--plant-file FILE`` on a command line (soft-arm-harness, soft-arm-experiment)."""
+def add_setup_arguments(parser):
+    """The options that say what a run simulates (soft-arm-harness, soft-arm-experiment): ``--config
+    DIR``, repeated ``--set ns.key=value`` and ``--plant-file FILE``; :func:`setup_overrides` reads
+    them back."""
+    parser.add_argument("--config", metavar="DIR", help="directory with the parameter files")
+    parser.add_argument("--set", dest="sets", action="append", default=[], metavar="NS.KEY=VALUE",
+                        help="override one parameter (repeatable), e.g. plant.youngs_modulus_scale=1")
     parser.add_argument("--plant-file", metavar="FILE",
                         help="simulate the arm described by FILE (the schema of arm.yaml) as the plant, "
                              "whatever the controller believes")
 
 
-def plant_file_override(path: str | None) -> list:
-    """``--plant-file FILE`` as a ``plant.plant_file`` override (absolute, so that every process of a
-    run reads the same file); none without a file."""
-    return [f"plant.plant_file={os.path.abspath(path)}"] if path else []
+def setup_overrides(args) -> list:
+    """The ``--set`` overrides of :func:`add_setup_arguments`, with ``--plant-file`` as a
+    ``plant.plant_file`` override (absolute, so that every process of a run reads the same file)."""
+    return args.sets + ([f"plant.plant_file={os.path.abspath(args.plant_file)}"] if args.plant_file else [])
 
 
 class TwoLevelController:

@@ -16,7 +16,7 @@ import time
 from soft_arm_control.clik import TargetError
 from soft_arm_model.parameters import ConfigError
 
-from .harness import add_plant_file_argument, load_setup, plant_file_override, run_experiment
+from .harness import add_setup_arguments, load_setup, run_experiment, setup_overrides
 from .metrics import format_table, to_json
 
 
@@ -27,15 +27,12 @@ def _progress(t, total):
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="soft-arm-harness", description=__doc__.splitlines()[0])
     parser.add_argument("task", help="task name in tasks.yaml (e.g. triangle, coiling)")
-    parser.add_argument("--config", metavar="DIR", help="directory with the four parameter files")
-    parser.add_argument("--set", dest="sets", action="append", default=[], metavar="NS.KEY=VALUE",
-                        help="override one parameter (repeatable), e.g. plant.youngs_modulus_scale=1")
-    add_plant_file_argument(parser)
+    add_setup_arguments(parser)
     parser.add_argument("--json", action="store_true", help="print the metrics as JSON")
     parser.add_argument("--quiet", action="store_true", help="no progress line on stderr")
     args = parser.parse_args(argv)
     try:
-        setup = load_setup(args.task, args.config, args.sets + plant_file_override(args.plant_file))
+        setup = load_setup(args.task, args.config, setup_overrides(args))
     except (ConfigError, ValueError) as exc:
         print(f"soft-arm-harness: {exc}", file=sys.stderr)
         return 2

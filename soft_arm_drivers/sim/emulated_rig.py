@@ -37,8 +37,8 @@ from soft_arm_drivers.can.motor_driver_node import MotorDriverNode
 from soft_arm_drivers.mocap.mocap_bridge_node import load_node_config
 from soft_arm_drivers.mocap.natnet import SUPPORTED_VERSIONS
 from soft_arm_model import ArmData, marker_positions
-from soft_arm_model.parameters import (ConfigError, apply_overrides, default_config_dir, flatten_tree,
-                                       read_parameters, validate_tree)
+from soft_arm_model.parameters import (ConfigError, default_config_dir, flatten_tree, load_section,
+                                       read_parameters)
 from soft_arm_ros.parameters import NodeParameters, parameter_overrides
 from soft_arm_ros.runtime import run_node
 
@@ -58,26 +58,24 @@ SCHEMA = {
 }
 
 
-def read_emulator_file(path: str | None = None) -> tuple[dict, dict]:
-    """``config/emulator.yaml`` (or ``path``): its ``rig.emulator`` tree and its ``rig.motors``
-    values (dotted, relative to rig.motors; validated when laid over rig.yaml)."""
+def read_emulated_motors(path: str | None = None) -> dict:
+    """The ``rig.motors`` values of ``config/emulator.yaml`` (or ``path``): dotted, relative to
+    rig.motors, validated when laid over rig.yaml."""
     path = path or os.path.join(default_config_dir(), "emulator.yaml")
     rig = read_parameters(path).get("rig")
-    emulator = rig.get("emulator") if isinstance(rig, dict) else None
     motors = rig.get("motors", {}) if isinstance(rig, dict) else None
-    if not isinstance(emulator, dict) or not isinstance(motors, dict):
-        raise ConfigError(f"{path}: expected 'rig.emulator' and 'rig.motors' parameters under "
-                          f"/**.ros__parameters")
+    if not isinstance(motors, dict):
+        raise ConfigError(f"{path}: expected 'rig.motors' parameters under /**.ros__parameters")
     # strings quoted: an override's string value is read as YAML
-    return emulator, {k: json.dumps(v) if isinstance(v, str) else v
-                      for k, v in flatten_tree(motors).items()}
+    return {k: json.dumps(v) if isinstance(v, str) else v
+            for k, v in flatten_tree(motors).items()}
 
 
 def load_emulator_config(path: str | None = None, overrides: dict | None = None) -> dict:
     """``rig.emulator`` of ``config/emulator.yaml`` (or ``path``) with dotted overrides relative to
     it: validated values by key. Raises ConfigError naming ``rig.emulator.<key>``."""
-    tree, _ = read_emulator_file(path)
-    return validate_tree(apply_overrides(tree, overrides, SCHEMA, NAMESPACE), SCHEMA, NAMESPACE)
+    return load_section(path or os.path.join(default_config_dir(), "emulator.yaml"), NAMESPACE, SCHEMA,
+                        overrides)
 
 
 class EmulatedRigNode(MotorDriverNode):
@@ -88,7 +86,7 @@ class EmulatedRigNode(MotorDriverNode):
 
     def __init__(self, config_dir: str | None = None, **node_options):
         self._dir = config_dir or default_config_dir()
-        _, motors = read_emulator_file(os.path.join(self._dir, "emulator.yaml"))
+        motors = read_emulated_motors(os.path.join(self._dir, "emulator.yaml"))
         self._can_thread = self._natnet = self._bus = None
         self._reported_error = False
         super().__init__(self._dir, defaults=motors, **node_options)

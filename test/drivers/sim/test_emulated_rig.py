@@ -15,7 +15,7 @@ import pytest
 from soft_arm_drivers.can.driver_config import load_driver_config
 from soft_arm_drivers.experiments.experiment import _ros_arguments, main, run_composed
 from soft_arm_drivers.experiments.figures import read_series
-from soft_arm_drivers.sim.emulated_rig import load_emulator_config, read_emulator_file
+from soft_arm_drivers.sim.emulated_rig import load_emulator_config, read_emulated_motors
 from soft_arm_model import build_model, load_arm_config, solve_equilibrium, tendon_lengths
 from soft_arm_model.parameters import ConfigError
 
@@ -38,7 +38,7 @@ def test_emulator_config_is_validated_and_laid_over_the_rig():
     values = load_emulator_config()
     assert values["reply_delay"] == 3e-4 and values["natnet_version"] == "4.1"
     assert load_emulator_config(overrides={"natnet_version": '"3.1"'})["natnet_version"] == "3.1"
-    _, motors = read_emulator_file()
+    motors = read_emulated_motors()
     driver = load_driver_config(overrides=motors)
     assert driver.interface == "virtual" and all(m.limits.t_max == 0.5 for m in driver.motors)
     with pytest.raises(ConfigError, match=r"rig\.emulator\.reply_delay = 0\.5 .*\[0, 0\.01\] s"):

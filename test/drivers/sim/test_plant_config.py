@@ -7,7 +7,7 @@ import shutil
 import numpy as np
 import pytest
 
-from soft_arm_drivers.experiments.harness import load_setup, plant_file_override, run_experiment
+from soft_arm_drivers.experiments.harness import load_setup, run_experiment
 from soft_arm_drivers.experiments.harness_cli import main as harness_main
 from soft_arm_drivers.sim.plant_config import load_plant_config
 from soft_arm_model import build_model, load_arm_config
@@ -64,11 +64,11 @@ def test_a_plant_file_with_a_wrong_length_list_or_an_unknown_key_is_refused(tmp_
     short = _arm_file(tmp_path, lambda t: t.replace("offset_fraction: [0.6, 0.6, 0.6, 0.6]",
                                                     "offset_fraction: [0.6, 0.6, 0.6]"))
     with pytest.raises(ConfigError, match=r"arm\.tendons\.offset_fraction"):
-        load_setup("coiling", overrides=plant_file_override(short))
+        load_setup("coiling", overrides=[f"plant.plant_file={short}"])
     (tmp_path / "unknown").mkdir()
     unknown = _arm_file(tmp_path / "unknown", lambda t: t.replace("poisson_ratio:", "poison_ratio:"))
     with pytest.raises(ConfigError, match=r"unknown key arm\.material\.poison_ratio.*poisson_ratio"):
-        load_setup("coiling", overrides=plant_file_override(unknown))
+        load_setup("coiling", overrides=[f"plant.plant_file={unknown}"])
     assert harness_main(["coiling", "--plant-file", str(tmp_path / "missing.yaml"), "--quiet"]) == 2
 
 
@@ -77,8 +77,8 @@ def test_a_plant_file_equal_to_arm_yaml_reproduces_the_run_exactly(tmp_path):
     the run is the one of plant.yaml with every difference taken out, sample for sample."""
     neutral = run_experiment(load_setup("coiling", overrides=NEUTRAL + SHORT))
     shutil.copy(os.path.join(default_config_dir(), "arm.yaml"), tmp_path / "arm.yaml")
-    from_file = run_experiment(load_setup("coiling", overrides=SHORT + plant_file_override(
-        str(tmp_path / "arm.yaml"))))
+    from_file = run_experiment(load_setup("coiling", overrides=SHORT + [
+        f"plant.plant_file={tmp_path / 'arm.yaml'}"]))
     a, b = neutral.record.arrays(), from_file.record.arrays()
     assert a["x"].shape == b["x"].shape and a["x"].size > 0
     assert np.array_equal(a["x"], b["x"]) and np.array_equal(a["tension"], b["tension"])
