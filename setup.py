@@ -44,6 +44,7 @@ setup(
         "console_scripts": [
             "soft-arm-model = soft_arm_model.cli:main",
             "soft-arm-harness = soft_arm_drivers.experiments.harness_cli:main",
+            "soft-arm-targets = soft_arm_control.targets_cli:main",
             "soft-arm-experiment = soft_arm_drivers.experiments.experiment:main",
             "simulator = soft_arm_drivers.sim.simulator_node:main",
             "recorder = soft_arm_drivers.recording.recorder_node:main",

@@ -11,8 +11,12 @@ density +-5 %, tendon angles +-3 deg at the base and at the end (each tendon its
 and without shear, a 0-5 g tip payload. Every task runs on every draw with ``soft-arm-harness``, one
 process per run, ``--jobs`` at a time (both cores by default). Reported per run: steady-state RMS
 task error, transitions in the mm band, mm- and cm-band task velocities, and the CLIK's
-infeasibility events (online steps that had to be projected onto the tension limits); then the
-median and the worst draw per task. The arm described in the robust-control issue runs too, as draw
+infeasibility events (online steps that had to be projected onto the tension limits), each goal's
+status (ok, constrained, stalled, held) and silent stalls (a goal that ended away from its target
+with status ok: there must be none); whether the drawn plant itself can hold the targets (solved on
+its own model: within the limits and stable under the inner loop; a target it cannot hold no
+controller reaches); then the median and the worst draw per task, over all draws and over the draws
+whose plant holds the targets. The arm described in the robust-control issue runs too, as draw
 ``issue``, outside the distribution.
 """
 from __future__ import annotations
@@ -23,7 +27,7 @@ import os
 import subprocess
 import sys
 import time
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
 
@@ -65,24 +69,59 @@ def draw_plant(rng: np.random.Generator) -> dict:
     }
 
 
+def plant_holds(task: str, sets: list) -> dict:
+    """Whether the drawn plant itself can hold the task's targets: the precomputed CLIK solved on
+    the plant's own model, margin [N] from the tension limits and stability under the inner loop
+    (:func:`soft_arm_control.target_margin.check_arm`). A target it cannot hold no controller reaches."""
+    from soft_arm_control.target_margin import check_arm
+    from soft_arm_drivers.experiments.harness import load_setup
+    setup = load_setup(task, overrides=sets[1::2])
+    results = check_arm(setup.plant.plant_arm(setup.arm), setup.control, setup.task, setup.task.targets)
+    return {"plant_holds": all(r.margin is not None and r.margin >= 0 and r.stable for r in results),
+            "plant_margins": [r.margin for r in results], "plant_stable": [r.stable for r in results]}
+
+
 def run_one(task: str, plant: dict) -> dict:
-    """``soft-arm-harness TASK --json`` on the plant; its summary, or the error."""
+    """``soft-arm-harness TASK --json`` on the plant; its summary, or the error; whether the plant
+    can hold the targets at all."""
     sets = []
     for key, value in plant.items():
         sets += ["--set", f"plant.{key}={json.dumps(value)}"]
+    holds = plant_holds(task, sets)
     t0 = time.perf_counter()
     proc = subprocess.run([sys.executable, "-m", "soft_arm_drivers.experiments.harness_cli", task,
                            "--json", "--quiet"] + sets, capture_output=True, text=True)
     wall = time.perf_counter() - t0
     if proc.returncode != 0:
         return {"ok": False, "error": proc.stderr.strip().splitlines()[-1:] or [f"exit {proc.returncode}"],
-                "wall_s": wall}
+                "wall_s": wall, **holds}
     out = json.loads(proc.stdout)
     s = out["summary"]
+    goals = [g for g in out["targets"] if g["online_steps"]]
     return {"ok": True, "wall_s": wall, "rms_mm": s["rms_error"] * 1e3, "mm_band": s["reached_mm"],
             "transitions": s["transitions"], "velocity_mm_band": s["velocity_mm"],
             "velocity_cm_band": s["velocity_cm"],
-            "infeasible_steps": sum(t["infeasible_steps"] for t in out.get("targets", []))}
+            "infeasible_steps": sum(g["infeasible_steps"] for g in goals),
+            "statuses": [g["status"] for g in goals],
+            # a goal that ended away from its target with nothing reported: what must never happen
+            "silent_stalls": sum(g["status"] == "ok" and not g["reached"] for g in goals), **holds}
+
+
+def _distribution(drawn: list) -> dict:
+    """Median and worst of the completed runs among ``drawn``."""
+    ok = [r for r in drawn if r["ok"]]
+    failed = len(drawn) - len(ok)
+    if not ok:
+        return {"runs": 0, "failed": failed}
+    rms = np.array([r["rms_mm"] for r in ok])
+    band = np.array([r["mm_band"] for r in ok])
+    vmm = np.array([r["velocity_mm_band"] or 0.0 for r in ok])
+    return {"runs": len(ok), "failed": failed, "rms_mm_median": float(np.median(rms)),
+            "rms_mm_worst": float(rms.max()), "mm_band_median": float(np.median(band)),
+            "mm_band_worst": int(band.min()), "transitions": ok[0]["transitions"],
+            "velocity_mm_band_median": float(np.median(vmm)),
+            "draws_with_infeasibility": sum(r["infeasible_steps"] > 0 for r in ok),
+            "silent_stalls": sum(r["silent_stalls"] for r in ok)}
 
 
 def main(argv=None) -> int:
@@ -96,43 +135,38 @@ def main(argv=None) -> int:
     rng = np.random.default_rng(args.seed)
     plants = [ISSUE_PLANT] + [draw_plant(rng) for _ in range(args.draws)]
     jobs = [(task, i) for i in range(len(plants)) for task in args.tasks]
-    with ThreadPoolExecutor(args.jobs) as pool:
-        results = list(pool.map(lambda job: run_one(job[0], plants[job[1]]), jobs))
+    with ProcessPoolExecutor(args.jobs) as pool:
+        results = list(pool.map(run_one, [task for task, _ in jobs], [plants[i] for _, i in jobs]))
     runs = [{"task": task, "draw": i - 1 if i else "issue", "plant": plants[i], **r}
             for (task, i), r in zip(jobs, results)]
-    print(f"{'task':9s} {'draw':>5s} {'E':>5s} {'order':>5s} {'shear':>5s} {'RMS mm':>7s} {'mm band':>8s} "
-          f"{'v_mm m/s':>8s} {'v_cm m/s':>8s} {'infeas.':>7s}")
+    print(f"{'task':9s} {'draw':>5s} {'E':>5s} {'order':>5s} {'shear':>5s} {'tip g':>5s} {'holds':>5s} "
+          f"{'RMS mm':>7s} {'mm band':>8s} {'v_mm m/s':>8s} {'v_cm m/s':>8s} {'infeas.':>7s}  statuses")
     for r in runs:
         p = r["plant"]
         head = (f"{r['task']:9s} {r['draw']!s:>5s} {p['youngs_modulus_scale']:5.2f} "
-                f"{p['discretisation.legendre_order'][0]:5d} {str(p['discretisation.shear']):>5s}")
+                f"{p['discretisation.legendre_order'][0]:5d} {str(p['discretisation.shear']):>5s} "
+                f"{p['tip_payload'] * 1e3:5.1f} {'yes' if r['plant_holds'] else 'no':>5s}")
         if not r["ok"]:
             print(f"{head}  failed: {' '.join(r['error'])}")
             continue
         print(f"{head} {r['rms_mm']:7.2f} {r['mm_band']:4d}/{r['transitions']:<3d} "
               f"{r['velocity_mm_band'] or 0:8.3f} {r['velocity_cm_band'] or 0:8.3f} "
-              f"{r['infeasible_steps']:7d}")
+              f"{r['infeasible_steps']:7d}  {' '.join(r['statuses'])}")
     summary = {}
     for task in args.tasks:
         drawn = [r for r in runs if r["task"] == task and r["draw"] != "issue"]
-        ok = [r for r in drawn if r["ok"]]
-        failed = len(drawn) - len(ok)
-        if not ok:
-            summary[task] = {"failed": failed}
-            continue
-        rms = np.array([r["rms_mm"] for r in ok])
-        band = np.array([r["mm_band"] for r in ok])
-        vmm = np.array([r["velocity_mm_band"] or 0.0 for r in ok])
-        summary[task] = {"runs": len(ok), "failed": failed, "rms_mm_median": float(np.median(rms)),
-                         "rms_mm_worst": float(rms.max()), "mm_band_median": float(np.median(band)),
-                         "mm_band_worst": int(band.min()), "transitions": ok[0]["transitions"],
-                         "velocity_mm_band_median": float(np.median(vmm)),
-                         "draws_with_infeasibility": sum(r["infeasible_steps"] > 0 for r in ok)}
-        s = summary[task]
-        print(f"{task}: RMS median {s['rms_mm_median']:.2f} mm, worst {s['rms_mm_worst']:.2f} mm; mm band "
-              f"median {s['mm_band_median']:.0f}, worst {s['mm_band_worst']}/{s['transitions']}; "
-              f"mm-band velocity median {s['velocity_mm_band_median']:.3f} m/s; failed {failed}; "
-              f"draws with infeasible steps {s['draws_with_infeasibility']}")
+        summary[task] = {"all draws": _distribution(drawn),
+                         "draws whose plant holds the targets": _distribution(
+                             [r for r in drawn if r["plant_holds"]])}
+        for name, s in summary[task].items():
+            if "rms_mm_median" not in s:
+                print(f"{task}, {name}: no completed run ({s['failed']} failed)")
+                continue
+            print(f"{task}, {name} ({s['runs']}): RMS median {s['rms_mm_median']:.2f} mm, worst "
+                  f"{s['rms_mm_worst']:.2f} mm; mm band median {s['mm_band_median']:.0f}, worst "
+                  f"{s['mm_band_worst']}/{s['transitions']}; mm-band velocity median "
+                  f"{s['velocity_mm_band_median']:.3f} m/s; failed {s['failed']}; draws with infeasible "
+                  f"steps {s['draws_with_infeasibility']}; silent stalls {s['silent_stalls']}")
     write_results(args.output, {"tolerances": TOLERANCES, "seed": args.seed, "summary": summary,
                                 "runs": runs})
     return 0

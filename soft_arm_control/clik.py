@@ -257,9 +257,10 @@ class Clik:
             q, state = q + alpha * dq, trial
         return None
 
-    def _continue(self, x_d, q_start, tol, max_iter, max_splits):
-        """Newton from q_start along the straight task path to x_d in halved sub-steps; returns
-        (q, None) or (None, the fraction of the path reached)."""
+    def solve(self, x_d, q_start, tol: float = 1e-6, max_iter: int = 40, max_splits: int = 6):
+        """The model equilibrium whose task coordinates are x_d [m], whatever its tensions: Newton
+        from q_start along the straight task path to x_d in halved sub-steps. Returns (q, 1.0), or
+        (None, the fraction of the path reached)."""
         q = np.array(q_start, dtype=float)
         x0 = self._evaluate(q).copy()
         lam, step = 0.0, 1.0
@@ -293,7 +294,7 @@ class Clik:
             q for x, q in sorted(seeds, key=lambda s: float(np.linalg.norm(s[0] - x_d)))[:max_seeds]]
         reasons = []
         for q0 in starts:
-            q, reached = self._continue(x_d, q0, tol, max_iter, max_splits)
+            q, reached = self.solve(x_d, q0, tol, max_iter, max_splits)
             if q is None:
                 reasons.append(f"unreachable (stalled at {reached:.0%} of the way)")
                 continue

@@ -85,20 +85,22 @@ class ClikNode(Node):
     def publish_diagnostics(self):
         """The current goal's feasibility on ``/diagnostics`` (once a second and on every change):
         OK; WARN while its online steps are projected onto the tension limits (the target is
-        infeasible for the model: the reference moves to the closest feasible point); ERROR when a
-        step found no feasible reference and the last one was held."""
+        infeasible for the model: the reference moves to the closest feasible point) and while it is
+        stalled (feasible steps, but the error does not fall); ERROR when a step found no feasible
+        reference and the last one was held. The values are those of the goal's report."""
         if not self.outer.reports:
             return
         report = self.outer.reports[-1]
         level = {"ok": DiagnosticStatus.OK, "constrained": DiagnosticStatus.WARN,
-                 "held": DiagnosticStatus.ERROR}[report.status]
+                 "stalled": DiagnosticStatus.WARN, "held": DiagnosticStatus.ERROR}[report.status]
         message = {"ok": "target feasible",
                    "constrained": "target infeasible for the model: moving to the closest feasible point",
+                   "stalled": "target not reached: the error does not fall although every step is "
+                              "feasible (out of reach, or a load the model lacks)",
                    "held": "no feasible step: the last reference is held"}[report.status]
         status = DiagnosticStatus(level=level, name="clik", hardware_id="soft_arm", message=message)
         d = report.as_dict()
-        keys = ("target", "mode", "online_steps", "infeasible_steps", "held_steps", "closest_error")
-        status.values = [KeyValue(key=k, value=str(d[k])) for k in keys]
+        status.values = [KeyValue(key=k, value=str(v)) for k, v in d.items() if k != "status"]
         msg = DiagnosticArray(status=[status])
         seconds_to_stamp(msg.header.stamp, self.now)
         self.diagnostics_pub.publish(msg)

@@ -52,6 +52,8 @@ CONTROL_SCHEMA = {
     "clik.switch_delay": ("float", lambda v: 0 <= v <= 3600,
                           "a delay in [0, 3600] s from a target change to online refinement"),
     "clik.tolerance": ("float", lambda v: 0 < v <= 0.01, "a task tolerance in (0, 0.01] m"),
+    "clik.reach_tolerance": ("float", lambda v: 0 < v <= 0.1, "a task error norm in (0, 0.1] m"),
+    "clik.stall_time": ("float", lambda v: 0 < v <= 3600, "a time in (0, 3600] s"),
     "clik.seed_levels": ("floats", lambda v: all(0 <= a <= 100 for a in v),
                          "tensions in [0, 100] N (may be empty)"),
 }
@@ -100,6 +102,8 @@ class ControlConfig:
     switch_delay: float
     tolerance: float
     seed_levels: tuple
+    reach_tolerance: float
+    stall_time: float
 
 
 def parse_control(v: dict, arm: ArmConfig) -> ControlConfig:
@@ -123,7 +127,7 @@ def parse_control(v: dict, arm: ArmConfig) -> ControlConfig:
         v["inner_loop.feedforward"], v["clik.task_gain"], v["clik.equilibrium_gain"],
         v["clik.singular_threshold"], v["clik.rate"], v["clik.jacobian_rate"],
         v["clik.switch_delay"], v["clik.tolerance"],
-        v["clik.seed_levels"])
+        v["clik.seed_levels"], v["clik.reach_tolerance"], v["clik.stall_time"])
 
 
 def load_control_config(arm: ArmConfig, path: str | None = None, overrides=None) -> ControlConfig:

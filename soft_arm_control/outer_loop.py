@@ -14,7 +14,7 @@ Times are the caller's [s] (simulated or wall). An unreachable or infeasible goa
 """
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -30,30 +30,57 @@ MODES = ("clik", "replay", "precomputed", "online")
 class GoalReport:
     """What the online CLIK did for one goal: ``target`` [m], ``mode``, its online steps, those that
     had to be projected onto the tension limits (``infeasible_steps``: the target is infeasible for
-    the model from there) and those with no feasible step at all (``held_steps``: the reference
-    stayed), and the smallest measured task error norm [m] since the goal arrived (None before the
-    first online step)."""
+    the model from there), those with no feasible step at all (``held_steps``: the reference
+    stayed), the smallest and the last measured task error norms [m] (None before the first
+    online step) and ``stalled_steps``: online steps since the error last fell by a tenth while it
+    is above ``reach_tolerance`` [m]. A goal whose error stays above the tolerance without falling
+    for ``stall_steps`` steps is *stalled*: the arm does not go where the model says it should (a
+    target out of the arm's reach, an unmodelled load) although every step was feasible."""
     target: list
     mode: str
+    reach_tolerance: float = 1e-3
+    stall_steps: int = 480
     online_steps: int = 0
     infeasible_steps: int = 0
     held_steps: int = 0
     closest_error: float | None = None
+    error: float | None = None
+    stalled_steps: int = 0
+    _progress_level: float = np.inf
 
     def add(self, step: ClikStep):
         self.online_steps += 1
         self.infeasible_steps += step.constrained
         self.held_steps += step.held
-        error = float(np.linalg.norm(step.error))
-        self.closest_error = error if self.closest_error is None else min(self.closest_error, error)
+        self.error = float(np.linalg.norm(step.error))
+        self.closest_error = self.error if self.closest_error is None else min(self.closest_error,
+                                                                               self.error)
+        if self.error <= self.reach_tolerance or self.error < 0.9 * self._progress_level:
+            self._progress_level = self.error
+            self.stalled_steps = 0
+        else:
+            self.stalled_steps += 1
+
+    @property
+    def reached(self) -> bool | None:
+        """The last measured error is within ``reach_tolerance`` (None without online steps)."""
+        return None if self.error is None else self.error <= self.reach_tolerance
 
     @property
     def status(self) -> str:
-        """ok, constrained (the reference keeps moving towards the closest feasible point) or held."""
-        return "held" if self.held_steps else "constrained" if self.infeasible_steps else "ok"
+        """held (no feasible step: the reference stayed), constrained (the reference keeps moving
+        towards the closest feasible point), stalled (feasible steps, but the error stays above the
+        tolerance) or ok."""
+        if self.held_steps:
+            return "held"
+        if self.infeasible_steps:
+            return "constrained"
+        return "stalled" if self.stalled_steps >= self.stall_steps else "ok"
 
     def as_dict(self) -> dict:
-        return {**asdict(self), "status": self.status}
+        keys = ("target", "mode", "online_steps", "infeasible_steps", "held_steps", "closest_error",
+                "error", "stalled_steps")
+        return {**{k: getattr(self, k) for k in keys}, "reached": self.reached, "status": self.status}
 
 
 class OuterLoop:
@@ -62,17 +89,21 @@ class OuterLoop:
     ``start``: the reference at start-up (the hanging arm); ``switch_delay`` [s]; ``rate`` [Hz] of
     the online steps; ``jacobian_every``: online steps per recomputation of Z; ``seed_levels``
     [N]: tensions of the seed equilibria tried when a precomputation from ``start`` fails;
-    ``tolerance`` [m]: precomputation tolerance.
+    ``tolerance`` [m]: precomputation tolerance; ``reach_tolerance`` [m] and ``stall_time`` [s]: when
+    a goal counts as reached, and as stalled (:class:`GoalReport`).
     """
 
     def __init__(self, clik, start: ClikPoint, switch_delay: float, rate: float,
-                 jacobian_every: int = 1, seed_levels=(), tolerance: float = 1e-6):
+                 jacobian_every: int = 1, seed_levels=(), tolerance: float = 1e-6,
+                 reach_tolerance: float = 1e-3, stall_time: float = 2.0):
         self.clik = clik
         self.start = start
         self.reference = start
         self.switch_delay, self.period = float(switch_delay), 1.0 / float(rate)
         self.jacobian_every = max(1, int(jacobian_every))
         self.seed_levels, self.tolerance = tuple(seed_levels), float(tolerance)
+        self.reach_tolerance = float(reach_tolerance)
+        self.stall_steps = max(1, int(round(stall_time * float(rate))))
         self.stored: dict = {}
         self.reports: list = []             # a GoalReport per goal, in order
         self.last_step: ClikStep | None = None
@@ -126,7 +157,8 @@ class OuterLoop:
         if mode == "replay":
             ref = self.stored[self.key(x_d)]
         self._x_d, self._mode = x_d, mode
-        self.reports.append(GoalReport([float(v) for v in x_d], mode))
+        self.reports.append(GoalReport([float(v) for v in x_d], mode, self.reach_tolerance,
+                                       self.stall_steps))
         self._online_from = {"clik": t + self.switch_delay, "online": t}.get(mode, np.inf)
         self._next_step = self._online_from
         if ref is not None:
@@ -166,4 +198,4 @@ def outer_loop_for(model, control, task) -> OuterLoop:
     start = clik.reference(solve_equilibrium(model, np.full(model.n_tendons, control.tension_min)).q)
     return OuterLoop(clik, start, control.switch_delay, control.clik_rate,
                      int(round(control.clik_rate / control.jacobian_rate)), control.seed_levels,
-                     control.tolerance)
+                     control.tolerance, control.reach_tolerance, control.stall_time)

@@ -59,7 +59,7 @@ def _summary(model, args):
         "legendre_order": list(cfg.discretisation.legendre_order),
         "points": int(model.X.size),
         "tendons": [t.name for t in cfg.tendons],
-        "mass_kg": float(np.sum(model.w * model.mass_diag[:, 3])),
+        "mass_kg": float(model.lumped_mass[:, 3].sum()),   # the tip mass included
         "natural_frequencies_hz": [float(f) for f in freqs],
     }
     if args.json:

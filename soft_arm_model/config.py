@@ -73,7 +73,8 @@ class Discretisation:
 class ArmConfig:
     """The validated arm description; ``gravity`` [m/s^2] in ``arm_base``, ``marker_positions`` [m]
     are arc lengths of the tracked markers (base to tip), ``friction_smoothing`` [rad/m] smooths the
-    norm in the friction integrand near zero turning rate."""
+    norm in the friction integrand near zero turning rate, ``tip_mass`` [kg] is a point mass fixed
+    at the tip (an end effector or a payload; 0 for the bare arm)."""
     geometry: Geometry
     material: Material
     tendons: tuple
@@ -81,6 +82,7 @@ class ArmConfig:
     gravity: tuple
     marker_positions: tuple
     friction_smoothing: float
+    tip_mass: float
 
     @property
     def enabled_modes(self) -> tuple:
@@ -124,6 +126,7 @@ _SCHEMA: dict[str, tuple[str, Any, str]] = {
     "discretisation.allow_tendon_end_inside_division": ("bool", None, "true or false"),
     "gravity": ("floats", lambda v: len(v) == 3 and math.sqrt(sum(a * a for a in v)) <= 100,
                 "three components [m/s^2] with norm <= 100"),
+    "tip_mass": ("float", lambda v: 0 <= v <= 1, "a mass in [0, 1] kg"),
     "markers.positions": ("floats", lambda v: all(b > a for a, b in zip([0.0] + list(v[:-1]), v)),
                           "strictly increasing arc lengths > 0 m"),
 }
@@ -193,6 +196,7 @@ def parse_arm_config(params: Mapping) -> ArmConfig:
         gravity=v["gravity"],
         marker_positions=v["markers.positions"],
         friction_smoothing=v["tendons.friction_smoothing"],
+        tip_mass=v["tip_mass"],
     )
 
 

@@ -185,15 +185,17 @@ def _elastic(w, B, xi, stiff_diag, neo_axial, col_lo, col_hi, Fel, Kt, energies)
 
 
 @njit(cache=True, fastmath=True, error_model="numpy")
-def _gravity(w, mass_diag, gravity, R, p, J, Fg, energies):
+def _gravity(lumped, gravity, R, p, J, Fg, energies):
+    """F_g = sum m J_lin^T R^T g over the points' lumped masses m (quadrature weight included, the
+    tip point mass too); the gravity potential energy into energies[2]."""
     n = Fg.shape[0]
     Fg[:] = 0.0
     ug = 0.0
     a_body = np.empty(3)
-    for pt in range(w.shape[0]):
-        if w[pt] == 0.0:
+    for pt in range(lumped.shape[0]):
+        m = lumped[pt, 3]
+        if m == 0.0:
             continue
-        m = w[pt] * mass_diag[pt, 3]  # rho A w
         for r in range(3):
             a_body[r] = R[pt, 0, r] * gravity[0] + R[pt, 1, r] * gravity[1] + R[pt, 2, r] * gravity[2]
         for a in range(n):
@@ -290,56 +292,68 @@ def _ad_transpose_apply(x, y, out):
 
 
 @njit(cache=True, fastmath=True, error_model="numpy")
-def _mass_bias(w, mass_diag, J, eta, psi, col_hi, M, Cqd, energies):
-    """M = sum w J^T Mc J; C qd = sum w J^T [Mc psi - ad_eta^T Mc eta]; kinetic energy."""
+def _mass_bias(lumped, J, eta, psi, M, Cqd, energies):
+    """M = sum J^T Mc J; C qd = sum J^T [Mc psi - ad_eta^T Mc eta] over the points' lumped inertias
+    Mc; kinetic energy."""
     n = M.shape[0]
     M[:, :] = 0.0
     Cqd[:] = 0.0
     kin = 0.0
     y = np.empty(6)
     f = np.empty(6)
-    for pt in range(w.shape[0]):
-        if w[pt] == 0.0:
+    for pt in range(lumped.shape[0]):
+        if lumped[pt, 3] == 0.0:
             continue
-        wt = w[pt]
-        mc = mass_diag[pt]
+        mc = lumped[pt]
         et = eta[pt]
         Jp = J[pt]
+        hi = _last_column(Jp) + 1     # J is zero beyond the point's division
         for r in range(6):
             y[r] = mc[r] * et[r]
-            kin += 0.5 * wt * y[r] * et[r]
+            kin += 0.5 * y[r] * et[r]
         _ad_transpose_apply(et, y, f)
         for r in range(6):
             f[r] = mc[r] * psi[pt, r] - f[r]
-        for a in range(col_hi[pt]):  # J is zero beyond the point's division
+        for a in range(hi):
             acc = 0.0
             for r in range(6):
                 acc += Jp[r, a] * f[r]
-            Cqd[a] += wt * acc
-            for b in range(a, col_hi[pt]):
+            Cqd[a] += acc
+            for b in range(a, hi):
                 accm = 0.0
                 for r in range(6):
                     accm += Jp[r, a] * mc[r] * Jp[r, b]
-                M[a, b] += wt * accm
+                M[a, b] += accm
     for a in range(n):
         for b in range(a):
             M[a, b] = M[b, a]
     energies[0] = kin
 
 
+@njit(cache=True)
+def _last_column(Jp):
+    """Index of the last non-zero column of a point's Jacobian (-1 if none)."""
+    for a in range(Jp.shape[1] - 1, -1, -1):
+        for r in range(6):
+            if Jp[r, a] != 0.0:
+                return a
+    return -1
+
+
 @njit(cache=True, fastmath=True, error_model="numpy")
-def _coriolis_matrix(w, mass_diag, J, eta, Jd, C):
-    """C = sum w J^T [Mc Jdot + (Mc ad_eta - ad_eta^T Mc) J], so that Mdot = C + C^T."""
+def _coriolis_matrix(lumped, J, eta, Jd, C):
+    """C = sum J^T [Mc Jdot + (Mc ad_eta - ad_eta^T Mc) J] over the points' lumped inertias Mc, so
+    that Mdot = C + C^T."""
     n = C.shape[0]
     C[:, :] = 0.0
     Wm = np.empty((6, n))
     adJ = np.empty((6, n))
     y = np.empty(6)
     t = np.empty(6)
-    for pt in range(w.shape[0]):
-        if w[pt] == 0.0:
+    for pt in range(lumped.shape[0]):
+        if lumped[pt, 3] == 0.0:
             continue
-        mc = mass_diag[pt]
+        mc = lumped[pt]
         et = eta[pt]
         Jp = J[pt]
         ad_apply_columns(et, Jp, adJ, 1.0, False)
@@ -354,11 +368,11 @@ def _coriolis_matrix(w, mass_diag, J, eta, Jd, C):
                 acc = 0.0
                 for r in range(6):
                     acc += Jp[r, a] * Wm[r, b]
-                C[a, b] += w[pt] * acc
+                C[a, b] += acc
 
 
 @njit(cache=True, fastmath=True, error_model="numpy")
-def evaluate(w, B, Bd, h, B1, B2, xi_star, mass_diag, stiff_diag, neo_axial, R0, gravity,
+def evaluate(w, B, Bd, h, B1, B2, xi_star, lumped, stiff_diag, neo_axial, R0, gravity,
              t_d, t_dp, t_dpp, t_active, t_mu, Q, smoothing, col_lo, col_hi,
              m_point, m_h, m_B1, m_B2,
              q, qd, level, markers,
@@ -396,19 +410,19 @@ def evaluate(w, B, Bd, h, B1, B2, xi_star, mass_diag, stiff_diag, neo_axial, R0,
         return True
     if not _elastic(w, B, xi, stiff_diag, neo_axial, col_lo, col_hi, Fel, Kt, energies):
         return False
-    _gravity(w, mass_diag, gravity, R, p, J, Fg, energies)
+    _gravity(lumped, gravity, R, p, J, Fg, energies)
     if not _tendons(w, B, Bd, xi, q, t_d, t_dp, t_dpp, t_active, t_mu, Q, smoothing, col_lo, col_hi,
                     A, A0, Lc, theta, wrap, phi):
         return False
     if level >= 2:
-        _mass_bias(w, mass_diag, J, eta, psi, col_hi, M, Cqd, energies)
+        _mass_bias(lumped, J, eta, psi, M, Cqd, energies)
     if level >= 3:
-        _coriolis_matrix(w, mass_diag, J, eta, Jd, C)
+        _coriolis_matrix(lumped, J, eta, Jd, C)
     return True
 
 
 @njit(cache=True, fastmath=True, error_model="numpy")
-def tendon_matrices(w, B, Bd, h, B1, B2, xi_star, mass_diag, stiff_diag, neo_axial, R0, gravity,
+def tendon_matrices(w, B, Bd, h, B1, B2, xi_star, lumped, stiff_diag, neo_axial, R0, gravity,
                     t_d, t_dp, t_dpp, t_active, t_mu, Q, smoothing, col_lo, col_hi,
                     m_point, m_h, m_B1, m_B2, q, xi, A, A0, Lc, theta, wrap, phi):
     """Only the tendon terms at q (A, A0, L_c, theta, wrap angles) into the given arrays: they

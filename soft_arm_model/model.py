@@ -43,6 +43,8 @@ class ArmModel:
       h, B1, B2: Magnus interval lengths [m] and bases at the two Zanna points, (P-1,), (P-1, 6, n).
       mass_diag: rho [Jp, I, I, A, A, A]; stiff_diag: [G Jp, E I, E I, E A, G A, G A];
       visc_diag: eta [Jp, 3I, 3I, 3A, A, A] per point, (P, 6).
+      lumped_mass: the inertia each point carries in the sums over points, (P, 6) [kg m^2, kg]:
+        w mass_diag, plus the tip point mass (``tip_mass``, no rotary inertia) at the last point.
       K, D: stiffness at the reference and damping matrices, (n, n).
       tendon_d, tendon_dp, tendon_dpp: tendon offset and its first two X-derivatives, (n_t, P, 3) [m].
       tendon_active: 1 where the tendon runs through a point; friction_mu: mubar per tendon.
@@ -61,6 +63,7 @@ class ArmModel:
     B1: np.ndarray
     B2: np.ndarray
     mass_diag: np.ndarray
+    lumped_mass: np.ndarray
     stiff_diag: np.ndarray
     visc_diag: np.ndarray
     K: np.ndarray
@@ -279,6 +282,8 @@ def build_model(config: ArmConfig | None = None) -> ArmModel:
     E = mat.youngs_modulus
     G = E / (2.0 * (1.0 + mat.poisson_ratio))
     mass_diag = mat.density * np.stack([polar, inertia, inertia, area, area, area], axis=1)
+    lumped_mass = w[:, None] * mass_diag
+    lumped_mass[-1, 3:] += config.tip_mass      # X[-1] is the tip (a division end)
     stiff_diag = np.stack([G * polar, E * inertia, E * inertia, E * area, G * area, G * area], axis=1)
     visc_diag = mat.viscosity * np.stack([polar, 3 * inertia, 3 * inertia, 3 * area, area, area], axis=1)
     K = np.einsum("p,pra,pr,prb->ab", w, B, stiff_diag, B)
@@ -298,7 +303,7 @@ def build_model(config: ArmConfig | None = None) -> ArmModel:
         if m_h[m] < 0:
             m_h[m] = 0.0
     arrays = dict(X=X, w=w, B=B, Bd=Bd, h=h, B1=B1, B2=B2, mass_diag=mass_diag,
-                  stiff_diag=stiff_diag, visc_diag=visc_diag, K=K, D=D, tendon_d=t_d,
+                  lumped_mass=lumped_mass, stiff_diag=stiff_diag, visc_diag=visc_diag, K=K, D=D, tendon_d=t_d,
                   tendon_dp=t_dp, tendon_dpp=t_dpp, tendon_active=active, friction_mu=mu,
                   friction_Q=Q, gravity=np.array(config.gravity, dtype=float), marker_X=mX,
                   marker_h=m_h, marker_B1=m_B1, marker_B2=m_B2)
@@ -316,7 +321,7 @@ def build_model(config: ArmConfig | None = None) -> ArmModel:
     neo = config.material.axial_law == "neo_hookean"
     a = arrays
     kernel_args = (a["w"], a["B"], a["Bd"], a["h"], a["B1"], a["B2"], _frozen(XI_STAR),
-                   a["mass_diag"], a["stiff_diag"], neo, _frozen(R_BASE), a["gravity"], a["tendon_d"],
+                   a["lumped_mass"], a["stiff_diag"], neo, _frozen(R_BASE), a["gravity"], a["tendon_d"],
                    a["tendon_dp"], a["tendon_dpp"], a["tendon_active"], a["friction_mu"],
                    a["friction_Q"], float(config.friction_smoothing), col_lo, col_hi, m_point, a["marker_h"],
                    a["marker_B1"], a["marker_B2"])

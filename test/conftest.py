@@ -33,6 +33,13 @@ def full_model():
                          "discretisation.legendre_order": [2, 1]})
 
 
+@pytest.fixture(scope="session")
+def loaded_model():
+    """The paper's arm carrying a 20 g point mass at the tip (and shear): the tip terms of every kernel."""
+    return make_model(**{"tip_mass": 0.02, "discretisation.modes.shear_y": True,
+                         "discretisation.modes.shear_z": True})
+
+
 @pytest.fixture
 def rng():
     return np.random.default_rng(1234)

@@ -168,6 +168,20 @@ class RunResult:
     goals: list
 
 
+def goal_warning(goal: dict) -> str:
+    """One line saying what went wrong with a goal of :attr:`RunResult.goals` (status not ok)."""
+    head = f"target {goal['target']} ({goal['mode']})"
+    closest = f"closest measured error {goal['closest_error'] * 1e3:.2f} mm"
+    if goal["status"] == "stalled":
+        return (f"{head} stalled: the measured error stayed above the reach tolerance without falling "
+                f"for the last {goal['stalled_steps']} of {goal['online_steps']} online steps, although "
+                f"every step was feasible for the model (out of the arm's reach, or a load the model "
+                f"lacks); {closest}")
+    return (f"{head} is infeasible for the model from where the online CLIK got: "
+            f"{goal['infeasible_steps']} of {goal['online_steps']} steps projected onto the tension "
+            f"limits, {goal['held_steps']} held; {closest}")
+
+
 def schedule(task: TaskConfig) -> list:
     """The protocol as (phase, mode, target, window) tuples in order."""
     return [(ph.name, ph.mode, k, ph.window) for ph in task.phases for k in ph.sequence]

@@ -16,7 +16,7 @@ import time
 from soft_arm_control.clik import TargetError
 from soft_arm_model.parameters import ConfigError
 
-from .harness import add_setup_arguments, load_setup, run_experiment, setup_overrides
+from .harness import add_setup_arguments, goal_warning, load_setup, run_experiment, setup_overrides
 from .metrics import format_table, to_json
 
 
@@ -58,10 +58,7 @@ def main(argv=None) -> int:
         print(f"simulated {simulated:.1f} s in {wall:.1f} s (real-time factor {simulated / wall:.1f})")
     for goal in result.goals:
         if goal["status"] != "ok":
-            print(f"soft-arm-harness: target {goal['target']} ({goal['mode']}) is infeasible for the model "
-                  f"from where the online CLIK got: {goal['infeasible_steps']} of {goal['online_steps']} "
-                  f"steps projected onto the tension limits, {goal['held_steps']} held; closest measured "
-                  f"error {goal['closest_error'] * 1e3:.2f} mm", file=sys.stderr)
+            print(f"soft-arm-harness: {goal_warning(goal)}", file=sys.stderr)
     return 0
 
 

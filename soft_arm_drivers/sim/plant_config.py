@@ -25,7 +25,8 @@ PLANT_SCHEMA = {
                                  "angle errors in [-0.5, 0.5] rad at the base, one per tendon"),
     "tendon.end_angle_error": ("floats", lambda v: all(abs(a) <= 0.5 for a in v),
                                "angle errors in [-0.5, 0.5] rad at the tendon end, one per tendon"),
-    "tip_payload": ("float", lambda v: 0 <= v <= 0.1, "a mass in [0, 0.1] kg hanging at the tip"),
+    "tip_payload": ("float", lambda v: 0 <= v <= 0.1,
+                    "a mass in [0, 0.1] kg fixed at the tip, added to arm.tip_mass"),
     "discretisation.legendre_order": ("ints", lambda v: all(0 <= a <= 8 for a in v),
                                       "Legendre orders in [0, 8], one per division of the arm"),
     "discretisation.gauss_points": ("ints", lambda v: all(1 <= a <= 20 for a in v),
@@ -44,7 +45,8 @@ PLANT_SCHEMA = {
 # the keys that describe the plant's arm (ignored when plant_file names a complete description)
 ARM_KEYS = ("youngs_modulus_scale", "viscosity_scale", "density_scale", "friction",
             "tendon.offset_fraction", "tendon.start_angle_error", "tendon.end_angle_error",
-            "discretisation.legendre_order", "discretisation.gauss_points", "discretisation.shear")
+            "tip_payload", "discretisation.legendre_order", "discretisation.gauss_points",
+            "discretisation.shear")
 _PER_TENDON = ("friction", "tendon.offset_fraction", "tendon.start_angle_error", "tendon.end_angle_error")
 _PER_DIVISION = ("discretisation.legendre_order", "discretisation.gauss_points")
 _SHEAR = (STRAIN_MODES.index("shear_y"), STRAIN_MODES.index("shear_z"))
@@ -53,13 +55,12 @@ _SHEAR = (STRAIN_MODES.index("shear_y"), STRAIN_MODES.index("shear_z"))
 @dataclass(frozen=True)
 class PlantConfig:
     """The simulated plant: its arm (``arm_values``: the plant's differences from the controller's
-    arm, by key of :data:`PLANT_SCHEMA`, or ``plant_file``: a complete arm description), a tip
-    payload [kg], the time step [s], the motor rotor inertia [kg m^2], the encoder (pulley radius
+    arm, by key of :data:`PLANT_SCHEMA`, or ``plant_file``: a complete arm description), the time
+    step [s], the motor rotor inertia [kg m^2], the encoder (pulley radius
     [m], angle and rate resolution [rad], [rad/s]) and the mocap (frame rate [Hz], noise standard
     deviation [m], latency [s], seed)."""
     plant_file: str
     arm_values: dict
-    tip_payload: float
     timestep: float
     rotor_inertia: float
     pulley_radius: float
@@ -72,8 +73,9 @@ class PlantConfig:
 
     def plant_arm(self, arm: ArmConfig) -> ArmConfig:
         """The plant's arm: the description of ``plant_file``, or the controller's ``arm`` with E,
-        viscosity and density scaled, the plant's tendon geometry and friction, and its own strain
-        basis. ConfigError if a plant file does not fit the controller's arm (tendons, markers)."""
+        viscosity and density scaled, the plant's tendon geometry and friction, the tip payload
+        added to its tip mass, and its own strain basis. ConfigError if a plant file does not fit the
+        controller's arm (tendons, markers)."""
         if self.plant_file:
             plant = load_arm_config(self.plant_file)
             if [t.name for t in plant.tendons] != [t.name for t in arm.tendons]:
@@ -96,7 +98,8 @@ class PlantConfig:
             modes[k] = v["discretisation.shear"]
         basis = replace(arm.discretisation, legendre_order=v["discretisation.legendre_order"],
                         gauss_points=v["discretisation.gauss_points"], modes=tuple(modes))
-        return replace(arm, material=material, tendons=tendons, discretisation=basis)
+        return replace(arm, material=material, tendons=tendons, discretisation=basis,
+                       tip_mass=arm.tip_mass + v["tip_payload"])
 
     @property
     def rotor_mass(self) -> float:
@@ -112,7 +115,7 @@ def parse_plant(v: dict, arm: ArmConfig) -> PlantConfig:
     for key, (n, what) in expect.items():
         if len(v[key]) != n:
             raise ConfigError(f"plant.{key} = {list(v[key])} is not valid: expected {n} values, {what}")
-    return PlantConfig(v["plant_file"], {k: v[k] for k in ARM_KEYS}, v["tip_payload"], v["timestep"],
+    return PlantConfig(v["plant_file"], {k: v[k] for k in ARM_KEYS}, v["timestep"],
                        v["motor.rotor_inertia"], v["encoder.pulley_radius"], v["encoder.resolution"],
                        v["encoder.velocity_resolution"], v["mocap.rate"], v["mocap.noise"],
                        v["mocap.latency"], v["mocap.seed"])
@@ -137,4 +140,4 @@ def describe_plant(plant: PlantConfig) -> str:
     return (f"E x{v['youngs_modulus_scale']}, viscosity x{v['viscosity_scale']}, density "
             f"x{v['density_scale']}, friction {list(v['friction'])}, offsets "
             f"{list(v['tendon.offset_fraction'])}, strain order {list(v['discretisation.legendre_order'])}"
-            f"{' with shear' if v['discretisation.shear'] else ''}, tip payload {plant.tip_payload} kg")
+            f"{' with shear' if v['discretisation.shear'] else ''}, tip payload {v['tip_payload']} kg")

@@ -112,11 +112,11 @@ class SimulatedRig:
     def __init__(self, plant_model, plant: PlantConfig, encoder_offset, pretension,
                  payload=((), ())):
         """``payload``: (masses [kg], attach times [s]): each mass hangs at the tip from its time
-        on (an unmodelled load: the controller does not know it); the plant's own ``tip_payload``
-        hangs there from the start."""
+        on (an unmodelled load: the controller does not know it), as a weight at the tip (the
+        plant's own ``tip_payload`` is part of ``plant_model``, with its inertia)."""
         self.config = plant
-        self.payload_masses = np.array([plant.tip_payload, *payload[0]], dtype=float)
-        self.payload_times = np.array([0.0, *payload[1]], dtype=float)
+        self.payload_masses = np.array(payload[0], dtype=float)
+        self.payload_times = np.array(payload[1], dtype=float)
         self.plant = Plant(plant_model, plant.timestep, plant.rotor_mass)
         self.plant.settle(pretension)
         self.plant.sense()

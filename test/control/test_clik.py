@@ -191,3 +191,27 @@ def test_the_outer_loop_reports_an_infeasible_goal_instead_of_holding(paper_mode
     for k in range(1, 20):
         outer.frame(4.0 + k * 0.02, outer.reference.x)
     assert outer.reports[-1].status == "ok" and len(outer.reports) == 2
+
+
+def test_a_goal_the_arm_does_not_follow_is_reported_stalled(paper_model, coiling_clik):
+    """Every step feasible, but the measured error does not fall (the arm stays where it is): the
+    report says stalled after stall_time, and not before; a goal the arm follows is reached."""
+    from soft_arm_control.outer_loop import OuterLoop
+    start = coiling_clik.reference(solve_equilibrium(paper_model, [0.05, 0.05, 1.0, 1.0]).q)
+    outer = OuterLoop(coiling_clik, start, switch_delay=0.0, rate=50.0, reach_tolerance=1e-3,
+                      stall_time=1.0)
+    x_d = np.array(start.x) + [0.004, 0.003]
+    outer.goal(0.0, x_d, "online")
+    statuses = []
+    for k in range(1, 80):
+        outer.frame(k * 0.02, np.array(start.x))               # the arm does not move
+        statuses.append(outer.reports[-1].status)
+    report = outer.reports[-1].as_dict()
+    assert report["infeasible_steps"] == report["held_steps"] == 0
+    assert statuses[49] == "ok" and statuses[50] == "stalled" and report["status"] == "stalled"
+    assert report["reached"] is False and abs(report["error"] - 0.005) < 1e-9
+    outer.goal(2.0, x_d, "online")
+    for k in range(1, 400):
+        outer.frame(2.0 + k * 0.02, outer.reference.x)     # the arm follows the model
+    report = outer.reports[-1].as_dict()
+    assert report["status"] == "ok" and report["reached"] is True and report["stalled_steps"] == 0

@@ -12,9 +12,10 @@ def _released(model):
     return solve_equilibrium(model, [1.0, 0.0, 1.0, 0.0]).q
 
 
-def test_energy_is_conserved_without_damping_and_actuation(model_factory):
+@pytest.mark.parametrize("tip_mass", [0.0, 0.01])
+def test_energy_is_conserved_without_damping_and_actuation(model_factory, tip_mass):
     m = model_factory(**{"material.viscosity": 0.0, "discretisation.legendre_order": [1, 0],
-                         "discretisation.gauss_points": [5, 3]})
+                         "discretisation.gauss_points": [5, 3], "tip_mass": tip_mass})
     q0 = _released(m)
     data = ArmData(m)
 

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from soft_arm_model import ArmData, actuation_coordinates, evaluate, solve_equilibrium
+from soft_arm_model import ArmData, actuation_coordinates, evaluate, marker_positions, solve_equilibrium
 from soft_arm_model.dynamics import CORIOLIS, STATICS
 
 EPS = 1e-6
@@ -16,7 +16,7 @@ def _vee(S):
     return np.array([S[2, 1], S[0, 2], S[1, 0]])
 
 
-@pytest.fixture(params=["paper_model", "full_model"])
+@pytest.fixture(params=["paper_model", "full_model", "loaded_model"])
 def model(request):
     return request.getfixturevalue(request.param)
 
@@ -117,3 +117,31 @@ def test_actuation_coordinates_are_tendon_shortenings(paper_model, rng):
     assert np.all(actuation_coordinates(m, q_eq, friction=False) > 1e-3)
     assert np.all(actuation_coordinates(m, q_eq) > 1e-3)
     np.testing.assert_array_equal(actuation_coordinates(m, np.zeros(m.n)), np.zeros(4))
+
+
+def test_tip_mass_is_a_point_mass_at_the_tip(model_factory, rng):
+    """A tip mass m adds m J^T J (linear rows of the tip's body Jacobian) to M, its weight
+    m J^T R^T g to F_g, m g.p to the potential and nothing to the elastic or tendon terms."""
+    m_tip = 0.013
+    bare, loaded = model_factory(), model_factory(tip_mass=m_tip)
+    q, qd = _state(bare, rng)
+    d0 = evaluate(bare, ArmData(bare), q, qd, level=CORIOLIS, markers=True)
+    d1 = evaluate(loaded, ArmData(loaded), q, qd, level=CORIOLIS, markers=True)
+    assert bare.marker_X[-1] == bare.length
+    Jl, R = d0.marker_J[-1][3:], d0.marker_R[-1]
+    np.testing.assert_allclose(d1.M - d0.M, m_tip * Jl.T @ Jl, atol=1e-12 * np.abs(d1.M).max())
+    np.testing.assert_allclose(d1.Fg - d0.Fg, m_tip * Jl.T @ (R.T @ bare.gravity),
+                               atol=1e-12 * np.abs(d1.Fg).max())
+    np.testing.assert_allclose(d1.energies[2] - d0.energies[2],
+                               -m_tip * bare.gravity @ d0.marker_p[-1], rtol=1e-10)
+    np.testing.assert_array_equal(d1.Fel, d0.Fel)
+    np.testing.assert_array_equal(d1.A, d0.A)
+    assert abs(loaded.lumped_mass[:, 3].sum() - bare.lumped_mass[:, 3].sum() - m_tip) < 1e-15
+    # the hanging arm stretches under the tip weight: the tip drops by m g int dX / (E A(X)) =
+    # m g L / (E pi r_b r_t) on the cone (small strain; the basis approximates 1 / A(X))
+    g, E = bare.config.geometry, bare.config.material.youngs_modulus
+    drop = m_tip * 9.81 * g.length / (E * np.pi * g.base_radius * g.tip_radius)
+    z0 = marker_positions(bare, solve_equilibrium(bare, np.zeros(4)).q)[-1]
+    z1 = marker_positions(loaded, solve_equilibrium(loaded, np.zeros(4)).q)[-1]
+    np.testing.assert_allclose(z0[2] - z1[2], drop, rtol=0.03)
+    np.testing.assert_allclose(z1[:2], z0[:2], atol=1e-9)

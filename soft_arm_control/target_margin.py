@@ -1,0 +1,154 @@
+"""How far a task target is from the tension limits on arms that differ from the model.
+
+A target is *robust* when the arms the controller may really meet all hold it at equilibrium with
+tensions inside the limits, with a margin. The precomputed CLIK solves the target on the model; the
+solution is then followed, target fixed, while the arm is deformed step by step into each variant
+(Young's modulus scaled, a point mass added at the tip): the variant's equilibrium at the target on
+the branch the model's solution lies on, which is the one the online CLIK walks the real arm to.
+The margin of a variant is the smallest distance [N] of its task tendons' tensions from
+``[u_min, u_max]`` (negative outside). A target must also be a *stable* equilibrium of every
+variant: a curled arm with a load at its tip buckles sideways (two mirror equilibria for the same
+tensions, the one between them unstable), and no reference between the branches can be held. The
+stability of a variant is the smallest real part of the eigenvalues of its static stiffness under
+the inner loop, ``dR/dq + A K_p A0^T`` (the tangent of the static residual at fixed tensions plus
+the proportional gain on the task tendons' shortenings); it must be positive. The default variants
+are the rule the default targets of ``tasks.yaml`` are chosen by (:data:`STIFFNESS_SCALES` x
+:data:`TIP_PAYLOADS`: a margin of at least :data:`MIN_MARGIN` and a positive stability on every one).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from soft_arm_model import ArmConfig, ArmData, build_model, evaluate
+from soft_arm_model.dynamics import STATICS
+from soft_arm_model.statics import residual_jacobian
+
+from .clik import Clik, TargetError
+from .collocated import build_collocated, full_tensions
+from .config import ControlConfig, TaskConfig
+from .outer_loop import outer_loop_for
+
+STIFFNESS_SCALES = (0.8, 1.0, 1.25)   # Young's modulus of the arm / the model's
+# kg, an unmodelled mass at the tip; a heavier load than 2 g belongs in arm.tip_mass (a curled arm
+# with 5 g at its tip buckles sideways above z = -0.28 m, whatever the controller knows)
+TIP_PAYLOADS = (0.0, 0.002)
+MIN_MARGIN = 0.1                      # N, on every variant
+
+
+@dataclass(frozen=True)
+class Variant:
+    """An arm the controller may meet: its Young's modulus scale and an extra tip mass [kg]."""
+    stiffness: float
+    payload: float
+
+    def arm(self, arm: ArmConfig) -> ArmConfig:
+        material = replace(arm.material, youngs_modulus=arm.material.youngs_modulus * self.stiffness)
+        return replace(arm, material=material, tip_mass=arm.tip_mass + self.payload)
+
+
+@dataclass(frozen=True)
+class VariantMargin:
+    """A target on one variant: the task tendons' equilibrium tensions [N] and their margin [N]
+    from the limits (negative outside them) and its stability (the smallest real part of the
+    eigenvalues of the static stiffness under the inner loop [N m], positive when stable), or None
+    and the reason when the variant has no equilibrium at the target on the model's branch."""
+    variant: Variant
+    tensions: np.ndarray | None
+    margin: float | None
+    stability: float | None = None
+    reason: str | None = None
+
+    @property
+    def stable(self) -> bool:
+        return self.stability is not None and self.stability > 0
+
+
+def default_variants(stiffness=STIFFNESS_SCALES, payloads=TIP_PAYLOADS) -> list:
+    return [Variant(float(s), float(p)) for s in stiffness for p in payloads]
+
+
+class MarginChecker:
+    """Solves targets of one task on each variant; ``steps``: the homotopy steps from the model to a
+    variant (the models and CLIKs are built once)."""
+
+    def __init__(self, arm: ArmConfig, control: ControlConfig, task: TaskConfig, variants=None,
+                 steps: int = 4):
+        self.control, self.task = control, task
+        self._kp = np.array([control.proportional[k] for k in task.tendons])
+        self.variants = default_variants() if variants is None else list(variants)
+        self.nominal = outer_loop_for(build_model(arm), control, task)
+        self._paths = [[self._clik(Variant(1.0 + (v.stiffness - 1.0) * k / steps, v.payload * k / steps)
+                                   .arm(arm)) for k in range(1, steps + 1)] for v in self.variants]
+
+    def _clik(self, arm: ArmConfig) -> Clik:
+        c = self.nominal.clik
+        cm = build_collocated(build_model(arm), list(self.task.tendons),
+                              held_tension=self.control.tension_min, friction=self.control.friction)
+        return Clik(cm, self.task.space, c.gains, (c.u_min, c.u_max))
+
+    def stability(self, clik: Clik, q, tensions) -> float:
+        """The smallest real part of the eigenvalues of ``dR/dq + A K_p A0^T`` at q under the task
+        tendons' ``tensions`` [N] (positive: a stable equilibrium under the inner loop)."""
+        cm = clik.cm
+        _, jac = residual_jacobian(cm.model, q, full_tensions(cm, tensions), friction=self.control.friction)
+        d = evaluate(cm.model, ArmData(cm.model), q, level=STATICS)
+        a = (d.A if self.control.friction else d.A0)[:, list(self.task.tendons)]
+        a0 = d.A0[:, list(self.task.tendons)]
+        return float(np.linalg.eigvals(jac + a @ np.diag(self._kp) @ a0.T).real.min())
+
+    def margin(self, tensions) -> float:
+        """The distance [N] of ``tensions`` from the limits (negative outside)."""
+        u = np.asarray(tensions, dtype=float)
+        return float(min((u - self.control.tension_min).min(), (self.control.tension_max - u).min()))
+
+    def check(self, target) -> list:
+        """A :class:`VariantMargin` per variant for a target [m] in the task's coordinates; raises
+        TargetError when the model itself cannot hold the target within the limits."""
+        x_d = np.asarray(target, dtype=float)
+        q_model = self.nominal.precompute(x_d).q
+        out = []
+        for variant, path in zip(self.variants, self._paths):
+            q = q_model
+            for k, clik in enumerate(path):
+                q, reached = clik.solve(x_d, q)
+                if q is None:
+                    out.append(VariantMargin(variant, None, None,
+                                             f"no equilibrium at the target {k + 1}/{len(path)} of the "
+                                             f"way to this arm (out of its reach)"))
+                    break
+            else:
+                tensions = path[-1].reference(q).u_ff
+                out.append(VariantMargin(variant, tensions, self.margin(tensions),
+                                         self.stability(path[-1], q, tensions)))
+        return out
+
+
+def check_arm(arm: ArmConfig, control: ControlConfig, task: TaskConfig, targets) -> list:
+    """Whether one given arm (e.g. a simulated plant, whose strain basis may differ from the
+    model's) holds each target: a :class:`VariantMargin` per target (``variant`` None) from the
+    precomputed CLIK solved on that arm itself (from its hanging pose, then its seed equilibria)."""
+    checker = MarginChecker(arm, control, task, variants=[])
+    out = []
+    for target in targets:
+        try:
+            point = checker.nominal.precompute(np.asarray(target, dtype=float))
+        except TargetError as exc:
+            out.append(VariantMargin(None, None, None, None, str(exc).split(": from")[0]))
+            continue
+        out.append(VariantMargin(None, point.u_ff, checker.margin(point.u_ff),
+                                 checker.stability(checker.nominal.clik, point.q, point.u_ff)))
+    return out
+
+
+def worst_margin(results) -> float | None:
+    """The smallest margin over the variants (None when a variant has no equilibrium at the target)."""
+    margins = [r.margin for r in results]
+    return None if any(m is None for m in margins) else min(margins)
+
+
+def is_robust(results, min_margin: float = MIN_MARGIN) -> bool:
+    """The rule: every variant holds the target, stably, with at least ``min_margin`` [N]."""
+    worst = worst_margin(results)
+    return worst is not None and worst >= min_margin and all(r.stable for r in results)
