@@ -92,11 +92,13 @@ class ClikNode(Node):
             return
         report = self.outer.reports[-1]
         level = {"ok": DiagnosticStatus.OK, "constrained": DiagnosticStatus.WARN,
-                 "stalled": DiagnosticStatus.WARN, "held": DiagnosticStatus.ERROR}[report.status]
+                 "stalled": DiagnosticStatus.WARN, "unreached": DiagnosticStatus.WARN,
+                 "held": DiagnosticStatus.ERROR}[report.status]
         message = {"ok": "target feasible",
                    "constrained": "target infeasible for the model: moving to the closest feasible point",
                    "stalled": "target not reached: the error does not fall although every step is "
                               "feasible (out of reach, or a load the model lacks)",
+                   "unreached": "the goal ended away from its target",
                    "held": "no feasible step: the last reference is held"}[report.status]
         status = DiagnosticStatus(level=level, name="clik", hardware_id="soft_arm", message=message)
         d = report.as_dict()

@@ -35,7 +35,9 @@ class GoalReport:
     online step) and ``stalled_steps``: online steps since the error last fell by a tenth while it
     is above ``reach_tolerance`` [m]. A goal whose error stays above the tolerance without falling
     for ``stall_steps`` steps is *stalled*: the arm does not go where the model says it should (a
-    target out of the arm's reach, an unmodelled load) although every step was feasible."""
+    target out of the arm's reach, an unmodelled load) although every step was feasible. A goal
+    ``closed`` (the next one arrived, or the experiment ended) with its last error above the
+    tolerance and nothing else to report is *unreached*."""
     target: list
     mode: str
     reach_tolerance: float = 1e-3
@@ -46,6 +48,7 @@ class GoalReport:
     closest_error: float | None = None
     error: float | None = None
     stalled_steps: int = 0
+    closed: bool = False
     _progress_level: float = np.inf
 
     def add(self, step: ClikStep):
@@ -70,12 +73,14 @@ class GoalReport:
     def status(self) -> str:
         """held (no feasible step: the reference stayed), constrained (the reference keeps moving
         towards the closest feasible point), stalled (feasible steps, but the error stays above the
-        tolerance) or ok."""
+        tolerance), unreached (closed away from the target) or ok."""
         if self.held_steps:
             return "held"
         if self.infeasible_steps:
             return "constrained"
-        return "stalled" if self.stalled_steps >= self.stall_steps else "ok"
+        if self.stalled_steps >= self.stall_steps:
+            return "stalled"
+        return "unreached" if self.closed and self.reached is False else "ok"
 
     def as_dict(self) -> dict:
         keys = ("target", "mode", "online_steps", "infeasible_steps", "held_steps", "closest_error",
@@ -154,6 +159,8 @@ class OuterLoop:
             ref = point if point is not None else self.precompute(x_d)
         if self._mode == "clik":
             self.stored[self.key(self._x_d)] = self.reference
+        if self.reports:
+            self.reports[-1].closed = True
         if mode == "replay":
             ref = self.stored[self.key(x_d)]
         self._x_d, self._mode = x_d, mode
@@ -182,9 +189,11 @@ class OuterLoop:
         return ref
 
     def finish(self):
-        """Store the reference of the last clik goal (end of an experiment)."""
+        """Store the reference of the last clik goal and close its report (end of an experiment)."""
         if self._mode == "clik":
             self.stored[self.key(self._x_d)] = self.reference
+        if self.reports:
+            self.reports[-1].closed = True
 
 
 def outer_loop_for(model, control, task) -> OuterLoop:

@@ -172,6 +172,9 @@ def goal_warning(goal: dict) -> str:
     """One line saying what went wrong with a goal of :attr:`RunResult.goals` (status not ok)."""
     head = f"target {goal['target']} ({goal['mode']})"
     closest = f"closest measured error {goal['closest_error'] * 1e3:.2f} mm"
+    if goal["status"] == "unreached":
+        return (f"{head} not reached: the last measured error was {goal['error'] * 1e3:.2f} mm when the "
+                f"window ended; {closest}")
     if goal["status"] == "stalled":
         return (f"{head} stalled: the measured error stayed above the reach tolerance without falling "
                 f"for the last {goal['stalled_steps']} of {goal['online_steps']} online steps, although "

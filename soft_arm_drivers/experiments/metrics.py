@@ -5,7 +5,7 @@ For each transition (one target held for one time window):
   from that sample to the end of the window (cm band: 3 cm, mm band: 1 cm);
 - the equivalent task velocity: tip displacement over the window [m] / that time [s], the
   displacement measured along the tip coordinates the task controls (a 2D task on the tip's x and z
-  does not count its uncontrolled y); none when the displacement is within the band already;
+  does not count its uncontrolled y); none when every coordinate is within the band already;
 - the RMS of the task error norm over the steady-state part (the last ``steady_time`` seconds);
 - the peak tip speed [m/s] (true, or from measured positions: :func:`measured_speed`).
 The summary row reports, like Table 1, the best (largest) task velocities over all transitions that
@@ -84,9 +84,11 @@ def transition_metrics(phase: str, target: int, t, error, tip, tip_speed, steady
     times = {band: settling_time(t, error, band) for band in (CM_BAND, MM_BAND)}
 
     def velocity(tb, band):
-        if tb is None or displacement <= band:
+        # none when the band holds from the first sample: a diagonal move can be longer than the
+        # band while every coordinate starts inside it (the band is per coordinate)
+        if tb is None or tb == 0.0 or displacement <= band:
             return None
-        return displacement / max(tb, t[1] - t[0])
+        return displacement / tb
 
     steady = t >= t[-1] - min(steady_time, 0.5 * window)
     norms = np.linalg.norm(error, axis=1)

@@ -215,3 +215,16 @@ def test_a_goal_the_arm_does_not_follow_is_reported_stalled(paper_model, coiling
         outer.frame(2.0 + k * 0.02, outer.reference.x)     # the arm follows the model
     report = outer.reports[-1].as_dict()
     assert report["status"] == "ok" and report["reached"] is True and report["stalled_steps"] == 0
+
+
+def test_a_goal_that_ends_away_from_its_target_is_reported_unreached(paper_model, coiling_clik):
+    from soft_arm_control.outer_loop import OuterLoop
+    start = coiling_clik.reference(solve_equilibrium(paper_model, [0.05, 0.05, 1.0, 1.0]).q)
+    outer = OuterLoop(coiling_clik, start, switch_delay=0.0, rate=50.0, stall_time=10.0)
+    x_d = np.array(start.x) + [0.004, 0.003]
+    outer.goal(0.0, x_d, "online")
+    for k in range(1, 20):
+        outer.frame(k * 0.02, np.array(start.x))          # the arm lags behind, not yet a stall
+    assert outer.reports[-1].status == "ok" and outer.reports[-1].reached is False
+    outer.finish()
+    assert outer.reports[-1].status == "unreached"

@@ -102,3 +102,24 @@ def test_sugar_payload_is_unmodelled_but_the_online_loop_copes():
     result = run_experiment(setup)
     assert setup.task.payload == ((0.003, 0.002), (0.0, 40.0))
     assert all(r.final_error < 1e-3 for r in result.metrics)
+
+
+@pytest.mark.parametrize("plant", [
+    # softer than the model, tendons misplaced; stiffer, misplaced the other way, finer basis
+    ["plant.youngs_modulus_scale=0.9", "plant.viscosity_scale=1.2",
+     "plant.tendon.offset_fraction=[0.58,0.62,0.6,0.61]",
+     "plant.tendon.start_angle_error=[0.03,-0.03,0.02,-0.02]"],
+    ["plant.youngs_modulus_scale=1.15", "plant.viscosity_scale=0.8",
+     "plant.tendon.offset_fraction=[0.62,0.58,0.61,0.59]",
+     "plant.tendon.end_angle_error=[-0.03,0.03,-0.02,0.02]", "plant.discretisation.legendre_order=[4,0]"],
+], ids=["softer", "stiffer"])
+def test_every_triangle_target_is_reached_on_structurally_different_plants(plant):
+    """The unchanged controller on arms that differ from its model in stiffness, damping, tendon
+    geometry and strain basis: each triangle vertex within 5 mm at the end of its CLIK window, and
+    every goal's report says ok or constrained (never held, never a silent stall)."""
+    setup = load_setup("triangle", overrides=["tasks.triangle.phases=[approach]"] + plant)
+    result = run_experiment(setup)
+    assert [r.final_error < 5e-3 for r in result.metrics] == [True] * 3, result.metrics
+    for goal in result.goals:
+        assert goal["status"] in ("ok", "constrained") and goal["held_steps"] == 0, goal
+        assert goal["reached"] or goal["status"] != "ok", goal

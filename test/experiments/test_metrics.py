@@ -51,6 +51,11 @@ def test_no_velocity_when_the_move_is_within_the_band():
     row = transition_metrics("p", 1, t, err, tip, np.ones(t.size))
     assert row.time_cm == 0.0 and row.velocity_cm is None
     assert row.velocity_mm == pytest.approx(row.displacement / row.time_mm)
+    # a diagonal move of 3.8 cm, 2.7 cm on each of two coordinates: inside the 3 cm band at once
+    diagonal = np.stack([err[:, 0], err[:, 0]], axis=1) * (0.027 / 0.02)
+    row = transition_metrics("p", 1, t, diagonal, np.stack([tip[:, 0], tip[:, 0]], axis=1) * 1.35,
+                             np.ones(t.size))
+    assert row.displacement > 0.03 and row.time_cm == 0.0 and row.velocity_cm is None
 
 
 def test_measured_speed_is_exact_on_uniform_motion_and_ignores_uneven_frame_spacing():
