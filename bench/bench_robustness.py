@@ -69,26 +69,25 @@ def draw_plant(rng: np.random.Generator) -> dict:
     }
 
 
-def plant_holds(task: str, sets: list) -> dict:
+def plant_holds(task: str, overrides: list) -> dict:
     """Whether the drawn plant itself can hold the task's targets: the precomputed CLIK solved on
     the plant's own model, margin [N] from the tension limits and stability under the inner loop
     (:func:`soft_arm_control.target_margin.check_arm`). A target it cannot hold no controller reaches."""
-    from soft_arm_control.target_margin import check_arm
+    from soft_arm_control.target_margin import check_arm, is_robust
     from soft_arm_drivers.experiments.harness import load_setup
-    setup = load_setup(task, overrides=sets[1::2])
+    setup = load_setup(task, overrides=overrides)
     results = check_arm(setup.plant.plant_arm(setup.arm), setup.control, setup.task, setup.task.targets)
-    return {"plant_holds": all(r.margin is not None and r.margin >= 0 and r.stable for r in results),
+    return {"plant_holds": is_robust(results, min_margin=0.0),
             "plant_margins": [r.margin for r in results], "plant_stable": [r.stable for r in results]}
 
 
 def run_one(task: str, plant: dict) -> dict:
     """``soft-arm-harness TASK --json`` on the plant; its summary, or the error; whether the plant
     can hold the targets at all."""
-    sets = []
-    for key, value in plant.items():
-        sets += ["--set", f"plant.{key}={json.dumps(value)}"]
-    holds = plant_holds(task, sets)
+    overrides = [f"plant.{key}={json.dumps(value)}" for key, value in plant.items()]
+    holds = plant_holds(task, overrides)
     t0 = time.perf_counter()
+    sets = [a for o in overrides for a in ("--set", o)]
     proc = subprocess.run([sys.executable, "-m", "soft_arm_drivers.experiments.harness_cli", task,
                            "--json", "--quiet"] + sets, capture_output=True, text=True)
     wall = time.perf_counter() - t0

@@ -196,14 +196,20 @@ class OuterLoop:
             self.reports[-1].closed = True
 
 
-def outer_loop_for(model, control, task) -> OuterLoop:
-    """The outer loop the configuration describes for ``task`` (a TaskConfig), starting from the
-    hanging arm under the pretension; the task's other tendons are held at the pretension."""
+def clik_for(model, control, task) -> Clik:
+    """The CLIK the configuration describes for ``task`` (a TaskConfig) on ``model``; the task's
+    other tendons are held at the pretension."""
     cm = build_collocated(model, list(task.tendons), held_tension=control.tension_min,
                           friction=control.friction)
-    clik = Clik(cm, task.space, ClikGains(control.task_gain, control.equilibrium_gain,
+    return Clik(cm, task.space, ClikGains(control.task_gain, control.equilibrium_gain,
                                           control.singular_threshold),
                 (control.tension_min, control.tension_max))
+
+
+def outer_loop_for(model, control, task) -> OuterLoop:
+    """The outer loop the configuration describes for ``task`` (a TaskConfig), starting from the
+    hanging arm under the pretension."""
+    clik = clik_for(model, control, task)
     start = clik.reference(solve_equilibrium(model, np.full(model.n_tendons, control.tension_min)).q)
     return OuterLoop(clik, start, control.switch_delay, control.clik_rate,
                      int(round(control.clik_rate / control.jacobian_rate)), control.seed_levels,

@@ -21,14 +21,13 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from soft_arm_model import ArmConfig, ArmData, build_model, evaluate
-from soft_arm_model.dynamics import STATICS
+from soft_arm_model import ArmConfig, actuation_matrix, build_model
 from soft_arm_model.statics import residual_jacobian
 
 from .clik import Clik, TargetError
-from .collocated import build_collocated, full_tensions
+from .collocated import full_tensions
 from .config import ControlConfig, TaskConfig
-from .outer_loop import outer_loop_for
+from .outer_loop import clik_for, outer_loop_for
 
 STIFFNESS_SCALES = (0.8, 1.0, 1.25)   # Young's modulus of the arm / the model's
 # kg, an unmodelled mass at the tip; a heavier load than 2 g belongs in arm.tip_mass (a curled arm
@@ -79,23 +78,17 @@ class MarginChecker:
         self._kp = np.array([control.proportional[k] for k in task.tendons])
         self.variants = default_variants() if variants is None else list(variants)
         self.nominal = outer_loop_for(build_model(arm), control, task)
-        self._paths = [[self._clik(Variant(1.0 + (v.stiffness - 1.0) * k / steps, v.payload * k / steps)
-                                   .arm(arm)) for k in range(1, steps + 1)] for v in self.variants]
-
-    def _clik(self, arm: ArmConfig) -> Clik:
-        c = self.nominal.clik
-        cm = build_collocated(build_model(arm), list(self.task.tendons),
-                              held_tension=self.control.tension_min, friction=self.control.friction)
-        return Clik(cm, self.task.space, c.gains, (c.u_min, c.u_max))
+        self._paths = [[clik_for(build_model(Variant(1.0 + (v.stiffness - 1.0) * k / steps,
+                                                     v.payload * k / steps).arm(arm)), control, task)
+                        for k in range(1, steps + 1)] for v in self.variants]
 
     def stability(self, clik: Clik, q, tensions) -> float:
         """The smallest real part of the eigenvalues of ``dR/dq + A K_p A0^T`` at q under the task
         tendons' ``tensions`` [N] (positive: a stable equilibrium under the inner loop)."""
-        cm = clik.cm
-        _, jac = residual_jacobian(cm.model, q, full_tensions(cm, tensions), friction=self.control.friction)
-        d = evaluate(cm.model, ArmData(cm.model), q, level=STATICS)
-        a = (d.A if self.control.friction else d.A0)[:, list(self.task.tendons)]
-        a0 = d.A0[:, list(self.task.tendons)]
+        cm, friction, cols = clik.cm, self.control.friction, list(self.task.tendons)
+        _, jac = residual_jacobian(cm.model, q, full_tensions(cm, tensions), friction=friction)
+        a = actuation_matrix(cm.model, q, friction)[:, cols]
+        a0 = actuation_matrix(cm.model, q, False)[:, cols] if friction else a
         return float(np.linalg.eigvals(jac + a @ np.diag(self._kp) @ a0.T).real.min())
 
     def margin(self, tensions) -> float:
@@ -112,7 +105,7 @@ class MarginChecker:
         for variant, path in zip(self.variants, self._paths):
             q = q_model
             for k, clik in enumerate(path):
-                q, reached = clik.solve(x_d, q)
+                q, _ = clik.solve(x_d, q)
                 if q is None:
                     out.append(VariantMargin(variant, None, None,
                                              f"no equilibrium at the target {k + 1}/{len(path)} of the "
@@ -135,7 +128,7 @@ def check_arm(arm: ArmConfig, control: ControlConfig, task: TaskConfig, targets)
         try:
             point = checker.nominal.precompute(np.asarray(target, dtype=float))
         except TargetError as exc:
-            out.append(VariantMargin(None, None, None, None, str(exc).split(": from")[0]))
+            out.append(VariantMargin(None, None, None, None, str(exc)))
             continue
         out.append(VariantMargin(None, point.u_ff, checker.margin(point.u_ff),
                                  checker.stability(checker.nominal.clik, point.q, point.u_ff)))

@@ -17,26 +17,12 @@ import sys
 import numpy as np
 
 from soft_arm_model import load_arm_config
-from soft_arm_model.parameters import ConfigError, default_config_dir
+from soft_arm_model.parameters import ConfigError, default_config_dir, split_overrides
 
 from .clik import TargetError
 from .config import load_control_config, load_task_config
 from .target_margin import (MIN_MARGIN, STIFFNESS_SCALES, TIP_PAYLOADS, MarginChecker, default_variants,
                             is_robust, worst_margin)
-
-NAMESPACES = ("arm", "control", "tasks")
-
-
-def _overrides(pairs) -> dict:
-    groups = {ns: {} for ns in NAMESPACES}
-    for pair in pairs:
-        key, sep, value = pair.partition("=")
-        ns, dot, rest = key.partition(".")
-        if not sep or not dot or ns not in groups:
-            raise ConfigError(f"--set expects namespace.key=value with namespace one of "
-                              f"{', '.join(NAMESPACES)}; got {pair!r}")
-        groups[ns][rest] = value
-    return groups
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -62,7 +48,7 @@ def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     d = args.config or default_config_dir()
     try:
-        groups = _overrides(args.sets)
+        groups = split_overrides(args.sets, ("arm", "control", "tasks"))
         arm = load_arm_config(os.path.join(d, "arm.yaml"), groups["arm"])
         control = load_control_config(arm, os.path.join(d, "control.yaml"), groups["control"])
         task = load_task_config(args.task, arm, os.path.join(d, "tasks.yaml"), groups["tasks"])

@@ -292,7 +292,7 @@ def _ad_transpose_apply(x, y, out):
 
 
 @njit(cache=True, fastmath=True, error_model="numpy")
-def _mass_bias(lumped, J, eta, psi, M, Cqd, energies):
+def _mass_bias(lumped, J, eta, psi, col_hi, M, Cqd, energies):
     """M = sum J^T Mc J; C qd = sum J^T [Mc psi - ad_eta^T Mc eta] over the points' lumped inertias
     Mc; kinetic energy."""
     n = M.shape[0]
@@ -307,7 +307,7 @@ def _mass_bias(lumped, J, eta, psi, M, Cqd, energies):
         mc = lumped[pt]
         et = eta[pt]
         Jp = J[pt]
-        hi = _last_column(Jp) + 1     # J is zero beyond the point's division
+        hi = col_hi[pt] or n          # J is zero beyond the point's division (the tip: all of it)
         for r in range(6):
             y[r] = mc[r] * et[r]
             kin += 0.5 * y[r] * et[r]
@@ -328,16 +328,6 @@ def _mass_bias(lumped, J, eta, psi, M, Cqd, energies):
         for b in range(a):
             M[a, b] = M[b, a]
     energies[0] = kin
-
-
-@njit(cache=True)
-def _last_column(Jp):
-    """Index of the last non-zero column of a point's Jacobian (-1 if none)."""
-    for a in range(Jp.shape[1] - 1, -1, -1):
-        for r in range(6):
-            if Jp[r, a] != 0.0:
-                return a
-    return -1
 
 
 @njit(cache=True, fastmath=True, error_model="numpy")
@@ -415,7 +405,7 @@ def evaluate(w, B, Bd, h, B1, B2, xi_star, lumped, stiff_diag, neo_axial, R0, gr
                     A, A0, Lc, theta, wrap, phi):
         return False
     if level >= 2:
-        _mass_bias(lumped, J, eta, psi, M, Cqd, energies)
+        _mass_bias(lumped, J, eta, psi, col_hi, M, Cqd, energies)
     if level >= 3:
         _coriolis_matrix(lumped, J, eta, Jd, C)
     return True

@@ -40,6 +40,20 @@ class ConfigError(ValueError):
     """A configuration value is missing, unknown or out of range."""
 
 
+def split_overrides(pairs, namespaces) -> dict:
+    """Group ``namespace.key=value`` strings (command-line ``--set``) by namespace, one of
+    ``namespaces``: {namespace: {key: value}}, values still strings; ConfigError for a malformed pair."""
+    groups = {ns: {} for ns in namespaces}
+    for pair in pairs or ():
+        key, sep, value = pair.partition("=")
+        ns, dot, rest = key.partition(".")
+        if not sep or not dot or ns not in groups:
+            raise ConfigError(f"--set expects namespace.key=value with namespace one of "
+                              f"{', '.join(groups)}; got {pair!r}")
+        groups[ns][rest] = value
+    return groups
+
+
 def flatten_tree(tree: Mapping, prefix: str = "") -> dict:
     """The leaves of a nested parameter tree by dotted key."""
     flat = {}

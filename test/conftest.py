@@ -1,6 +1,9 @@
 """Shared fixtures. Every rclpy process in the suite stays on loopback with its own domain id."""
 import os
+import signal
+import subprocess
 import time
+from contextlib import contextmanager
 
 import numpy as np
 import pytest
@@ -58,3 +61,27 @@ def wait_for_output(proc, text: str, timeout: float = 60.0) -> str:
         if text in line:
             return "".join(seen)
     raise AssertionError(f"{text!r} not seen; output:\n{''.join(seen)}")
+
+
+@contextmanager
+def killed_on_exit(proc):
+    """Run the block; a process still running after it (the block failed) is killed and reaped."""
+    try:
+        yield proc
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+
+
+def stop(proc, sig=signal.SIGINT, timeout: float = 60.0) -> str:
+    """Send ``sig`` and wait for the process to exit: the rest of its output (if piped). A process
+    still running after ``timeout`` [s] is killed and the test fails with its output."""
+    proc.send_signal(sig)
+    try:
+        out, _ = proc.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        out, _ = proc.communicate()
+        raise AssertionError(f"the process did not exit on {signal.Signals(sig).name}:\n{out}") from None
+    return out or ""

@@ -28,7 +28,7 @@ from soft_arm_control.outer_loop import OuterLoop, outer_loop_for
 from soft_arm_drivers.sim.plant_config import PlantConfig, load_plant_config
 from soft_arm_drivers.sim.simulated_rig import SimulatedRig
 from soft_arm_model import ArmConfig, build_model, load_arm_config
-from soft_arm_model.parameters import default_config_dir
+from soft_arm_model.parameters import default_config_dir, split_overrides
 
 from .metrics import summarise, transition_metrics
 
@@ -42,24 +42,11 @@ class Setup:
     task: TaskConfig
 
 
-def split_overrides(pairs) -> dict:
-    """Group ``namespace.key=value`` strings (namespaces arm, control, plant, tasks) by namespace."""
-    groups = {"arm": {}, "control": {}, "plant": {}, "tasks": {}}
-    for pair in pairs or ():
-        key, sep, value = pair.partition("=")
-        ns = key.split(".", 1)[0]
-        if not sep or ns not in groups or "." not in key:
-            raise ValueError(f"--set expects namespace.key=value with namespace one of "
-                             f"{', '.join(groups)}; got {pair!r}")
-        groups[ns][key.split(".", 1)[1]] = value
-    return groups
-
-
 def load_setup(task: str, config_dir: str | None = None, overrides=None) -> Setup:
     """Load the four parameter files from ``config_dir`` (default: the package's) with overrides
     (``namespace.key=value`` strings)."""
     d = config_dir or default_config_dir()
-    groups = split_overrides(overrides)
+    groups = split_overrides(overrides, ("arm", "control", "plant", "tasks"))
     arm = load_arm_config(os.path.join(d, "arm.yaml"), groups["arm"])
     plant = load_plant_config(arm, os.path.join(d, "plant.yaml"), groups["plant"])
     plant.plant_arm(arm)                  # a bad plant file is refused before anything runs

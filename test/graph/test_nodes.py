@@ -16,7 +16,7 @@ from rosbags.typesys import Stores, get_typestore
 from soft_arm_drivers.experiments.orchestration import node_module
 from soft_arm_model.parameters import default_config_dir
 
-from conftest import wait_for_output
+from conftest import killed_on_exit, stop, wait_for_output
 
 NODES = ("simulator", "inner_loop", "clik", "task_runner", "recorder")
 
@@ -40,15 +40,12 @@ def _start(node, *extra, cwd=None):
 def test_node_starts_from_yaml_and_stops_cleanly(node, tmp_path):
     extra = ["-p", f"output:={tmp_path / 'out'}"] if node in ("recorder", "task_runner") else []
     proc = _start(node, "-p", "graph.task:=coiling", *extra)
-    try:
+    with killed_on_exit(proc):
         log = wait_for_output(proc, "ready" if node not in ("recorder", "task_runner") else
                               ("recording" if node == "recorder" else "windows"))
         assert "coiling" in log or node in ("simulator", "inner_loop", "recorder")
-        proc.send_signal(signal.SIGINT)
-        assert proc.wait(timeout=20) == 0
-    finally:
-        if proc.poll() is None:
-            proc.kill()
+        out = stop(proc, signal.SIGINT, 20)
+    assert proc.returncode == 0, out
 
 
 @pytest.mark.parametrize("node, param, message", [
@@ -95,14 +92,11 @@ def _read(bag):
 def test_recorder_closes_the_bag_on_signals(tmp_path, sig):
     bag = tmp_path / "bag"
     proc = _start("recorder", "-p", f"output:={bag}", "-p", "graph.recorder.topics:=[tendon/state]")
-    try:
+    with killed_on_exit(proc):
         wait_for_output(proc, "recording")
         _publish_states(200)
-        proc.send_signal(sig)
-        assert proc.wait(timeout=20) == 0
-    finally:
-        if proc.poll() is None:
-            proc.kill()
+        out = stop(proc, sig, 20)
+    assert proc.returncode == 0, out
     from mcap.reader import make_reader
     with open(bag / "bag_0.mcap", "rb") as fh:
         assert make_reader(fh).get_summary() is not None          # closed: summary and footer
@@ -115,14 +109,10 @@ def test_recorder_bag_survives_sigkill(tmp_path):
     bag = tmp_path / "bag"
     proc = _start("recorder", "-p", f"output:={bag}", "-p", "graph.recorder.topics:=[tendon/state]",
                   "-p", "graph.recorder.chunk_size:=2048")
-    try:
+    with killed_on_exit(proc):
         wait_for_output(proc, "recording")
         _publish_states(300)
-        proc.send_signal(signal.SIGKILL)
-        proc.wait(timeout=20)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
+        stop(proc, signal.SIGKILL, 20)
     messages = _read(bag)                       # no summary: the readers scan the chunks
     assert len(messages) >= 200                 # all but the last chunk (a few dozen messages)
     assert (bag / "metadata.yaml").exists()
@@ -255,14 +245,10 @@ def test_ctrl_c_stops_the_experiment_and_keeps_the_bag(tmp_path):
     proc = subprocess.Popen([sys.executable, "-m", "soft_arm_drivers.experiments.experiment", "triangle",
                              "--output", str(out)], stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True, env=env)
-    try:
+    with killed_on_exit(proc):
         wait_for_output(proc, "recording", timeout=90)            # the recorder is up: it runs
         time.sleep(3.0)
-        proc.send_signal(signal.SIGINT)
-        output, _ = proc.communicate(timeout=60)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
+        output = stop(proc, signal.SIGINT, 60)
     assert proc.returncode == 130, output
     messages = _read(out / "bag")
     assert len(messages) > 100

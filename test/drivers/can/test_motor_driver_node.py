@@ -19,6 +19,7 @@ from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
 from std_srvs.srv import SetBool, Trigger
 
+from conftest import killed_on_exit, stop
 from soft_arm_drivers.can.driver_config import load_driver_config
 from soft_arm_drivers.can.motor_driver_node import MotorDriverNode, main
 from soft_arm_drivers.sim.can_emulator import CanMotorEmulator, EmulatorThread, arm_plant
@@ -273,7 +274,7 @@ def test_sigterm_takes_the_motors_out_of_motor_mode(context):
     env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYTHONUNBUFFERED="1")
     proc = subprocess.Popen([sys.executable, "-c", SIGTERM_SCRIPT, channel()], env=env, text=True,
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
-    try:
+    with killed_on_exit(proc):
         harness = Harness(context)
         executor = SingleThreadedExecutor(context=context)
         executor.add_node(harness.node)
@@ -281,14 +282,8 @@ def test_sigterm_takes_the_motors_out_of_motor_mode(context):
         executor.shutdown()
         harness.node.destroy_node()
         time.sleep(0.1)
-        proc.send_signal(signal.SIGTERM)
-        out, _ = proc.communicate(timeout=20)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            out, _ = proc.communicate()
-            raise AssertionError(f"the node did not exit on SIGTERM:\n{out}")
-    # Known race in the shared run_node (soft_arm_control/ros_interface.py): a signal landing between
+        out = stop(proc, signal.SIGTERM, 20)
+    # Known race in the shared run_node (soft_arm_ros/runtime.py): a signal landing between
     # its rclpy.ok() check and the executor's wait set lets rclpy's RCLError out (status 1) after the
     # node was closed. The motors must be safe either way; the status is 0 otherwise.
     assert proc.returncode == 0 or "the given context is not valid" in out, out

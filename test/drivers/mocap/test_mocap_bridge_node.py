@@ -16,6 +16,7 @@ from geometry_msgs.msg import PoseArray, PoseStamped
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 
+from conftest import killed_on_exit, stop
 from soft_arm_drivers.mocap.bridge_config import load_mocap_config
 from soft_arm_drivers.mocap.mocap_bridge_node import DIAGNOSTICS_TOPIC, MocapBridgeNode, main
 from soft_arm_drivers.sim.natnet_emulator import NatNetEmulator, plant_markers
@@ -142,16 +143,11 @@ def test_node_process_streams_and_stops_cleanly_on_sigint(plant):
              params, "-p", f"rig.mocap.command_port:={emulator.command_port}",
              "-p", "rig.mocap.data_port:=0"],
             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
-        try:
+        with killed_on_exit(proc):
             assert "mocap_bridge ready" in proc.stdout.readline()
             deadline = time.monotonic() + 10.0
             while emulator.counters["sent"] < 100 and time.monotonic() < deadline:
                 time.sleep(0.05)
-            proc.send_signal(signal.SIGINT)
-            out, _ = proc.communicate(timeout=20)
-        finally:
-            if proc.poll() is None:
-                proc.kill()
-                proc.communicate()
+            out = stop(proc, signal.SIGINT, 20)
     assert emulator.counters["sent"] >= 100
     assert proc.returncode == 0 and "Traceback" not in out, out

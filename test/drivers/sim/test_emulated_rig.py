@@ -19,7 +19,7 @@ from soft_arm_drivers.sim.emulated_rig import load_emulator_config, read_emulate
 from soft_arm_model import build_model, load_arm_config, solve_equilibrium, tendon_lengths
 from soft_arm_model.parameters import ConfigError
 
-from conftest import wait_for_output
+from conftest import killed_on_exit, stop, wait_for_output
 
 ONE_TARGET = ["tasks.coiling.phases=[upward]", "tasks.coiling.phase.upward.sequence=[1]",
               "tasks.coiling.phase.upward.window=8.0"]
@@ -94,15 +94,10 @@ def test_ctrl_c_disables_the_emulated_motors_then_stops_every_node(tmp_path):
     proc = subprocess.Popen([sys.executable, "-m", "soft_arm_drivers.experiments.experiment", "coiling",
                              "--emulated-hardware", "--output", str(out)] + sets,
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
-    try:
+    with killed_on_exit(proc):
         seen = wait_for_output(proc, "[motor_driver]: enabled", timeout=120)
         time.sleep(2.0)
-        proc.send_signal(signal.SIGINT)
-        output, _ = proc.communicate(timeout=60)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-    output = seen + output
+        output = seen + stop(proc, signal.SIGINT, 60)
     assert proc.returncode == 130, output
     assert "[motor_driver]: disabled" in output
     assert len(read_series(str(out / "bag"))["tendon/state"]) > 500
