@@ -30,9 +30,9 @@ import itertools
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import lsq_linear
+from scipy.optimize import least_squares, lsq_linear
 
-from soft_arm_model import EquilibriumError, OutOfDomainError, solve_equilibrium
+from soft_arm_model import STATICS, ArmData, EquilibriumError, OutOfDomainError, evaluate, solve_equilibrium
 
 from .collocated import (CollocatedData, CollocatedModel, collocated_jacobian, evaluate_collocated,
                          full_tensions)
@@ -224,6 +224,53 @@ class Clik:
         udot = lsq_linear(A, self.gains.task * info.error + A @ c, bounds=(lo, hi)).x
         return task_columns @ (A @ (udot - c)) + qdot_eq
 
+    def closest_feasible(self, x_d, starts, margin: float | None = None) -> ClikPoint:
+        """The model equilibrium closest to x_d [m] whose actuated tensions lie in
+        [u_min + margin, u_max - margin] [N] (default margin: a thousandth of the range): bounded
+        least squares on the tensions, ``min |x(u) - x_d|`` with x(u) the task coordinates of the
+        equilibrium under u (the other tendons held) and dx/du = -J_x (dR/dq)^-1 A_a from the
+        implicit function theorem. Local: the best over ``starts`` (configurations; their
+        equilibrium tensions, clipped into the box, start the search). x_d itself when it is
+        feasible and reachable from a start."""
+        cm = self.cm
+        model, active = cm.model, list(cm.active)
+        margin = _LIMIT_MARGIN * (self.u_max - self.u_min) if margin is None else float(margin)
+        lo, hi = self.u_min + margin, self.u_max - margin
+        x_d = np.asarray(x_d, dtype=float)
+        data = ArmData(model)
+        last = {}
+
+        def equilibrium(u):
+            key = u.tobytes()
+            if key not in last:
+                q0, u0 = last.get("q"), last.get("u")
+                eq = solve_equilibrium(model, full_tensions(cm, u), q_start=q0,
+                                       u_start=None if u0 is None else full_tensions(cm, u0),
+                                       friction=cm.friction, data=data)
+                evaluate(model, data, eq.q, level=STATICS)
+                A = (data.A if cm.friction else data.A0)[:, active]     # a copy (fancy index)
+                x, Jx = self.task.evaluate(model, eq.q, data)
+                last.clear()
+                last.update({key: (eq.q, x, -Jx @ np.linalg.solve(eq.jacobian, A)), "q": eq.q, "u": u})
+            return last[key]
+
+        best = None
+        for q in starts:
+            u0 = np.clip(self.reference(q).u_ff, lo, hi)
+            last.clear()
+            last.update(q=np.asarray(q, dtype=float), u=None)
+            try:
+                sol = least_squares(lambda u: equilibrium(u)[1] - x_d, u0, jac=lambda u: equilibrium(u)[2],
+                                    bounds=(lo, hi), x_scale=hi - lo, xtol=1e-10, ftol=1e-10, gtol=1e-10)
+            except (EquilibriumError, OutOfDomainError):
+                continue
+            if best is None or sol.cost < best[0]:
+                best = (sol.cost, equilibrium(sol.x)[0])
+        if best is None:
+            raise TargetError("no equilibrium within the tension limits found near "
+                              f"{x_d.round(4).tolist()} m")
+        return self.reference(best[1])
+
     # -- precomputed variant ----------------------------------------------------------------------
     def _newton(self, q, x_d, tol: float, max_iter: int):
         """Damped Newton on [x(q) - x_d; G_theta_u(q)] = 0 from q; returns (q, iterations) or None."""
@@ -284,7 +331,9 @@ class Clik:
         step fails. A task point can have several equilibria (and the straight path can leave the
         workspace), so when q_start gives none within the tension limits, the ``seeds`` (pairs of
         task coordinates and configurations, e.g. from :func:`equilibrium_seeds`) nearest to x_d are
-        tried in turn. Raises TargetError when no equilibrium reaches x_d or none is within the limits.
+        tried in turn, and last a search over the tensions within the limits from those starts
+        (:meth:`closest_feasible`), which goes round where the straight path leaves the workspace.
+        Raises TargetError when no equilibrium reaches x_d or none is within the limits.
         """
         x_d = np.asarray(x_d, dtype=float)
         if x_d.shape != (self.task.m,) or not np.all(np.isfinite(x_d)):
@@ -303,6 +352,12 @@ class Clik:
             if reason is None:
                 return ref
             reasons.append(f"infeasible ({reason})")
+        try:                  # on the tensions, round where the straight task path leaves the workspace
+            ref = self.closest_feasible(x_d, starts, margin=1e-9 * (self.u_max - self.u_min))
+        except TargetError:
+            ref = None
+        if ref is not None and np.max(np.abs(ref.x - x_d)) < tol and self.feasibility_error(ref.u_ff) is None:
+            return ref
         kind = "infeasible" if any(r.startswith("infeasible") for r in reasons) else "unreachable"
         raise TargetError(f"target {x_d.round(4).tolist()} m ({', '.join(self.task.labels())}) is "
                           f"{kind}: from {len(starts)} starting configuration(s): " + "; ".join(reasons))

@@ -10,6 +10,7 @@ the rig alike.
 """
 from __future__ import annotations
 
+import json
 import sys
 
 import numpy as np
@@ -68,6 +69,8 @@ class ClikNode(Node):
             self.get_logger().error(f"goal rejected: {exc}; keeping the last reference")
             return
         self.publish(ref)
+        if len(self.outer.reports) > 1:
+            self.publish_diagnostics(len(self.outer.reports) - 2)     # the closed one, final
 
     def on_markers(self, msg: PoseArray):
         self.now = stamp_to_seconds(msg.header.stamp)
@@ -82,15 +85,18 @@ class ClikNode(Node):
         if self.outer.reports and (len(self.outer.reports), self.outer.reports[-1].status) != self._reported:
             self.publish_diagnostics()        # at once when a goal turns infeasible
 
-    def publish_diagnostics(self):
-        """The current goal's feasibility on ``/diagnostics`` (once a second and on every change):
+    def publish_diagnostics(self, index: int | None = None):
+        """A goal's feasibility on ``/diagnostics`` (the current one once a second and on every
+        change; ``index``: another, e.g. the one a new goal closed, with its final counts):
         OK; WARN while its online steps are projected onto the tension limits (the target is
         infeasible for the model: the reference moves to the closest feasible point) and while it is
         stalled (feasible steps, but the error does not fall); ERROR when a step found no feasible
-        reference and the last one was held. The values are those of the goal's report."""
+        reference and the last one was held. The values are those of the goal's report (JSON), with
+        ``goal``, its index since start-up."""
         if not self.outer.reports:
             return
-        report = self.outer.reports[-1]
+        index = len(self.outer.reports) - 1 if index is None else index
+        report = self.outer.reports[index]
         level = {"ok": DiagnosticStatus.OK, "constrained": DiagnosticStatus.WARN,
                  "stalled": DiagnosticStatus.WARN, "unreached": DiagnosticStatus.WARN,
                  "held": DiagnosticStatus.ERROR}[report.status]
@@ -101,12 +107,13 @@ class ClikNode(Node):
                    "unreached": "the goal ended away from its target",
                    "held": "no feasible step: the last reference is held"}[report.status]
         status = DiagnosticStatus(level=level, name="clik", hardware_id="soft_arm", message=message)
-        d = report.as_dict()
-        status.values = [KeyValue(key=k, value=str(v)) for k, v in d.items() if k != "status"]
+        d = {"goal": index, **report.as_dict()}
+        status.values = [KeyValue(key=k, value=v if k == "status" else json.dumps(v)) for k, v in d.items()]
         msg = DiagnosticArray(status=[status])
         seconds_to_stamp(msg.header.stamp, self.now)
         self.diagnostics_pub.publish(msg)
-        self._reported = (len(self.outer.reports), report.status)
+        if index == len(self.outer.reports) - 1:
+            self._reported = (len(self.outer.reports), report.status)
 
 
 def main(args=None) -> int:

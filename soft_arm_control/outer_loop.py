@@ -84,7 +84,7 @@ class GoalReport:
 
     def as_dict(self) -> dict:
         keys = ("target", "mode", "online_steps", "infeasible_steps", "held_steps", "closest_error",
-                "error", "stalled_steps")
+                "error", "stalled_steps", "closed")
         return {**{k: getattr(self, k) for k in keys}, "reached": self.reached, "status": self.status}
 
 
@@ -135,6 +135,16 @@ class OuterLoop:
             if self._seeds is None:
                 self._seeds = equilibrium_seeds(self.clik, self.seed_levels)
             return self.clik.precompute(x_d, self.start.q, self._seeds, tol=self.tolerance)
+
+    def closest_feasible(self, x_d) -> ClikPoint:
+        """The model equilibrium closest to x_d [m] within the tension limits
+        (:meth:`~soft_arm_control.clik.Clik.closest_feasible` from the start-up pose and the seed
+        equilibria nearest to x_d)."""
+        if self._seeds is None:
+            self._seeds = equilibrium_seeds(self.clik, self.seed_levels)
+        x_d = np.asarray(x_d, dtype=float)
+        near = sorted(self._seeds, key=lambda s: float(np.linalg.norm(s[0] - x_d)))[:3]
+        return self.clik.closest_feasible(x_d, [self.start.q] + [q for _, q in near])
 
     def goal(self, t: float, x_d, mode: str, point: ClikPoint | None = None) -> ClikPoint:
         """Take a new goal at time t [s]; returns the reference to use from now on.

@@ -27,7 +27,7 @@ import time
 from soft_arm_model.parameters import ConfigError, default_config_dir
 
 from .metrics import Summary, TransitionMetrics, format_table
-from .harness import add_setup_arguments, load_setup, setup_overrides
+from .harness import add_setup_arguments, check_targets, load_setup, setup_overrides
 from .orchestration import STOP, request_stop, run_emulated_hardware, run_processes
 
 NODES = ("simulator", "inner_loop", "clik", "task_runner", "recorder")
@@ -154,8 +154,15 @@ def main(argv=None) -> int:
         args.sets = setup_overrides(args)
         setup = load_setup(args.task, args.config,
                            [s for s in args.sets if not s.startswith("graph.")])
+        closest, notes = check_targets(setup, args.accept_closest)     # before anything moves
+        for note in notes:
+            print(f"soft-arm-experiment: {note}", file=sys.stderr)
+        if closest:
+            args.sets += closest
+            setup = load_setup(args.task, args.config,
+                               [s for s in args.sets if not s.startswith("graph.")])
         ros_args = _ros_arguments(args.task, args.sets, args.config)
-    except (ConfigError, ValueError) as exc:
+    except (ConfigError, ValueError) as exc:          # TargetError is a ValueError
         print(f"soft-arm-experiment: {exc}", file=sys.stderr)
         return 2
     stamp = datetime.datetime.now(datetime.timezone.utc).strftime("%Y%m%d-%H%M%S")

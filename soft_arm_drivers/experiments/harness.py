@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from soft_arm_control.actuation_map import ActuationMap, actuation_map_for
-from soft_arm_control.clik import ClikPoint
+from soft_arm_control.clik import ClikPoint, TargetError
 from soft_arm_control.collocated import full_tensions
 from soft_arm_control.config import ControlConfig, TaskConfig, load_control_config, load_task_config
 from soft_arm_control.inner_loop import tendon_controller_for
@@ -57,14 +57,17 @@ def load_setup(task: str, config_dir: str | None = None, overrides=None) -> Setu
 
 def add_setup_arguments(parser):
     """The options that say what a run simulates (soft-arm-harness, soft-arm-experiment): ``--config
-    DIR``, repeated ``--set ns.key=value`` and ``--plant-file FILE``; :func:`setup_overrides` reads
-    them back."""
+    DIR``, repeated ``--set ns.key=value``, ``--plant-file FILE`` and ``--accept-closest``;
+    :func:`setup_overrides` and :func:`check_targets` read them back."""
     parser.add_argument("--config", metavar="DIR", help="directory with the parameter files")
     parser.add_argument("--set", dest="sets", action="append", default=[], metavar="NS.KEY=VALUE",
                         help="override one parameter (repeatable), e.g. plant.youngs_modulus_scale=1")
     parser.add_argument("--plant-file", metavar="FILE",
                         help="simulate the arm described by FILE (the schema of arm.yaml) as the plant, "
                              "whatever the controller believes")
+    parser.add_argument("--accept-closest", action="store_true",
+                        help="run a target the model cannot reach within the tension limits at the "
+                             "closest point it can (printed), instead of refusing the task")
 
 
 def setup_overrides(args) -> list:
@@ -180,9 +183,51 @@ def schedule(task: TaskConfig) -> list:
 def precompute_targets(outer: OuterLoop, task: TaskConfig) -> dict:
     """Precomputed references of every target a clik phase visits, each solved from the start-up
     pose (or the nearest seed equilibrium), so that a reference does not depend on the visiting
-    order. Raises TargetError, before anything moves, for an unreachable or infeasible target."""
-    return {k: outer.precompute(np.array(task.targets[k]))
-            for _, mode, k, _ in schedule(task) if mode in ("clik", "precomputed")}
+    order. Raises TargetError, before anything moves, for an unreachable or infeasible target; its
+    message names the closest point the model reaches within the tension limits."""
+    points = {}
+    for _, mode, k, _ in schedule(task):
+        if mode in ("clik", "precomputed") and k not in points:
+            x_d = np.array(task.targets[k])
+            try:
+                points[k] = outer.precompute(x_d)
+            except TargetError as exc:
+                closest = outer.closest_feasible(x_d).x
+                raise TargetError(
+                    f"target {k + 1} of {task.name}: {exc}. The closest point the model reaches within "
+                    f"the limits is {closest.round(4).tolist()} m "
+                    f"({np.linalg.norm(closest - x_d) * 1e3:.1f} mm away): --accept-closest runs the "
+                    "task with it") from exc
+    return points
+
+
+def check_targets(setup: Setup, accept_closest: bool = False) -> tuple[list, list]:
+    """Every target a clik phase visits, solved on the controller's model before anything moves:
+    (overrides, notes). Without ``accept_closest`` a target the model cannot reach within the
+    tension limits raises TargetError (:func:`precompute_targets`). With it, such a target is
+    replaced by the closest point the model reaches (:meth:`~soft_arm_control.clik.Clik.closest_feasible`),
+    given back as a ``tasks.<task>.targets`` override (none when every target is feasible), with a
+    note per replaced target."""
+    task = setup.task
+    outer = outer_loop_for(build_model(setup.arm), setup.control, task)
+    if not accept_closest:
+        precompute_targets(outer, task)
+        return [], []
+    targets, notes = [list(x) for x in task.targets], []
+    for k in sorted({k for _, mode, k, _ in schedule(task) if mode in ("clik", "precomputed")}):
+        x_d = np.array(task.targets[k])
+        try:
+            outer.precompute(x_d)
+        except TargetError as exc:
+            targets[k] = [round(float(v), 7) for v in outer.closest_feasible(x_d).x]
+            notes.append(f"target {k + 1} of {task.name} {x_d.round(4).tolist()} m replaced by the closest "
+                         f"feasible point {targets[k]} m "
+                         f"({np.linalg.norm(np.array(targets[k]) - x_d) * 1e3:.1f} mm away; "
+                         f"{str(exc).partition(': ')[2].partition(';')[0]})")
+    if not notes:
+        return [], []
+    flat = ", ".join(str(v) for x in targets for v in x)
+    return [f"tasks.{task.name}.targets=[{flat}]"], notes
 
 
 def run_experiment(setup: Setup, progress=None, actuation_map: ActuationMap | None = None) -> RunResult:

@@ -4,7 +4,8 @@ Loads ``arm.yaml``, ``control.yaml``, ``plant.yaml`` and ``tasks.yaml`` from ``-
 the package's), applies repeated ``--set namespace.key=value`` overrides (namespaces arm, control,
 plant, tasks), runs the protocol and prints the per-transition table and the paper-style summary
 (``--json``: the metrics as JSON on stdout). Errors in the configuration or an unreachable target
-exit with status 2 and a message; nothing is simulated then.
+exit with status 2 and a message; nothing is simulated then. The message names the closest point the
+model reaches within the tension limits; ``--accept-closest`` runs the task with it.
 """
 from __future__ import annotations
 
@@ -16,7 +17,8 @@ import time
 from soft_arm_control.clik import TargetError
 from soft_arm_model.parameters import ConfigError
 
-from .harness import add_setup_arguments, goal_warning, load_setup, run_experiment, setup_overrides
+from .harness import (add_setup_arguments, check_targets, goal_warning, load_setup, run_experiment,
+                      setup_overrides)
 from .metrics import format_table, to_json
 
 
@@ -33,7 +35,13 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     try:
         setup = load_setup(args.task, args.config, setup_overrides(args))
-    except (ConfigError, ValueError) as exc:
+        if args.accept_closest:
+            closest, notes = check_targets(setup, accept_closest=True)
+            for note in notes:
+                print(f"soft-arm-harness: {note}", file=sys.stderr)
+            if closest:
+                setup = load_setup(args.task, args.config, setup_overrides(args) + closest)
+    except (ConfigError, ValueError) as exc:          # TargetError is a ValueError
         print(f"soft-arm-harness: {exc}", file=sys.stderr)
         return 2
     start = time.perf_counter()

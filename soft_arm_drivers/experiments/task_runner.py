@@ -3,7 +3,9 @@
 The schedule starts at the first frame; at each window start the runner issues the goal (target
 coordinates and the phase's mode). It keeps the measured task coordinates and tip positions of
 every frame and, at the end, computes the paper's metrics (the peak tip speed from differences of
-the measured tip positions over at least 10 ms, as on the rig).
+the measured tip positions over at least 10 ms, as on the rig) and what became of each goal: the
+closest and the last measured task error, with the clik node's report of it (infeasible and held
+steps, status) when one arrived.
 """
 from __future__ import annotations
 
@@ -26,7 +28,8 @@ class TaskRunner:
         self.t0 = None
         self.index = -1
         self.starts = np.cumsum([0.0] + [w[3] for w in self.windows])
-        self.samples = []          # (t, window, x, x_d, tip)
+        self.samples = []          # (t, window, x, x_d, tip, tip position)
+        self.clik_reports = {}     # goal index: the clik node's last report of it
 
     @property
     def duration(self) -> float:
@@ -70,3 +73,24 @@ class TaskRunner:
                                            np.array([x[4] for x in s]), speed,
                                            self.task.steady_time, window))
         return rows, (summarise(rows) if rows else None)
+
+    def clik_report(self, t: float, values: dict):
+        """The clik node's report of one goal at time t [s] (its ``/diagnostics`` values: ``goal``,
+        the goal's index since start-up, ``target`` and the counts of
+        :class:`~soft_arm_control.outer_loop.GoalReport`); the last one of each goal is kept."""
+        self.clik_reports[int(values["goal"])] = {**values, "as_of": None if self.t0 is None else t - self.t0}
+
+    def goals(self) -> list:
+        """Per window: target (1-based), mode, the closest and the last measured task error norms
+        [m], and ``clik``, the clik node's last report of that goal (None if none arrived or it was
+        of another target: a goal the node rejected shifts the count)."""
+        out = []
+        for w, (phase, mode, k, _) in enumerate(self.windows):
+            errors = [float(np.linalg.norm(x[3] - x[2])) for x in self.samples if x[1] == w]
+            report = self.clik_reports.get(w)
+            if report is not None and not np.allclose(report["target"], self.task.targets[k]):
+                report = None
+            out.append({"phase": phase, "mode": mode, "target": k + 1,
+                        "closest_error": min(errors) if errors else None,
+                        "error": errors[-1] if errors else None, "clik": report})
+        return out

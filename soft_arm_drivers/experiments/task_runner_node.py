@@ -1,7 +1,9 @@
 """``task_runner`` node: plays the experiment named by ``graph.task`` on ``mocap/markers`` time,
 publishes ``task/goal`` at each window start and, at the end, logs the paper-style table and
 writes the metrics as JSON to the node parameter ``output`` (if given; written whole or not at
-all); then it stops.
+all), with ``goals``: per window the closest and the last measured task error and the clik node's
+last report of the goal from ``/diagnostics`` (infeasible and held steps, status; for the last goal
+as of the clik's last report, at most a second old); then it stops.
 
 With the parameter ``wait_for_start`` true (on the rig: the motors are enabled first), the first
 window starts with the first frame after a call of ``~/start`` (std_srvs/Trigger), and the node
@@ -13,6 +15,7 @@ import json
 import os
 import sys
 
+from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseArray
 from rclpy.node import Node
 from std_msgs.msg import Float64MultiArray
@@ -43,6 +46,7 @@ class TaskRunnerNode(Node):
         self.create_service(Trigger, "~/start", self.on_start)
         self.pub = self.create_publisher(Float64MultiArray, TOPICS["goal"], QOS["task/goal"])
         self.create_subscription(PoseArray, TOPICS["markers"], self.on_markers, QOS["mocap/markers"])
+        self.create_subscription(DiagnosticArray, "/diagnostics", self.on_diagnostics, 10)
         self.get_logger().info(f"task {task.name}: {len(self.core.windows)} windows, "
                                f"{self.core.duration:.1f} s")
 
@@ -63,6 +67,19 @@ class TaskRunnerNode(Node):
         if self.core.done:
             self.finish()
 
+    def on_diagnostics(self, msg: DiagnosticArray):
+        for status in msg.status:
+            if status.name == "clik":
+                values = {kv.key: kv.value for kv in status.values}
+                try:
+                    report = {k: json.loads(v) for k, v in values.items() if k != "status"}
+                except ValueError:
+                    self.get_logger().warning(f"unreadable clik report {values}", throttle_duration_sec=5.0)
+                    continue
+                if "goal" in report and "target" in report:
+                    self.core.clik_report(stamp_to_seconds(msg.header.stamp),
+                                          {**report, "status": values.get("status")})
+
     def finish(self):
         rows, summary = self.core.metrics()
         if summary is not None:
@@ -73,7 +90,8 @@ class TaskRunnerNode(Node):
             if self.output:
                 partial = self.output + ".partial"
                 with open(partial, "w", encoding="utf-8") as fh:
-                    json.dump({"task": self.core.task.name, **to_json(rows, summary)}, fh, indent=2)
+                    json.dump({"task": self.core.task.name, **to_json(rows, summary),
+                               "goals": self.core.goals()}, fh, indent=2)
                 os.replace(partial, self.output)
         self.finished = True
         self.done = not self.wait_for_start

@@ -103,15 +103,17 @@ def test_bad_targets_are_refused_before_anything_moves(paper_model, clik, target
 
 def test_seeds_find_the_branch_within_limits(paper_model):
     """A task point with several equilibria: from the hanging arm the continuation lands on a
-    branch that needs a negative tension; the seed equilibria lead to the admissible one."""
+    branch that needs a negative tension; the seed equilibria, and the search on the tensions
+    without them, lead to the admissible one."""
     clik = Clik(build_collocated(paper_model, (0, 1, 2, 3)), TRIANGLE, ClikGains(1.0, 1.0),
                 (0.05, 5.0))
     x_d = np.array([0.048, 0.123, -0.282, 0.043])
     start = solve_equilibrium(paper_model, np.full(4, 0.05)).q
-    with pytest.raises(TargetError, match="infeasible"):
-        clik.precompute(x_d, start)
-    ref = clik.precompute(x_d, start, equilibrium_seeds(clik, [0.05, 0.6, 1.2, 2.4]))
-    assert np.all(ref.u_ff >= 0.05) and np.allclose(ref.x, x_d, atol=1e-6)
+    q, _ = clik.solve(x_d, start)
+    assert clik.reference(q).u_ff.min() < 0.05
+    for seeds in ((), equilibrium_seeds(clik, [0.05, 0.6, 1.2, 2.4])):
+        ref = clik.precompute(x_d, start, seeds)
+        assert np.all(ref.u_ff >= 0.05) and np.allclose(ref.x, x_d, atol=1e-6)
 
 
 def test_online_step_keeps_the_last_reference_when_a_step_is_infeasible(paper_model, target):
@@ -162,6 +164,25 @@ def test_an_infeasible_target_leads_to_the_closest_feasible_point_within_the_lim
     assert np.linalg.norm(ref.x - x_d) > 0.01                    # the target is out of reach
     assert np.linalg.norm(ref.x - _model_x(paper_model, best.x)) < 5e-4
     assert np.linalg.norm(ref.x - x_d) - best.fun < 5e-4
+
+
+@pytest.mark.parametrize("x_d", [(0.06, -0.36), (-0.10, -0.30)])
+def test_the_closest_feasible_point_is_the_minimum_over_the_tensions(paper_model, coiling_clik, x_d):
+    """The search on the tensions (analytic dx/du) ends where Nelder-Mead on the distance ends, with
+    tensions within the limits; a feasible target is returned as itself."""
+    from scipy.optimize import minimize
+    x_d = np.array(x_d)
+    start = solve_equilibrium(paper_model, np.full(4, 0.05)).q
+    ref = coiling_clik.closest_feasible(x_d, [start], margin=0.0)
+    assert np.all(ref.u_ff >= 0.05 - 1e-9) and np.all(ref.u_ff <= 5.0)
+    starts = [(0.1, 0.1), (2.0, 0.1), (0.1, 2.0), (2.0, 2.0)]
+    best = min((minimize(lambda u: np.linalg.norm(_model_x(paper_model, u) - x_d), s, method="Nelder-Mead",
+                         options={"xatol": 1e-6, "fatol": 1e-10}) for s in starts), key=lambda r: r.fun)
+    assert np.linalg.norm(ref.x - x_d) > 0.01
+    assert np.linalg.norm(ref.x - x_d) <= best.fun + 1e-5
+    assert np.linalg.norm(ref.x - _model_x(paper_model, best.x)) < 5e-4
+    feasible = _model_x(paper_model, (1.3, 0.8))
+    assert np.max(np.abs(coiling_clik.closest_feasible(feasible, [start]).x - feasible)) < 1e-6
 
 
 def test_a_feasible_step_is_the_unconstrained_clik_step(paper_model, coiling_clik):

@@ -76,6 +76,24 @@ def test_cli_reports_bad_configuration_with_status_2(capsys):
     assert "unreachable" in capsys.readouterr().err
 
 
+def test_an_infeasible_target_is_refused_with_the_closest_feasible_point_and_run_at_it_on_request(capsys):
+    """Target 1 out of the reach of the tension limits: refused before anything moves, the message
+    names the closest point the model reaches; with --accept-closest the task runs there."""
+    short = ["--set", "tasks.coiling.targets=[0.06, -0.36, 0.0192, -0.3041]",
+             "--set", "tasks.coiling.phases=[upward]", "--set", "tasks.coiling.phase.upward.sequence=[1]",
+             "--set", "tasks.coiling.phase.upward.window=3.0"]
+    assert harness_main(["coiling", "--quiet", *short]) == 2
+    err = capsys.readouterr().err
+    assert "target 1 of coiling" in err and "--accept-closest" in err
+    closest = json.loads(err.split("the limits is ")[1].split(" m (")[0])
+    assert harness_main(["coiling", "--quiet", "--json", "--accept-closest", *short]) == 0
+    out, err = capsys.readouterr()
+    assert "replaced by the closest feasible point" in err
+    target = json.loads(out)["targets"][0]["target"]
+    assert target == pytest.approx(closest, abs=1e-4)
+    assert abs(target[0] - 0.06) > 0.01
+
+
 def test_payload_force_is_the_gradient_of_its_potential(paper_model):
     """The tip payload's generalised force equals -dU/dq with U = -m g . p_tip (finite differences)."""
     import numpy as np

@@ -88,6 +88,15 @@ def test_lockstep_runs_with_the_same_seed_record_the_same_messages(tmp_path):
     for topic in a:
         assert a[topic] == b[topic], topic
     assert first["summary"] == second["summary"]
+    goals = first["goals"]                  # what became of each goal, with the clik node's report
+    assert [g["target"] for g in goals] == [1, 2]
+    for g in goals:
+        assert g["closest_error"] <= g["error"]
+    report = goals[0]["clik"]               # final: published when the next goal closed it
+    harness = run_experiment(load_setup("coiling", overrides=SHORT)).goals[0]
+    assert report["goal"] == 0 and report["closed"]
+    for key in ("target", "online_steps", "infeasible_steps", "held_steps", "status"):
+        assert report[key] == harness[key], key
 
 
 def test_the_simulator_can_be_swapped_by_remapping(tmp_path):
