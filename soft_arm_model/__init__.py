@@ -18,7 +18,7 @@ from .dynamics import (CORIOLIS, DYNAMICS, KINEMATICS, STATICS, Frame, OutOfDoma
 from .integrators import ImexStepper, Trajectory, simulate
 from .model import ArmData, ArmModel, build_model
 from .parameters import ConfigError
-from .statics import Equilibrium, EquilibriumError, residual_jacobian, solve_equilibrium
+from .statics import Equilibrium, EquilibriumError, residual_jacobian, solve_equilibrium, static_residual
 
 __all__ = [
     "ArmConfig", "ConfigError", "load_arm_config", "ArmModel", "ArmData", "build_model",
@@ -26,6 +26,7 @@ __all__ = [
     "tip_frame", "frame_at", "marker_positions", "elastic_force", "gravity_force",
     "actuation_matrix", "tendon_lengths", "actuation_coordinates", "potential_energies",
     "mass_matrix", "coriolis_matrix", "total_energy", "forward_dynamics",
-    "Equilibrium", "EquilibriumError", "solve_equilibrium", "residual_jacobian", "ImexStepper",
+    "Equilibrium", "EquilibriumError", "solve_equilibrium", "residual_jacobian", "static_residual",
+    "ImexStepper",
     "Trajectory", "simulate",
 ]

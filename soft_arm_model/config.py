@@ -211,3 +211,49 @@ def load_arm_config(path: str | None = None, overrides: Mapping[str, Any] | None
         return parse_arm_config(apply_overrides(params[NAMESPACE], overrides, _SCHEMA, NAMESPACE))
     except ConfigError as exc:
         raise ConfigError(f"{path}: {exc}") from None
+
+
+def arm_parameters(arm: ArmConfig) -> dict:
+    """The ``arm`` parameter tree of ``arm`` (the inverse of :func:`parse_arm_config`)."""
+    d, t = arm.discretisation, arm.tendons
+    return {
+        "geometry": {"length": arm.geometry.length, "base_radius": arm.geometry.base_radius,
+                     "tip_radius": arm.geometry.tip_radius},
+        "material": {"density": arm.material.density, "youngs_modulus": arm.material.youngs_modulus,
+                     "poisson_ratio": arm.material.poisson_ratio, "viscosity": arm.material.viscosity,
+                     "axial_law": arm.material.axial_law},
+        "tendons": {"names": [x.name for x in t],
+                    "start_angle_deg": [math.degrees(x.start_angle) for x in t],
+                    "end_angle_deg": [math.degrees(x.end_angle) for x in t],
+                    "end": [x.end for x in t], "offset_fraction": [x.offset_fraction for x in t],
+                    "friction": [x.friction for x in t], "friction_smoothing": arm.friction_smoothing},
+        "discretisation": {"division_ends": list(d.division_ends), "legendre_order": list(d.legendre_order),
+                           "gauss_points": list(d.gauss_points),
+                           "allow_tendon_end_inside_division": d.allow_tendon_end_inside_division,
+                           "modes": dict(zip(STRAIN_MODES, d.modes))},
+        "gravity": list(arm.gravity),
+        "tip_mass": arm.tip_mass,
+        "markers": {"positions": list(arm.marker_positions)},
+    }
+
+
+def write_arm_file(path: str, arm: ArmConfig, header: str = ""):
+    """Write ``arm`` as a complete arm description in the layout of ``arm.yaml`` (every node reads
+    it; ``header``: comment lines on top), written whole or not at all."""
+    import yaml
+
+    def plain(v):
+        if isinstance(v, dict):
+            return {k: plain(x) for k, x in v.items()}
+        if isinstance(v, (list, tuple)):
+            return [plain(x) for x in v]
+        return float(v) if isinstance(v, float) or type(v).__module__ == "numpy" and not isinstance(v, bool) \
+            else v
+
+    text = "".join(f"# {line}\n" for line in header.splitlines())
+    text += yaml.safe_dump({"/**": {"ros__parameters": {NAMESPACE: plain(arm_parameters(arm))}}},
+                           sort_keys=False, default_flow_style=None)
+    partial = path + ".partial"
+    with open(partial, "w", encoding="utf-8") as fh:
+        fh.write(text)
+    os.replace(partial, path)

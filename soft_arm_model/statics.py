@@ -115,6 +115,16 @@ def residual_jacobian(model: ArmModel, q, u, friction: bool = True,
     return r, jac
 
 
+def static_residual(model: ArmModel, q, u, friction: bool = True, data: ArmData | None = None) -> np.ndarray:
+    """The static residual R = F_el - F_g + A u at (q, u) [generalised force units] (zero at an
+    equilibrium); raises :class:`~soft_arm_model.dynamics.OutOfDomainError` outside the domain."""
+    pb = _Problem(model, data or ArmData(model), friction)
+    r = pb.residual(np.ascontiguousarray(q, dtype=float), np.ascontiguousarray(u, dtype=float))
+    if r is None:
+        raise OutOfDomainError("configuration outside the model's domain")
+    return r
+
+
 def _newton(pb: _Problem, q, u, tol, max_iter):
     """Damped Newton from q; returns (q, iterations, |R|, jacobian) or None on failure."""
     r, jac = pb.linearise(q, u)

@@ -33,12 +33,14 @@ from .orchestration import STOP, request_stop, run_emulated_hardware, run_proces
 NODES = ("simulator", "inner_loop", "clik", "task_runner", "recorder")
 
 
-def _ros_arguments(task: str, sets, config_dir: str | None) -> list:
-    """--ros-args for every node: the package's parameter files, the task and the overrides."""
+def _ros_arguments(task: str, sets, config_dir: str | None, arm_file: str | None = None) -> list:
+    """--ros-args for every node: the package's parameter files (``arm_file`` for arm.yaml), the
+    task and the overrides."""
     d = config_dir or default_config_dir()
     args = ["--ros-args"]
     for name in ("arm", "control", "plant", "tasks", "graph"):
-        args += ["--params-file", os.path.join(d, f"{name}.yaml")]
+        path = os.path.abspath(arm_file) if name == "arm" and arm_file else os.path.join(d, f"{name}.yaml")
+        args += ["--params-file", path]
     args += ["-p", f"graph.task:={task}"]
     for pair in sets:
         key, sep, value = pair.partition("=")
@@ -153,15 +155,15 @@ def main(argv=None) -> int:
     try:
         args.sets = setup_overrides(args)
         setup = load_setup(args.task, args.config,
-                           [s for s in args.sets if not s.startswith("graph.")])
+                           [s for s in args.sets if not s.startswith("graph.")], args.arm_file)
         closest, notes = check_targets(setup, args.accept_closest)     # before anything moves
         for note in notes:
             print(f"soft-arm-experiment: {note}", file=sys.stderr)
         if closest:
             args.sets += closest
             setup = load_setup(args.task, args.config,
-                               [s for s in args.sets if not s.startswith("graph.")])
-        ros_args = _ros_arguments(args.task, args.sets, args.config)
+                               [s for s in args.sets if not s.startswith("graph.")], args.arm_file)
+        ros_args = _ros_arguments(args.task, args.sets, args.config, args.arm_file)
     except (ConfigError, ValueError) as exc:          # TargetError is a ValueError
         print(f"soft-arm-experiment: {exc}", file=sys.stderr)
         return 2

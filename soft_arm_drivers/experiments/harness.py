@@ -42,12 +42,15 @@ class Setup:
     task: TaskConfig
 
 
-def load_setup(task: str, config_dir: str | None = None, overrides=None) -> Setup:
+def load_setup(task: str, config_dir: str | None = None, overrides=None,
+               arm_file: str | None = None) -> Setup:
     """Load the four parameter files from ``config_dir`` (default: the package's) with overrides
-    (``namespace.key=value`` strings)."""
+    (``namespace.key=value`` strings); ``arm_file``: the controller's arm description instead of
+    ``arm.yaml`` (e.g. an identified one). The plant's differences of ``plant.yaml`` apply to it
+    (a ``plant.plant_file`` does not depend on it)."""
     d = config_dir or default_config_dir()
     groups = split_overrides(overrides, ("arm", "control", "plant", "tasks"))
-    arm = load_arm_config(os.path.join(d, "arm.yaml"), groups["arm"])
+    arm = load_arm_config(arm_file or os.path.join(d, "arm.yaml"), groups["arm"])
     plant = load_plant_config(arm, os.path.join(d, "plant.yaml"), groups["plant"])
     plant.plant_arm(arm)                  # a bad plant file is refused before anything runs
     return Setup(arm,
@@ -57,7 +60,8 @@ def load_setup(task: str, config_dir: str | None = None, overrides=None) -> Setu
 
 def add_setup_arguments(parser):
     """The options that say what a run simulates (soft-arm-harness, soft-arm-experiment): ``--config
-    DIR``, repeated ``--set ns.key=value``, ``--plant-file FILE`` and ``--accept-closest``;
+    DIR``, repeated ``--set ns.key=value``, ``--plant-file FILE``, ``--arm-file FILE`` and
+    ``--accept-closest``;
     :func:`setup_overrides` and :func:`check_targets` read them back."""
     parser.add_argument("--config", metavar="DIR", help="directory with the parameter files")
     parser.add_argument("--set", dest="sets", action="append", default=[], metavar="NS.KEY=VALUE",
@@ -65,6 +69,9 @@ def add_setup_arguments(parser):
     parser.add_argument("--plant-file", metavar="FILE",
                         help="simulate the arm described by FILE (the schema of arm.yaml) as the plant, "
                              "whatever the controller believes")
+    parser.add_argument("--arm-file", metavar="FILE",
+                        help="the controller's arm description (the schema of arm.yaml, e.g. "
+                             "identified) instead of the configuration's arm.yaml")
     parser.add_argument("--accept-closest", action="store_true",
                         help="run a target the model cannot reach within the tension limits at the "
                              "closest point it can (printed), instead of refusing the task")

@@ -34,13 +34,13 @@ def main(argv=None) -> int:
     parser.add_argument("--quiet", action="store_true", help="no progress line on stderr")
     args = parser.parse_args(argv)
     try:
-        setup = load_setup(args.task, args.config, setup_overrides(args))
+        setup = load_setup(args.task, args.config, setup_overrides(args), args.arm_file)
         if args.accept_closest:
             closest, notes = check_targets(setup, accept_closest=True)
             for note in notes:
                 print(f"soft-arm-harness: {note}", file=sys.stderr)
             if closest:
-                setup = load_setup(args.task, args.config, setup_overrides(args) + closest)
+                setup = load_setup(args.task, args.config, setup_overrides(args) + closest, args.arm_file)
     except (ConfigError, ValueError) as exc:          # TargetError is a ValueError
         print(f"soft-arm-harness: {exc}", file=sys.stderr)
         return 2
