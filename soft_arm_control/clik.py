@@ -43,7 +43,13 @@ _LIMIT_MARGIN = 1e-3   # a bounded step aims this fraction of the tension range 
 
 
 class TargetError(ValueError):
-    """A target is unreachable (no equilibrium reaches it) or infeasible (tensions out of limits)."""
+    """A target is unreachable (no equilibrium reaches it) or infeasible (tensions out of limits);
+    ``closest``: the model equilibrium closest to it within the limits (a ClikPoint), when the
+    search of :meth:`Clik.closest_feasible` ran and found one."""
+
+    def __init__(self, message: str, closest=None):
+        super().__init__(message)
+        self.closest = closest
 
 
 @dataclass(frozen=True)
@@ -238,27 +244,24 @@ class Clik:
         lo, hi = self.u_min + margin, self.u_max - margin
         x_d = np.asarray(x_d, dtype=float)
         data = ArmData(model)
-        last = {}
+        # the last equilibrium: its tensions u, q and (q, x, dx/du); the next solve starts from it
+        last = {"u": None, "q": None, "value": None}
 
         def equilibrium(u):
-            key = u.tobytes()
-            if key not in last:
-                q0, u0 = last.get("q"), last.get("u")
-                eq = solve_equilibrium(model, full_tensions(cm, u), q_start=q0,
-                                       u_start=None if u0 is None else full_tensions(cm, u0),
+            if last["u"] is None or not np.array_equal(u, last["u"]):
+                u_start = None if last["u"] is None else full_tensions(cm, last["u"])
+                eq = solve_equilibrium(model, full_tensions(cm, u), q_start=last["q"], u_start=u_start,
                                        friction=cm.friction, data=data)
                 evaluate(model, data, eq.q, level=STATICS)
                 A = (data.A if cm.friction else data.A0)[:, active]     # a copy (fancy index)
                 x, Jx = self.task.evaluate(model, eq.q, data)
-                last.clear()
-                last.update({key: (eq.q, x, -Jx @ np.linalg.solve(eq.jacobian, A)), "q": eq.q, "u": u})
-            return last[key]
+                last.update(u=u.copy(), q=eq.q, value=(eq.q, x, -Jx @ np.linalg.solve(eq.jacobian, A)))
+            return last["value"]
 
         best = None
         for q in starts:
             u0 = np.clip(self.reference(q).u_ff, lo, hi)
-            last.clear()
-            last.update(q=np.asarray(q, dtype=float), u=None)
+            last.update(u=None, q=np.asarray(q, dtype=float), value=None)
             try:
                 sol = least_squares(lambda u: equilibrium(u)[1] - x_d, u0, jac=lambda u: equilibrium(u)[2],
                                     bounds=(lo, hi), x_scale=hi - lo, xtol=1e-10, ftol=1e-10, gtol=1e-10)
@@ -324,16 +327,17 @@ class Clik:
         return q, 1.0
 
     def precompute(self, x_d, q_start, seeds=(), tol: float = 1e-6, max_iter: int = 40,
-                   max_splits: int = 6, max_seeds: int = 8) -> ClikPoint:
+                   max_splits: int = 6, max_seeds: int = 8, search: bool = True) -> ClikPoint:
         """The equilibrium reference q_d whose model task coordinates are x_d [m].
 
         Newton from q_start, continued along the straight task path in halved sub-steps when a full
         step fails. A task point can have several equilibria (and the straight path can leave the
         workspace), so when q_start gives none within the tension limits, the ``seeds`` (pairs of
         task coordinates and configurations, e.g. from :func:`equilibrium_seeds`) nearest to x_d are
-        tried in turn, and last a search over the tensions within the limits from those starts
-        (:meth:`closest_feasible`), which goes round where the straight path leaves the workspace.
-        Raises TargetError when no equilibrium reaches x_d or none is within the limits.
+        tried in turn, and last (with ``search``) a search over the tensions within the limits from
+        q_start and the 3 nearest seeds (:meth:`closest_feasible`), which goes round where the
+        straight path leaves the workspace. Raises TargetError when no equilibrium reaches x_d or
+        none is within the limits; after a search, its ``closest`` is the closest point found.
         """
         x_d = np.asarray(x_d, dtype=float)
         if x_d.shape != (self.task.m,) or not np.all(np.isfinite(x_d)):
@@ -352,15 +356,18 @@ class Clik:
             if reason is None:
                 return ref
             reasons.append(f"infeasible ({reason})")
-        try:                  # on the tensions, round where the straight task path leaves the workspace
-            ref = self.closest_feasible(x_d, starts, margin=1e-9 * (self.u_max - self.u_min))
-        except TargetError:
-            ref = None
-        if ref is not None and np.max(np.abs(ref.x - x_d)) < tol and self.feasibility_error(ref.u_ff) is None:
-            return ref
+        closest = None
+        if search:            # on the tensions, round where the straight task path leaves the workspace
+            try:
+                closest = self.closest_feasible(x_d, starts[:4])
+            except TargetError:
+                pass
+            if closest is not None and np.max(np.abs(closest.x - x_d)) < tol:
+                return closest
         kind = "infeasible" if any(r.startswith("infeasible") for r in reasons) else "unreachable"
         raise TargetError(f"target {x_d.round(4).tolist()} m ({', '.join(self.task.labels())}) is "
-                          f"{kind}: from {len(starts)} starting configuration(s): " + "; ".join(reasons))
+                          f"{kind}: from {len(starts)} starting configuration(s): " + "; ".join(reasons),
+                          closest)
 
 
 def equilibrium_seeds(clik: Clik, levels) -> list:

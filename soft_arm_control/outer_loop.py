@@ -126,25 +126,16 @@ class OuterLoop:
 
     def precompute(self, x_d) -> ClikPoint:
         """The precomputed reference of x_d from the start-up pose, or from the nearest seed
-        equilibrium when that fails (raises TargetError)."""
+        equilibrium when that fails, or last by the search on the tensions (raises TargetError,
+        with the closest point the search found)."""
         try:
-            return self.clik.precompute(x_d, self.start.q, tol=self.tolerance)
+            return self.clik.precompute(x_d, self.start.q, tol=self.tolerance, search=not self.seed_levels)
         except TargetError:
             if not self.seed_levels:
                 raise
             if self._seeds is None:
                 self._seeds = equilibrium_seeds(self.clik, self.seed_levels)
             return self.clik.precompute(x_d, self.start.q, self._seeds, tol=self.tolerance)
-
-    def closest_feasible(self, x_d) -> ClikPoint:
-        """The model equilibrium closest to x_d [m] within the tension limits
-        (:meth:`~soft_arm_control.clik.Clik.closest_feasible` from the start-up pose and the seed
-        equilibria nearest to x_d)."""
-        if self._seeds is None:
-            self._seeds = equilibrium_seeds(self.clik, self.seed_levels)
-        x_d = np.asarray(x_d, dtype=float)
-        near = sorted(self._seeds, key=lambda s: float(np.linalg.norm(s[0] - x_d)))[:3]
-        return self.clik.closest_feasible(x_d, [self.start.q] + [q for _, q in near])
 
     def goal(self, t: float, x_d, mode: str, point: ClikPoint | None = None) -> ClikPoint:
         """Take a new goal at time t [s]; returns the reference to use from now on.

@@ -15,6 +15,8 @@ import os
 from dataclasses import dataclass
 from typing import Any, Mapping
 
+import yaml
+
 from .parameters import (ConfigError, apply_overrides, default_config_dir, flatten_tree, read_parameters,
                          validate_tree)
 
@@ -240,15 +242,12 @@ def arm_parameters(arm: ArmConfig) -> dict:
 def write_arm_file(path: str, arm: ArmConfig, header: str = ""):
     """Write ``arm`` as a complete arm description in the layout of ``arm.yaml`` (every node reads
     it; ``header``: comment lines on top), written whole or not at all."""
-    import yaml
-
-    def plain(v):
+    def plain(v):             # numpy floats (a fit's results) as Python floats
         if isinstance(v, dict):
             return {k: plain(x) for k, x in v.items()}
         if isinstance(v, (list, tuple)):
             return [plain(x) for x in v]
-        return float(v) if isinstance(v, float) or type(v).__module__ == "numpy" and not isinstance(v, bool) \
-            else v
+        return float(v) if isinstance(v, float) else v
 
     text = "".join(f"# {line}\n" for line in header.splitlines())
     text += yaml.safe_dump({"/**": {"ros__parameters": {NAMESPACE: plain(arm_parameters(arm))}}},

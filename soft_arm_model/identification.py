@@ -165,9 +165,10 @@ class _Predictor:
         return out
 
 
-def _observe(model, data, q):
-    """Markers (n_m, 3) [m] in arm_base and shortenings (n_t,) [m] of the model at q, with their
-    Jacobians (n_m * 3, n) and (n_t, n)."""
+def observe(model, data: ArmData, q):
+    """What the rig's sensors see of the model at q (``data``: a workspace of ``model``): markers
+    (n_m, 3) [m] in arm_base and tendon shortenings (n_t,) [m], with their Jacobians (n_m * 3, n)
+    and (n_t, n)."""
     evaluate(model, data, q, level=STATICS, markers=True)
     Jp = np.concatenate([data.marker_R[k] @ data.marker_J[k][3:] for k in range(data.marker_p.shape[0])])
     return data.marker_p.copy(), model.rest_tendon_lengths - data.Lc, Jp, -data.A0.T.copy()
@@ -205,7 +206,7 @@ class StaticProblem:
         if registration is None:          # start the translation where the hanging markers say
             model0 = build_model(arm)
             eq0 = solve_equilibrium(model0, samples[0].tension)
-            self.p0[-3:] = (_observe(model0, ArmData(model0), eq0.q)[0] - samples[0].markers).mean(axis=0)
+            self.p0[-3:] = (observe(model0, ArmData(model0), eq0.q)[0] - samples[0].markers).mean(axis=0)
         self.predictor = _Predictor(layout, samples)
         self.prior_index = [2 + i * n_t + k for i, g in enumerate(TENDON_GROUPS) if g in PRIOR_SIGMA
                             for k in range(n_t)]
@@ -225,7 +226,7 @@ class StaticProblem:
         data = ArmData(model)
         try:
             eqs = self.predictor.equilibria(model)
-            obs = [_observe(model, data, eq.q) for eq in eqs]
+            obs = [observe(model, data, eq.q) for eq in eqs]
         except OutOfDomainError as exc:
             raise IdentificationError(f"the fit left the model's domain: {exc}") from exc
         reg = layout.registration(p)
@@ -261,8 +262,8 @@ class StaticProblem:
                 dR = (static_residual(m_plus, eq.q, smp.tension, data=d_plus)
                       - static_residual(m_minus, eq.q, smp.tension, data=d_minus)) / (2 * _STEP)
                 dq = -np.linalg.solve(eq.jacobian, dR)
-                s_plus = _observe(m_plus, d_plus, eq.q)[1]          # the direct dependence of the
-                s_minus = _observe(m_minus, d_minus, eq.q)[1]       # tendon lengths on the geometry
+                s_plus = observe(m_plus, d_plus, eq.q)[1]          # the direct dependence of the
+                s_minus = observe(m_minus, d_minus, eq.q)[1]       # tendon lengths on the geometry
                 _, _, Jp, Js = obs[k]
                 J[rows_p[k], j] = (Jp @ dq) / ms
                 J[rows_s[k], j] = (Js @ dq + (s_plus - s_minus) / (2 * _STEP)) / ss

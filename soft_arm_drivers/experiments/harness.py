@@ -187,24 +187,31 @@ def schedule(task: TaskConfig) -> list:
     return [(ph.name, ph.mode, k, ph.window) for ph in task.phases for k in ph.sequence]
 
 
+def _clik_targets(task: TaskConfig) -> list:
+    """The targets (0-based) a clik or precomputed phase visits, in order."""
+    return sorted({k for _, mode, k, _ in schedule(task) if mode in ("clik", "precomputed")})
+
+
 def precompute_targets(outer: OuterLoop, task: TaskConfig) -> dict:
     """Precomputed references of every target a clik phase visits, each solved from the start-up
     pose (or the nearest seed equilibrium), so that a reference does not depend on the visiting
     order. Raises TargetError, before anything moves, for an unreachable or infeasible target; its
     message names the closest point the model reaches within the tension limits."""
     points = {}
-    for _, mode, k, _ in schedule(task):
-        if mode in ("clik", "precomputed") and k not in points:
-            x_d = np.array(task.targets[k])
-            try:
-                points[k] = outer.precompute(x_d)
-            except TargetError as exc:
-                closest = outer.closest_feasible(x_d).x
-                raise TargetError(
-                    f"target {k + 1} of {task.name}: {exc}. The closest point the model reaches within "
-                    f"the limits is {closest.round(4).tolist()} m "
-                    f"({np.linalg.norm(closest - x_d) * 1e3:.1f} mm away): --accept-closest runs the "
-                    "task with it") from exc
+    for k in _clik_targets(task):
+        x_d = np.array(task.targets[k])
+        try:
+            points[k] = outer.precompute(x_d)
+        except TargetError as exc:
+            if exc.closest is None:
+                raise TargetError(f"target {k + 1} of {task.name}: {exc}; no equilibrium within the "
+                                  "limits was found near it") from exc
+            closest = exc.closest.x
+            raise TargetError(
+                f"target {k + 1} of {task.name}: {exc}. The closest point the model reaches within "
+                f"the limits is {closest.round(4).tolist()} m "
+                f"({np.linalg.norm(closest - x_d) * 1e3:.1f} mm away): --accept-closest runs the "
+                "task with it", exc.closest) from exc
     return points
 
 
@@ -221,12 +228,14 @@ def check_targets(setup: Setup, accept_closest: bool = False) -> tuple[list, lis
         precompute_targets(outer, task)
         return [], []
     targets, notes = [list(x) for x in task.targets], []
-    for k in sorted({k for _, mode, k, _ in schedule(task) if mode in ("clik", "precomputed")}):
+    for k in _clik_targets(task):
         x_d = np.array(task.targets[k])
         try:
             outer.precompute(x_d)
         except TargetError as exc:
-            targets[k] = [round(float(v), 7) for v in outer.closest_feasible(x_d).x]
+            if exc.closest is None:
+                raise
+            targets[k] = [round(float(v), 7) for v in exc.closest.x]
             notes.append(f"target {k + 1} of {task.name} {x_d.round(4).tolist()} m replaced by the closest "
                          f"feasible point {targets[k]} m "
                          f"({np.linalg.norm(np.array(targets[k]) - x_d) * 1e3:.1f} mm away; "

@@ -8,7 +8,7 @@ from scipy.spatial.transform import Rotation
 
 from soft_arm_model import ArmData, build_model, load_arm_config, solve_equilibrium
 from soft_arm_model.identification import (IdentificationError, StaticProblem, StaticSample,
-                                           _observe, identify_static, plateau_samples, staircase)
+                                           observe, identify_static, plateau_samples, staircase)
 
 ZERO = np.array([0.01, -0.02, 0.005, 0.0])          # encoder zeros [m]
 # the structurally different arm: E -12 %, density +5 %, uneven friction, offsets, angles
@@ -35,7 +35,7 @@ def _samples(arm, tensions, rotation=Rotation.identity(), shift=np.zeros(3), noi
     for u in tensions:
         eq = solve_equilibrium(model, u, q_start=q, u_start=u0)
         q, u0 = eq.q, u
-        p, s, _, _ = _observe(model, data, eq.q)
+        p, s, _, _ = observe(model, data, eq.q)
         out.append(StaticSample(u, s + ZERO, (p - shift) @ rotation.as_matrix()
                                 + rng.normal(0.0, noise, p.shape)))
     return out
