@@ -227,7 +227,19 @@ def control_of(params, arm: ArmConfig) -> ControlConfig:
     return parse_control(params.section("control", CONTROL_SCHEMA), arm)
 
 
+# graph.task of the identification experiment (identification.yaml, not a task of tasks.yaml)
+IDENTIFICATION = "identification"
+
+
 def task_of(params, arm: ArmConfig) -> TaskConfig:
     """The task ``graph.task`` names, from a node's parameters (``tasks.yaml`` + its own values)."""
     values = params.section("tasks", TASK_SCHEMA)
     return parse_task(params.task_name({k.split(".")[0] for k in values}), values, arm)
+
+
+def payload_of(params, arm: ArmConfig) -> tuple:
+    """The unmodelled tip payload (masses [kg], attach times [s]) of the task ``graph.task``; none
+    in the identification experiment (the arm as it is)."""
+    if params.graph["task"] == IDENTIFICATION:
+        return ((), ())
+    return task_of(params, arm).payload

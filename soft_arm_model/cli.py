@@ -156,7 +156,9 @@ def _workspace(model, args):
 
 def build_parser() -> argparse.ArgumentParser:
     common = argparse.ArgumentParser(add_help=False)
-    common.add_argument("--config", help="arm parameter file (default: the package's config/arm.yaml)")
+    common.add_argument("--arm-file", "--config", dest="config", metavar="FILE",
+                        help="arm description, e.g. an identified one (default: the package's "
+                             "config/arm.yaml)")
     common.add_argument("--set", action="append", metavar="KEY=VALUE",
                         help="override a config value, e.g. --set material.youngs_modulus=2e5")
     common.add_argument("--json", action="store_true", help="machine-readable output (arm_base)")

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import math
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Mapping
 
 import yaml
@@ -215,6 +215,18 @@ def load_arm_config(path: str | None = None, overrides: Mapping[str, Any] | None
         raise ConfigError(f"{path}: {exc}") from None
 
 
+def with_basis(arm: ArmConfig, legendre_order, gauss_points=None, shear: bool | None = None) -> ArmConfig:
+    """``arm`` with another strain basis: Legendre orders (and Gauss points) per division, the two
+    shear strains on or off (None: as they are). The physical parameters are the same arm's."""
+    modes = list(arm.discretisation.modes)
+    if shear is not None:
+        for name in ("shear_y", "shear_z"):
+            modes[STRAIN_MODES.index(name)] = bool(shear)
+    basis = replace(arm.discretisation, legendre_order=tuple(legendre_order),
+                    gauss_points=tuple(gauss_points or arm.discretisation.gauss_points), modes=tuple(modes))
+    return replace(arm, discretisation=basis)
+
+
 def arm_parameters(arm: ArmConfig) -> dict:
     """The ``arm`` parameter tree of ``arm`` (the inverse of :func:`parse_arm_config`)."""
     d, t = arm.discretisation, arm.tendons
@@ -239,9 +251,10 @@ def arm_parameters(arm: ArmConfig) -> dict:
     }
 
 
-def write_arm_file(path: str, arm: ArmConfig, header: str = ""):
+def write_arm_file(path: str, arm: ArmConfig, header: str = "", extra: dict | None = None):
     """Write ``arm`` as a complete arm description in the layout of ``arm.yaml`` (every node reads
-    it; ``header``: comment lines on top), written whole or not at all."""
+    it; ``header``: comment lines on top; ``extra``: other namespaces' trees, e.g. a mocap
+    calibration), written whole or not at all."""
     def plain(v):             # numpy floats (a fit's results) as Python floats
         if isinstance(v, dict):
             return {k: plain(x) for k, x in v.items()}
@@ -250,7 +263,8 @@ def write_arm_file(path: str, arm: ArmConfig, header: str = ""):
         return float(v) if isinstance(v, float) else v
 
     text = "".join(f"# {line}\n" for line in header.splitlines())
-    text += yaml.safe_dump({"/**": {"ros__parameters": {NAMESPACE: plain(arm_parameters(arm))}}},
+    tree = plain({NAMESPACE: arm_parameters(arm), **(extra or {})})
+    text += yaml.safe_dump({"/**": {"ros__parameters": tree}},
                            sort_keys=False, default_flow_style=None)
     partial = path + ".partial"
     with open(partial, "w", encoding="utf-8") as fh:

@@ -39,6 +39,7 @@ TENDON_GROUPS = ("friction", "offset_fraction", "start_angle", "end_angle")
 # prior standard deviations of the tendon geometry around the starting arm: casting tolerances
 PRIOR_SIGMA = {"offset_fraction": 0.05, "start_angle": np.radians(3.0), "end_angle": np.radians(3.0)}
 GAUGE_SIGMA = 1e-6          # rad: the mean start angle is held (see the module's docstring)
+OFFSET_BOUNDS = (0.05, 0.95)  # the offset fractions the fit may take: inside the body
 MIN_PULL = 0.5              # N above the smallest tension a tendon must see to be identifiable
 _STEP = 1e-6                # central-difference step of dR/dp (log ratios, rad, fractions)
 
@@ -137,8 +138,8 @@ class _Layout:
 class _Predictor:
     """Equilibria of the samples for a parameter vector, warm-started from the last ones."""
 
-    def __init__(self, layout: _Layout, samples):
-        self.layout, self.samples = layout, samples
+    def __init__(self, samples):
+        self.samples = samples
         self.q = [None] * len(samples)
 
     def equilibria(self, model) -> list:
@@ -207,7 +208,7 @@ class StaticProblem:
             model0 = build_model(arm)
             eq0 = solve_equilibrium(model0, samples[0].tension)
             self.p0[-3:] = (observe(model0, ArmData(model0), eq0.q)[0] - samples[0].markers).mean(axis=0)
-        self.predictor = _Predictor(layout, samples)
+        self.predictor = _Predictor(samples)
         self.prior_index = [2 + i * n_t + k for i, g in enumerate(TENDON_GROUPS) if g in PRIOR_SIGMA
                             for k in range(n_t)]
         self.prior_sigma = np.array([PRIOR_SIGMA[TENDON_GROUPS[(j - 2) // n_t]] for j in self.prior_index])
@@ -292,8 +293,12 @@ def identify_static(arm: ArmConfig, samples, marker_sigma: float = 2e-4, shorten
     identity). Raises IdentificationError when the data cannot determine the fit."""
     pb = StaticProblem(arm, samples, marker_sigma, shortening_sigma, registration)
     layout, n_t, n = pb.layout, pb.n_t, len(pb.samples)
-    sol = least_squares(pb.residual, pb.p0, jac=pb.jacobian, method="trf", x_scale="jac", xtol=1e-10,
-                        ftol=1e-10, gtol=1e-10, max_nfev=max_evaluations)
+    lower, upper = np.full(layout.size, -np.inf), np.full(layout.size, np.inf)
+    lower[2:2 + n_t] = 0.0                                          # friction coefficients
+    lower[2 + n_t:2 + 2 * n_t], upper[2 + n_t:2 + 2 * n_t] = OFFSET_BOUNDS
+    p0 = np.clip(pb.p0, lower + 1e-6, upper - 1e-6)
+    sol = least_squares(pb.residual, p0, jac=pb.jacobian, bounds=(lower, upper), method="trf",
+                        x_scale="jac", xtol=1e-10, ftol=1e-10, gtol=1e-10, max_nfev=max_evaluations)
     p = sol.x
     r = pb.residual(p)
     J = pb.jacobian(p)
@@ -320,6 +325,15 @@ def identify_static(arm: ArmConfig, samples, marker_sigma: float = 2e-4, shorten
                      n, int(sol.nfev))
 
 
+def predict_samples(arm: ArmConfig, samples) -> tuple[np.ndarray, np.ndarray]:
+    """The model's markers (k, n_m, 3) [m] in arm_base and shortenings (k, n_t) [m] at the
+    equilibria of ``samples``' tensions (e.g. of an identified arm, to compare with the data)."""
+    model = build_model(arm)
+    data = ArmData(model)
+    obs = [observe(model, data, eq.q) for eq in _Predictor(list(samples)).equilibria(model)]
+    return np.array([o[0] for o in obs]), np.array([o[1] for o in obs])
+
+
 def staircase(n_tendons: int, low: float, high: float, steps: int = 3, pairs=None) -> np.ndarray:
     """Tensions (k, n_tendons) [N] of a quasi-static identification experiment: each tendon alone,
     then each pair of ``pairs`` (default: every pair), loaded from ``low`` to ``high`` in ``steps``
@@ -337,26 +351,3 @@ def staircase(n_tendons: int, low: float, high: float, steps: int = 3, pairs=Non
             u[list(group)] = v
             rows.append(u)
     return np.array(rows)
-
-
-def plateau_samples(t_tension, shortening, t_markers, markers, tension, starts, hold: float,
-                    average: float) -> list:
-    """Quasi-static samples from recorded time series: for each plateau of tensions ``tension[k]``
-    [N] held from ``starts[k]`` [s] for ``hold`` [s], the means of the shortenings (t_tension,
-    (N, n_t) [m]) and of the markers (t_markers, (M, n_m, 3) [m]) over its last ``average`` [s]
-    (the arm has settled; averaging also beats the noise down)."""
-    if not 0 < average <= hold:
-        raise ValueError(f"expected 0 < average <= hold, got {average}, {hold} s")
-    t_tension, t_markers = np.asarray(t_tension, dtype=float), np.asarray(t_markers, dtype=float)
-    out = []
-    for k, t0 in enumerate(starts):
-        a, b = t0 + hold - average, t0 + hold
-        sel_s = (t_tension >= a) & (t_tension < b)
-        sel_m = (t_markers >= a) & (t_markers < b)
-        if not sel_s.any() or not sel_m.any():
-            raise IdentificationError(f"plateau {k + 1} ({a:.2f}-{b:.2f} s) has no "
-                                      f"{'encoder' if not sel_s.any() else 'mocap'} samples")
-        out.append(StaticSample(np.asarray(tension[k], dtype=float),
-                                np.asarray(shortening)[sel_s].mean(axis=0),
-                                np.asarray(markers)[sel_m].mean(axis=0)))
-    return out

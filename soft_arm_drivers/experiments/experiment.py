@@ -28,9 +28,10 @@ from soft_arm_model.parameters import ConfigError, default_config_dir
 
 from .metrics import Summary, TransitionMetrics, format_table
 from .harness import add_setup_arguments, check_targets, load_setup, setup_overrides
-from .orchestration import STOP, request_stop, run_emulated_hardware, run_processes
+from .excitation import Excitation
+from .orchestration import STOP, request_stop, roles, run_emulated_hardware, run_processes
 
-NODES = ("simulator", "inner_loop", "clik", "task_runner", "recorder")
+NAMESPACES = ("arm", "control", "plant", "tasks", "graph", "identification")
 
 
 def _ros_arguments(task: str, sets, config_dir: str | None, arm_file: str | None = None) -> list:
@@ -38,15 +39,15 @@ def _ros_arguments(task: str, sets, config_dir: str | None, arm_file: str | None
     task and the overrides."""
     d = config_dir or default_config_dir()
     args = ["--ros-args"]
-    for name in ("arm", "control", "plant", "tasks", "graph"):
+    for name in NAMESPACES:
         path = os.path.abspath(arm_file) if name == "arm" and arm_file else os.path.join(d, f"{name}.yaml")
         args += ["--params-file", path]
     args += ["-p", f"graph.task:={task}"]
     for pair in sets:
         key, sep, value = pair.partition("=")
-        if not sep or key.split(".")[0] not in ("arm", "control", "plant", "tasks", "graph"):
-            raise ConfigError(f"--set expects namespace.key=value with namespace one of arm, control, "
-                              f"plant, tasks, graph; got {pair!r}")
+        if not sep or key.split(".")[0] not in NAMESPACES:
+            raise ConfigError(f"--set expects namespace.key=value with namespace one of "
+                              f"{', '.join(NAMESPACES)}; got {pair!r}")
         args += ["-p", f"{key}:={value}"]
     return args
 
@@ -74,8 +75,9 @@ def _shut_down(nodes, executor):
 
 
 def run_composed(ros_args: list, out: dict, progress=None, config_dir: str | None = None,
-                 node_args: dict | None = None) -> dict:
-    """All nodes in this process, lockstep waves. Returns run facts (simulated time, waves...).
+                 node_args: dict | None = None, task: str = "") -> dict:
+    """All nodes of a run of ``task`` (:func:`~.orchestration.roles`) in this process, lockstep
+    waves. Returns run facts (simulated time, waves...).
 
     ``node_args``: extra command-line arguments per node name (e.g. remaps:
     ``{"simulator": ["--ros-args", "-r", "__ns:=/hw"]}``).
@@ -89,8 +91,13 @@ def run_composed(ros_args: list, out: dict, progress=None, config_dir: str | Non
     from soft_arm_drivers.recording.recorder_node import RecorderNode
     from soft_arm_drivers.sim.simulator_node import SimulatorNode
 
+    from .excitation_node import ExcitationNode
     from .lockstep import WaveExecutor
     from .task_runner_node import TaskRunnerNode
+
+    classes = {"inner_loop": InnerLoopNode, "clik": ClikNode, "task_runner": TaskRunnerNode,
+               "excitation": ExcitationNode}
+    controller, runner_name = roles(task)
 
     # Ctrl-C stays Python's KeyboardInterrupt (no rclpy handler shutting the context mid-wave), so
     # that the shutdown below always runs in order.
@@ -104,10 +111,9 @@ def run_composed(ros_args: list, out: dict, progress=None, config_dir: str | Non
 
         sim = SimulatorNode(config_dir, watchdog=False, **options("simulator"))
         nodes.append(sim)
-        nodes += [InnerLoopNode(config_dir, **options("inner_loop")),
-                  ClikNode(config_dir, **options("clik"))]
-        runner = TaskRunnerNode(config_dir, parameter_overrides=[
-            Parameter("output", value=out["metrics"])], **options("task_runner"))
+        nodes += [classes[name](config_dir, **options(name)) for name in controller]
+        runner = classes[runner_name](config_dir, parameter_overrides=[
+            Parameter("output", value=out["metrics"])], **options(runner_name))
         recorder = RecorderNode(config_dir, parameter_overrides=[
             Parameter("output", value=out["bag"]), Parameter("use_sim_time", value=True)],
             **options("recorder"))
@@ -116,6 +122,10 @@ def run_composed(ros_args: list, out: dict, progress=None, config_dir: str | Non
         start = time.monotonic()
         while not sim._started:
             executor.spin_timers(0.01)
+            if time.monotonic() - start > 30.0:
+                raise RuntimeError("the simulator did not start within 30 s: it waits for a publisher "
+                                   "of tendon/command and a subscriber of mocap/markers (the recorder's "
+                                   "topics?)")
         last_flush, reported = time.monotonic(), 0
         while not runner.done and not STOP.is_set():
             if executor.wave() == 0:
@@ -173,7 +183,8 @@ def main(argv=None) -> int:
         print(f"soft-arm-experiment: {run_dir} already holds a run", file=sys.stderr)
         return 2
     os.makedirs(run_dir, exist_ok=True)
-    out = {"bag": os.path.join(run_dir, "bag"), "metrics": os.path.join(run_dir, "metrics.json"),
+    result = "metrics.json" if setup.task is not None else "excitation.json"
+    out = {"bag": os.path.join(run_dir, "bag"), "metrics": os.path.join(run_dir, result),
            "figures": os.path.join(run_dir, "figures")}
     STOP.clear()
     previous = {sig: signal.signal(sig, request_stop) for sig in (signal.SIGINT, signal.SIGTERM)}
@@ -190,12 +201,13 @@ def _run(args, setup, ros_args: list, out: dict) -> int:
     failed = None
     try:
         if args.emulated_hardware:
-            duration = sum(ph.window * len(ph.sequence) for ph in setup.task.phases)
-            facts = run_emulated_hardware(ros_args, out, duration, args.config)
+            duration = sum(ph.window * len(ph.sequence) for ph in setup.task.phases) \
+                if setup.task is not None else Excitation(setup.excitation, len(setup.arm.tendons)).duration
+            facts = run_emulated_hardware(ros_args, out, duration, args.config, args.task)
         elif args.processes:
-            facts = run_processes(ros_args, out)
+            facts = run_processes(ros_args, out, args.task)
         else:
-            facts = run_composed(ros_args, out, progress, args.config)
+            facts = run_composed(ros_args, out, progress, args.config, task=args.task)
     except KeyboardInterrupt:
         facts = {}
     except ConfigError as exc:
@@ -207,6 +219,8 @@ def _run(args, setup, ros_args: list, out: dict) -> int:
     interrupted = STOP.is_set()
     if progress is not None:
         print(file=sys.stderr)
+    if setup.task is None:
+        return _identification_result(args, out, facts, failed, interrupted)
     figures = []
     if os.path.isdir(out["bag"]):
         from .figures import make_figures
@@ -230,6 +244,33 @@ def _run(args, setup, ros_args: list, out: dict) -> int:
         print(f"bag:     {out['bag']}\nmetrics: {out['metrics']}")
         for path in figures:
             print(f"figure:  {path}")
+    return 130 if interrupted else 0
+
+
+def _identification_result(args, out: dict, facts: dict, failed: str | None, interrupted: bool) -> int:
+    """The end of an identification experiment: the schedule it played (``excitation.json``, with the
+    run facts) and the next command; exit 1 if it did not play to the end or the hardware faulted
+    (such a bag is not an identification experiment)."""
+    if failed is not None or not os.path.exists(out["metrics"]):
+        print(f"soft-arm-experiment: {'interrupted; ' if interrupted else ''}the identification "
+              f"experiment did not play to its end; bag: {out['bag']}", file=sys.stderr)
+        return 130 if interrupted else 1
+    with open(out["metrics"], encoding="utf-8") as fh:
+        data = json.load(fh)
+    faults = facts.get("driver_faults") or []
+    data["run"], data["valid"] = facts, not faults
+    with open(out["metrics"], "w", encoding="utf-8") as fh:
+        json.dump(data, fh, indent=2)
+    if args.json:
+        print(json.dumps(data, indent=2))
+    else:
+        print(f"identification experiment: {len(data['segments'])} segments, {data['duration']:.1f} s")
+        print(f"bag:      {out['bag']}\nschedule: {out['metrics']}\n"
+              f"next:     soft-arm-identify {out['bag']} --output arm_identified.yaml")
+    if faults:
+        print(f"soft-arm-experiment: the motor driver faulted during the experiment ({'; '.join(faults)}): "
+              "the bag is not a valid identification experiment", file=sys.stderr)
+        return 1
     return 130 if interrupted else 0
 
 

@@ -19,12 +19,16 @@ from rosbags.highlevel import AnyReader  # noqa: E402
 from rosbags.typesys import Stores, get_typestore  # noqa: E402
 
 
-def read_series(bag_dir: str) -> dict:
-    """Per topic (without leading slash): lists of (header stamp [s] or None, message), bag order."""
+def read_series(bag_dir: str, topics=None) -> dict:
+    """Per topic (without leading slash; ``topics``: only these): lists of (header stamp [s] or None,
+    message), bag order."""
     out = {}
     typestore = get_typestore(Stores.ROS2_JAZZY)
     with AnyReader([Path(bag_dir)], default_typestore=typestore) as reader:
-        for conn, _, raw in reader.messages():
+        connections = [c for c in reader.connections if topics is None or c.topic.lstrip("/") in topics]
+        if not connections:
+            return out
+        for conn, _, raw in reader.messages(connections=connections):
             msg = reader.deserialize(raw, conn.msgtype)
             header = getattr(msg, "header", None)
             t = header.stamp.sec + 1e-9 * header.stamp.nanosec if header is not None else None

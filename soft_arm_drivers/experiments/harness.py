@@ -22,7 +22,8 @@ import numpy as np
 from soft_arm_control.actuation_map import ActuationMap, actuation_map_for
 from soft_arm_control.clik import ClikPoint, TargetError
 from soft_arm_control.collocated import full_tensions
-from soft_arm_control.config import ControlConfig, TaskConfig, load_control_config, load_task_config
+from soft_arm_control.config import (IDENTIFICATION, ControlConfig, TaskConfig, load_control_config,
+                                     load_task_config)
 from soft_arm_control.inner_loop import tendon_controller_for
 from soft_arm_control.outer_loop import OuterLoop, outer_loop_for
 from soft_arm_drivers.sim.plant_config import PlantConfig, load_plant_config
@@ -30,32 +31,40 @@ from soft_arm_drivers.sim.simulated_rig import SimulatedRig
 from soft_arm_model import ArmConfig, build_model, load_arm_config
 from soft_arm_model.parameters import default_config_dir, split_overrides
 
+from .excitation import ExcitationConfig, load_excitation
 from .metrics import summarise, transition_metrics
 
 
 @dataclass(frozen=True)
 class Setup:
-    """Everything a run needs: the controller's arm, controller, plant and task parameters."""
+    """Everything a run needs: the controller's arm, controller, plant and task parameters (the
+    identification experiment: no task, its ``excitation``)."""
     arm: ArmConfig
     control: ControlConfig
     plant: PlantConfig
-    task: TaskConfig
+    task: TaskConfig | None
+    excitation: ExcitationConfig | None = None
 
 
 def load_setup(task: str, config_dir: str | None = None, overrides=None,
                arm_file: str | None = None) -> Setup:
-    """Load the four parameter files from ``config_dir`` (default: the package's) with overrides
+    """Load the parameter files from ``config_dir`` (default: the package's) with overrides
     (``namespace.key=value`` strings); ``arm_file``: the controller's arm description instead of
     ``arm.yaml`` (e.g. an identified one). The plant's differences of ``plant.yaml`` apply to it
-    (a ``plant.plant_file`` does not depend on it)."""
+    (a ``plant.plant_file`` does not depend on it). ``task`` "identification": the identification
+    experiment of ``identification.yaml`` instead of a task."""
     d = config_dir or default_config_dir()
-    groups = split_overrides(overrides, ("arm", "control", "plant", "tasks"))
+    groups = split_overrides(overrides, ("arm", "control", "plant", "tasks", "identification"))
     arm = load_arm_config(arm_file or os.path.join(d, "arm.yaml"), groups["arm"])
     plant = load_plant_config(arm, os.path.join(d, "plant.yaml"), groups["plant"])
     plant.plant_arm(arm)                  # a bad plant file is refused before anything runs
-    return Setup(arm,
-                 load_control_config(arm, os.path.join(d, "control.yaml"), groups["control"]),
-                 plant, load_task_config(task, arm, os.path.join(d, "tasks.yaml"), groups["tasks"]))
+    control = load_control_config(arm, os.path.join(d, "control.yaml"), groups["control"])
+    if task == IDENTIFICATION:
+        return Setup(arm, control, plant, None, load_excitation(
+            len(arm.tendons), control.tension_min, control.tension_max,
+            os.path.join(d, "identification.yaml"), groups["identification"]))
+    return Setup(arm, control, plant,
+                 load_task_config(task, arm, os.path.join(d, "tasks.yaml"), groups["tasks"]))
 
 
 def add_setup_arguments(parser):
@@ -223,6 +232,8 @@ def check_targets(setup: Setup, accept_closest: bool = False) -> tuple[list, lis
     given back as a ``tasks.<task>.targets`` override (none when every target is feasible), with a
     note per replaced target."""
     task = setup.task
+    if task is None:                          # the identification experiment: tensions, no targets
+        return [], []
     outer = outer_loop_for(build_model(setup.arm), setup.control, task)
     if not accept_closest:
         precompute_targets(outer, task)

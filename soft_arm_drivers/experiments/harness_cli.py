@@ -35,6 +35,9 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     try:
         setup = load_setup(args.task, args.config, setup_overrides(args), args.arm_file)
+        if setup.task is None:
+            raise ConfigError("the identification experiment is a run of the graph: "
+                              "soft-arm-experiment identification")
         if args.accept_closest:
             closest, notes = check_targets(setup, accept_closest=True)
             for note in notes:

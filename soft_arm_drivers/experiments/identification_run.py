@@ -1,49 +1,46 @@
-"""The quasi-static identification experiment on the simulated rig (ROS-free).
-
-Tension plateaus (:func:`soft_arm_model.identification.staircase`: each tendon, then pairs,
-loaded and unloaded) are applied open loop, in tension, to the plant of ``plant.yaml``; the
-encoders and the motion capture record as on the rig, and the settled end of each plateau becomes
-one :class:`~soft_arm_model.identification.StaticSample`.
+"""The identification experiment on the simulated rig, ROS-free: the excitation of
+``identification.yaml`` (:class:`.excitation.Excitation`) applied open loop, in tension, to the
+plant of ``plant.yaml``, recorded as the graph's bag records it (tendon states and commands at the
+inner loop's rate, mocap frames with their noise and latency). The benchmark and the tests use it
+where a run of the graph would take minutes; ``soft-arm-experiment identification`` records the
+same series to a bag.
 """
 from __future__ import annotations
 
 import numpy as np
 
 from soft_arm_drivers.sim.simulated_rig import SimulatedRig
-from soft_arm_model import build_model
-from soft_arm_model.identification import plateau_samples
+from soft_arm_model import build_model, solve_equilibrium, tendon_lengths
+from soft_arm_model.recording import Recording
 
-HOLD = 6.0         # s per plateau: the slowest mode of the arm settles to ~0.1 mm
-AVERAGE = 2.0      # s at its end averaged into a sample
+from .excitation import Excitation
 
 
-def record_plateaus(setup, tensions, hold: float = HOLD, average: float = AVERAGE) -> list:
-    """Apply each row of ``tensions`` (k, n_t) [N] for ``hold`` [s] to the plant of ``setup``
-    (:class:`~soft_arm_drivers.experiments.harness.Setup`), starting from the arm hanging under
-    the first row; the samples of :func:`~soft_arm_model.identification.plateau_samples`."""
-    tensions = np.asarray(tensions, dtype=float)
-    plant = setup.plant
-    rig = SimulatedRig(build_model(plant.plant_arm(setup.arm)), plant, np.zeros(tensions.shape[1]),
-                       tensions[0])
-    steps = int(round(hold / plant.timestep))
-    t_s, s, t_m, markers, starts = [], [], [], [], []
-    for u in tensions:
-        starts.append(rig.t)
-        for _ in range(steps):
-            frame, _ = rig.begin_step()
-            if frame is not None:
-                t_m.append(frame.stamp)
-                markers.append(frame.markers)
-            t_s.append(rig.t)
+def simulate_recording(setup, excitation: Excitation) -> Recording:
+    """Play ``excitation`` on the simulated rig of ``setup``
+    (:class:`~soft_arm_drivers.experiments.harness.Setup`): the arm starts hanging under
+    ``control.tension_min`` with the encoders zeroed there (as the simulator node starts it)."""
+    plant, control = setup.plant, setup.control
+    model = build_model(setup.arm)
+    pretension = np.full(model.n_tendons, control.tension_min)
+    offset = model.rest_tendon_lengths - tendon_lengths(model, solve_equilibrium(model, pretension).q)
+    rig = SimulatedRig(build_model(plant.plant_arm(setup.arm)), plant, offset, pretension)
+    per_command = max(1, int(round(1.0 / (control.inner_rate * plant.timestep))))
+    t, s, u_applied, u_command, t_m, markers = [], [], [], [], [], []
+    steps = int(np.ceil(excitation.duration / plant.timestep))
+    u = pretension
+    for k in range(steps):
+        _, delivered = rig.begin_step()
+        for frame in delivered:
+            t_m.append(frame.stamp)
+            markers.append(frame.markers)
+        if k % per_command == 0:
+            t.append(rig.t)
             s.append(rig.tendons()[0])
-            rig.end_step(u)
-    return plateau_samples(t_s, s, t_m, markers, tensions, starts, hold, average)
-
-
-def sample_noise(setup, average: float = AVERAGE) -> tuple[float, float]:
-    """The standard deviations [m] of one sample's markers and shortenings: the mocap noise over the
-    frames averaged, and the encoder quantisation (uniform over one step of the pulley's arc)."""
-    plant = setup.plant
-    marker = plant.mocap_noise / np.sqrt(max(1.0, plant.mocap_rate * average))
-    shortening = max(plant.encoder_resolution * plant.pulley_radius / np.sqrt(12.0), 1e-7)
-    return float(max(marker, 1e-6)), float(shortening)
+            u_applied.append(rig.tension)
+            u = excitation.tension(rig.t)
+            u_command.append(u)
+        rig.end_step(u)
+    t = np.array(t)
+    return Recording(t, np.array(s), np.array(u_applied), t, np.array(u_command), np.array(t_m),
+                     np.array(markers))

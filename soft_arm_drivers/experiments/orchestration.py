@@ -38,9 +38,10 @@ def _free_udp_port() -> int:
 
 
 def _wait_for_graph(node, children, flowing: tuple = (), settle: float = 0.0,
-                    timeout: float = 120.0):
-    """Until the graph is wired: a publisher on each of the controller's and the plant's topics (a
-    node creates them once its set-up is done), a recorder, messages arriving on the ``flowing``
+                    timeout: float = 120.0, published: tuple = ("command", "reference", "state", "markers")):
+    """Until the graph is wired: a publisher on each of the ``published`` topics (names of
+    ``TOPICS``: by default the controller's and the plant's; a node creates them once its set-up is
+    done), a recorder, messages arriving on the ``flowing``
     topics (names of ``TOPICS``: e.g. the controller answering the motors' state), and, with
     ``settle`` [s], no endpoint appearing or going for that long (discovery over). The probe
     subscriptions stay (they go with ``node``). RuntimeError when a node exits or after ``timeout``
@@ -48,7 +49,7 @@ def _wait_for_graph(node, children, flowing: tuple = (), settle: float = 0.0,
     import rclpy
 
     from soft_arm_ros.contract import QOS, TOPICS, TYPES, message_class
-    topics = ["/" + TOPICS[k] for k in ("command", "reference", "state", "markers")]
+    topics = ["/" + TOPICS[k] for k in published]
     counts = {}
     for key in flowing:
         topic = TOPICS[key]
@@ -156,34 +157,50 @@ def _orchestrating(children: _Children):
             children.stop()
 
 
-def run_processes(ros_args: list, out: dict) -> dict:
-    """Each node its own process, the same parameters: recorder, inner_loop, clik and simulator
-    start; once the graph is wired (the controller's, the plant's and the recorder's endpoints
-    exist) the task runner starts. Waits for it, then stops the others with SIGINT."""
+# The nodes that answer the plant, and the one that plays the run and writes its result (parameter
+# ``output``), of a task and of the identification experiment (``soft-arm-experiment identification``)
+ROLES = {"task": (("inner_loop", "clik"), "task_runner"), "identification": ((), "excitation")}
+
+
+def roles(task: str) -> tuple:
+    """(controller nodes, runner node) of a run of ``task``."""
+    from soft_arm_control.config import IDENTIFICATION
+    return ROLES["identification" if task == IDENTIFICATION else "task"]
+
+
+def run_processes(ros_args: list, out: dict, task: str = "") -> dict:
+    """Each node its own process, the same parameters: the recorder, the controller's nodes and the
+    simulator start; once the graph is wired (the controller's, the plant's and the recorder's
+    endpoints exist) the runner (task runner, or excitation for the identification experiment)
+    starts. Waits for it, then stops the others with SIGINT."""
     import rclpy
+    controller, runner = roles(task)
     children = _Children(ros_args, {"recorder": ["-p", f"output:={out['bag']}", "-p", "use_sim_time:=true"],
-                                    "task_runner": ["-p", f"output:={out['metrics']}"]})
+                                    runner: ["-p", f"output:={out['metrics']}"]})
     start = time.monotonic()
     with _orchestrating(children) as node:
-        for name in ("recorder", "inner_loop", "clik", "simulator"):
+        for name in ("recorder", *controller, "simulator"):
             children.start(name)
-        _wait_for_graph(node, children)
+        _wait_for_graph(node, children, published=("command", "reference", "state", "markers")
+                        if controller else ("state", "markers"))
         if not STOP.is_set():
-            children.start("task_runner")
-        while not STOP.is_set() and children.procs["task_runner"].poll() is None:
-            children.check(may_end=("task_runner",))
+            children.start(runner)
+        while not STOP.is_set() and children.procs[runner].poll() is None:
+            children.check(may_end=(runner,))
             rclpy.spin_once(node, timeout_sec=0.2)
         if not STOP.is_set():
-            children.check(may_end=("task_runner",))
+            children.check(may_end=(runner,))
     return {"wall_s": time.monotonic() - start}
 
 
 def run_emulated_hardware(ros_args: list, out: dict, duration: float,
-                          config_dir: str | None = None) -> dict:
+                          config_dir: str | None = None, task: str = "") -> dict:
     """The rig's graph in real time, each node its own process, with the ``emulated_rig`` (the
     motor_driver node with the CAN motor emulators and the NatNet server emulator behind it,
     :mod:`.emulated_rig`) and the ``mocap_bridge`` in the simulator's place; ``duration`` [s]: the
-    task's, ``config_dir``: where rig.yaml, mocap.yaml and emulator.yaml are (default: the package's).
+    task's, ``task``: its name (the identification experiment has the excitation node in the
+    controller's and the task runner's place), ``config_dir``: where rig.yaml, mocap.yaml and
+    emulator.yaml are (default: the package's).
 
     As an operator runs the rig: every node starts (the task runner waiting for ``~/start``); once
     the graph is wired and settled and the controller answers the motors' state, the motors are
@@ -208,9 +225,10 @@ def run_emulated_hardware(ros_args: list, out: dict, duration: float,
         print("soft-arm-experiment: real-time scheduling is not permitted here (it needs root, "
               "CAP_SYS_NICE or an rtprio limit): a busy computer may hold the emulated hardware "
               "long enough for the motor driver's watchdog to trip", file=sys.stderr)
+    controller, runner = roles(task)
     children = _Children(ros_args, {
         "recorder": ["-p", f"output:={out['bag']}"],
-        "task_runner": ["-p", f"output:={out['metrics']}", "-p", "wait_for_start:=true"],
+        runner: ["-p", f"output:={out['metrics']}", "-p", "wait_for_start:=true"],
         "emulated_rig": files + ["-p", f"rig.mocap.command_port:={port}"],
         "mocap_bridge": files + ["-p", f"rig.mocap.command_port:={port}", "-p", "rig.mocap.data_port:=0"]},
         _REALTIME if realtime else None)
@@ -236,10 +254,12 @@ def run_emulated_hardware(ros_args: list, out: dict, duration: float,
         # every client is created, and its server discovered, before the motors are enabled
         zero = node.create_client(Trigger, "/motor_driver/zero")
         enable = node.create_client(SetBool, "/motor_driver/enable")
-        begin = node.create_client(Trigger, "/task_runner/start")
-        for name in ("recorder", "emulated_rig", "mocap_bridge", "inner_loop", "clik", "task_runner"):
+        begin = node.create_client(Trigger, f"/{runner}/start")
+        for name in ("recorder", "emulated_rig", "mocap_bridge", *controller, runner):
             children.start(name)
-        _wait_for_graph(node, children, ("command", "markers"), settle=2.0)
+        _wait_for_graph(node, children, ("command", "markers"), settle=2.0,
+                        published=("command", "reference", "state", "markers")
+                        if controller else ("command", "state", "markers"))
         for client in (zero, enable, begin):
             if not STOP.is_set() and not client.wait_for_service(timeout_sec=10.0):
                 raise RuntimeError(f"service {client.srv_name} is not available")
@@ -256,7 +276,7 @@ def run_emulated_hardware(ros_args: list, out: dict, duration: float,
             while not STOP.is_set() and not os.path.exists(out["metrics"]):
                 children.check()
                 if time.monotonic() > deadline:
-                    raise RuntimeError(f"the task runner wrote no metrics within {duration + 60.0:g} s")
+                    raise RuntimeError(f"the {runner} node wrote no result within {duration + 60.0:g} s")
                 rclpy.spin_once(node, timeout_sec=0.1)
         finally:
             try:

@@ -5,10 +5,11 @@ Only the simulated rig reads this file: the controller never sees the plant it i
 """
 from __future__ import annotations
 
+import math
 import os
 from dataclasses import dataclass, replace
 
-from soft_arm_model.config import STRAIN_MODES, ArmConfig, load_arm_config
+from soft_arm_model.config import ArmConfig, load_arm_config, with_basis
 from soft_arm_model.parameters import ConfigError, default_config_dir, load_section
 
 PLANT_SCHEMA = {
@@ -41,6 +42,10 @@ PLANT_SCHEMA = {
     "mocap.noise": ("float", lambda v: 0 <= v <= 0.1, "a standard deviation in [0, 0.1] m"),
     "mocap.latency": ("float", lambda v: 0 <= v <= 1, "a latency in [0, 1] s"),
     "mocap.seed": ("int", lambda v: v >= 0, "a seed >= 0"),
+    "mocap.frame_error.rotation_deg": ("floats", lambda v: len(v) == 3 and all(abs(a) <= 10 for a in v),
+                                       "a rotation vector of 3 components in [-10, 10] deg"),
+    "mocap.frame_error.translation": ("floats", lambda v: len(v) == 3 and all(abs(a) <= 0.1 for a in v),
+                                      "a translation of 3 components in [-0.1, 0.1] m"),
 }
 # the keys that describe the plant's arm (ignored when plant_file names a complete description)
 ARM_KEYS = ("youngs_modulus_scale", "viscosity_scale", "density_scale", "friction",
@@ -49,7 +54,6 @@ ARM_KEYS = ("youngs_modulus_scale", "viscosity_scale", "density_scale", "frictio
             "discretisation.shear")
 _PER_TENDON = ("friction", "tendon.offset_fraction", "tendon.start_angle_error", "tendon.end_angle_error")
 _PER_DIVISION = ("discretisation.legendre_order", "discretisation.gauss_points")
-_SHEAR = (STRAIN_MODES.index("shear_y"), STRAIN_MODES.index("shear_z"))
 
 
 @dataclass(frozen=True)
@@ -58,7 +62,8 @@ class PlantConfig:
     arm, by key of :data:`PLANT_SCHEMA`, or ``plant_file``: a complete arm description), the time
     step [s], the motor rotor inertia [kg m^2], the encoder (pulley radius
     [m], angle and rate resolution [rad], [rad/s]) and the mocap (frame rate [Hz], noise standard
-    deviation [m], latency [s], seed)."""
+    deviation [m], latency [s], seed, and the error of its calibration: the markers arrive as
+    R p + t for p in arm_base, ``mocap_frame_error`` = (rotation vector R [rad] (3,), t [m] (3,)))."""
     plant_file: str
     arm_values: dict
     timestep: float
@@ -70,6 +75,7 @@ class PlantConfig:
     mocap_noise: float
     mocap_latency: float
     mocap_seed: int
+    mocap_frame_error: tuple = ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
 
     def plant_arm(self, arm: ArmConfig) -> ArmConfig:
         """The plant's arm: the description of ``plant_file``, or the controller's ``arm`` with E,
@@ -93,13 +99,10 @@ class PlantConfig:
         tendons = tuple(replace(t, friction=f, offset_fraction=d, start_angle=t.start_angle + a0,
                                 end_angle=t.end_angle + a1)
                         for t, f, d, a0, a1 in zip(arm.tendons, *(v[k] for k in _PER_TENDON)))
-        modes = list(arm.discretisation.modes)
-        for k in _SHEAR:
-            modes[k] = v["discretisation.shear"]
-        basis = replace(arm.discretisation, legendre_order=v["discretisation.legendre_order"],
-                        gauss_points=v["discretisation.gauss_points"], modes=tuple(modes))
-        return replace(arm, material=material, tendons=tendons, discretisation=basis,
-                       tip_mass=arm.tip_mass + v["tip_payload"])
+        arm = replace(arm, material=material, tendons=tendons, tip_mass=arm.tip_mass + v["tip_payload"])
+        return with_basis(arm,
+                          v["discretisation.legendre_order"], v["discretisation.gauss_points"],
+                          v["discretisation.shear"])
 
     @property
     def rotor_mass(self) -> float:
@@ -118,7 +121,9 @@ def parse_plant(v: dict, arm: ArmConfig) -> PlantConfig:
     return PlantConfig(v["plant_file"], {k: v[k] for k in ARM_KEYS}, v["timestep"],
                        v["motor.rotor_inertia"], v["encoder.pulley_radius"], v["encoder.resolution"],
                        v["encoder.velocity_resolution"], v["mocap.rate"], v["mocap.noise"],
-                       v["mocap.latency"], v["mocap.seed"])
+                       v["mocap.latency"], v["mocap.seed"],
+                       (tuple(math.radians(a) for a in v["mocap.frame_error.rotation_deg"]),
+                        v["mocap.frame_error.translation"]))
 
 
 def load_plant_config(arm: ArmConfig, path: str | None = None, overrides=None) -> PlantConfig:

@@ -12,6 +12,7 @@ from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from soft_arm_model import ImexStepper, build_model, solve_equilibrium
 
@@ -92,8 +93,9 @@ class Encoders:
 
 @dataclass(frozen=True)
 class MocapFrame:
-    """One motion-capture frame: mid-exposure time [s], measured (noisy) and true marker positions
-    (n_markers, 3) [m] in arm_base, true tip speed [m/s] and the frame number."""
+    """One motion-capture frame: mid-exposure time [s], measured marker positions (n_markers, 3) [m]
+    (noisy, in arm_base as the mocap's calibration has it) and the true ones in arm_base, true tip
+    speed [m/s] and the frame number."""
     stamp: float
     markers: np.ndarray
     true_markers: np.ndarray
@@ -123,6 +125,9 @@ class SimulatedRig:
         zero, _ = self.plant.tendons()
         self.encoders = Encoders(plant, zero, encoder_offset)
         self.rng = np.random.default_rng(plant.mocap_seed)
+        rotvec, translation = plant.mocap_frame_error
+        self._frame_R = Rotation.from_rotvec(rotvec).as_matrix()
+        self._frame_t = np.array(translation, dtype=float)
         self.step_index = 0
         self._frame_period = 1.0 / plant.mocap_rate
         self._next_frame = 0
@@ -147,7 +152,8 @@ class SimulatedRig:
         frame = None
         if exposure:
             true, speed = self.plant.markers()
-            noisy = true + self.rng.normal(0.0, self.config.mocap_noise, true.shape)
+            noisy = true @ self._frame_R.T + self._frame_t + self.rng.normal(0.0, self.config.mocap_noise,
+                                                                             true.shape)
             frame = MocapFrame(self._next_frame * self._frame_period, noisy, true, speed,
                                self._next_frame)
             self._pending.append(frame)

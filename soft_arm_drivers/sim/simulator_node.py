@@ -23,7 +23,7 @@ from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from visualization_msgs.msg import Marker, MarkerArray
 
-from soft_arm_control.config import control_of, task_of
+from soft_arm_control.config import control_of, payload_of
 from soft_arm_model import build_model, solve_equilibrium, tendon_lengths
 from soft_arm_ros.contract import FRAME, QOS, TOPICS
 from soft_arm_ros.conversions import (joint_state, ordered, pose_array, pose_stamped, seconds_to_stamp,
@@ -45,13 +45,12 @@ class SimulatorNode(Node):
         arm, graph = params.arm, params.graph
         self.control = control = control_of(params, arm)
         self.plant = plant = plant_of(params, arm)
-        task = task_of(params, arm)
         model = build_model(arm)                       # the controller's view of start-up
         pretension = np.full(model.n_tendons, control.tension_min)
         q_rest = solve_equilibrium(model, pretension).q
         offset = model.rest_tendon_lengths - tendon_lengths(model, q_rest)
         self.rig = SimulatedRig(build_model(plant.plant_arm(arm)), plant, offset, pretension,
-                                task.payload)
+                                payload_of(params, arm))
         self.names = model.tendon_names
         self.steps_per_command = max(1, int(round(1.0 / (control.inner_rate * plant.timestep))))
         self.mode = graph["simulator.mode"]

@@ -8,7 +8,7 @@ from scipy.spatial.transform import Rotation
 
 from soft_arm_model import ArmData, build_model, load_arm_config, solve_equilibrium
 from soft_arm_model.identification import (IdentificationError, StaticProblem, StaticSample,
-                                           observe, identify_static, plateau_samples, staircase)
+                                           observe, identify_static, staircase)
 
 ZERO = np.array([0.01, -0.02, 0.005, 0.0])          # encoder zeros [m]
 # the structurally different arm: E -12 %, density +5 %, uneven friction, offsets, angles
@@ -127,18 +127,6 @@ def test_data_that_cannot_determine_the_fit_is_refused(paper_model):
         identify_static(arm, _samples(arm, never_3))
     with pytest.raises(IdentificationError, match="at least 8 are needed"):
         identify_static(arm, _samples(arm, TENSIONS[:5]))
-
-
-def test_plateau_samples_average_the_settled_end_of_each_plateau():
-    t = np.arange(0.0, 4.0, 0.01)
-    s = np.where(t[:, None] < 2.0, 1.0, 3.0) * np.ones((1, 2))
-    tm = np.arange(0.0, 4.0, 0.05)
-    m = np.where(tm[:, None, None] < 2.0, -1.0, -2.0) * np.ones((1, 3, 3))
-    out = plateau_samples(t, s, tm, m, [[0.1, 0.1], [1.0, 0.1]], [0.0, 2.0], hold=2.0, average=0.5)
-    assert [o.shortening.tolist() for o in out] == [[1.0, 1.0], [3.0, 3.0]]
-    assert out[1].markers[0, 0] == -2.0 and out[1].tension.tolist() == [1.0, 0.1]
-    with pytest.raises(IdentificationError, match="plateau 2 .* no mocap samples"):
-        plateau_samples(t, s, tm[tm < 2.0], m[tm < 2.0], [[0.1, 0.1], [1.0, 0.1]], [0.0, 2.0], 2.0, 0.5)
 
 
 def test_an_identified_arm_is_written_as_a_description_every_entry_point_takes(paper_model, tmp_path):

@@ -1,0 +1,210 @@
+"""``soft-arm-identify BAG_DIR``: the arm identified from a recorded identification experiment.
+
+Reads only what a rig records (``tendon/state``: shortenings and applied tensions;
+``tendon/command``: where tensions were held; ``mocap/markers``) and the arm description it starts
+from (``--arm-file``, default the configuration's ``arm.yaml``). The quasi-static plateaus give
+Young's modulus, density, per-tendon friction, offsets and angles, the encoder zeros and the mocap
+registration (:func:`soft_arm_model.identification.identify_static`); the steps and chirps between
+plateaus give the viscosity and the rotors' reflected mass
+(:func:`soft_arm_model.dynamic_identification.identify_dynamics`). Prints every estimate with its
+standard error and the residual RMS per marker; ``--output FILE`` writes the identified arm (the
+schema of ``arm.yaml``, with ``rig.mocap.calibration`` corrected) for ``--arm-file`` and
+``--params-file``; ``--json`` prints the report as JSON; ``--plot DIR`` draws measured against
+predicted markers and shortenings, the hysteresis loops and the dynamic segments. Exit status 2
+for a bag or a configuration that cannot give a fit (what is missing is said).
+"""
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import sys
+import time
+
+from dataclasses import replace
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from soft_arm_drivers.mocap.bridge_config import load_mocap_config
+from soft_arm_model import load_arm_config
+from soft_arm_model.config import with_basis, write_arm_file
+from soft_arm_model.dynamic_identification import identify_dynamics
+from soft_arm_model.identification import IdentificationError, Registration, identify_static
+from soft_arm_model.parameters import ConfigError, default_config_dir, split_overrides
+from soft_arm_model.recording import Recording, dynamic_segments, noise_levels, plateaus, static_samples
+
+from .excitation import load_identification, parse_fit
+
+TOPICS = ("tendon/state", "tendon/command", "mocap/markers")
+
+
+def read_recording(bag_dir: str, names) -> Recording:
+    """The identification series of a bag (tendons in the order of ``names``); IdentificationError
+    naming the topics it lacks."""
+    from .figures import read_series
+    if not os.path.isdir(bag_dir):
+        raise IdentificationError(f"{bag_dir} is not a bag directory")
+    series = read_series(bag_dir, TOPICS)
+    missing = [t for t in TOPICS if len(series.get(t, [])) < 2]
+    if missing:
+        raise IdentificationError(f"the bag lacks {', '.join(missing)} (it has "
+                                  f"{', '.join(sorted(series)) or 'no messages'}): an identification "
+                                  "experiment records tendon states, commands and mocap markers")
+
+    def tendon_values(topic, field):
+        t, values = [], []
+        for stamp, msg in series[topic]:
+            index = {n: i for i, n in enumerate(msg.name)}
+            row = getattr(msg, field)
+            if any(n not in index for n in names) or len(row) != len(msg.name):
+                continue
+            t.append(stamp)
+            values.append([row[index[n]] for n in names])
+        if len(t) < 2:
+            raise IdentificationError(f"{topic} has no {field} for the tendons {list(names)}")
+        return np.array(t), np.array(values, dtype=float)
+
+    t, s = tendon_values("tendon/state", "position")
+    t_u, u = tendon_values("tendon/state", "effort")
+    if len(t_u) != len(t):
+        raise IdentificationError("tendon/state lacks the applied tensions (effort) of some states")
+    t_c, c = tendon_values("tendon/command", "effort")
+    frames = series["mocap/markers"]
+    t_m = np.array([stamp for stamp, _ in frames])
+    markers = np.array([[[p.position.x, p.position.y, p.position.z] for p in msg.poses] for _, msg in frames])
+    return Recording(t, s, u, t_c, c, t_m, markers)
+
+
+def composed_calibration(registration: Registration, rotation: np.ndarray, translation) -> tuple:
+    """The mocap calibration (rotation matrix, translation [m]) that puts Motive's points where the
+    fit says arm_base is: the registration after the calibration the bag was recorded with."""
+    R = registration.rotation @ rotation
+    return R, registration.rotation @ np.asarray(translation, dtype=float) + registration.translation
+
+
+def calibration_tree(calibration: tuple) -> dict:
+    """``rig.mocap.calibration`` (mocap.yaml's layout) of (rotation matrix, translation [m])."""
+    R, t = calibration
+    return {"rig": {"mocap": {"calibration": {
+        "translation": [float(v) for v in t],
+        "rotation": [float(v) for v in Rotation.from_matrix(R).as_quat()]}}}}
+
+
+def identify(rec: Recording, arm, fit_config, workers: int | None = None) -> dict:
+    """Both fits on a recording: a report (JSON-ready) and the fits themselves (keys ``static``,
+    ``dynamic``; ``dynamic`` None without a step or chirp). The static fit runs on the basis of
+    ``fit_config``; the arm it returns has ``arm``'s (the controller's). IdentificationError when
+    the data cannot determine the static fit."""
+    held = plateaus(rec, fit_config.min_plateau)
+    samples = static_samples(rec, held, fit_config.average)
+    marker_sigma, shortening_sigma = noise_levels(rec, held, fit_config.average)
+    if len(fit_config.legendre_order) != len(arm.discretisation.division_ends):
+        raise ConfigError(f"identification.fit.legendre_order = {list(fit_config.legendre_order)} is not "
+                          f"valid: expected {len(arm.discretisation.division_ends)} orders, one per division")
+    start = time.perf_counter()
+    static = identify_static(with_basis(arm, fit_config.legendre_order, shear=fit_config.shear), samples,
+                             marker_sigma, shortening_sigma, max_evaluations=fit_config.max_evaluations)
+    static = replace(static, arm=replace(static.arm, discretisation=arm.discretisation))
+    static_s = time.perf_counter() - start
+    segments = dynamic_segments(held, 0.2, fit_config.dynamic_window)
+    dynamic, dynamic_s = None, 0.0
+    if segments:
+        start = time.perf_counter()
+        dynamic = identify_dynamics(static.arm, fit_config.rotor_mass, rec, segments, static.registration,
+                                    *noise_levels(rec, held, fit_config.average, per_reading=True),
+                                    timestep=fit_config.dynamic_timestep, workers=workers)
+        dynamic_s = time.perf_counter() - start
+        static = replace(static, arm=replace(static.arm, material=replace(
+            static.arm.material, viscosity=dynamic.viscosity.value)))
+    report = {
+        "plateaus": len(held), "dynamic_segments": len(segments),
+        "noise": {"marker": marker_sigma, "shortening": shortening_sigma},
+        "estimates": {k: vars(e) for k, e in static.estimates.items()},
+        "marker_rms": static.marker_rms.tolist(), "shortening_rms": static.shortening_rms.tolist(),
+        "static": {"evaluations": static.evaluations, "seconds": static_s},
+        "dynamic": None if dynamic is None else {
+            "viscosity": vars(dynamic.viscosity), "rotor_mass": vars(dynamic.rotor_mass),
+            "marker_rms": dynamic.marker_rms.tolist(), "shortening_rms": dynamic.shortening_rms.tolist(),
+            "evaluations": dynamic.evaluations, "seconds": dynamic_s},
+    }
+    return {"report": report, "static": static, "dynamic": dynamic, "plateaus": held, "samples": samples,
+            "segments": segments}
+
+
+def _print_report(report: dict, registration: Registration):
+    print(f"{report['plateaus']} plateaus, {report['dynamic_segments']} dynamic segments; noise of a "
+          f"sample: markers {report['noise']['marker'] * 1e6:.0f} um, shortenings "
+          f"{report['noise']['shortening'] * 1e6:.1f} um")
+    print(f"{'parameter':34s} {'value':>12s} {'std. error':>12s}")
+    rows = list(report["estimates"].items())
+    if report["dynamic"] is not None:
+        rows += [(k, report["dynamic"][k]) for k in ("viscosity", "rotor_mass")]
+    for name, e in rows:
+        scale, unit = (180 / np.pi, "deg") if e["unit"] == "rad" else (1.0, e["unit"])
+        print(f"{name:34s} {e['value'] * scale:12.5g} {e['standard_error'] * scale:12.2g} {unit}")
+    print(f"mocap registration: {np.degrees(registration.angle):.2f} deg, "
+          f"{np.linalg.norm(registration.translation) * 1e3:.1f} mm")
+    print("static residual RMS per marker [mm]: "
+          + ", ".join(f"{v * 1e3:.2f}" for v in report["marker_rms"]))
+    if report["dynamic"] is not None:
+        print("dynamic residual RMS per marker [mm]: "
+              + ", ".join(f"{v * 1e3:.2f}" for v in report["dynamic"]["marker_rms"]))
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="soft-arm-identify", description=__doc__.splitlines()[0])
+    parser.add_argument("bag", metavar="BAG_DIR", help="bag of an identification experiment")
+    parser.add_argument("--output", metavar="FILE", help="write the identified arm description here")
+    parser.add_argument("--json", action="store_true", help="print the report as JSON")
+    parser.add_argument("--plot", metavar="DIR", help="draw the fit's figures into DIR")
+    parser.add_argument("--arm-file", metavar="FILE", help="the arm description to start from "
+                        "(default: the configuration's arm.yaml)")
+    parser.add_argument("--config", metavar="DIR", help="directory with the parameter files")
+    parser.add_argument("--set", dest="sets", action="append", default=[], metavar="NS.KEY=VALUE",
+                        help="override an arm or identification parameter (repeatable), e.g. "
+                             "identification.fit.rotor_mass=0.3")
+    args = parser.parse_args(argv)
+    d = args.config or default_config_dir()
+    try:
+        groups = split_overrides(args.sets, ("arm", "identification"))
+        arm = load_arm_config(args.arm_file or os.path.join(d, "arm.yaml"), groups["arm"])
+        fit_config = parse_fit(load_identification(os.path.join(d, "identification.yaml"),
+                                                   groups["identification"]))
+        mocap = load_mocap_config(os.path.join(d, "mocap.yaml")).calibration
+        rec = read_recording(args.bag, [t.name for t in arm.tendons])
+        result = identify(rec, arm, fit_config)
+    except (ConfigError, IdentificationError) as exc:
+        print(f"soft-arm-identify: {exc}", file=sys.stderr)
+        return 2
+    static, report = result["static"], result["report"]
+    calibration = composed_calibration(static.registration, mocap.rotation, mocap.translation)
+    report["mocap_calibration"] = {"rotation_matrix": calibration[0].tolist(),
+                                   "translation": calibration[1].tolist()}
+    if args.output:
+        stamp = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+        dyn = report["dynamic"]
+        header = (f"Identified by soft-arm-identify from {os.path.abspath(args.bag)} ({stamp}).\n"
+                  f"{report['plateaus']} plateaus; tip residual RMS {static.marker_rms[-1] * 1e3:.2f} mm.\n"
+                  + (f"Rotors' reflected mass {dyn['rotor_mass']['value']:.4g} kg (plant.motor.rotor_inertia"
+                     " = this x pulley_radius^2 to simulate this rig).\n" if dyn else
+                     "No step or chirp in the bag: the viscosity is the starting arm's.\n")
+                  + "Use: --arm-file FILE, or --params-file FILE after mocap.yaml for the mocap bridge.")
+        write_arm_file(args.output, static.arm, header, calibration_tree(calibration))
+    if args.plot:
+        from .identification_figures import identification_figures
+        report["figures"] = identification_figures(rec, result, args.plot)
+    if args.json:
+        print(json.dumps(report, indent=2))
+    else:
+        _print_report(report, static.registration)
+        if args.output:
+            print(f"arm:      {args.output}")
+        for path in report.get("figures", []):
+            print(f"figure:   {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,188 @@
+"""Dynamic identification (ROS-free): the viscosity of the body and the rotors' reflected mass,
+from the recorded motion between plateaus (tension steps, chirps).
+
+Each :class:`~soft_arm_model.recording.DynamicSegment` is simulated with the project's own
+dynamics (:class:`~soft_arm_model.integrators.ImexStepper`, the static parameters already
+identified) from the equilibrium under the tensions applied at its start, driven by the applied
+tensions as recorded (the motor torque / pulley radius: it moves the rotor and pulls the tendon).
+Residuals are *changes* from the segment's start, markers over ``marker_sigma`` and shortenings
+over ``shortening_sigma``, so that a static error left by the static fit does not bias the
+dynamic one. Parameters: log ratios of the viscosity and of the rotor mass to their starting
+values; ``scipy.optimize.least_squares`` with forward differences, the segments simulated in
+parallel (one process per core).
+"""
+from __future__ import annotations
+
+import multiprocessing
+import os
+from dataclasses import dataclass, replace
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from .config import ArmConfig
+from .identification import Estimate, IdentificationError, Registration
+from .integrators import ImexStepper
+from .model import build_model
+from .statics import solve_equilibrium
+
+SAMPLE_PERIOD = 0.02        # s between the compared samples of a segment
+_LOG_STEP = 1e-3            # forward-difference step of the log parameters
+
+
+@dataclass(frozen=True)
+class DynamicFit:
+    """Identified viscosity [Pa s] and reflected rotor mass [kg] (one for all tendons), residual
+    RMS per marker and per tendon shortening [m] of the changes, segments and evaluations used."""
+    viscosity: Estimate
+    rotor_mass: Estimate
+    marker_rms: np.ndarray
+    shortening_rms: np.ndarray
+    segments: int
+    evaluations: int
+
+
+@dataclass(frozen=True)
+class SegmentData:
+    """What one simulation needs: input stamps and tensions, and the compared samples' stamps and
+    measured changes (markers already in arm_base)."""
+    t_input: np.ndarray
+    tension: np.ndarray
+    t_start: float
+    u_start: np.ndarray
+    t_s: np.ndarray
+    ds: np.ndarray
+    t_m: np.ndarray
+    dp: np.ndarray
+
+
+def segment_data(rec, seg, registration: Registration, lead: float) -> SegmentData:
+    s, m = rec.window(seg.start, seg.end)
+    s0, m0 = rec.window(seg.start, seg.start + lead)
+    if s0.sum() < 2 or m0.sum() < 2 or m.sum() < 10:
+        raise IdentificationError(f"the dynamic segment {seg.start:.2f}-{seg.end:.2f} s has too few "
+                                  "tendon states or mocap frames")
+    t0 = seg.start + lead
+    u0 = rec.tension[s0].mean(axis=0)
+    keep_s = s & (rec.t >= t0)
+    t_s = rec.t[keep_s]
+    every_s = max(1, int(round(SAMPLE_PERIOD / max(np.median(np.diff(t_s)), 1e-6))))
+    markers = registration.to_arm(rec.markers)
+    keep_m = m & (rec.t_markers >= t0)
+    t_m = rec.t_markers[keep_m]
+    every_m = max(1, int(round(SAMPLE_PERIOD / max(np.median(np.diff(t_m)), 1e-6))))
+    inputs = np.flatnonzero(s & (rec.t >= t0))
+    inputs = inputs[inputs + 1 < len(rec.t)]       # a state reports the tension of the period before it
+    ds = rec.shortening[keep_s] - rec.shortening[s0].mean(axis=0)
+    dp = markers[keep_m] - markers[m0].mean(axis=0)
+    return SegmentData(rec.t[inputs], rec.tension[inputs + 1], t0, u0, t_s[::every_s], ds[::every_s],
+                       t_m[::every_m], dp[::every_m])
+
+
+def simulate_changes(arm: ArmConfig, rotor_mass: float, data: SegmentData, timestep: float):
+    """The model's changes of shortenings (len(t_s), n_t) and markers (len(t_m), n_m, 3) [m] from
+    the equilibrium under ``u_start``, driven by the recorded tensions (held between stamps)."""
+    model = build_model(arm)
+    stepper = ImexStepper(model, timestep, rotor_mass=np.full(model.n_tendons, rotor_mass))
+    q = solve_equilibrium(model, data.u_start).q
+    qd = np.zeros(model.n)
+    stepper.prepare(q, qd, True)
+    d = stepper.data
+    s_ref, p_ref = (model.rest_tendon_lengths - d.Lc).copy(), d.marker_p.copy()
+    ds, dp = np.zeros_like(data.ds), np.zeros_like(data.dp)
+    i_s = i_m = 0
+    n_steps = int(np.ceil((max(data.t_s[-1], data.t_m[-1]) - data.t_start) / timestep)) + 1
+    for k in range(n_steps):
+        t = data.t_start + k * timestep
+        want_m = i_m < len(data.t_m) and data.t_m[i_m] <= t + 0.5 * timestep
+        stepper.prepare(q, qd, want_m)
+        while i_s < len(data.t_s) and data.t_s[i_s] <= t + 0.5 * timestep:
+            ds[i_s] = (model.rest_tendon_lengths - d.Lc) - s_ref
+            i_s += 1
+        while want_m and i_m < len(data.t_m) and data.t_m[i_m] <= t + 0.5 * timestep:
+            dp[i_m] = d.marker_p - p_ref
+            i_m += 1
+        if i_s >= len(data.t_s) and i_m >= len(data.t_m):
+            break
+        j = max(0, np.searchsorted(data.t_input, t, side="right") - 1)
+        q, qd = stepper.advance(data.tension[j], None)
+        if not np.all(np.isfinite(q)):
+            raise IdentificationError("the dynamics diverged in a segment (step too long, or a "
+                                      "parameter far off)")
+    return ds, dp
+
+
+def _simulate(job):
+    arm, rotor_mass, data, timestep = job
+    return simulate_changes(arm, rotor_mass, data, timestep)
+
+
+class DynamicProblem:
+    """The weighted least-squares problem of :func:`identify_dynamics` over p = (log viscosity
+    ratio, log rotor-mass ratio)."""
+
+    def __init__(self, arm: ArmConfig, rotor_mass: float, rec, segments, registration: Registration,
+                 marker_sigma: float, shortening_sigma: float, timestep: float, lead: float,
+                 pool=None):
+        if not segments:
+            raise IdentificationError("no dynamic segment (a step or a chirp between two plateaus): "
+                                      "the viscosity and the rotor mass cannot be identified")
+        self.arm0, self.m0 = arm, float(rotor_mass)
+        self.data = [segment_data(rec, seg, registration, lead) for seg in segments]
+        self.marker_sigma, self.shortening_sigma = marker_sigma, shortening_sigma
+        self.timestep, self.pool = timestep, pool
+        self.evaluations = 0
+
+    def arm(self, p) -> ArmConfig:
+        return replace(self.arm0, material=replace(self.arm0.material,
+                                                   viscosity=self.arm0.material.viscosity * np.exp(p[0])))
+
+    def changes(self, p) -> list:
+        """Per segment, the simulated (shortening changes, marker changes) at p."""
+        self.evaluations += 1
+        jobs = [(self.arm(p), self.m0 * np.exp(p[1]), d, self.timestep) for d in self.data]
+        return list(self.pool.map(_simulate, jobs)) if self.pool is not None else [_simulate(j) for j in jobs]
+
+    def residual(self, p) -> np.ndarray:
+        out = []
+        for (ds, dp), d in zip(self.changes(p), self.data):
+            out += [((dp - d.dp) / self.marker_sigma).ravel(), ((ds - d.ds) / self.shortening_sigma).ravel()]
+        return np.concatenate(out)
+
+
+def identify_dynamics(arm: ArmConfig, rotor_mass: float, rec, segments, registration: Registration,
+                      marker_sigma: float = 2e-4, shortening_sigma: float = 2e-5,
+                      timestep: float = 0.002, lead: float = 0.2, workers: int | None = None,
+                      max_evaluations: int = 30) -> DynamicFit:
+    """Fit the viscosity of ``arm`` (its static parameters identified) and the rotors' reflected
+    mass [kg] (``rotor_mass``: the starting guess, e.g. a datasheet's J / r^2) to the ``segments``
+    of the recording ``rec`` (markers mapped to arm_base by ``registration``); ``marker_sigma`` and
+    ``shortening_sigma`` [m]: the noise of one marker coordinate and one shortening reading;
+    ``timestep`` [s]: the simulation's; ``lead`` [s]: the settled start of each segment averaged as
+    its reference; ``workers``: processes (default: the cores)."""
+    workers = workers or os.cpu_count() or 1
+    # spawned, not forked: the caller may run threads (rclpy, DDS) that a fork would copy mid-lock
+    pool = multiprocessing.get_context("spawn").Pool(workers) if workers > 1 and len(segments) > 1 else None
+    try:
+        pb = DynamicProblem(arm, rotor_mass, rec, segments, registration, marker_sigma, shortening_sigma,
+                            timestep, lead, pool)
+        sol = least_squares(pb.residual, np.zeros(2), method="trf", diff_step=_LOG_STEP, x_scale=1.0,
+                            xtol=1e-4, ftol=1e-6, max_nfev=max_evaluations)
+        changes = pb.changes(sol.x)
+    finally:
+        if pool is not None:
+            pool.close()
+            pool.join()
+    J = sol.jac
+    r = sol.fun
+    scale = 2.0 * sol.cost / max(1, r.size - 2)
+    se = np.sqrt(np.clip(np.diag(np.linalg.pinv(J.T @ J)) * scale, 0.0, None))
+    eta = arm.material.viscosity * np.exp(sol.x[0])
+    m_r = rotor_mass * np.exp(sol.x[1])
+    err_p = np.concatenate([(dp - d.dp) for (_, dp), d in zip(changes, pb.data)])
+    err_s = np.concatenate([(ds - d.ds) for (ds, _), d in zip(changes, pb.data)])
+    return DynamicFit(Estimate(float(eta), float(eta * se[0]), "Pa s"),
+                      Estimate(float(m_r), float(m_r * se[1]), "kg"),
+                      np.sqrt(np.mean(np.sum(err_p ** 2, axis=2), axis=0)),
+                      np.sqrt(np.mean(err_s ** 2, axis=0)),
+                      len(segments), pb.evaluations)

@@ -1,0 +1,71 @@
+"""The identification experiment as a graph run (composed and one process per node) and
+soft-arm-identify on its bag: what a user runs, end to end."""
+import json
+
+import pytest
+
+from soft_arm_drivers.experiments.experiment import main as experiment
+from soft_arm_drivers.experiments.identify_cli import main as identify
+from soft_arm_drivers.mocap.bridge_config import load_mocap_config
+from soft_arm_model import load_arm_config
+from soft_arm_model.parameters import read_parameters
+
+# a short experiment: one level, one pair, 3 s plateaus, one short chirp (24 s simulated)
+SHORT = ["identification.steps=1", "identification.pairs=[1,2]", "identification.hold=3.0",
+         "identification.average=1.0", "identification.step.hold=1.0", "identification.chirp.duration=2.0",
+         "identification.chirp.tendons=[3]"]
+FIT = ["identification.fit.min_plateau=2.5", "identification.average=1.0",
+       "identification.fit.legendre_order=[3,0]", "identification.fit.shear=false"]
+
+
+def _sets(pairs):
+    return [a for p in pairs for a in ("--set", p)]
+
+
+@pytest.fixture(scope="module")
+def short_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("identification") / "run"
+    assert experiment(["identification", "--quiet", "--output", str(out)] + _sets(SHORT)) == 0
+    return out
+
+
+def test_the_experiment_records_a_bag_and_its_schedule(short_run):
+    with open(short_run / "excitation.json", encoding="utf-8") as fh:
+        schedule = json.load(fh)
+    assert schedule["valid"] and schedule["task"] == "identification"
+    assert [s["kind"] for s in schedule["segments"]].count("chirp") == 1
+    assert (short_run / "bag" / "metadata.yaml").is_file()
+
+
+def test_identify_writes_an_arm_every_entry_point_takes(short_run, tmp_path, capsys):
+    arm_file, figures = tmp_path / "arm.yaml", tmp_path / "figures"
+    code = identify([str(short_run / "bag"), "--output", str(arm_file), "--json", "--plot", str(figures)]
+                    + _sets(FIT))
+    assert code == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["plateaus"] == 16 and report["dynamic_segments"] == 5
+    assert report["dynamic"]["rotor_mass"]["value"] > 0 and len(report["marker_rms"]) == 4
+    arm = load_arm_config(str(arm_file))
+    assert abs(arm.material.youngs_modulus / 1.5e5 - 1.15) < 0.1          # plant.yaml: E x1.15
+    calibration = read_parameters(str(arm_file))["rig"]["mocap"]["calibration"]   # over mocap.yaml
+    bridge = load_mocap_config(overrides={f"mocap.calibration.{k}": v for k, v in calibration.items()})
+    assert bridge.calibration.rotation.shape == (3, 3)
+    assert sorted(p.name for p in figures.iterdir()) == [
+        "dynamics.png", "hysteresis.png", "markers.png", "shortenings.png"]
+
+
+def test_a_bag_without_the_commands_is_refused_naming_the_topic(tmp_path, capsys):
+    out = tmp_path / "nocommands"
+    assert experiment(["identification", "--quiet", "--output", str(out),
+                       "--set", "graph.recorder.topics=[tendon/state, mocap/markers]"] + _sets(SHORT)) == 0
+    capsys.readouterr()
+    assert identify([str(out / "bag")] + _sets(FIT)) == 2
+    assert "the bag lacks tendon/command" in capsys.readouterr().err
+
+
+def test_the_identification_experiment_runs_one_process_per_node(tmp_path):
+    out = tmp_path / "procs"
+    assert experiment(["identification", "--processes", "--quiet", "--output", str(out)]
+                      + _sets(SHORT)) == 0
+    with open(out / "excitation.json", encoding="utf-8") as fh:
+        assert json.load(fh)["duration"] > 20
