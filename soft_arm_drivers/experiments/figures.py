@@ -64,7 +64,7 @@ def make_figures(bag_dir: str, task, out_dir: str) -> list:
         ax.set_ylabel("task error [mm]")
         ax.set_title(f"{task.name}: task error (5 mm and 10 mm bands)")
         ax.legend(loc="upper right", fontsize=7, ncol=3)
-        paths.append(_save(fig, out_dir, "task_error.png"))
+        paths.append(save_figure(fig, out_dir, "task_error.png"))
     states = series.get("tendon/state", [])
     refs = series.get("tendon/reference", [])
     if states:
@@ -81,7 +81,7 @@ def make_figures(bag_dir: str, task, out_dir: str) -> list:
         ax.set_ylabel("shortening [mm]")
         ax.set_title("actuation coordinates: measured (solid) and reference (dashed)")
         ax.legend(fontsize=7)
-        paths.append(_save(fig, out_dir, "actuation.png"))
+        paths.append(save_figure(fig, out_dir, "actuation.png"))
     commands = series.get("tendon/command", [])
     if commands:
         tc = np.array([s for s, _ in commands])
@@ -93,7 +93,7 @@ def make_figures(bag_dir: str, task, out_dir: str) -> list:
         ax.set_ylabel("tension [N]")
         ax.set_title("pulling forces")
         ax.legend(fontsize=7)
-        paths.append(_save(fig, out_dir, "tensions.png"))
+        paths.append(save_figure(fig, out_dir, "tensions.png"))
     return paths
 
 
@@ -101,7 +101,8 @@ def _positions(pose_array) -> np.ndarray:
     return np.array([[p.position.x, p.position.y, p.position.z] for p in pose_array.poses])
 
 
-def _save(fig, out_dir, name):
+def save_figure(fig, out_dir, name) -> str:
+    """Lay out, write ``out_dir/name`` (PNG, 110 dpi) and close ``fig``; the path."""
     path = os.path.join(out_dir, name)
     fig.tight_layout()
     fig.savefig(path, dpi=110)

@@ -20,6 +20,8 @@ import numpy as np  # noqa: E402
 from soft_arm_model.dynamic_identification import segment_data, simulate_changes  # noqa: E402
 from soft_arm_model.identification import predict_samples  # noqa: E402
 
+from .figures import save_figure  # noqa: E402
+
 
 def identification_figures(rec, result: dict, out_dir: str) -> list:
     """Write the figures of a fit (``result``: :func:`.identify_cli.identify`'s) into ``out_dir``;
@@ -41,7 +43,7 @@ def identification_figures(rec, result: dict, out_dir: str) -> list:
         ax.set_ylabel(f"{'xyz'[a]} [mm]")
     axes[0].legend(fontsize=6, ncol=4)
     axes[-1].set_xlabel("quasi-static sample")
-    paths.append(_save(fig, out_dir, "markers.png"))
+    paths.append(save_figure(fig, out_dir, "markers.png"))
 
     fig, ax = plt.subplots(figsize=(10, 4))
     for j in range(measured_s.shape[1]):
@@ -50,7 +52,7 @@ def identification_figures(rec, result: dict, out_dir: str) -> list:
     ax.set_xlabel("quasi-static sample")
     ax.set_ylabel("shortening [mm]")
     ax.legend(fontsize=7)
-    paths.append(_save(fig, out_dir, "shortenings.png"))
+    paths.append(save_figure(fig, out_dir, "shortenings.png"))
 
     n_t = tension.shape[1]
     fig, axes = plt.subplots(1, n_t, figsize=(3 * n_t, 3), squeeze=False)
@@ -63,7 +65,7 @@ def identification_figures(rec, result: dict, out_dir: str) -> list:
         ax.set_xlabel("tension [N]")
     axes[0][0].set_ylabel("shortening [mm]")
     axes[0][0].legend(fontsize=7)
-    paths.append(_save(fig, out_dir, "hysteresis.png"))
+    paths.append(save_figure(fig, out_dir, "hysteresis.png"))
 
     dynamic = result["dynamic"]
     if dynamic is not None:
@@ -79,13 +81,5 @@ def identification_figures(rec, result: dict, out_dir: str) -> list:
             ax.set_ylabel("[mm]")
         axes[0, 0].legend(fontsize=7, ncol=3, title="measured (solid), simulated (dashed)", title_fontsize=7)
         axes[-1, 0].set_xlabel("time in segment [s]")
-        paths.append(_save(fig, out_dir, "dynamics.png"))
+        paths.append(save_figure(fig, out_dir, "dynamics.png"))
     return paths
-
-
-def _save(fig, out_dir, name):
-    path = os.path.join(out_dir, name)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
