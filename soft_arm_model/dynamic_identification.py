@@ -24,6 +24,7 @@ from .config import ArmConfig
 from .identification import Estimate, IdentificationError, Registration
 from .integrators import ImexStepper
 from .model import build_model
+from .recording import SETTLED_LEAD
 from .statics import solve_equilibrium
 
 SAMPLE_PERIOD = 0.02        # s between the compared samples of a segment
@@ -33,12 +34,14 @@ _LOG_STEP = 1e-3            # forward-difference step of the log parameters
 @dataclass(frozen=True)
 class DynamicFit:
     """Identified viscosity [Pa s] and reflected rotor mass [kg] (one for all tendons), residual
-    RMS per marker and per tendon shortening [m] of the changes, segments and evaluations used."""
+    RMS per marker and per tendon shortening [m] of the changes, per segment its data and the
+    changes simulated at the optimum (shortenings, markers), and the evaluations used."""
     viscosity: Estimate
     rotor_mass: Estimate
     marker_rms: np.ndarray
     shortening_rms: np.ndarray
-    segments: int
+    segments: tuple
+    simulated: tuple
     evaluations: int
 
 
@@ -152,7 +155,7 @@ class DynamicProblem:
 
 def identify_dynamics(arm: ArmConfig, rotor_mass: float, rec, segments, registration: Registration,
                       marker_sigma: float = 2e-4, shortening_sigma: float = 2e-5,
-                      timestep: float = 0.002, lead: float = 0.2, workers: int | None = None,
+                      timestep: float = 0.002, lead: float = SETTLED_LEAD, workers: int | None = None,
                       max_evaluations: int = 30) -> DynamicFit:
     """Fit the viscosity of ``arm`` (its static parameters identified) and the rotors' reflected
     mass [kg] (``rotor_mass``: the starting guess, e.g. a datasheet's J / r^2) to the ``segments``
@@ -185,4 +188,4 @@ def identify_dynamics(arm: ArmConfig, rotor_mass: float, rec, segments, registra
                       Estimate(float(m_r), float(m_r * se[1]), "kg"),
                       np.sqrt(np.mean(np.sum(err_p ** 2, axis=2), axis=0)),
                       np.sqrt(np.mean(err_s ** 2, axis=0)),
-                      len(segments), pb.evaluations)
+                      tuple(pb.data), tuple(changes), pb.evaluations)

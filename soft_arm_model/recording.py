@@ -15,6 +15,7 @@ import numpy as np
 from .identification import IdentificationError, StaticSample
 
 SAME = 1e-6             # N: commands closer than this are the same plateau
+SETTLED_LEAD = 0.2      # s: the end of a plateau a dynamic segment starts with (its settled reference)
 
 
 @dataclass(frozen=True)

@@ -17,13 +17,12 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from soft_arm_model.dynamic_identification import segment_data, simulate_changes  # noqa: E402
 from soft_arm_model.identification import predict_samples  # noqa: E402
 
 from .figures import save_figure  # noqa: E402
 
 
-def identification_figures(rec, result: dict, out_dir: str) -> list:
+def identification_figures(result: dict, out_dir: str) -> list:
     """Write the figures of a fit (``result``: :func:`.identify_cli.identify`'s) into ``out_dir``;
     their paths."""
     os.makedirs(out_dir, exist_ok=True)
@@ -69,11 +68,9 @@ def identification_figures(rec, result: dict, out_dir: str) -> list:
 
     dynamic = result["dynamic"]
     if dynamic is not None:
-        segments = result["segments"]
-        fig, axes = plt.subplots(len(segments), 1, figsize=(10, 1.8 * len(segments)), squeeze=False)
-        for seg, ax in zip(segments, axes[:, 0]):
-            data = segment_data(rec, seg, static.registration, 0.2)
-            _, dp = simulate_changes(static.arm, dynamic.rotor_mass.value, data, 0.002)
+        n = len(dynamic.segments)
+        fig, axes = plt.subplots(n, 1, figsize=(10, 1.8 * n), squeeze=False)
+        for data, (_, dp), ax in zip(dynamic.segments, dynamic.simulated, axes[:, 0]):
             for a in range(3):
                 line, = ax.plot(data.t_m - data.t_start, 1e3 * data.dp[:, -1, a], lw=0.8,
                                 label=f"tip {'xyz'[a]}")

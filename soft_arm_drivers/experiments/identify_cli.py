@@ -33,7 +33,8 @@ from soft_arm_model.config import with_basis, write_arm_file
 from soft_arm_model.dynamic_identification import identify_dynamics
 from soft_arm_model.identification import IdentificationError, Registration, identify_static
 from soft_arm_model.parameters import ConfigError, default_config_dir, split_overrides
-from soft_arm_model.recording import Recording, dynamic_segments, noise_levels, plateaus, static_samples
+from soft_arm_model.recording import (SETTLED_LEAD, Recording, dynamic_segments, noise_levels,
+                                      plateaus, static_samples)
 
 from .excitation import load_identification, parse_fit
 
@@ -108,7 +109,7 @@ def identify(rec: Recording, arm, fit_config, workers: int | None = None) -> dic
                              marker_sigma, shortening_sigma, max_evaluations=fit_config.max_evaluations)
     static = replace(static, arm=replace(static.arm, discretisation=arm.discretisation))
     static_s = time.perf_counter() - start
-    segments = dynamic_segments(held, 0.2, fit_config.dynamic_window)
+    segments = dynamic_segments(held, SETTLED_LEAD, fit_config.dynamic_window)
     dynamic, dynamic_s = None, 0.0
     if segments:
         start = time.perf_counter()
@@ -129,8 +130,7 @@ def identify(rec: Recording, arm, fit_config, workers: int | None = None) -> dic
             "marker_rms": dynamic.marker_rms.tolist(), "shortening_rms": dynamic.shortening_rms.tolist(),
             "evaluations": dynamic.evaluations, "seconds": dynamic_s},
     }
-    return {"report": report, "static": static, "dynamic": dynamic, "plateaus": held, "samples": samples,
-            "segments": segments}
+    return {"report": report, "static": static, "dynamic": dynamic, "samples": samples}
 
 
 def _print_report(report: dict, registration: Registration):
@@ -194,7 +194,7 @@ def main(argv=None) -> int:
         write_arm_file(args.output, static.arm, header, calibration_tree(calibration))
     if args.plot:
         from .identification_figures import identification_figures
-        report["figures"] = identification_figures(rec, result, args.plot)
+        report["figures"] = identification_figures(result, args.plot)
     if args.json:
         print(json.dumps(report, indent=2))
     else:

@@ -18,6 +18,7 @@ import sys
 import threading
 import time
 
+from soft_arm_control.config import IDENTIFICATION
 from soft_arm_model.parameters import ConfigError, default_config_dir
 
 STOP = threading.Event()       # set by the first Ctrl-C / SIGTERM: the run loops end at their next turn
@@ -164,7 +165,6 @@ ROLES = {"task": (("inner_loop", "clik"), "task_runner"), "identification": ((),
 
 def roles(task: str) -> tuple:
     """(controller nodes, runner node) of a run of ``task``."""
-    from soft_arm_control.config import IDENTIFICATION
     return ROLES["identification" if task == IDENTIFICATION else "task"]
 
 

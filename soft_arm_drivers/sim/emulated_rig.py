@@ -32,7 +32,6 @@ import time
 
 import can
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from soft_arm_drivers.can.motor_driver_node import MotorDriverNode
 from soft_arm_drivers.mocap.mocap_bridge_node import load_node_config
@@ -127,13 +126,11 @@ class EmulatedRigNode(MotorDriverNode):
         self._can_thread = EmulatorThread(motors).start()
         rng = np.random.default_rng(p.mocap_seed)
         data = ArmData(plant.model)
-        frame_R = Rotation.from_rotvec(p.mocap_frame_error[0]).as_matrix()   # the calibration's error
-        frame_t = np.array(p.mocap_frame_error[1])
 
         def markers(t: float) -> np.ndarray:
             """On the NatNet thread: the plant at the exposure time ``t`` [s, system time]."""
             true = marker_positions(plant.model, motors.configuration_at(t), data)
-            return true @ frame_R.T + frame_t + rng.normal(0.0, p.mocap_noise, true.shape)
+            return p.as_mocap_reports(true) + rng.normal(0.0, p.mocap_noise, true.shape)
 
         ids = {"rigid_body_ids" if mocap.source == "rigid_bodies" else "labeled_marker_ids": mocap.ids}
         try:

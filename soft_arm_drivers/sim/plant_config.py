@@ -9,6 +9,9 @@ import math
 import os
 from dataclasses import dataclass, replace
 
+import numpy as np
+from scipy.spatial.transform import Rotation
+
 from soft_arm_model.config import ArmConfig, load_arm_config, with_basis
 from soft_arm_model.parameters import ConfigError, default_config_dir, load_section
 
@@ -103,6 +106,13 @@ class PlantConfig:
         return with_basis(arm,
                           v["discretisation.legendre_order"], v["discretisation.gauss_points"],
                           v["discretisation.shear"])
+
+    def as_mocap_reports(self, points) -> np.ndarray:
+        """Points (..., 3) [m] in arm_base as the miscalibrated mocap reports them: R p + t of
+        ``mocap_frame_error`` (noise not included)."""
+        rotvec, translation = self.mocap_frame_error
+        R = Rotation.from_rotvec(rotvec).as_matrix()
+        return np.asarray(points, dtype=float) @ R.T + np.asarray(translation)
 
     @property
     def rotor_mass(self) -> float:

@@ -12,7 +12,6 @@ from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from soft_arm_model import ImexStepper, build_model, solve_equilibrium
 
@@ -125,9 +124,6 @@ class SimulatedRig:
         zero, _ = self.plant.tendons()
         self.encoders = Encoders(plant, zero, encoder_offset)
         self.rng = np.random.default_rng(plant.mocap_seed)
-        rotvec, translation = plant.mocap_frame_error
-        self._frame_R = Rotation.from_rotvec(rotvec).as_matrix()
-        self._frame_t = np.array(translation, dtype=float)
         self.step_index = 0
         self._frame_period = 1.0 / plant.mocap_rate
         self._next_frame = 0
@@ -152,8 +148,8 @@ class SimulatedRig:
         frame = None
         if exposure:
             true, speed = self.plant.markers()
-            noisy = true @ self._frame_R.T + self._frame_t + self.rng.normal(0.0, self.config.mocap_noise,
-                                                                             true.shape)
+            noisy = self.config.as_mocap_reports(true) + self.rng.normal(0.0, self.config.mocap_noise,
+                                                                         true.shape)
             frame = MocapFrame(self._next_frame * self._frame_period, noisy, true, speed,
                                self._next_frame)
             self._pending.append(frame)
