@@ -15,14 +15,16 @@ series, minutes slower), fitted as ``soft-arm-identify`` fits it (one core per d
 draws at a time). Reported per draw: the errors of E, viscosity, rotor mass, friction, offsets,
 tendon angles (relative to their mean: the common turn is the mocap frame's), the mocap frame
 (rotation after removing that turn, translation), the fit's wall time, and the triangle run with
-the identified arm (``soft-arm-harness triangle --arm-file --accept-closest``): RMS error, mm band,
-mm-band velocity.
+the identified arm and its mocap calibration (``soft-arm-harness triangle --arm-file
+--accept-closest``): RMS error, mm band, mm-band velocity, and how far the targets the identified
+model cannot hold within ``control.clik.closest_margin`` of the tension limits were moved.
 """
 from __future__ import annotations
 
 import argparse
 import json
 import os
+import re
 import subprocess
 import sys
 import tempfile
@@ -51,7 +53,8 @@ def identify_one(plant: dict) -> dict:
     from soft_arm_drivers.experiments.excitation import Excitation, load_identification, parse_fit
     from soft_arm_drivers.experiments.harness import load_setup
     from soft_arm_drivers.experiments.identification_run import simulate_recording
-    from soft_arm_drivers.experiments.identify_cli import identify
+    from soft_arm_drivers.experiments.identify_cli import calibration_tree, composed_calibration, identify
+    from soft_arm_drivers.mocap.bridge_config import load_mocap_config
     from soft_arm_model.config import write_arm_file
 
     overrides = [f"plant.{key}={json.dumps(value)}" for key, value in plant.items()]
@@ -85,7 +88,9 @@ def identify_one(plant: dict) -> dict:
            "tip_rms_mm": float(fit.marker_rms[-1] * 1e3)}
     with tempfile.TemporaryDirectory() as tmp:
         path = os.path.join(tmp, "arm.yaml")
-        write_arm_file(path, fit.arm)
+        rig = load_mocap_config().calibration          # as soft-arm-identify writes the arm file
+        write_arm_file(path, fit.arm, "", calibration_tree(
+            composed_calibration(fit.registration, rig.rotation, rig.translation)))
         sets = [a for o in overrides for a in ("--set", o)]
         t2 = time.perf_counter()
         proc = subprocess.run([sys.executable, "-m", "soft_arm_drivers.experiments.harness_cli", "triangle",
@@ -96,9 +101,12 @@ def identify_one(plant: dict) -> dict:
         out["triangle"] = {"ok": False, "error": proc.stderr.strip().splitlines()[-1:]}
     else:
         s = json.loads(proc.stdout)["summary"]
+        # targets the identified model cannot hold with control.clik.closest_margin, moved by
+        # --accept-closest: how far [mm]
+        moved = [float(m) for m in re.findall(r"\(([\d.]+) mm away", proc.stderr)]
         out["triangle"] = {"ok": True, "rms_mm": s["rms_error"] * 1e3, "mm_band": s["reached_mm"],
                            "transitions": s["transitions"], "velocity_mm_band": s["velocity_mm"],
-                           "velocity_cm_band": s["velocity_cm"]}
+                           "velocity_cm_band": s["velocity_cm"], "targets_moved_mm": moved}
     return out
 
 
@@ -118,7 +126,8 @@ def main(argv=None) -> int:
             for i, (p, r) in enumerate(zip(plants, results))]
     print(f"{'draw':>5s} {'E %':>6s} {'visc %':>6s} {'rotor %':>7s} {'fric':>6s} {'offs':>6s} "
           f"{'ang deg':>7s} "
-          f"{'frame deg':>9s} {'mm':>5s} {'fit s':>6s} | {'RMS mm':>7s} {'mm band':>8s} {'v_mm':>6s}")
+          f"{'frame deg':>9s} {'mm':>5s} {'fit s':>6s} | {'RMS mm':>7s} {'mm band':>8s} {'v_mm':>6s} "
+          f"{'moved mm':>8s}")
     for r in runs:
         e, tri = r["errors"], r["triangle"]
         head = (f"{r['draw']!s:>5s} {e['youngs_modulus'] * 100:6.2f} {e['viscosity'] * 100:6.1f} "
@@ -126,7 +135,8 @@ def main(argv=None) -> int:
                 f"{e['angle_deg']:7.2f} {e['frame_rotation_deg']:9.2f} {e['frame_translation_mm']:5.2f} "
                 f"{r['fit_s']:6.1f} |")
         tail = (f" {tri['rms_mm']:7.2f} {tri['mm_band']:4d}/{tri['transitions']:<3d} "
-                f"{tri['velocity_mm_band'] or 0:6.3f}") if tri["ok"] else f" failed: {' '.join(tri['error'])}"
+                f"{tri['velocity_mm_band'] or 0:6.3f} {max(tri['targets_moved_mm'], default=0.0):8.1f}") \
+            if tri["ok"] else f" failed: {' '.join(tri['error'])}"
         print(head + tail)
     worst = {k: max(abs(r["errors"][k]) for r in runs) for k in runs[0]["errors"]}
     done = [r["triangle"] for r in runs if r["triangle"]["ok"]]

@@ -91,16 +91,20 @@ class ClikStep:
 
 
 class Clik:
-    """Underactuated CLIK for one task and one collocated model (m must equal n_a)."""
+    """Underactuated CLIK for one task and one collocated model (m must equal n_a).
+
+    ``closest_margin`` [N]: the margin from the tension limits of the closest feasible point
+    :meth:`precompute` offers for a target it cannot reach (None: a thousandth of the range)."""
 
     def __init__(self, cm: CollocatedModel, task: TaskSpace, gains: ClikGains,
-                 tension_limits: tuple[float, float]):
+                 tension_limits: tuple[float, float], closest_margin: float | None = None):
         task.check(cm.model)
         if task.m != cm.n_a:
             raise ValueError(f"the task has {task.m} coordinates but {cm.n_a} tendons are actuated "
                              "(the underactuated CLIK needs m = n_a)")
         self.cm, self.task, self.gains = cm, task, gains
         self.u_min, self.u_max = map(float, tension_limits)
+        self.closest_margin = closest_margin
         self.cd = CollocatedData(cm)
         self._at = None          # q of the last evaluation held in cd, _x, _Jx
         self._x = self._Jx = None
@@ -337,7 +341,8 @@ class Clik:
         tried in turn, and last (with ``search``) a search over the tensions within the limits from
         q_start and the 3 nearest seeds (:meth:`closest_feasible`), which goes round where the
         straight path leaves the workspace. Raises TargetError when no equilibrium reaches x_d or
-        none is within the limits; after a search, its ``closest`` is the closest point found.
+        none is within the limits; after a search, its ``closest`` is the closest point found
+        ``closest_margin`` inside the limits.
         """
         x_d = np.asarray(x_d, dtype=float)
         if x_d.shape != (self.task.m,) or not np.all(np.isfinite(x_d)):
@@ -359,7 +364,7 @@ class Clik:
         closest = None
         if search:            # on the tensions, round where the straight task path leaves the workspace
             try:
-                closest = self.closest_feasible(x_d, starts[:4])
+                closest = self.closest_feasible(x_d, starts[:4], self.closest_margin)
             except TargetError:
                 pass
             if closest is not None and np.max(np.abs(closest.x - x_d)) < tol:

@@ -56,6 +56,8 @@ CONTROL_SCHEMA = {
     "clik.stall_time": ("float", lambda v: 0 < v <= 3600, "a time in (0, 3600] s"),
     "clik.seed_levels": ("floats", lambda v: all(0 <= a <= 100 for a in v),
                          "tensions in [0, 100] N (may be empty)"),
+    "clik.closest_margin": ("float", lambda v: 0 <= v <= 100,
+                            "a tension margin in [0, 100] N, less than half of the tension range"),
 }
 
 TASK_SCHEMA = {
@@ -104,6 +106,7 @@ class ControlConfig:
     seed_levels: tuple
     reach_tolerance: float
     stall_time: float
+    closest_margin: float
 
 
 def parse_control(v: dict, arm: ArmConfig) -> ControlConfig:
@@ -119,6 +122,10 @@ def parse_control(v: dict, arm: ArmConfig) -> ControlConfig:
     if not v["tension_min"] < v["tension_max"]:
         raise ConfigError(f"control.tension_min = {v['tension_min']} is not valid: expected a "
                           f"pretension below control.tension_max ({v['tension_max']})")
+    if not 2 * v["clik.closest_margin"] < v["tension_max"] - v["tension_min"]:
+        raise ConfigError(f"control.clik.closest_margin = {v['clik.closest_margin']} is not valid: "
+                          "expected a tension margin less than half of the tension range "
+                          f"({v['tension_max'] - v['tension_min']:.4g} N)")
     return ControlConfig(
         v["friction"], v["tension_min"], v["tension_max"], v["actuation_map.degree"],
         v["actuation_map.levels"], v["actuation_map.validation_samples"], v["inner_loop.rate"],
@@ -127,7 +134,8 @@ def parse_control(v: dict, arm: ArmConfig) -> ControlConfig:
         v["inner_loop.feedforward"], v["clik.task_gain"], v["clik.equilibrium_gain"],
         v["clik.singular_threshold"], v["clik.rate"], v["clik.jacobian_rate"],
         v["clik.switch_delay"], v["clik.tolerance"],
-        v["clik.seed_levels"], v["clik.reach_tolerance"], v["clik.stall_time"])
+        v["clik.seed_levels"], v["clik.reach_tolerance"], v["clik.stall_time"],
+        v["clik.closest_margin"])
 
 
 def load_control_config(arm: ArmConfig, path: str | None = None, overrides=None) -> ControlConfig:

@@ -204,7 +204,7 @@ def clik_for(model, control, task) -> Clik:
                           friction=control.friction)
     return Clik(cm, task.space, ClikGains(control.task_gain, control.equilibrium_gain,
                                           control.singular_threshold),
-                (control.tension_min, control.tension_max))
+                (control.tension_min, control.tension_max), control.closest_margin)
 
 
 def outer_loop_for(model, control, task) -> OuterLoop:

@@ -24,6 +24,7 @@ import signal
 import sys
 import time
 
+from soft_arm_model.config import write_arm_file
 from soft_arm_model.parameters import ConfigError, default_config_dir
 
 from .metrics import Summary, TransitionMetrics, format_table
@@ -183,6 +184,13 @@ def main(argv=None) -> int:
         print(f"soft-arm-experiment: {run_dir} already holds a run", file=sys.stderr)
         return 2
     os.makedirs(run_dir, exist_ok=True)
+    if args.arm_file and not setup.plant.plant_file:
+        # every node's plant is the arm of plant.yaml over arm.yaml, not over the controller's arm
+        plant_file = os.path.join(run_dir, "plant_arm.yaml")
+        write_arm_file(plant_file, setup.plant.plant_arm(setup.arm),
+                       "The simulated plant of this run: plant.yaml over arm.yaml (the controller's "
+                       f"arm is {os.path.abspath(args.arm_file)}).")
+        ros_args += ["-p", f"plant.plant_file:={plant_file}"]
     result = "metrics.json" if setup.task is not None else "excitation.json"
     out = {"bag": os.path.join(run_dir, "bag"), "metrics": os.path.join(run_dir, result),
            "figures": os.path.join(run_dir, "figures")}
@@ -203,7 +211,7 @@ def _run(args, setup, ros_args: list, out: dict) -> int:
         if args.emulated_hardware:
             duration = sum(ph.window * len(ph.sequence) for ph in setup.task.phases) \
                 if setup.task is not None else Excitation(setup.excitation, len(setup.arm.tendons)).duration
-            facts = run_emulated_hardware(ros_args, out, duration, args.config, args.task)
+            facts = run_emulated_hardware(ros_args, out, duration, args.config, args.task, args.arm_file)
         elif args.processes:
             facts = run_processes(ros_args, out, args.task)
         else:

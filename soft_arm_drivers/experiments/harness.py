@@ -15,7 +15,7 @@ All times are simulated seconds on one clock; every rate is realised on the plan
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -26,7 +26,8 @@ from soft_arm_control.config import (IDENTIFICATION, ControlConfig, TaskConfig, 
                                      load_task_config)
 from soft_arm_control.inner_loop import tendon_controller_for
 from soft_arm_control.outer_loop import OuterLoop, outer_loop_for
-from soft_arm_drivers.sim.plant_config import PlantConfig, load_plant_config
+from soft_arm_drivers.mocap.bridge_config import calibration_overrides
+from soft_arm_drivers.sim.plant_config import PlantConfig, load_plant_config, with_bridge_calibration
 from soft_arm_drivers.sim.simulated_rig import SimulatedRig
 from soft_arm_model import ArmConfig, build_model, load_arm_config
 from soft_arm_model.parameters import default_config_dir, split_overrides
@@ -50,13 +51,19 @@ def load_setup(task: str, config_dir: str | None = None, overrides=None,
                arm_file: str | None = None) -> Setup:
     """Load the parameter files from ``config_dir`` (default: the package's) with overrides
     (``namespace.key=value`` strings); ``arm_file``: the controller's arm description instead of
-    ``arm.yaml`` (e.g. an identified one). The plant's differences of ``plant.yaml`` apply to it
-    (a ``plant.plant_file`` does not depend on it). ``task`` "identification": the identification
-    experiment of ``identification.yaml`` instead of a task."""
+    ``arm.yaml`` (e.g. an identified one): the plant stays the arm of ``plant.yaml`` over
+    ``arm.yaml`` (or ``plant.plant_file``), whatever the controller believes; the mocap
+    calibration an arm file carries (``rig.mocap.calibration``, as soft-arm-identify writes it) is
+    the one the markers come through, as the mocap bridge given that file would publish them. ``task`` "identification": the
+    identification experiment of ``identification.yaml`` instead of a task."""
     d = config_dir or default_config_dir()
     groups = split_overrides(overrides, ("arm", "control", "plant", "tasks", "identification"))
-    arm = load_arm_config(arm_file or os.path.join(d, "arm.yaml"), groups["arm"])
+    drawing = load_arm_config(os.path.join(d, "arm.yaml"), groups["arm"])
+    arm = load_arm_config(arm_file, groups["arm"]) if arm_file else drawing
     plant = load_plant_config(arm, os.path.join(d, "plant.yaml"), groups["plant"])
+    if arm_file:
+        plant = with_bridge_calibration(replace(plant, drawing=drawing), os.path.join(d, "mocap.yaml"),
+                                        calibration_overrides(arm_file))
     plant.plant_arm(arm)                  # a bad plant file is refused before anything runs
     control = load_control_config(arm, os.path.join(d, "control.yaml"), groups["control"])
     if task == IDENTIFICATION:

@@ -194,13 +194,14 @@ def run_processes(ros_args: list, out: dict, task: str = "") -> dict:
 
 
 def run_emulated_hardware(ros_args: list, out: dict, duration: float,
-                          config_dir: str | None = None, task: str = "") -> dict:
+                          config_dir: str | None = None, task: str = "", arm_file: str | None = None) -> dict:
     """The rig's graph in real time, each node its own process, with the ``emulated_rig`` (the
     motor_driver node with the CAN motor emulators and the NatNet server emulator behind it,
     :mod:`.emulated_rig`) and the ``mocap_bridge`` in the simulator's place; ``duration`` [s]: the
     task's, ``task``: its name (the identification experiment has the excitation node in the
     controller's and the task runner's place), ``config_dir``: where rig.yaml, mocap.yaml and
-    emulator.yaml are (default: the package's).
+    emulator.yaml are (default: the package's), ``arm_file``: the controller's arm file, whose mocap
+    calibration (if it has one) the bridge uses.
 
     As an operator runs the rig: every node starts (the task runner waiting for ``~/start``); once
     the graph is wired and settled and the controller answers the motors' state, the motors are
@@ -230,7 +231,10 @@ def run_emulated_hardware(ros_args: list, out: dict, duration: float,
         "recorder": ["-p", f"output:={out['bag']}"],
         runner: ["-p", f"output:={out['metrics']}", "-p", "wait_for_start:=true"],
         "emulated_rig": files + ["-p", f"rig.mocap.command_port:={port}"],
-        "mocap_bridge": files + ["-p", f"rig.mocap.command_port:={port}", "-p", "rig.mocap.data_port:=0"]},
+        # the bridge takes the mocap calibration of an arm file (an identified one) over mocap.yaml's;
+        # the emulated Motive stays in the rig's frame, that of mocap.yaml
+        "mocap_bridge": files + (["--params-file", os.path.abspath(arm_file)] if arm_file else [])
+        + ["-p", f"rig.mocap.command_port:={port}", "-p", "rig.mocap.data_port:=0"]},
         _REALTIME if realtime else None)
     faults = []
     enabled_at = math.inf                  # system time [s] from which a fault counts

@@ -221,3 +221,14 @@ def load_mocap_config(path: Optional[str] = None, overrides: Optional[Mapping] =
     except ConfigError as exc:
         raise ConfigError(f"{path}: {exc}") from None
     return BridgeConfig(**{name: values[f"mocap.{key}"] for name, key in _FIELDS.items()})
+
+
+def calibration_overrides(path: str) -> dict:
+    """``rig.mocap.calibration`` of a parameter file (e.g. an arm file written by
+    soft-arm-identify) as overrides for :func:`load_mocap_config`; empty if the file has none."""
+    rig = read_parameters(path).get(NAMESPACE)
+    mocap = rig.get("mocap") if isinstance(rig, dict) else None
+    calibration = mocap.get("calibration") if isinstance(mocap, dict) else None
+    if not isinstance(calibration, dict):
+        return {}
+    return {f"mocap.calibration.{key}": value for key, value in calibration.items()}

@@ -12,6 +12,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from soft_arm_drivers.mocap.bridge_config import load_mocap_config
 from soft_arm_model.config import ArmConfig, load_arm_config, with_basis
 from soft_arm_model.parameters import ConfigError, default_config_dir, load_section
 
@@ -66,7 +67,14 @@ class PlantConfig:
     step [s], the motor rotor inertia [kg m^2], the encoder (pulley radius
     [m], angle and rate resolution [rad], [rad/s]) and the mocap (frame rate [Hz], noise standard
     deviation [m], latency [s], seed, and the error of its calibration: the markers arrive as
-    R p + t for p in arm_base, ``mocap_frame_error`` = (rotation vector R [rad] (3,), t [m] (3,)))."""
+    R p + t for p in arm_base, ``mocap_frame_error`` = (rotation vector R [rad] (3,), t [m] (3,))).
+
+    ``bridge_correction`` = (rotation matrix (3, 3), translation [m] (3,)): what a mocap bridge
+    whose calibration differs from ``mocap.yaml``'s (the one ``mocap_frame_error`` is the error of)
+    does on top of it, for the rigs that have no bridge (:func:`with_bridge_calibration`).
+
+    ``drawing``: the arm the differences apply to, when the controller's arm is not the package's
+    (an identified arm file: the plant stays the arm it was identified on); None: the controller's."""
     plant_file: str
     arm_values: dict
     timestep: float
@@ -79,21 +87,28 @@ class PlantConfig:
     mocap_latency: float
     mocap_seed: int
     mocap_frame_error: tuple = ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
+    bridge_correction: tuple = (((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)), (0.0, 0.0, 0.0))
+    drawing: ArmConfig | None = None
 
     def plant_arm(self, arm: ArmConfig) -> ArmConfig:
-        """The plant's arm: the description of ``plant_file``, or the controller's ``arm`` with E,
-        viscosity and density scaled, the plant's tendon geometry and friction, the tip payload
-        added to its tip mass, and its own strain basis. ConfigError if a plant file does not fit the
-        controller's arm (tendons, markers)."""
+        """The plant's arm: the description of ``plant_file``, or the ``drawing`` (default: the
+        controller's ``arm``) with E, viscosity and density scaled, the plant's tendon geometry and
+        friction, the tip payload added to its tip mass, and its own strain basis. ConfigError if it
+        does not fit the controller's arm (tendons, markers)."""
         if self.plant_file:
-            plant = load_arm_config(self.plant_file)
-            if [t.name for t in plant.tendons] != [t.name for t in arm.tendons]:
-                raise ConfigError(f"plant.plant_file = {self.plant_file!r} is not valid: its "
-                                  f"tendons.names must be the controller's {[t.name for t in arm.tendons]}")
-            if len(plant.marker_positions) != len(arm.marker_positions):
-                raise ConfigError(f"plant.plant_file = {self.plant_file!r} is not valid: expected "
-                                  f"{len(arm.marker_positions)} markers, as in the controller's arm")
-            return plant
+            plant, source = load_arm_config(self.plant_file), f"plant.plant_file = {self.plant_file!r}"
+        else:
+            plant, source = self._differing(self.drawing or arm), "the plant (plant.yaml over arm.yaml)"
+        if [t.name for t in plant.tendons] != [t.name for t in arm.tendons]:
+            raise ConfigError(f"{source} is not valid: its tendons.names must be the controller's "
+                              f"{[t.name for t in arm.tendons]}")
+        if len(plant.marker_positions) != len(arm.marker_positions):
+            raise ConfigError(f"{source} is not valid: expected {len(arm.marker_positions)} markers, "
+                              "as in the controller's arm")
+        return plant
+
+    def _differing(self, arm: ArmConfig) -> ArmConfig:
+        """``arm`` with the differences of ``arm_values``."""
         v = self.arm_values
         material = replace(arm.material,
                            youngs_modulus=arm.material.youngs_modulus * v["youngs_modulus_scale"],
@@ -109,15 +124,32 @@ class PlantConfig:
 
     def as_mocap_reports(self, points) -> np.ndarray:
         """Points (..., 3) [m] in arm_base as the miscalibrated mocap reports them: R p + t of
-        ``mocap_frame_error`` (noise not included)."""
+        ``mocap_frame_error``, then the ``bridge_correction`` (noise not included)."""
         rotvec, translation = self.mocap_frame_error
         R = Rotation.from_rotvec(rotvec).as_matrix()
-        return np.asarray(points, dtype=float) @ R.T + np.asarray(translation)
+        reported = np.asarray(points, dtype=float) @ R.T + np.asarray(translation)
+        rotation, shift = self.bridge_correction
+        return reported @ np.asarray(rotation).T + np.asarray(shift)
 
     @property
     def rotor_mass(self) -> float:
         """The rotor inertia reflected onto the tendon: J / r^2 [kg]."""
         return self.rotor_inertia / self.pulley_radius ** 2
+
+
+def with_bridge_calibration(plant: PlantConfig, mocap_path: str, calibration: dict) -> PlantConfig:
+    """The plant whose markers arrive as a mocap bridge calibrated with ``calibration`` would
+    publish them (``rig.mocap.calibration`` overrides relative to ``rig``, e.g. those of an arm
+    file written by soft-arm-identify: :func:`~soft_arm_drivers.mocap.bridge_config.calibration_overrides`),
+    Motive's points being those of the rig's calibration in ``mocap_path`` (``mocap.yaml``, whose
+    error ``plant.mocap.frame_error`` is). No overrides: the plant unchanged."""
+    if not calibration:
+        return plant
+    rig = load_mocap_config(mocap_path).calibration
+    bridge = load_mocap_config(mocap_path, calibration).calibration
+    R = bridge.rotation @ rig.rotation.T
+    t = bridge.translation - R @ rig.translation
+    return replace(plant, bridge_correction=(tuple(map(tuple, R.tolist())), tuple(t.tolist())))
 
 
 def parse_plant(v: dict, arm: ArmConfig) -> PlantConfig:

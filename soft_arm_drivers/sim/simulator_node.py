@@ -9,10 +9,13 @@ Modes (``graph.simulator.mode``): ``lockstep`` advances one inner-loop period pe
 (deterministic, as fast as the graph answers); ``realtime`` advances on the wall clock. A command
 that is missing (lockstep: none within ``command_timeout`` of wall time; realtime: older than
 ``command_timeout`` of sim time) or malformed holds the last tension and is counted, never a crash.
-The plant's parameters are ``plant.*`` over ``arm.*``, so plant and controller models differ.
+The plant's parameters are ``plant.*`` over ``arm.*``, so plant and controller models differ;
+given ``rig.mocap.calibration`` (an identified arm file carries one), the markers come through it
+as the mocap bridge would publish them (``plant.mocap.frame_error`` is the error of mocap.yaml's).
 """
 from __future__ import annotations
 
+import os
 import sys
 import time
 
@@ -28,10 +31,10 @@ from soft_arm_model import build_model, solve_equilibrium, tendon_lengths
 from soft_arm_ros.contract import FRAME, QOS, TOPICS
 from soft_arm_ros.conversions import (joint_state, ordered, pose_array, pose_stamped, seconds_to_stamp,
                                       stamp_to_seconds)
-from soft_arm_ros.parameters import NodeParameters
+from soft_arm_ros.parameters import NodeParameters, parameter_overrides
 from soft_arm_ros.runtime import run_node
 
-from .plant_config import describe_plant, plant_of
+from .plant_config import describe_plant, plant_of, with_bridge_calibration
 from .simulated_rig import SimulatedRig
 
 
@@ -44,7 +47,13 @@ class SimulatorNode(Node):
         params = NodeParameters(self, config_dir)
         arm, graph = params.arm, params.graph
         self.control = control = control_of(params, arm)
-        self.plant = plant = plant_of(params, arm)
+        # an arm file with its own mocap calibration (soft-arm-identify's): the markers go out as
+        # the bridge given that file would publish them
+        calibration = {f"mocap.calibration.{k}": v
+                       for k, v in parameter_overrides(self, "rig.mocap.calibration").items()}
+        self.plant = plant = with_bridge_calibration(plant_of(params, arm),
+                                                     os.path.join(params.config_dir, "mocap.yaml"),
+                                                     calibration)
         model = build_model(arm)                       # the controller's view of start-up
         pretension = np.full(model.n_tendons, control.tension_min)
         q_rest = solve_equilibrium(model, pretension).q

@@ -185,6 +185,26 @@ def test_the_closest_feasible_point_is_the_minimum_over_the_tensions(paper_model
     assert np.max(np.abs(coiling_clik.closest_feasible(feasible, [start]).x - feasible)) < 1e-6
 
 
+def test_the_closest_point_a_refusal_offers_keeps_its_margin_from_the_limits(paper_model):
+    """A target out of reach is refused with the closest point whose tensions keep
+    ``closest_margin`` from both limits: farther from the target than the closest point on the
+    limits, and a feasible target of its own (precompute returns it)."""
+    x_d = np.array([0.06, -0.36])
+    start = solve_equilibrium(paper_model, np.full(4, 0.05)).q
+    cm = build_collocated(paper_model, (2, 3), held_tension=0.05)
+    found = {}
+    for margin in (0.0, 0.4):
+        clik = Clik(cm, COILING, ClikGains(5.0, 20.0), (0.05, 5.0), closest_margin=margin)
+        with pytest.raises(TargetError) as info:
+            clik.precompute(x_d, start)
+        found[margin] = closest = info.value.closest
+        assert np.all(closest.u_ff >= 0.05 + margin - 1e-9) and np.all(closest.u_ff <= 5.0 - margin + 1e-9)
+    # on the limit itself (no margin), the closest point is infeasible by a rounding error
+    assert np.max(np.abs(clik.precompute(found[0.4].x, start).x - found[0.4].x)) < 1e-6
+    assert np.min(found[0.4].u_ff) == pytest.approx(0.45, abs=1e-6)      # on the margin, not inside
+    assert np.linalg.norm(found[0.4].x - x_d) > np.linalg.norm(found[0.0].x - x_d) + 1e-3
+
+
 def test_a_feasible_step_is_the_unconstrained_clik_step(paper_model, coiling_clik):
     q = solve_equilibrium(paper_model, np.array([0.05, 0.05, 1.0, 0.5])).q
     x_d = _model_x(paper_model, (1.3, 0.8))

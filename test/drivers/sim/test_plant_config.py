@@ -85,3 +85,53 @@ def test_a_plant_file_equal_to_arm_yaml_reproduces_the_run_exactly(tmp_path):
     default = run_experiment(load_setup("coiling", overrides=SHORT)).record.arrays()
     assert not np.array_equal(default["x"], a["x"])       # plant.yaml's differences do matter
     assert math.isfinite(neutral.summary.rms_error)
+
+
+FRAME_ERROR = ["plant.mocap.frame_error.rotation_deg=[0.0, 1.2, 1.6]",
+               "plant.mocap.frame_error.translation=[0.003, -0.004, 0.0]"]
+
+
+def _identified_arm_file(path, arm, registration=None):
+    """An arm file as soft-arm-identify writes it: the arm, and the mocap calibration composed of
+    ``registration`` after mocap.yaml's (none: no calibration in the file)."""
+    from soft_arm_drivers.experiments.identify_cli import calibration_tree, composed_calibration
+    from soft_arm_drivers.mocap.bridge_config import load_mocap_config
+    from soft_arm_model.config import write_arm_file
+    rig = load_mocap_config().calibration
+    extra = None if registration is None else calibration_tree(
+        composed_calibration(registration, rig.rotation, rig.translation))
+    write_arm_file(str(path), arm, "", extra)
+    return str(path)
+
+
+def test_the_mocap_calibration_of_an_arm_file_is_the_one_the_markers_come_through(tmp_path):
+    """The simulated rig has no bridge: an arm file whose calibration undoes plant.mocap.frame_error
+    gives markers in arm_base; one without a calibration leaves the frame error; the default setup
+    has no correction."""
+    from scipy.spatial.transform import Rotation
+    from soft_arm_model.identification import Registration
+    points = np.array([[0.01, -0.02, -0.3], [0.05, 0.1, -0.2]])
+    plain = load_setup("coiling", overrides=FRAME_ERROR)
+    R = Rotation.from_rotvec(np.radians([0.0, 1.2, 1.6])).as_matrix()
+    assert np.allclose(plain.plant.as_mocap_reports(points), points @ R.T + [0.003, -0.004, 0.0])
+    undo = Registration(R.T, -R.T @ np.array([0.003, -0.004, 0.0]))
+    arm = load_arm_config()
+    fixed = load_setup("coiling", overrides=FRAME_ERROR,
+                       arm_file=_identified_arm_file(tmp_path / "a.yaml", arm, undo))
+    assert np.allclose(fixed.plant.as_mocap_reports(points), points, atol=1e-12)
+    bare = load_setup("coiling", overrides=FRAME_ERROR, arm_file=_identified_arm_file(tmp_path / "b.yaml", arm))
+    assert np.allclose(bare.plant.as_mocap_reports(points), plain.plant.as_mocap_reports(points))
+
+
+def test_the_plant_stays_the_same_arm_whatever_arm_file_the_controller_is_given(tmp_path):
+    """plant.yaml's differences apply to arm.yaml, not to the controller's arm file: an identified
+    arm changes what the controller believes, not the arm it controls."""
+    from dataclasses import replace
+    differences = ["plant.youngs_modulus_scale=0.88", "plant.tendon.start_angle_error=[0.04, 0, 0, 0]"]
+    plain = load_setup("coiling", overrides=differences)
+    truth = plain.plant.plant_arm(plain.arm)
+    believed = replace(truth, material=replace(truth.material, youngs_modulus=2 * truth.material.youngs_modulus))
+    other = load_setup("coiling", overrides=differences,
+                       arm_file=_identified_arm_file(tmp_path / "arm.yaml", believed))
+    assert other.arm.material.youngs_modulus == pytest.approx(2 * truth.material.youngs_modulus)
+    assert other.plant.plant_arm(other.arm) == truth
