@@ -5,8 +5,9 @@ tensions u [N], the encoder shortenings s [m] (their zero unknown: the encoders 
 the arm was at power-up) and the marker positions [m] in the motion-capture frame. The fit is a
 weighted nonlinear least squares (``scipy.optimize.least_squares``) on the project's own model:
 
-- arm parameters: Young's modulus and density (as logs of their ratio to the starting arm), and per
-  tendon the friction coefficient, the offset fraction and the start and end angles [rad];
+- arm parameters: Young's modulus and density (as logs of their ratio to the starting arm), the
+  mass at the tip [kg] (a payload, a marker's clamp: its weight bends the arm unlike the body's), and
+  per tendon the friction coefficient, the offset fraction and the start and end angles [rad];
 - nuisance parameters: the encoder zero of each tendon [m] and the rigid transform from the mocap
   frame to ``arm_base`` (a rotation vector [rad] and a translation [m]).
 
@@ -95,17 +96,21 @@ class StaticFit:
     evaluations: int
 
 
+_TENDONS = 3                # index of the first tendon parameter in the parameter vector
+
+
 class _Layout:
-    """The parameter vector: [log E ratio, log density ratio, per tendon (friction, offset, start
-    angle, end angle) grouped by kind, encoder zeros (n_t), rotation vector (3), translation (3)]."""
+    """The parameter vector: [log E ratio, log density ratio, tip mass [kg], per tendon (friction,
+    offset, start angle, end angle) grouped by kind, encoder zeros (n_t), rotation vector (3),
+    translation (3)]."""
 
     def __init__(self, arm: ArmConfig):
         self.arm0 = arm
         n_t = len(arm.tendons)
         self.n_t = n_t
-        self.n_model = 2 + 4 * n_t
+        self.n_model = _TENDONS + 4 * n_t
         self.size = self.n_model + n_t + 6
-        self.names = (["youngs_modulus", "density"]
+        self.names = (["youngs_modulus", "density", "tip_mass"]
                       + [f"{g}[{t.name}]" for g in TENDON_GROUPS for t in arm.tendons]
                       + [f"encoder_zero[{t.name}]" for t in arm.tendons]
                       + [f"mocap_rotation[{a}]" for a in "xyz"] + [f"mocap_translation[{a}]" for a in "xyz"])
@@ -113,7 +118,8 @@ class _Layout:
     def initial(self, registration: Registration | None) -> np.ndarray:
         a = self.arm0
         p = np.zeros(self.size)
-        p[2:self.n_model] = np.concatenate([[getattr(t, g) for t in a.tendons] for g in TENDON_GROUPS])
+        p[2] = a.tip_mass
+        p[_TENDONS:self.n_model] = np.concatenate([[getattr(t, g) for t in a.tendons] for g in TENDON_GROUPS])
         if registration is not None:
             p[-6:-3] = Rotation.from_matrix(registration.rotation).as_rotvec()
             p[-3:] = registration.translation
@@ -121,12 +127,12 @@ class _Layout:
 
     def arm(self, p) -> ArmConfig:
         a, n_t = self.arm0, self.n_t
-        groups = p[2:self.n_model].reshape(4, n_t)
+        groups = p[_TENDONS:self.n_model].reshape(4, n_t)
         material = replace(a.material, youngs_modulus=a.material.youngs_modulus * np.exp(p[0]),
                            density=a.material.density * np.exp(p[1]))
         tendons = tuple(replace(t, **{g: float(groups[i, k]) for i, g in enumerate(TENDON_GROUPS)})
                         for k, t in enumerate(a.tendons))
-        return replace(a, material=material, tendons=tendons)
+        return replace(a, material=material, tendons=tendons, tip_mass=float(p[2]))
 
     def encoder_zero(self, p) -> np.ndarray:
         return p[self.n_model:self.n_model + self.n_t]
@@ -209,10 +215,11 @@ class StaticProblem:
             eq0 = solve_equilibrium(model0, samples[0].tension)
             self.p0[-3:] = (observe(model0, ArmData(model0), eq0.q)[0] - samples[0].markers).mean(axis=0)
         self.predictor = _Predictor(samples)
-        self.prior_index = [2 + i * n_t + k for i, g in enumerate(TENDON_GROUPS) if g in PRIOR_SIGMA
+        self.prior_index = [_TENDONS + i * n_t + k for i, g in enumerate(TENDON_GROUPS) if g in PRIOR_SIGMA
                             for k in range(n_t)]
-        self.prior_sigma = np.array([PRIOR_SIGMA[TENDON_GROUPS[(j - 2) // n_t]] for j in self.prior_index])
-        self.start_angles = slice(2 + 2 * n_t, 2 + 3 * n_t)
+        self.prior_sigma = np.array([PRIOR_SIGMA[TENDON_GROUPS[(j - _TENDONS) // n_t]]
+                                     for j in self.prior_index])
+        self.start_angles = slice(_TENDONS + 2 * n_t, _TENDONS + 3 * n_t)
         self.measured_p = np.array([s.markers for s in samples])
         self.measured_s = np.array([s.shortening for s in samples])
         self._cache = {}
@@ -294,8 +301,9 @@ def identify_static(arm: ArmConfig, samples, marker_sigma: float = 2e-4, shorten
     pb = StaticProblem(arm, samples, marker_sigma, shortening_sigma, registration)
     layout, n_t, n = pb.layout, pb.n_t, len(pb.samples)
     lower, upper = np.full(layout.size, -np.inf), np.full(layout.size, np.inf)
-    lower[2:2 + n_t] = 0.0                                          # friction coefficients
-    lower[2 + n_t:2 + 2 * n_t], upper[2 + n_t:2 + 2 * n_t] = OFFSET_BOUNDS
+    lower[2] = 0.0                                                  # tip mass
+    lower[_TENDONS:_TENDONS + n_t] = 0.0                            # friction coefficients
+    lower[_TENDONS + n_t:_TENDONS + 2 * n_t], upper[_TENDONS + n_t:_TENDONS + 2 * n_t] = OFFSET_BOUNDS
     p0 = np.clip(pb.p0, lower + 1e-6, upper - 1e-6)
     sol = least_squares(pb.residual, p0, jac=pb.jacobian, bounds=(lower, upper), method="trf",
                         x_scale="jac", xtol=1e-10, ftol=1e-10, gtol=1e-10, max_nfev=max_evaluations)
@@ -305,8 +313,8 @@ def identify_static(arm: ArmConfig, samples, marker_sigma: float = 2e-4, shorten
     scale = 2.0 * sol.cost / max(1, r.size - layout.size)        # the residuals' own variance
     se = np.sqrt(np.clip(np.diag(np.linalg.pinv(J.T @ J) * scale), 0.0, None))
     fitted = layout.arm(p)
-    units = {"friction": "-", "offset_fraction": "-", "start_angle": "rad", "end_angle": "rad",
-             "encoder_zero": "m", "mocap_rotation": "rad", "mocap_translation": "m"}
+    units = {"tip_mass": "kg", "friction": "-", "offset_fraction": "-", "start_angle": "rad",
+             "end_angle": "rad", "encoder_zero": "m", "mocap_rotation": "rad", "mocap_translation": "m"}
     estimates = {}
     for j, name in enumerate(layout.names):
         if name == "youngs_modulus":

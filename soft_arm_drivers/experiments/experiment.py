@@ -13,6 +13,10 @@ Output (``--output DIR``, default ``runs/<task>-<UTC time>``): ``bag/`` (rosbag2
 and the paths (``--json``: the metrics as JSON on stdout). Ctrl-C stops everything cleanly (the
 emulated motors are disabled first) and keeps what was recorded (exit status 130). A bad parameter
 or an unreachable target exits with status 2; a node that dies or a run that cannot go on, with 1.
+
+``soft-arm-experiment calibrate [--rerun TASK]`` closes the loop: the identification experiment,
+soft-arm-identify on its bag, then the task (default: triangle) with the identified arm as the
+controller's model, each in the same way (``--processes``, ``--emulated-hardware``, ``--set``).
 """
 from __future__ import annotations
 
@@ -24,6 +28,7 @@ import signal
 import sys
 import time
 
+from soft_arm_control.config import IDENTIFICATION
 from soft_arm_model.config import write_arm_file
 from soft_arm_model.parameters import ConfigError, default_config_dir
 
@@ -150,9 +155,48 @@ def _load_metrics(path: str):
     return data, rows, Summary(**data["summary"])
 
 
+CALIBRATE = "calibrate"
+
+
+def _calibrate(args) -> int:
+    """``calibrate``: the identification experiment (``<output>/identification``), the fit
+    (``<output>/arm_identified.yaml``, figures in ``identification/fit``) and ``args.rerun``'s task
+    with that arm and ``--accept-closest`` (``<output>/<task>``), each run as ``args`` says; stops
+    at the first that fails, with its exit status."""
+    from .identify_cli import main as identify
+    stamp = datetime.datetime.now(datetime.timezone.utc).strftime("%Y%m%d-%H%M%S")
+    run_dir = os.path.abspath(args.output or os.path.join("runs", f"{CALIBRATE}-{stamp}"))
+    config = ["--config", args.config] if args.config else []
+    sets = [a for s in args.sets for a in ("--set", s)]
+    common = config + sets + (["--plant-file", args.plant_file] if args.plant_file else []) + [
+        flag for flag, on in (("--processes", args.processes), ("--quiet", args.quiet),
+                              ("--emulated-hardware", args.emulated_hardware)) if on]
+    start_arm = ["--arm-file", args.arm_file] if args.arm_file else []
+    arm_file = os.path.join(run_dir, "arm_identified.yaml")
+    ident = os.path.join(run_dir, IDENTIFICATION)
+    print(f"soft-arm-experiment calibrate: 1/3 the identification experiment -> {ident}", file=sys.stderr)
+    code = main([IDENTIFICATION, "--output", ident] + common + start_arm)
+    if code != 0:
+        return code
+    print(f"soft-arm-experiment calibrate: 2/3 the fit -> {arm_file}", file=sys.stderr)
+    fit_sets = [a for s in args.sets if s.split(".")[0] in ("arm", IDENTIFICATION) for a in ("--set", s)]
+    code = identify([os.path.join(ident, "bag"), "--output", arm_file, "--plot", os.path.join(ident, "fit")]
+                    + config + fit_sets + start_arm)
+    if code != 0:
+        return code
+    rerun = os.path.join(run_dir, args.rerun)
+    print(f"soft-arm-experiment calibrate: 3/3 {args.rerun} with the identified arm -> {rerun}",
+          file=sys.stderr)
+    return main([args.rerun, "--output", rerun, "--arm-file", arm_file, "--accept-closest"] + common
+                + (["--json"] if args.json else []))
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="soft-arm-experiment", description=__doc__.splitlines()[0])
-    parser.add_argument("task", help="task name in tasks.yaml (triangle, coiling, ...)")
+    parser.add_argument("task", help="task name in tasks.yaml (triangle, coiling, ...), identification, "
+                                     "or calibrate (identification, fit, then --rerun's task)")
+    parser.add_argument("--rerun", metavar="TASK", default="triangle",
+                        help="calibrate: the task rerun with the identified arm (default: triangle)")
     parser.add_argument("--output", metavar="DIR", help="run directory (default: runs/<task>-<time>)")
     parser.add_argument("--processes", action="store_true", help="one process per node")
     parser.add_argument("--emulated-hardware", action="store_true",
@@ -163,6 +207,8 @@ def main(argv=None) -> int:
     parser.add_argument("--quiet", action="store_true", help="no progress line (composed runs print one)")
     args = parser.parse_args(argv)
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    if args.task == CALIBRATE:
+        return _calibrate(args)
     try:
         args.sets = setup_overrides(args)
         setup = load_setup(args.task, args.config,

@@ -54,8 +54,9 @@ def load_setup(task: str, config_dir: str | None = None, overrides=None,
     ``arm.yaml`` (e.g. an identified one): the plant stays the arm of ``plant.yaml`` over
     ``arm.yaml`` (or ``plant.plant_file``), whatever the controller believes; the mocap
     calibration an arm file carries (``rig.mocap.calibration``, as soft-arm-identify writes it) is
-    the one the markers come through, as the mocap bridge given that file would publish them. ``task`` "identification": the
-    identification experiment of ``identification.yaml`` instead of a task."""
+    the one the markers come through, as the mocap bridge given that file would publish them.
+    ``task`` "identification": the identification experiment of ``identification.yaml`` instead of
+    a task."""
     d = config_dir or default_config_dir()
     groups = split_overrides(overrides, ("arm", "control", "plant", "tasks", "identification"))
     drawing = load_arm_config(os.path.join(d, "arm.yaml"), groups["arm"])

@@ -119,7 +119,8 @@ def test_the_mocap_calibration_of_an_arm_file_is_the_one_the_markers_come_throug
     fixed = load_setup("coiling", overrides=FRAME_ERROR,
                        arm_file=_identified_arm_file(tmp_path / "a.yaml", arm, undo))
     assert np.allclose(fixed.plant.as_mocap_reports(points), points, atol=1e-12)
-    bare = load_setup("coiling", overrides=FRAME_ERROR, arm_file=_identified_arm_file(tmp_path / "b.yaml", arm))
+    bare = load_setup("coiling", overrides=FRAME_ERROR,
+                      arm_file=_identified_arm_file(tmp_path / "b.yaml", arm))
     assert np.allclose(bare.plant.as_mocap_reports(points), plain.plant.as_mocap_reports(points))
 
 
@@ -130,7 +131,8 @@ def test_the_plant_stays_the_same_arm_whatever_arm_file_the_controller_is_given(
     differences = ["plant.youngs_modulus_scale=0.88", "plant.tendon.start_angle_error=[0.04, 0, 0, 0]"]
     plain = load_setup("coiling", overrides=differences)
     truth = plain.plant.plant_arm(plain.arm)
-    believed = replace(truth, material=replace(truth.material, youngs_modulus=2 * truth.material.youngs_modulus))
+    stiffer = replace(truth.material, youngs_modulus=2 * truth.material.youngs_modulus)
+    believed = replace(truth, material=stiffer)
     other = load_setup("coiling", overrides=differences,
                        arm_file=_identified_arm_file(tmp_path / "arm.yaml", believed))
     assert other.arm.material.youngs_modulus == pytest.approx(2 * truth.material.youngs_modulus)
