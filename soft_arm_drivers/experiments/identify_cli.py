@@ -3,9 +3,9 @@
 Reads only what a rig records (``tendon/state``: shortenings and applied tensions;
 ``tendon/command``: where tensions were held; ``mocap/markers``) and the arm description it starts
 from (``--arm-file``, default the configuration's ``arm.yaml``). The quasi-static plateaus give
-Young's modulus, density, per-tendon friction, offsets and angles, the encoder zeros and the mocap
-registration (:func:`soft_arm_model.identification.identify_static`); the steps and chirps between
-plateaus give the viscosity and the rotors' reflected mass
+Young's modulus, density, the mass at the tip, per-tendon friction, offsets and angles, the encoder
+zeros and the mocap registration (:func:`soft_arm_model.identification.identify_static`); the
+steps and chirps between plateaus give the viscosity and the rotors' reflected mass
 (:func:`soft_arm_model.dynamic_identification.identify_dynamics`). Prints every estimate with its
 standard error and the residual RMS per marker; ``--output FILE`` writes the identified arm (the
 schema of ``arm.yaml``, with ``rig.mocap.calibration`` corrected) for ``--arm-file`` and

@@ -69,3 +69,23 @@ def test_the_identification_experiment_runs_one_process_per_node(tmp_path):
                       + _sets(SHORT)) == 0
     with open(out / "excitation.json", encoding="utf-8") as fh:
         assert json.load(fh)["duration"] > 20
+
+
+def test_calibrate_identifies_then_reruns_the_task_with_the_identified_arm(tmp_path):
+    """One command: the experiment, the fit and a (short) triangle whose controller's model is the
+    identified arm, while the plant stays plant.yaml over arm.yaml (written beside the run)."""
+    from soft_arm_drivers.experiments.harness import load_setup
+    short_triangle = ["tasks.triangle.phases=[approach]", "tasks.triangle.phase.approach.window=3.0",
+                      "tasks.triangle.phase.approach.sequence=[1]", "control.clik.switch_delay=1.0"]
+    out = tmp_path / "calibrate"
+    sets = _sets(SHORT + FIT + short_triangle)
+    assert experiment(["calibrate", "--quiet", "--output", str(out)] + sets) == 0
+    identified = load_arm_config(str(out / "arm_identified.yaml"))
+    with open(out / "triangle" / "metrics.json", encoding="utf-8") as fh:
+        metrics = json.load(fh)
+    assert metrics["summary"]["transitions"] == 1
+    plant = load_arm_config(str(out / "triangle" / "plant_arm.yaml"))
+    setup = load_setup("triangle")
+    assert plant == setup.plant.plant_arm(setup.arm)
+    assert abs(identified.material.youngs_modulus / plant.material.youngs_modulus - 1) < 0.05
+    assert (out / "identification" / "fit" / "markers.png").is_file()

@@ -11,7 +11,8 @@ from soft_arm_model.identification import (IdentificationError, StaticProblem, S
                                            observe, identify_static, staircase)
 
 ZERO = np.array([0.01, -0.02, 0.005, 0.0])          # encoder zeros [m]
-# the issue's structurally different arm: E -12 %, density +5 %, uneven friction, offsets, angles
+# the issue's structurally different arm: E -12 %, density +5 %, uneven friction, offsets, angles,
+# and 3 g at the tip
 DEG = np.radians
 
 
@@ -22,7 +23,7 @@ def _different(arm):
                             end_angle=t.end_angle + a1)
                     for t, f, o, a0, a1 in zip(arm.tendons, [0.09, 0.16, 0.12, 0.14], [0.57, 0.64, 0.6, 0.62],
                                                DEG([2, -3, 1, -2]), DEG([-1, 3, 2, -3])))
-    return replace(arm, material=material, tendons=tendons)
+    return replace(arm, material=material, tendons=tendons, tip_mass=arm.tip_mass + 0.003)
 
 
 def _samples(arm, tensions, rotation=Rotation.identity(), shift=np.zeros(3), noise=0.0, seed=0):
@@ -59,6 +60,7 @@ def test_the_fit_returns_the_arm_it_is_given_data_of(paper_model):
     fit = identify_static(arm, _samples(arm, TENSIONS), marker_sigma=2e-5, shortening_sigma=2e-6)
     assert fit.arm.material.youngs_modulus == pytest.approx(arm.material.youngs_modulus, rel=5e-3)
     assert fit.arm.material.density == pytest.approx(arm.material.density, rel=5e-3)
+    assert abs(fit.arm.tip_mass - arm.tip_mass) < 1e-4
     for t_fit, t in zip(fit.arm.tendons, arm.tendons):
         assert abs(t_fit.friction - t.friction) < 0.005
         assert abs(t_fit.offset_fraction - t.offset_fraction) < 0.005
@@ -68,7 +70,7 @@ def test_the_fit_returns_the_arm_it_is_given_data_of(paper_model):
 
 
 def test_a_different_arm_and_a_misplaced_mocap_frame_are_recovered_with_honest_errors(paper_model):
-    """E -12 %, density +5 %, friction 0.09-0.16, offsets 0.57-0.64, angles +-3 deg, the mocap
+    """E -12 %, density +5 %, 3 g at the tip, friction 0.09-0.16, offsets 0.57-0.64, angles +-3 deg, the mocap
     frame turned 2 deg and shifted 5 mm, 0.02 mm marker noise (0.2 mm averaged over 100 frames).
     Angles are compared up to their common turn about the axis, the gauge the mocap frame takes
     (the module's docstring); each estimate's error is within 4 standard errors."""
@@ -83,6 +85,8 @@ def test_a_different_arm_and_a_misplaced_mocap_frame_are_recovered_with_honest_e
     E = truth.material.youngs_modulus
     assert abs(fit.arm.material.youngs_modulus / E - 1) < 0.03
     assert abs(est["youngs_modulus"].value - E) < 4 * est["youngs_modulus"].standard_error + 1e-9 * E
+    assert abs(fit.arm.tip_mass - truth.tip_mass) < 3e-4
+    assert abs(est["tip_mass"].value - truth.tip_mass) < 4 * est["tip_mass"].standard_error + 1e-7
     turn = np.mean([t.start_angle for t in truth.tendons]) - np.mean([t.start_angle for t in arm.tendons])
     for t_fit, t in zip(fit.arm.tendons, truth.tendons):
         assert abs(t_fit.friction - t.friction) < 0.02
