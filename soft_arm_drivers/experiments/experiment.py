@@ -164,6 +164,10 @@ def _calibrate(args) -> int:
     with that arm and ``--accept-closest`` (``<output>/<task>``), each run as ``args`` says; stops
     at the first that fails, with its exit status."""
     from .identify_cli import main as identify
+    if args.rerun in (CALIBRATE, IDENTIFICATION):
+        print(f"soft-arm-experiment: --rerun {args.rerun} is not valid: expected a task of tasks.yaml",
+              file=sys.stderr)
+        return 2
     stamp = datetime.datetime.now(datetime.timezone.utc).strftime("%Y%m%d-%H%M%S")
     run_dir = os.path.abspath(args.output or os.path.join("runs", f"{CALIBRATE}-{stamp}"))
     config = ["--config", args.config] if args.config else []

@@ -89,3 +89,9 @@ def test_calibrate_identifies_then_reruns_the_task_with_the_identified_arm(tmp_p
     assert plant == setup.plant.plant_arm(setup.arm)
     assert abs(identified.material.youngs_modulus / plant.material.youngs_modulus - 1) < 0.05
     assert (out / "identification" / "fit" / "markers.png").is_file()
+
+
+def test_calibrate_refuses_to_rerun_anything_but_a_task(tmp_path, capsys):
+    assert experiment(["calibrate", "--rerun", "calibrate", "--output", str(tmp_path / "c")]) == 2
+    assert "--rerun calibrate is not valid" in capsys.readouterr().err
+    assert not (tmp_path / "c").exists()
