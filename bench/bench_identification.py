@@ -12,7 +12,7 @@ axis, and the issue's arm as draw ``issue``. The experiment is ``identification.
 on the ROS-free simulated rig (:func:`soft_arm_drivers.experiments.identification_run.simulate_recording`:
 the plant's dynamics, encoder quantisation, mocap noise and latency; the graph records the same
 series, minutes slower), fitted as ``soft-arm-identify`` fits it (one core per draw: ``--jobs``
-draws at a time). Reported per draw: the errors of E, viscosity, rotor mass, friction, offsets,
+draws at a time). Reported per draw: the errors of E, viscosity, rotor mass, tip mass [g], friction, offsets,
 tendon angles (relative to their mean: the common turn is the mocap frame's), the mocap frame
 (rotation after removing that turn, translation), the fit's wall time, and the triangle run with
 the identified arm and its mocap calibration (``soft-arm-harness triangle --arm-file
@@ -53,9 +53,8 @@ def identify_one(plant: dict) -> dict:
     from soft_arm_drivers.experiments.excitation import Excitation, load_identification, parse_fit
     from soft_arm_drivers.experiments.harness import load_setup
     from soft_arm_drivers.experiments.identification_run import simulate_recording
-    from soft_arm_drivers.experiments.identify_cli import calibration_tree, composed_calibration, identify
+    from soft_arm_drivers.experiments.identify_cli import composed_calibration, identify, write_identified_arm
     from soft_arm_drivers.mocap.bridge_config import load_mocap_config
-    from soft_arm_model.config import write_arm_file
 
     overrides = [f"plant.{key}={json.dumps(value)}" for key, value in plant.items()]
     setup = load_setup("identification", overrides=overrides)
@@ -76,6 +75,7 @@ def identify_one(plant: dict) -> dict:
         "youngs_modulus": fit.arm.material.youngs_modulus / truth.material.youngs_modulus - 1,
         "viscosity": dyn.viscosity.value / truth.material.viscosity - 1,
         "rotor_mass": dyn.rotor_mass.value / setup.plant.rotor_mass - 1,
+        "tip_mass_g": (fit.arm.tip_mass - truth.tip_mass) * 1e3,
         "friction": max(abs(a.friction - b.friction) for a, b in zip(fit.arm.tendons, truth.tendons)),
         "offset_fraction": max(abs(a.offset_fraction - b.offset_fraction)
                                for a, b in zip(fit.arm.tendons, truth.tendons)),
@@ -88,9 +88,8 @@ def identify_one(plant: dict) -> dict:
            "tip_rms_mm": float(fit.marker_rms[-1] * 1e3)}
     with tempfile.TemporaryDirectory() as tmp:
         path = os.path.join(tmp, "arm.yaml")
-        rig = load_mocap_config().calibration          # as soft-arm-identify writes the arm file
-        write_arm_file(path, fit.arm, "", calibration_tree(
-            composed_calibration(fit.registration, rig.rotation, rig.translation)))
+        calibration = composed_calibration(fit.registration, load_mocap_config().calibration)
+        write_identified_arm(path, fit.arm, calibration)
         sets = [a for o in overrides for a in ("--set", o)]
         t2 = time.perf_counter()
         proc = subprocess.run([sys.executable, "-m", "soft_arm_drivers.experiments.harness_cli", "triangle",
@@ -124,16 +123,17 @@ def main(argv=None) -> int:
         results = list(pool.map(identify_one, plants))
     runs = [{"draw": i - 1 if i else "issue", "plant": p, **r}
             for i, (p, r) in enumerate(zip(plants, results))]
-    print(f"{'draw':>5s} {'E %':>6s} {'visc %':>6s} {'rotor %':>7s} {'fric':>6s} {'offs':>6s} "
+    print(f"{'draw':>5s} {'E %':>6s} {'visc %':>6s} {'rotor %':>7s} {'tip g':>6s} {'fric':>6s} "
+          f"{'offs':>6s} "
           f"{'ang deg':>7s} "
           f"{'frame deg':>9s} {'mm':>5s} {'fit s':>6s} | {'RMS mm':>7s} {'mm band':>8s} {'v_mm':>6s} "
           f"{'moved mm':>8s}")
     for r in runs:
         e, tri = r["errors"], r["triangle"]
         head = (f"{r['draw']!s:>5s} {e['youngs_modulus'] * 100:6.2f} {e['viscosity'] * 100:6.1f} "
-                f"{e['rotor_mass'] * 100:7.2f} {e['friction']:6.3f} {e['offset_fraction']:6.3f} "
-                f"{e['angle_deg']:7.2f} {e['frame_rotation_deg']:9.2f} {e['frame_translation_mm']:5.2f} "
-                f"{r['fit_s']:6.1f} |")
+                f"{e['rotor_mass'] * 100:7.2f} {e['tip_mass_g']:6.2f} {e['friction']:6.3f} "
+                f"{e['offset_fraction']:6.3f} {e['angle_deg']:7.2f} {e['frame_rotation_deg']:9.2f} "
+                f"{e['frame_translation_mm']:5.2f} {r['fit_s']:6.1f} |")
         tail = (f" {tri['rms_mm']:7.2f} {tri['mm_band']:4d}/{tri['transitions']:<3d} "
                 f"{tri['velocity_mm_band'] or 0:6.3f} {max(tri['targets_moved_mm'], default=0.0):8.1f}") \
             if tri["ok"] else f" failed: {' '.join(tri['error'])}"

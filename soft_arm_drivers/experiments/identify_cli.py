@@ -78,19 +78,21 @@ def read_recording(bag_dir: str, names) -> Recording:
     return Recording(t, s, u, t_c, c, t_m, markers)
 
 
-def composed_calibration(registration: Registration, rotation: np.ndarray, translation) -> tuple:
+def composed_calibration(registration: Registration, recorded) -> tuple:
     """The mocap calibration (rotation matrix, translation [m]) that puts Motive's points where the
-    fit says arm_base is: the registration after the calibration the bag was recorded with."""
-    R = registration.rotation @ rotation
-    return R, registration.rotation @ np.asarray(translation, dtype=float) + registration.translation
+    fit says arm_base is: the registration after ``recorded``, the calibration the bag was recorded
+    with (:class:`~soft_arm_drivers.mocap.bridge_config.Calibration`)."""
+    R = registration.rotation @ recorded.rotation
+    return R, registration.rotation @ recorded.translation + registration.translation
 
 
-def calibration_tree(calibration: tuple) -> dict:
-    """``rig.mocap.calibration`` (mocap.yaml's layout) of (rotation matrix, translation [m])."""
+def write_identified_arm(path: str, arm, calibration: tuple, header: str = ""):
+    """The identified arm with its mocap calibration (rotation matrix, translation [m]) as
+    ``rig.mocap.calibration`` in mocap.yaml's layout: what ``--arm-file`` and the bridge take."""
     R, t = calibration
-    return {"rig": {"mocap": {"calibration": {
+    write_arm_file(path, arm, header, {"rig": {"mocap": {"calibration": {
         "translation": [float(v) for v in t],
-        "rotation": [float(v) for v in Rotation.from_matrix(R).as_quat()]}}}}
+        "rotation": [float(v) for v in Rotation.from_matrix(R).as_quat()]}}}})
 
 
 def identify(rec: Recording, arm, fit_config, workers: int | None = None) -> dict:
@@ -179,7 +181,7 @@ def main(argv=None) -> int:
         print(f"soft-arm-identify: {exc}", file=sys.stderr)
         return 2
     static, report = result["static"], result["report"]
-    calibration = composed_calibration(static.registration, mocap.rotation, mocap.translation)
+    calibration = composed_calibration(static.registration, mocap)
     report["mocap_calibration"] = {"rotation_matrix": calibration[0].tolist(),
                                    "translation": calibration[1].tolist()}
     if args.output:
@@ -191,7 +193,7 @@ def main(argv=None) -> int:
                      " = this x pulley_radius^2 to simulate this rig).\n" if dyn else
                      "No step or chirp in the bag: the viscosity is the starting arm's.\n")
                   + "Use: --arm-file FILE, or --params-file FILE after mocap.yaml for the mocap bridge.")
-        write_arm_file(args.output, static.arm, header, calibration_tree(calibration))
+        write_identified_arm(args.output, static.arm, calibration, header)
     if args.plot:
         from .identification_figures import identification_figures
         report["figures"] = identification_figures(result, args.plot)

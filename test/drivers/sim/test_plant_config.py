@@ -94,13 +94,14 @@ FRAME_ERROR = ["plant.mocap.frame_error.rotation_deg=[0.0, 1.2, 1.6]",
 def _identified_arm_file(path, arm, registration=None):
     """An arm file as soft-arm-identify writes it: the arm, and the mocap calibration composed of
     ``registration`` after mocap.yaml's (none: no calibration in the file)."""
-    from soft_arm_drivers.experiments.identify_cli import calibration_tree, composed_calibration
+    from soft_arm_drivers.experiments.identify_cli import composed_calibration, write_identified_arm
     from soft_arm_drivers.mocap.bridge_config import load_mocap_config
     from soft_arm_model.config import write_arm_file
-    rig = load_mocap_config().calibration
-    extra = None if registration is None else calibration_tree(
-        composed_calibration(registration, rig.rotation, rig.translation))
-    write_arm_file(str(path), arm, "", extra)
+    if registration is None:
+        write_arm_file(str(path), arm)
+    else:
+        calibration = composed_calibration(registration, load_mocap_config().calibration)
+        write_identified_arm(str(path), arm, calibration)
     return str(path)
 
 
