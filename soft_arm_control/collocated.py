@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.linalg
 
-from soft_arm_model import ArmData, ArmModel, evaluate, residual_jacobian
+from soft_arm_model import ArmData, ArmModel, actuation_matrix, evaluate, residual_jacobian
 from soft_arm_model.dynamics import STATICS
 
 
@@ -164,6 +164,18 @@ def effective_stiffness(cm: CollocatedModel, cd: CollocatedData) -> np.ndarray:
     """
     _, H = residual_jacobian(cm.model, cd.q, full_tensions(cm, cd.u_eq), friction=cm.friction)
     return H
+
+
+def held_stiffness(cm: CollocatedModel, q, u_active, proportional) -> np.ndarray:
+    """The static stiffness of the arm at q under the inner loop, ``dR/dq + A K_p A0^T`` (n, n):
+    the tangent of the static residual at the tensions ``u_active`` [N] of the actuated tendons plus
+    the proportional gains ``proportional`` [N/m] (one per actuated tendon) on their shortenings
+    (A with the friction model when ``cm.friction``, A0 the frictionless shortening Jacobian)."""
+    cols = list(cm.active)
+    _, jac = residual_jacobian(cm.model, q, full_tensions(cm, u_active), friction=cm.friction)
+    a = actuation_matrix(cm.model, q, cm.friction)[:, cols]
+    a0 = actuation_matrix(cm.model, q, False)[:, cols] if cm.friction else a
+    return jac + a @ np.diag(np.asarray(proportional, dtype=float)) @ a0.T
 
 
 def collocated_jacobian(cm: CollocatedModel, cd: CollocatedData) -> np.ndarray:

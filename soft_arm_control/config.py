@@ -14,9 +14,11 @@ from dataclasses import dataclass
 from soft_arm_model.config import ArmConfig
 from soft_arm_model.parameters import ConfigError, default_config_dir, load_section
 
+from .input_shaping import SHAPERS
 from .task_space import AXES, TaskSpace
 
 PHASE_MODES = ("clik", "replay", "precomputed", "online")
+SHAPED_MODES = ("clik", "replay", "precomputed")   # the goal modes that start with a reference step
 
 
 def _positive(v):
@@ -58,6 +60,10 @@ CONTROL_SCHEMA = {
                          "tensions in [0, 100] N (may be empty)"),
     "clik.closest_margin": ("float", lambda v: 0 <= v <= 100,
                             "a tension margin in [0, 100] N, less than half of the tension range"),
+    "clik.shaping.shaper": ("str", lambda v: v in SHAPERS, f"one of {list(SHAPERS)}"),
+    "clik.shaping.level": ("float", lambda v: 0 < v <= 1, "a vibration amplitude in (0, 1] m"),
+    "clik.shaping.modes": ("strs", lambda v: len(v) >= 1 and set(v) <= set(SHAPED_MODES),
+                           f"one or more of {list(SHAPED_MODES)}"),
 }
 
 TASK_SCHEMA = {
@@ -107,6 +113,9 @@ class ControlConfig:
     reach_tolerance: float
     stall_time: float
     closest_margin: float
+    shaper: str
+    shaping_level: float
+    shaped_modes: tuple
 
 
 def parse_control(v: dict, arm: ArmConfig) -> ControlConfig:
@@ -135,7 +144,8 @@ def parse_control(v: dict, arm: ArmConfig) -> ControlConfig:
         v["clik.singular_threshold"], v["clik.rate"], v["clik.jacobian_rate"],
         v["clik.switch_delay"], v["clik.tolerance"],
         v["clik.seed_levels"], v["clik.reach_tolerance"], v["clik.stall_time"],
-        v["clik.closest_margin"])
+        v["clik.closest_margin"], v["clik.shaping.shaper"], v["clik.shaping.level"],
+        tuple(v["clik.shaping.modes"]))
 
 
 def load_control_config(arm: ArmConfig, path: str | None = None, overrides=None) -> ControlConfig:

@@ -9,6 +9,11 @@ A goal is a target in task coordinates with a mode:
 - ``precomputed``: the precomputed reference only (the pendulum strike);
 - ``online``: online refinement from the current reference, no precomputed step (sugar task).
 
+The reference step of a goal whose mode is among ``shaped_modes`` is given in fractions by a
+:class:`~soft_arm_control.input_shaping.StepShaper` (zero-vibration input shaping for the arm's
+slowest-decaying mode), the later fractions at the mocap frames after their delays; online
+refinement starts when the last fraction is given, at the earliest.
+
 Times are the caller's [s] (simulated or wall). An unreachable or infeasible goal raises
 :class:`~soft_arm_control.clik.TargetError` and leaves the current reference untouched.
 """
@@ -22,6 +27,7 @@ from soft_arm_model import solve_equilibrium
 
 from .clik import Clik, ClikGains, ClikPoint, ClikStep, TargetError, equilibrium_seeds
 from .collocated import build_collocated
+from .input_shaping import ShapedStep, StepShaper
 
 MODES = ("clik", "replay", "precomputed", "online")
 
@@ -32,12 +38,14 @@ class GoalReport:
     had to be projected onto the tension limits (``infeasible_steps``: the target is infeasible for
     the model from there), those with no feasible step at all (``held_steps``: the reference
     stayed), the smallest and the last measured task error norms [m] (None before the first
-    online step) and ``stalled_steps``: online steps since the error last fell by a tenth while it
-    is above ``reach_tolerance`` [m]. A goal whose error stays above the tolerance without falling
-    for ``stall_steps`` steps is *stalled*: the arm does not go where the model says it should (a
-    target out of the arm's reach, an unmodelled load) although every step was feasible. A goal
-    ``closed`` (the next one arrived, or the experiment ended) with its last error above the
-    tolerance and nothing else to report is *unreached*."""
+    online step), ``stalled_steps``: online steps since the error last fell by a tenth while it
+    is above ``reach_tolerance`` [m], and ``shaped_mode``: the frequency [Hz] and damping ratio of
+    the mode its reference step was shaped for (None: an unshaped step, or none). A goal whose
+    error stays above the tolerance without falling for ``stall_steps`` steps is *stalled*: the
+    arm does not go where the model says it should (a target out of the arm's reach, an
+    unmodelled load) although every step was feasible. A goal ``closed`` (the next one arrived, or
+    the experiment ended) with its last error above the tolerance and nothing else to report is
+    *unreached*."""
     target: list
     mode: str
     reach_tolerance: float = 1e-3
@@ -49,6 +57,7 @@ class GoalReport:
     error: float | None = None
     stalled_steps: int = 0
     closed: bool = False
+    shaped_mode: tuple | None = None
     _progress_level: float = np.inf
 
     def add(self, step: ClikStep):
@@ -84,7 +93,7 @@ class GoalReport:
 
     def as_dict(self) -> dict:
         keys = ("target", "mode", "online_steps", "infeasible_steps", "held_steps", "closest_error",
-                "error", "stalled_steps", "closed")
+                "error", "stalled_steps", "closed", "shaped_mode")
         return {**{k: getattr(self, k) for k in keys}, "reached": self.reached, "status": self.status}
 
 
@@ -95,12 +104,14 @@ class OuterLoop:
     the online steps; ``jacobian_every``: online steps per recomputation of Z; ``seed_levels``
     [N]: tensions of the seed equilibria tried when a precomputation from ``start`` fails;
     ``tolerance`` [m]: precomputation tolerance; ``reach_tolerance`` [m] and ``stall_time`` [s]: when
-    a goal counts as reached, and as stalled (:class:`GoalReport`).
+    a goal counts as reached, and as stalled (:class:`GoalReport`); ``shaper`` and ``shaped_modes``:
+    the reference steps of goals in those modes are shaped (None: every step is a step).
     """
 
     def __init__(self, clik, start: ClikPoint, switch_delay: float, rate: float,
                  jacobian_every: int = 1, seed_levels=(), tolerance: float = 1e-6,
-                 reach_tolerance: float = 1e-3, stall_time: float = 2.0):
+                 reach_tolerance: float = 1e-3, stall_time: float = 2.0,
+                 shaper: StepShaper | None = None, shaped_modes=()):
         self.clik = clik
         self.start = start
         self.reference = start
@@ -112,6 +123,9 @@ class OuterLoop:
         self.stored: dict = {}
         self.reports: list = []             # a GoalReport per goal, in order
         self.last_step: ClikStep | None = None
+        self.shaper, self.shaped_modes = shaper, tuple(shaped_modes)
+        self._move: ShapedStep | None = None
+        self._fraction = 1.0
         self._seeds = None
         self._x_d = None
         self._mode = None
@@ -158,26 +172,50 @@ class OuterLoop:
         ref = None
         if mode in ("clik", "precomputed"):
             ref = point if point is not None else self.precompute(x_d)
-        if self._mode == "clik":
-            self.stored[self.key(self._x_d)] = self.reference
-        if self.reports:
-            self.reports[-1].closed = True
+        self._close_goal()
+        current = self.reference if self._move is None else self._move.at(t)
+        self._move = None
         if mode == "replay":
             ref = self.stored[self.key(x_d)]
         self._x_d, self._mode = x_d, mode
-        self.reports.append(GoalReport([float(v) for v in x_d], mode, self.reach_tolerance,
-                                       self.stall_steps))
-        self._online_from = {"clik": t + self.switch_delay, "online": t}.get(mode, np.inf)
+        report = GoalReport([float(v) for v in x_d], mode, self.reach_tolerance, self.stall_steps)
+        self.reports.append(report)
+        settled = t
+        if ref is not None and self.shaper is not None and mode in self.shaped_modes:
+            self._move = self.shaper.shape(t, current, ref)
+            self._fraction = self._move.fraction(t)
+            settled = self._move.end_time
+            if self._move.mode is not None:
+                report.shaped_mode = (self._move.mode.frequency, self._move.mode.damping)
+            ref = self._move.at(t)
+        self._online_from = {"clik": max(t + self.switch_delay, settled), "online": t}.get(mode, np.inf)
         self._next_step = self._online_from
         if ref is not None:
             self.reference = ref
         return self.reference
 
+    def _close_goal(self):
+        """Store the reference of a clik goal (the end of its shaped step if one is under way) and
+        close its report."""
+        if self._mode == "clik":
+            self.stored[self.key(self._x_d)] = self.reference if self._move is None else self._move.end
+        if self.reports:
+            self.reports[-1].closed = True
+
     def frame(self, t: float, x_measured) -> ClikPoint | None:
         """A mocap frame delivered at time t [s] with the measured task coordinates [m]; returns
-        the new reference when an online step was taken (None otherwise)."""
+        the new reference when it changed: a fraction of a shaped step was given, or an online step
+        was taken (None otherwise)."""
+        moved = None
+        if self._move is not None:
+            fraction = self._move.fraction(t)
+            if fraction != self._fraction:
+                self._fraction = fraction
+                self.reference = moved = self._move.at(t)
+            if fraction >= 1.0:
+                self._move = None
         if t < self._next_step - 1e-9:
-            return None
+            return moved
         self._next_step = max(self._next_step + self.period, t + 0.5 * self.period)
         refresh = self._steps % self.jacobian_every == 0
         self._steps += 1
@@ -185,16 +223,13 @@ class OuterLoop:
         self.reports[-1].add(step)
         self.last_step = step
         if ref is None:
-            return None
+            return moved
         self.reference = ref
         return ref
 
     def finish(self):
         """Store the reference of the last clik goal and close its report (end of an experiment)."""
-        if self._mode == "clik":
-            self.stored[self.key(self._x_d)] = self.reference
-        if self.reports:
-            self.reports[-1].closed = True
+        self._close_goal()
 
 
 def clik_for(model, control, task) -> Clik:
@@ -212,6 +247,9 @@ def outer_loop_for(model, control, task) -> OuterLoop:
     hanging arm under the pretension."""
     clik = clik_for(model, control, task)
     start = clik.reference(solve_equilibrium(model, np.full(model.n_tendons, control.tension_min)).q)
+    gains = [[getattr(control, name)[k] for k in task.tendons] for name in ("proportional", "derivative")]
+    shaper = StepShaper(clik.cm, task.space, control.shaper, *gains, control.shaping_level)
     return OuterLoop(clik, start, control.switch_delay, control.clik_rate,
                      int(round(control.clik_rate / control.jacobian_rate)), control.seed_levels,
-                     control.tolerance, control.reach_tolerance, control.stall_time)
+                     control.tolerance, control.reach_tolerance, control.stall_time, shaper,
+                     control.shaped_modes)

@@ -21,11 +21,10 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from soft_arm_model import ArmConfig, actuation_matrix, build_model
-from soft_arm_model.statics import residual_jacobian
+from soft_arm_model import ArmConfig, build_model
 
 from .clik import Clik, TargetError
-from .collocated import full_tensions
+from .collocated import held_stiffness
 from .config import ControlConfig, TaskConfig
 from .outer_loop import clik_for, outer_loop_for
 
@@ -85,11 +84,7 @@ class MarginChecker:
     def stability(self, clik: Clik, q, tensions) -> float:
         """The smallest real part of the eigenvalues of ``dR/dq + A K_p A0^T`` at q under the task
         tendons' ``tensions`` [N] (positive: a stable equilibrium under the inner loop)."""
-        cm, friction, cols = clik.cm, self.control.friction, list(self.task.tendons)
-        _, jac = residual_jacobian(cm.model, q, full_tensions(cm, tensions), friction=friction)
-        a = actuation_matrix(cm.model, q, friction)[:, cols]
-        a0 = actuation_matrix(cm.model, q, False)[:, cols] if friction else a
-        return float(np.linalg.eigvals(jac + a @ np.diag(self._kp) @ a0.T).real.min())
+        return float(np.linalg.eigvals(held_stiffness(clik.cm, q, tensions, self._kp)).real.min())
 
     def margin(self, tensions) -> float:
         """The distance [N] of ``tensions`` from the limits (negative outside)."""
