@@ -101,7 +101,6 @@ def main():
     print(f"  steady RMS {summary['rms_error'] * 1e3:.2f} mm, {summary['reached_mm']}/"
           f"{summary['transitions']} transitions in the mm band, task velocity mm band "
           f"{summary['velocity_mm']} m/s, cm band {summary['velocity_cm']} m/s")
-    print(f"  driver faults while enabled: {metrics['run']['driver_faults'] or 'none'}")
     print("  CPU per node: " + ", ".join(f"{n} {c:.0%}" for n, c in cpu.items())
           + f" (total {sum(cpu.values()):.0%} of {os.cpu_count()} cores)")
     for name, p in (("tendon/state", state), ("mocap/markers", mocap)):

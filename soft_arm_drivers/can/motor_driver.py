@@ -125,6 +125,23 @@ class Diagnostics:
     motors: tuple
 
 
+@dataclass(frozen=True)
+class CycleStatistics:
+    """The driver's timing over its last ``cycles`` periods (at most :data:`PERIOD_WINDOW`): the
+    period between cycle starts [s] (median, 99th percentile, maximum; nan before two cycles), the
+    99th percentile of its error from the nominal 1/rate [s], and the deadline misses (cycles later
+    than 1.5 periods) since the driver started."""
+    cycles: int
+    period_p50: float
+    period_p99: float
+    period_max: float
+    period_error_p99: float
+    deadline_misses: int
+
+
+PERIOD_WINDOW = 1000            # cycles the statistics look back over (2 s at 500 Hz)
+
+
 class Cycle(NamedTuple):
     """What one :meth:`MotorDriver.cycle` returns."""
     state: DriverState
@@ -160,6 +177,7 @@ class MotorDriver:
         self._replies = [0] * n
         self.stale_commands = self.rejected_commands = self.foreign_frames = self.error_frames = 0
         self.late_cycles = self.cycles = 0
+        self._periods = np.zeros(PERIOD_WINDOW)       # ring buffer of the last periods [s]
         self._closed = False
         self._send_all(EXIT_MOTOR_MODE)
 
@@ -239,6 +257,8 @@ class MotorDriver:
         if self._last_cycle is not None and now < self._last_cycle:
             raise ValueError(f"cycle time went backwards: {now} after {self._last_cycle}")
         dt = 0.0 if self._last_cycle is None else now - self._last_cycle
+        if self._last_cycle is not None:
+            self._periods[(self.cycles - 1) % PERIOD_WINDOW] = dt
         if dt > 1.5 / self.config.rate:
             self.late_cycles += 1
         if self._watch_from is None:
@@ -271,6 +291,16 @@ class MotorDriver:
         return Diagnostics(self.mode, self.fault, age, self.stale_commands, self.rejected_commands,
                            self.foreign_frames, self.error_frames, self.late_cycles, self.cycles,
                            self.zeroed, motors)
+
+    def cycle_statistics(self) -> CycleStatistics:
+        """The timing of the last cycles (not computed per cycle: call it when reporting)."""
+        periods = self._periods[:min(max(self.cycles - 1, 0), PERIOD_WINDOW)]
+        if periods.size == 0:
+            return CycleStatistics(0, math.nan, math.nan, math.nan, math.nan, self.late_cycles)
+        p50, p99 = np.percentile(periods, [50, 99])
+        error = np.percentile(np.abs(periods - 1.0 / self.config.rate), 99)
+        return CycleStatistics(int(periods.size), float(p50), float(p99), float(periods.max()),
+                               float(error), self.late_cycles)
 
     def _read(self, now: float) -> np.ndarray:
         """Take every frame waiting on the bus; update the readings of the motors that replied."""

@@ -8,8 +8,9 @@ runs one driver cycle, on a monotonic clock, and
   velocity [m/s]; effort = measured tension [N]), stamped with the oldest sensor time stamp of the
   cycle's replies, in every mode, whenever every motor replied;
 - publishes ``/diagnostics`` (diagnostic_msgs/DiagnosticArray: one status for the driver with mode,
-  fault reason and command counters, one per motor with temperature, error code and reply age) every
-  0.5 s and at once when the mode or the fault changes.
+  fault reason, command counters and its cycle timing over the last 1000 cycles: period p50/p99/max
+  and p99 error from 1/rate [ms], deadline misses (cycles later than 1.5 periods); one per motor with
+  temperature, error code and reply age) every 0.5 s and at once when the mode or the fault changes.
 
 Subscribes ``tendon/command`` (effort = tensions [N]; a command missing a tendon or with NaN or
 infinity is counted and dropped: the previous one ages until the watchdog latches a fault).
@@ -130,6 +131,11 @@ class MotorDriverNode(Node):
                                 foreign_frames=diag.foreign_frames, error_frames=diag.error_frames,
                                 late_cycles=diag.late_cycles, incomplete_cycles=self.incomplete_cycles,
                                 cycles=diag.cycles, zeroed=diag.zeroed)
+        timing = self.driver.cycle_statistics()
+        driver.values += _values(period_p50_ms=timing.period_p50 * 1e3, period_p99_ms=timing.period_p99 * 1e3,
+                                 period_max_ms=timing.period_max * 1e3,
+                                 period_error_p99_ms=timing.period_error_p99 * 1e3,
+                                 deadline_misses=timing.deadline_misses, timed_cycles=timing.cycles)
         out.status.append(driver)
         for name, m in zip(self.names, diag.motors):
             s = DiagnosticStatus(name=f"motor_driver: {name}", hardware_id=f"{bus}:{m.can_id}")

@@ -27,6 +27,7 @@ import os
 import signal
 import sys
 import time
+import traceback
 
 from soft_arm_control.config import IDENTIFICATION
 from soft_arm_model.config import write_arm_file
@@ -274,22 +275,33 @@ def _run(args, setup, ros_args: list, out: dict) -> int:
     except RuntimeError as exc:            # a node died, a service refused, a deadline passed
         facts, failed = {}, str(exc)
         print(f"\nsoft-arm-experiment: {exc}", file=sys.stderr)
+    except Exception as exc:               # a composed node's callback raised: its traceback, no result
+        traceback.print_exc()
+        facts, failed = {}, f"a node failed: {type(exc).__name__}: {exc}"
     interrupted = STOP.is_set()
     if progress is not None:
         print(file=sys.stderr)
+    faults = facts.get("driver_faults") or []
+    if failed is None and faults:
+        failed = "the motor driver faulted: " + "; ".join(
+            f"{f['message']} ({f['time_s']:.2f} s after the enable)" for f in faults)
     if setup.task is None:
         return _identification_result(args, out, facts, failed, interrupted)
     figures = []
     if os.path.isdir(out["bag"]):
         from .figures import make_figures
         figures = make_figures(out["bag"], setup.task, out["figures"])
-    if failed is not None or not os.path.exists(out["metrics"]):
-        print(f"soft-arm-experiment: {'interrupted; ' if interrupted else ''}"
-              f"{'no metrics written' if failed is None else 'the run failed'}; bag: {out['bag']}",
-              file=sys.stderr)
+    if failed is not None:
+        _write_invalid(out["metrics"], facts, failed)
+        print(f"soft-arm-experiment: {failed}: no result (metrics.json marked invalid); "
+              f"bag: {out['bag']}", file=sys.stderr)
+        return 130 if interrupted else 1
+    if not os.path.exists(out["metrics"]):
+        print(f"soft-arm-experiment: {'interrupted; ' if interrupted else ''}no metrics written; "
+              f"bag: {out['bag']}", file=sys.stderr)
         return 130 if interrupted else 1
     data, rows, summary = _load_metrics(out["metrics"])
-    data["run"] = facts
+    data["valid"], data["run"] = True, facts
     with open(out["metrics"], "w", encoding="utf-8") as fh:
         json.dump(data, fh, indent=2)
     if args.json:
@@ -305,18 +317,34 @@ def _run(args, setup, ros_args: list, out: dict) -> int:
     return 130 if interrupted else 0
 
 
+def _write_invalid(path: str, facts: dict, failure: str):
+    """Mark a run's result file invalid: ``valid`` false, why (``failure``) and the run facts, over
+    whatever the run had written (a runner may have finished before the fault was seen)."""
+    data = {}
+    if os.path.exists(path):
+        with open(path, encoding="utf-8") as fh:
+            data = json.load(fh)
+    data.update(valid=False, failure=failure, run=facts)
+    with open(path, "w", encoding="utf-8") as fh:
+        json.dump(data, fh, indent=2)
+
+
 def _identification_result(args, out: dict, facts: dict, failed: str | None, interrupted: bool) -> int:
     """The end of an identification experiment: the schedule it played (``excitation.json``, with the
     run facts) and the next command; exit 1 if it did not play to the end or the hardware faulted
-    (such a bag is not an identification experiment)."""
-    if failed is not None or not os.path.exists(out["metrics"]):
+    (such a bag is not an identification experiment: ``excitation.json`` is marked invalid)."""
+    if failed is not None:
+        _write_invalid(out["metrics"], facts, failed)
+        print(f"soft-arm-experiment: {failed}: the bag is not a valid identification experiment; "
+              f"bag: {out['bag']}", file=sys.stderr)
+        return 130 if interrupted else 1
+    if not os.path.exists(out["metrics"]):
         print(f"soft-arm-experiment: {'interrupted; ' if interrupted else ''}the identification "
               f"experiment did not play to its end; bag: {out['bag']}", file=sys.stderr)
         return 130 if interrupted else 1
     with open(out["metrics"], encoding="utf-8") as fh:
         data = json.load(fh)
-    faults = facts.get("driver_faults") or []
-    data["run"], data["valid"] = facts, not faults
+    data["run"], data["valid"] = facts, True
     with open(out["metrics"], "w", encoding="utf-8") as fh:
         json.dump(data, fh, indent=2)
     if args.json:
@@ -325,10 +353,6 @@ def _identification_result(args, out: dict, facts: dict, failed: str | None, int
         print(f"identification experiment: {len(data['segments'])} segments, {data['duration']:.1f} s")
         print(f"bag:      {out['bag']}\nschedule: {out['metrics']}\n"
               f"next:     soft-arm-identify {out['bag']} --output arm_identified.yaml")
-    if faults:
-        print(f"soft-arm-experiment: the motor driver faulted during the experiment ({'; '.join(faults)}): "
-              "the bag is not a valid identification experiment", file=sys.stderr)
-        return 1
     return 130 if interrupted else 0
 
 

@@ -47,6 +47,13 @@ def read_recording(bag_dir: str, names) -> Recording:
     from .figures import read_series
     if not os.path.isdir(bag_dir):
         raise IdentificationError(f"{bag_dir} is not a bag directory")
+    schedule = os.path.join(os.path.dirname(os.path.abspath(bag_dir)), "excitation.json")
+    if os.path.exists(schedule):
+        with open(schedule, encoding="utf-8") as fh:
+            played = json.load(fh)
+        if played.get("valid") is False:
+            raise IdentificationError(f"the run of {bag_dir} is marked invalid in {schedule} "
+                                      f"({played.get('failure', 'no reason given')}): record it again")
     series = read_series(bag_dir, TOPICS)
     missing = [t for t in TOPICS if len(series.get(t, [])) < 2]
     if missing:

@@ -209,8 +209,10 @@ def run_emulated_hardware(ros_args: list, out: dict, duration: float,
     task runner has written the metrics (RuntimeError if not within ``duration`` + 60 s) the motors
     are disabled, then the nodes are stopped. No process joins or leaves the graph while the motors
     are enabled: DDS discovery can hold a publisher, the driver's included, for a few hundred ms.
-    The driver's faults are printed as they latch and those latched while the motors were enabled
-    are listed in the run facts (``driver_faults``)."""
+    A fault the driver latches while the motors are enabled (watchdog, motor error, e-stop) ends the
+    run at once, the motors disabled: the faults are printed as they latch and listed in the run
+    facts (``driver_faults``: message and ``time_s`` after the enable), and a faulted run is no
+    result (the caller marks its metrics invalid)."""
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
     from std_srvs.srv import SetBool, Trigger
@@ -245,13 +247,14 @@ def run_emulated_hardware(ros_args: list, out: dict, duration: float,
                 "driver_faults": faults}
 
     def on_diagnostics(msg):
-        """Print the motor driver's faults as they latch (the run goes on: it is the operator's
-        call on the rig, and the metrics will show it); keep those latched while enabled."""
+        """Keep and print the motor driver's faults latched while the motors are enabled."""
+        stamp = stamp_to_seconds(msg.header.stamp)
         for status in msg.status:
             if status.name == "motor_driver" and status.level == DiagnosticStatus.ERROR \
-                    and stamp_to_seconds(msg.header.stamp) >= enabled_at and status.message not in faults:
-                faults.append(status.message)
-                print(f"\nsoft-arm-experiment: motor_driver {status.message}", file=sys.stderr)
+                    and stamp >= enabled_at and all(f["message"] != status.message for f in faults):
+                faults.append({"message": status.message, "time_s": round(stamp - enabled_at, 3)})
+                print(f"\nsoft-arm-experiment: motor_driver {status.message} "
+                      f"({stamp - enabled_at:.2f} s after the enable): the run ends", file=sys.stderr)
 
     with _orchestrating(children) as node:
         node.create_subscription(DiagnosticArray, "/diagnostics", on_diagnostics, 10)
@@ -277,7 +280,7 @@ def run_emulated_hardware(ros_args: list, out: dict, duration: float,
                 print(f"soft-arm-experiment: motor_driver {response.message}", file=sys.stderr)
             _call(node, begin, Trigger.Request())
             deadline = time.monotonic() + duration + 60.0
-            while not STOP.is_set() and not os.path.exists(out["metrics"]):
+            while not STOP.is_set() and not faults and not os.path.exists(out["metrics"]):
                 children.check()
                 if time.monotonic() > deadline:
                     raise RuntimeError(f"the {runner} node wrote no result within {duration + 60.0:g} s")

@@ -126,3 +126,29 @@ def test_processes_mode_runs_each_node_as_its_own_process(tmp_path):
     assert metrics["transitions"][0]["final_error"] < 5e-3
     assert sorted(p.name for p in (out / "figures").iterdir()) == [
         "actuation.png", "task_error.png", "tensions.png"]
+
+
+def test_a_node_that_fails_mid_run_leaves_an_invalid_result(tmp_path, monkeypatch, capsys):
+    """The composed inner loop raises on its 300th state: the run ends with status 1, the bag is
+    kept and readable, metrics.json says invalid and why, and no table is printed."""
+    from soft_arm_control.inner_loop_node import InnerLoopNode
+    from soft_arm_drivers.experiments.experiment import main
+    on_state, calls = InnerLoopNode.on_state, []
+
+    def failing(self, msg):
+        calls.append(1)
+        if len(calls) == 300:
+            raise ZeroDivisionError("injected")
+        on_state(self, msg)
+    monkeypatch.setattr(InnerLoopNode, "on_state", failing)
+    out = tmp_path / "failed"
+    sets = [a for s in SHORT for a in ("--set", s)]
+    assert main(["coiling", "--quiet", "--output", str(out)] + sets) == 1
+    printed = capsys.readouterr()
+    assert "ZeroDivisionError: injected" in printed.err and "no result" in printed.err
+    assert "rms[mm]" not in printed.out
+    with open(out / "metrics.json", encoding="utf-8") as fh:
+        metrics = json.load(fh)
+    assert metrics["valid"] is False and metrics["failure"] == "a node failed: ZeroDivisionError: injected"
+    messages, _ = _messages(out / "bag")
+    assert len(messages["/tendon/state"]) >= 299

@@ -11,7 +11,7 @@ import pytest
 
 from soft_arm_drivers.can.driver_config import Motor, load_driver_config
 from soft_arm_drivers.can.mit_protocol import MOTOR_PRESETS, decode_command, encode_command, encode_reply
-from soft_arm_drivers.can.motor_driver import MotorDriver, tension_frame
+from soft_arm_drivers.can.motor_driver import PERIOD_WINDOW, MotorDriver, tension_frame
 from soft_arm_drivers.sim.can_emulator import CanMotorEmulator, arm_plant
 from soft_arm_model.parameters import ConfigError
 
@@ -393,11 +393,36 @@ def test_runs_are_deterministic_with_explicit_time():
 
 def test_late_cycles_are_counted_and_time_cannot_go_back(make_rig):
     rig = make_rig()
+    assert np.isnan(rig.driver.cycle_statistics().period_max)
     rig.step(3)
     rig.k += 1                                                       # a cycle skipped
     assert rig.step(1).diagnostics.late_cycles == 1
     with pytest.raises(ValueError, match="backwards"):
         rig.driver.cycle(rig.t - 1.0)
+
+
+def test_cycle_statistics_show_a_delayed_cycle_and_look_back_a_window(make_rig):
+    """Periods between cycle starts: 200 on time, one 7 ms late (a deadline miss), the rest on
+    time; the window forgets the late one after PERIOD_WINDOW cycles."""
+    rig = make_rig()
+    period = rig.period
+    times = list(np.arange(201) * period)
+    times.append(times[-1] + period + 7e-3)
+    times += list(times[-1] + np.arange(1, 300) * period)
+    for t in times:
+        rig.driver.cycle(t)
+    stats = rig.driver.cycle_statistics()
+    assert stats.cycles == len(times) - 1 and stats.deadline_misses == 1
+    assert stats.period_p50 == pytest.approx(period, abs=1e-9)
+    assert stats.period_max == pytest.approx(period + 7e-3, abs=1e-9)
+    # one period in 500 is above the 99th percentile; the others are exact
+    assert stats.period_p99 == pytest.approx(period, abs=1e-9)
+    assert stats.period_error_p99 == pytest.approx(0.0, abs=1e-9)
+    for t in times[-1] + np.arange(1, PERIOD_WINDOW + 1) * period:
+        rig.driver.cycle(t)
+    stats = rig.driver.cycle_statistics()
+    assert stats.cycles == PERIOD_WINDOW and stats.deadline_misses == 1     # a count, not a window
+    assert stats.period_max == pytest.approx(period, abs=1e-9)
 
 
 # -- the emulator ------------------------------------------------------------------------------------

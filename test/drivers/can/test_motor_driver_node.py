@@ -196,6 +196,28 @@ def test_malformed_commands_are_rejected_by_the_node(rig):
     assert emulator.tensions.max() < 0.45                     # nothing but zero torque was applied
 
 
+def test_diagnostics_report_a_delayed_cycle_as_a_deadline_miss(rig):
+    """One driver cycle held for 25 ms (12 periods at 500 Hz): the driver's /diagnostics count a
+    deadline miss and show the long period."""
+    executor, node, harness, emulator = rig
+
+    def values():
+        return {v.key: v.value for v in harness.driver_status().values}
+    spin_until(executor, lambda: harness.driver_status() is not None and int(values()["timed_cycles"]) > 100)
+    before = int(values()["deadline_misses"])
+    cycle, held = node.driver.cycle, []
+
+    def held_once(now):
+        if not held:
+            held.append(now)
+            time.sleep(0.025)
+        return cycle(now)
+    node.driver.cycle = held_once
+    spin_until(executor, lambda: held and int(values()["deadline_misses"]) > before)
+    assert float(values()["period_max_ms"]) >= 25.0
+    assert 1.5 < float(values()["period_p50_ms"]) < 3.0
+
+
 def test_rig_yaml_parses_with_the_ros_parameter_parser():
     ctx = Context()
     rclpy.init(args=["x", "--ros-args", "--params-file", RIG_YAML], context=ctx)

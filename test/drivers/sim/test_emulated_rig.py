@@ -103,3 +103,51 @@ def test_ctrl_c_disables_the_emulated_motors_then_stops_every_node(tmp_path):
     assert len(read_series(str(out / "bag"))["tendon/state"]) > 500
     left = subprocess.run(["pgrep", "-f", str(out)], capture_output=True, text=True).stdout
     assert left == "", left
+
+
+def _child(parent: int, name: str) -> int:
+    """The pid of ``parent``'s child process whose command line names ``name``."""
+    for entry in os.listdir("/proc"):
+        try:
+            with open(f"/proc/{entry}/stat", encoding="utf-8") as fh:
+                ppid = int(fh.read().rsplit(")", 1)[1].split()[1])
+            with open(f"/proc/{entry}/cmdline", encoding="utf-8") as fh:
+                cmdline = fh.read()
+        except (OSError, ValueError, IndexError):
+            continue
+        if ppid == parent and name in cmdline:
+            return int(entry)
+    raise LookupError(f"no child of {parent} named {name}")
+
+
+def test_a_command_gap_faults_the_driver_and_the_run_is_no_result(tmp_path):
+    """The inner loop held for 0.15 s (three watchdog periods) while the motors are enabled: the
+    driver's watchdog trips, the run ends at once with status 1, the motors are disabled, the bag
+    stays readable and metrics.json is marked invalid with the fault and its time; no Table 1 row."""
+    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYTHONUNBUFFERED="1")
+    out = tmp_path / "run"
+    sets = [a for s in ONE_TARGET for a in ("--set", s)]
+    proc = subprocess.Popen([sys.executable, "-m", "soft_arm_drivers.experiments.experiment", "coiling",
+                             "--emulated-hardware", "--quiet", "--output", str(out)] + sets,
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+    with killed_on_exit(proc):
+        seen = wait_for_output(proc, "[motor_driver]: enabled", timeout=120)
+        time.sleep(2.0)
+        inner_loop = _child(proc.pid, "inner_loop")
+        os.kill(inner_loop, signal.SIGSTOP)
+        time.sleep(0.15)
+        os.kill(inner_loop, signal.SIGCONT)
+        output = seen + proc.communicate(timeout=60)[0]
+    assert proc.returncode == 1, output
+    assert "stale command" in output and "no result" in output
+    assert "[motor_driver]: disabled" in output
+    assert "rms[mm]" not in output and "task velocity" not in output          # no Table 1 row
+    with open(out / "metrics.json", encoding="utf-8") as fh:
+        metrics = json.load(fh)
+    assert metrics["valid"] is False and "stale command" in metrics["failure"]
+    fault, = metrics["run"]["driver_faults"]
+    assert "stale command" in fault["message"] and 1.5 < fault["time_s"] < 4.0
+    state = read_series(str(out / "bag"))["tendon/state"]
+    assert len(state) > 500
+    # the run ended with the fault, not with the 8 s window
+    assert state[-1][0] - state[0][0] < 8.0
