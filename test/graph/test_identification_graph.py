@@ -63,6 +63,21 @@ def test_a_bag_without_the_commands_is_refused_naming_the_topic(tmp_path, capsys
     assert "the bag lacks tendon/command" in capsys.readouterr().err
 
 
+def test_a_bag_whose_run_is_marked_invalid_is_refused(short_run, tmp_path, capsys):
+    """The same bag beside an excitation.json that says the run faulted: no fit."""
+    import shutil
+    run = tmp_path / "faulted"
+    shutil.copytree(short_run / "bag", run / "bag")
+    with open(short_run / "excitation.json", encoding="utf-8") as fh:
+        schedule = json.load(fh)
+    schedule.update(valid=False, failure="the motor driver faulted: stale command")
+    with open(run / "excitation.json", "w", encoding="utf-8") as fh:
+        json.dump(schedule, fh)
+    assert identify([str(run / "bag")] + _sets(FIT)) == 2
+    err = capsys.readouterr().err
+    assert "marked invalid" in err and "stale command" in err
+
+
 def test_the_identification_experiment_runs_one_process_per_node(tmp_path):
     out = tmp_path / "procs"
     assert experiment(["identification", "--processes", "--quiet", "--output", str(out)]
