@@ -11,10 +11,13 @@ import math
 import os
 from dataclasses import dataclass
 
+import numpy as np
+
 from soft_arm_model.config import ArmConfig
 from soft_arm_model.parameters import ConfigError, default_config_dir, load_section
 
 from .input_shaping import SHAPERS
+from .pendulum_geometry import PendulumConfig
 from .task_space import AXES, TaskSpace
 
 PHASE_MODES = ("clik", "replay", "precomputed", "online")
@@ -31,6 +34,7 @@ def _nonneg_list(v):
 
 CONTROL_SCHEMA = {
     "friction": ("bool", None, "true or false"),
+    "rotor_mass": ("float", lambda v: 0 <= v <= 100, "a reflected mass in [0, 100] kg"),
     "tension_min": ("float", lambda v: 0 <= v <= 100, "a pretension in [0, 100] N"),
     "tension_max": ("float", lambda v: 0 < v <= 100, "a tension in (0, 100] N"),
     "actuation_map.degree": ("int", lambda v: 1 <= v <= 4, "a polynomial degree in [1, 4]"),
@@ -66,6 +70,12 @@ CONTROL_SCHEMA = {
                            f"one or more of {list(SHAPED_MODES)}"),
 }
 
+# When the strike's reference is sent: with the release (the paper's protocol), or when the model's
+# rehearsal of the move says the tip will meet the ball at its speed peak
+STRIKE_TIMINGS = ("release", "rehearsed")
+PENDULUM_KEYS = ("pivot", "length", "mass", "ball_radius", "release_angle", "direction", "restitution",
+                 "timing")
+
 TASK_SCHEMA = {
     "*.tendons": ("strs", lambda v: len(v) >= 1 and len(set(v)) == len(v),
                   "one or more distinct tendon names"),
@@ -83,6 +93,17 @@ TASK_SCHEMA = {
                          "tip masses in [0, 1] kg (optional: an unmodelled load on the plant)"),
     "*.payload.attach_times": ("floats", lambda v: all(0 <= a for a in v),
                                "times >= 0 s from the start, one per payload mass"),
+    # the strike experiment's pendulum (optional; pendulum_geometry.PendulumConfig)
+    "*.pendulum.pivot": ("floats", lambda v: len(v) == 3, "the pivot's x, y, z [m] in arm_base"),
+    "*.pendulum.length": ("float", lambda v: 0 < v <= 2, "a rod length in (0, 2] m"),
+    "*.pendulum.mass": ("float", lambda v: 0 < v <= 1, "a ball mass in (0, 1] kg"),
+    "*.pendulum.ball_radius": ("float", lambda v: 0 < v <= 0.1, "a ball radius in (0, 0.1] m"),
+    "*.pendulum.release_angle": ("float", lambda v: 0 < v < 180,
+                                 "an angle from the vertical in (0, 180) deg"),
+    "*.pendulum.direction": ("floats", lambda v: len(v) == 2 and (v[0] ** 2 + v[1] ** 2) > 0,
+                             "the held ball's horizontal direction from below the pivot, [x, y] (not zero)"),
+    "*.pendulum.restitution": ("float", lambda v: 0 <= v <= 1, "a coefficient of restitution in [0, 1]"),
+    "*.pendulum.timing": ("str", lambda v: v in STRIKE_TIMINGS, f"one of {list(STRIKE_TIMINGS)}"),
 }
 
 
@@ -90,6 +111,7 @@ TASK_SCHEMA = {
 class ControlConfig:
     """Validated ``control`` parameters; gains are per tendon of the arm (all of them)."""
     friction: bool
+    rotor_mass: float
     tension_min: float
     tension_max: float
     map_degree: int
@@ -136,7 +158,7 @@ def parse_control(v: dict, arm: ArmConfig) -> ControlConfig:
                           "expected a tension margin less than half of the tension range "
                           f"({v['tension_max'] - v['tension_min']:.4g} N)")
     return ControlConfig(
-        v["friction"], v["tension_min"], v["tension_max"], v["actuation_map.degree"],
+        v["friction"], v["rotor_mass"], v["tension_min"], v["tension_max"], v["actuation_map.degree"],
         v["actuation_map.levels"], v["actuation_map.validation_samples"], v["inner_loop.rate"],
         v["inner_loop.proportional"], v["inner_loop.derivative"], v["inner_loop.integral"],
         v["inner_loop.integral_saturation"], v["inner_loop.tension_rate_limit"],
@@ -169,7 +191,8 @@ class Phase:
 class TaskConfig:
     """An experiment: actuated tendons (0-based), task space, targets (k, m) [m], phases, the
     steady-state time [s] used by the metrics and the plant's unmodelled tip payload (masses [kg],
-    attach times [s])."""
+    attach times [s]); the strike experiment's pendulum (None without one) and when its strike's
+    reference is sent (:data:`STRIKE_TIMINGS`)."""
     name: str
     tendons: tuple
     space: TaskSpace
@@ -177,6 +200,8 @@ class TaskConfig:
     phases: tuple
     steady_time: float
     payload: tuple = ((), ())
+    pendulum: PendulumConfig | None = None
+    strike_timing: str = "release"
 
 
 def parse_task(name: str, v: dict, arm: ArmConfig) -> TaskConfig:
@@ -226,8 +251,27 @@ def parse_task(name: str, v: dict, arm: ArmConfig) -> TaskConfig:
     if len(masses) != len(times):
         raise ConfigError(f"tasks.{name}.payload.attach_times = {list(times)!r} is not valid: "
                           f"expected {len(masses)} times, one per payload mass")
+    pendulum, timing = _pendulum(name, v)
+    if pendulum is not None and phases[0].mode not in ("precomputed", "clik"):
+        raise bad(f"phase.{phases[0].name}.mode", "precomputed or clik: a task with a pendulum strikes in "
+                  "its first window, with the precomputed reference")
     return TaskConfig(name, tendons, space, targets, tuple(phases), get("steady_time"),
-                      (tuple(masses), tuple(times)))
+                      (tuple(masses), tuple(times)), pendulum, timing)
+
+
+def _pendulum(name: str, v: dict) -> tuple:
+    """The task's pendulum and strike timing (None, "release" without a ``pendulum`` block)."""
+    given = {k: v[f"{name}.pendulum.{k}"] for k in PENDULUM_KEYS if f"{name}.pendulum.{k}" in v}
+    if not given:
+        return None, "release"
+    missing = [k for k in PENDULUM_KEYS if k not in given]
+    if missing:
+        raise ConfigError(f"tasks.{name}.pendulum lacks {', '.join(missing)} (a pendulum needs "
+                          f"{', '.join(PENDULUM_KEYS)})")
+    direction = np.array([*given["direction"], 0.0], dtype=float)
+    return PendulumConfig(np.array(given["pivot"], dtype=float), given["length"], given["mass"],
+                          given["ball_radius"], np.deg2rad(given["release_angle"]),
+                          direction / np.linalg.norm(direction), given["restitution"]), given["timing"]
 
 
 def load_task_config(name: str, arm: ArmConfig, path: str | None = None, overrides=None) -> TaskConfig:

@@ -34,6 +34,7 @@ from soft_arm_model.parameters import default_config_dir, split_overrides
 
 from .excitation import ExcitationConfig, load_excitation
 from .metrics import summarise, transition_metrics
+from .strike import plan_strike, rehearse, strike_metrics
 
 
 @dataclass(frozen=True)
@@ -170,8 +171,9 @@ class Transition:
 @dataclass
 class RunResult:
     """The outcome of :func:`run_experiment`: transitions, per-transition metrics, summary, record,
-    the actuation-map fit errors [m], the stored configurations per target and what the online CLIK
-    did per goal (:meth:`~soft_arm_control.outer_loop.GoalReport.as_dict`, in transition order)."""
+    the actuation-map fit errors [m], the stored configurations per target, what the online CLIK
+    did per goal (:meth:`~soft_arm_control.outer_loop.GoalReport.as_dict`, in transition order)
+    and, with a pendulum, what the strike did (:func:`~.strike.strike_metrics`)."""
     transitions: list
     metrics: list
     summary: object
@@ -180,6 +182,7 @@ class RunResult:
     map_max: float
     stored: dict
     goals: list
+    strike: dict | None = None
 
 
 def goal_warning(goal: dict) -> str:
@@ -278,7 +281,13 @@ def run_experiment(setup: Setup, progress=None, actuation_map: ActuationMap | No
     start = ctrl.reference = outer.start           # the controller's view of start-up
     points = precompute_targets(outer, task)
     rig = SimulatedRig(build_model(pc.plant_arm(setup.arm)), pc, start.shortening, pretension,
-                       task.payload)
+                       task.payload, task.pendulum)
+    plan = None
+    if task.pendulum is not None:            # the strike is the first window (precomputed)
+        first = schedule(task)[0]
+        arm_time, gap = rehearse(model, ctl, task, outer.clik.cm, ctrl.actuation_map, points[first[2]],
+                                 pc.timestep, first[3])
+        plan = plan_strike(task, arm_time, gap)
 
     dt = pc.timestep
     inner_every = max(1, int(round(1.0 / (ctl.inner_rate * dt))))
@@ -293,10 +302,17 @@ def run_experiment(setup: Setup, progress=None, actuation_map: ActuationMap | No
     t_start = 0.0
     for w_index, (phase, mode, k, window) in enumerate(schedule(task)):
         x_d = np.array(task.targets[k])
-        ctrl.reference = outer.goal(rig.t, x_d, mode, points.get(k))
+        send_at = t_start + (plan.send_delay if plan is not None and w_index == 0 else 0.0)
+        release_at = t_start + plan.release_delay if plan is not None and w_index == 0 else np.inf
+        sent = False
         t_end = t_start + window
         while rig.t < t_end - 1e-9:
             t = rig.t
+            if not sent and t >= send_at - 1e-9:
+                ctrl.reference = outer.goal(t, x_d, mode, points.get(k))
+                sent = True
+            if t >= release_at - 1e-9:
+                rig.release_pendulum()
             frame, delivered = rig.begin_step()
             if frame is not None:
                 rec.t_mocap.append(frame.stamp)
@@ -334,5 +350,6 @@ def run_experiment(setup: Setup, progress=None, actuation_map: ActuationMap | No
                                        tr.end - tr.start))
     stored = {k: outer.stored[outer.key(x)] for k, x in enumerate(task.targets)
               if outer.key(x) in outer.stored}
+    strike = None if plan is None else strike_metrics(rig.strike, plan, pc.timestep)
     return RunResult(transitions, rows, summarise(rows), rec, ctrl.actuation_map.rms_error,
-                     ctrl.actuation_map.max_error, stored, [g.as_dict() for g in outer.reports])
+                     ctrl.actuation_map.max_error, stored, [g.as_dict() for g in outer.reports], strike)

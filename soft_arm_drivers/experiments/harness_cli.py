@@ -20,6 +20,7 @@ from soft_arm_model.parameters import ConfigError
 from .harness import (add_setup_arguments, check_targets, goal_warning, load_setup, run_experiment,
                       setup_overrides)
 from .metrics import format_table, to_json
+from .strike import format_strike
 
 
 def _progress(t, total):
@@ -61,9 +62,13 @@ def main(argv=None) -> int:
         out = to_json(result.metrics, result.summary)
         out.update(task=args.task, simulated_s=simulated, wall_s=wall, targets=result.goals,
                    actuation_map={"rms_error": result.map_rms, "max_error": result.map_max})
+        if result.strike is not None:
+            out["strike"] = result.strike
         print(json.dumps(out, indent=2))
     else:
         print(format_table(result.metrics, result.summary))
+        if result.strike is not None:
+            print("\n" + format_strike(result.strike))
         print(f"\nactuation map thetabar_a(L_c): validation RMS {result.map_rms * 1e3:.2f} mm, "
               f"max {result.map_max * 1e3:.2f} mm")
         print(f"simulated {simulated:.1f} s in {wall:.1f} s (real-time factor {simulated / wall:.1f})")

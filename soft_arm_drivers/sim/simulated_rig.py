@@ -9,12 +9,13 @@ Mocap frames are exposed at ``mocap.rate`` (markers with Gaussian noise, seeded)
 from __future__ import annotations
 
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from soft_arm_model import ImexStepper, build_model, solve_equilibrium
 
+from .pendulum import ArmSurface, Contact, Pendulum
 from .plant_config import PlantConfig
 
 
@@ -47,15 +48,31 @@ class Plant:
         """Evaluate the current state (markers too if asked) for the readings and the next step."""
         self.stepper.prepare(self.q, self.qd, markers)
 
-    def step(self, u, payload: float = 0.0):
+    def step(self, u, payload: float = 0.0, force=None):
         """Advance the sensed state by one time step under tensions u [N], with a point mass
-        ``payload`` [kg] hanging at the tip (its weight only; sense with markers=True first)."""
-        f_ext = None
+        ``payload`` [kg] hanging at the tip (its weight only; sense with markers=True first) and an
+        external generalised force ``force`` (e.g. a contact's, :meth:`ArmSurface.generalised_force`)."""
+        f_ext = None if force is None else np.asarray(force, dtype=float)
         if payload:
             d = self.stepper.data
             gravity_body = d.marker_R[-1].T @ self.model.gravity
-            f_ext = payload * (d.marker_J[-1][3:].T @ gravity_body)
+            weight = payload * (d.marker_J[-1][3:].T @ gravity_body)
+            f_ext = weight if f_ext is None else f_ext + weight
         self.q, self.qd = self.stepper.advance(u, f_ext)
+
+    def surface(self) -> ArmSurface:
+        """The arm's backbone at the state sensed with ``markers=True``, as a contact sees it: the
+        model's points and the markers by arc length, their velocities, the cone's radius there and
+        their linear Jacobians in arm_base."""
+        d, m = self.stepper.data, self.model
+        X = np.concatenate([m.X, m.marker_X])
+        order = np.argsort(X, kind="stable")
+        R = np.concatenate([d.R, d.marker_R])[order]
+        J = np.concatenate([d.J, d.marker_J])[order][:, 3:]
+        jacobians = np.einsum("pij,pjk->pik", R, J)
+        g = m.config.geometry
+        radii = g.base_radius + (g.tip_radius - g.base_radius) * X[order] / g.length
+        return ArmSurface(np.concatenate([d.p, d.marker_p])[order], jacobians @ self.qd, radii, jacobians)
 
     def tendons(self) -> tuple[np.ndarray, np.ndarray]:
         """True shortenings L_c(0) - L_c(q) [m] and rates [m/s] of all tendons at the sensed state."""
@@ -94,12 +111,13 @@ class Encoders:
 class MocapFrame:
     """One motion-capture frame: mid-exposure time [s], measured marker positions (n_markers, 3) [m]
     (noisy, in arm_base as the mocap's calibration has it) and the true ones in arm_base, true tip
-    speed [m/s] and the frame number."""
+    speed [m/s], the frame number and the pendulum ball's measured centre [m] (None without one)."""
     stamp: float
     markers: np.ndarray
     true_markers: np.ndarray
     tip_speed: float
     number: int
+    ball: np.ndarray | None = None
 
 
 class SimulatedRig:
@@ -111,11 +129,17 @@ class SimulatedRig:
     """
 
     def __init__(self, plant_model, plant: PlantConfig, encoder_offset, pretension,
-                 payload=((), ())):
+                 payload=((), ()), pendulum=None):
         """``payload``: (masses [kg], attach times [s]): each mass hangs at the tip from its time
         on (an unmodelled load: the controller does not know it), as a weight at the tip (the
-        plant's own ``tip_payload`` is part of ``plant_model``, with its inertia)."""
+        plant's own ``tip_payload`` is part of ``plant_model``, with its inertia). ``pendulum``: the
+        strike experiment's (:class:`~soft_arm_control.pendulum_geometry.PendulumConfig`), held
+        until :meth:`release_pendulum`, swung with the arm and in contact with it; each step's
+        contact is in :attr:`strike`."""
         self.config = plant
+        self.pendulum = None if pendulum is None else Pendulum(pendulum,
+                                                               plant_model.config.material.youngs_modulus)
+        self.strike = StrikeRecord()
         self.payload_masses = np.array(payload[0], dtype=float)
         self.payload_times = np.array(payload[1], dtype=float)
         self.plant = Plant(plant_model, plant.timestep, plant.rotor_mass)
@@ -144,14 +168,18 @@ class SimulatedRig:
         self._sensed = self.step_index
         exposure = self.t >= self._next_frame * self._frame_period - 1e-12
         self._load = self.payload()
-        self.plant.sense(markers=exposure or self._load > 0)
+        self.plant.sense(markers=exposure or self._load > 0 or self.pendulum is not None)
         frame = None
         if exposure:
             true, speed = self.plant.markers()
             noisy = self.config.as_mocap_reports(true) + self.rng.normal(0.0, self.config.mocap_noise,
                                                                          true.shape)
+            ball = None
+            if self.pendulum is not None:
+                ball = self.config.as_mocap_reports(self.pendulum.p[None, :])[0] + self.rng.normal(
+                    0.0, self.config.mocap_noise, 3)
             frame = MocapFrame(self._next_frame * self._frame_period, noisy, true, speed,
-                               self._next_frame)
+                               self._next_frame, ball)
             self._pending.append(frame)
             self._next_frame += 1
         delivered = []
@@ -169,8 +197,49 @@ class SimulatedRig:
             return 0.0
         return float(self.payload_masses[self.payload_times <= self.t + 1e-12].sum())
 
+    def release_pendulum(self):
+        """Let the pendulum's ball go now (ValueError without a pendulum)."""
+        if self.pendulum is None:
+            raise ValueError("this rig has no pendulum (tasks.<task>.pendulum)")
+        if not self.pendulum.released:
+            self.pendulum.release()
+            self.strike.release_time = self.t
+
     def end_step(self, u):
-        """Apply tensions u [N] over one plant step."""
+        """Apply tensions u [N] over one plant step (and the pendulum's contact, if any)."""
         self.tension = np.array(u, dtype=float)
-        self.plant.step(self.tension, self._load)
+        force = None
+        if self.pendulum is not None:
+            surface = self.plant.surface()
+            contact = self.pendulum.advance(self.config.timestep, surface)
+            self.strike.add(self.t, self.pendulum, contact, surface)
+            if contact.overlap > 0:
+                force = surface.generalised_force(contact.segment, contact.fraction, -contact.force)
+        self.plant.step(self.tension, self._load, force)
         self.step_index += 1
+
+
+@dataclass
+class StrikeRecord:
+    """What the pendulum did, one entry per plant step after the release: times [s] (the step's
+    start), ball positions and velocities at the step's end [m, m/s], contact force on the ball [N],
+    surface gap [m] (negative: overlap), and the arm's speed at the contact point [m/s]."""
+    release_time: float | None = None
+    t: list = field(default_factory=list)
+    ball: list = field(default_factory=list)
+    ball_velocity: list = field(default_factory=list)
+    force: list = field(default_factory=list)
+    gap: list = field(default_factory=list)
+    arm_speed: list = field(default_factory=list)
+
+    def add(self, t: float, pendulum: Pendulum, contact: Contact, surface: ArmSurface):
+        if self.release_time is None:
+            return
+        i, s = contact.segment, contact.fraction
+        self.t.append(t)
+        self.ball.append(pendulum.p.copy())
+        self.ball_velocity.append(pendulum.v.copy())
+        self.force.append(contact.force.copy())
+        self.gap.append(contact.gap)
+        velocity = (1 - s) * surface.velocities[i] + s * surface.velocities[i + 1]
+        self.arm_speed.append(float(np.linalg.norm(velocity)))

@@ -141,3 +141,42 @@ def test_every_triangle_target_is_reached_on_structurally_different_plants(plant
     for goal in result.goals:
         assert goal["status"] in ("ok", "constrained") and goal["held_steps"] == 0, goal
         assert goal["reached"] or goal["status"] != "ok", goal
+
+
+def test_the_rehearsed_strike_hits_the_ball_near_its_speed_peak_within_the_tension_limits():
+    """On the declared plant: the plan sends the step or releases the ball so that the rehearsed
+    arm meets it at its lowest point; the ball is struck within 30 ms of that instant (before it:
+    the surfaces touch before the centre gets there), slowed and pushed across its swing; every
+    tension stays inside the limits."""
+    import numpy as np
+    setup = load_setup("pendulum")
+    result = run_experiment(setup)
+    strike, plan = result.strike, result.strike["plan"]
+    assert plan["timing"] == "rehearsed" and plan["arm_time"] is not None
+    assert plan["send_delay"] == 0.0 or plan["release_delay"] == 0.0
+    assert plan["send_delay"] + plan["arm_time"] == pytest.approx(plan["release_delay"] + plan["ball_time"])
+    assert strike["struck"]
+    assert plan["ball_time"] - 0.03 < strike["impact_time"] <= plan["ball_time"] + 0.005
+    assert strike["ball_speed_after"] < strike["ball_speed_before"]
+    assert strike["ball_velocity_change"][1] > 0.05             # pushed along +y, where the arm came from
+    tensions = np.array(result.record.tension)
+    assert tensions.min() >= setup.control.tension_min - 1e-12
+    assert tensions.max() <= setup.control.tension_max + 1e-12
+
+
+def test_the_paper_timing_sends_the_step_with_the_release():
+    setup = load_setup("pendulum", overrides=["tasks.pendulum.pendulum.timing=release",
+                                              "tasks.pendulum.phase.strike.window=0.6"])
+    plan = run_experiment(setup).strike["plan"]
+    assert plan["send_delay"] == 0.0 and plan["release_delay"] == 0.0
+
+
+@pytest.mark.parametrize("sets, message", [
+    (["tasks.pendulum.pendulum.restitution=1.5"], "restitution = 1.5 is not valid: expected a coefficient"),
+    (["tasks.pendulum.pendulum.timing=early"], "timing = 'early' is not valid"),
+    (["tasks.pendulum.pendulum.direction=[0, 0]"], "horizontal direction"),
+    (["tasks.pendulum.phase.strike.mode=online"], "strikes in its first window"),
+])
+def test_bad_pendulum_values_name_the_key(sets, message):
+    with pytest.raises(ConfigError, match=message):
+        load_setup("pendulum", overrides=sets)
