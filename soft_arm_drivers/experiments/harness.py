@@ -34,7 +34,7 @@ from soft_arm_model.parameters import default_config_dir, split_overrides
 
 from .excitation import ExcitationConfig, load_excitation
 from .metrics import summarise, transition_metrics
-from .strike import plan_strike, rehearse, strike_metrics
+from .strike import measured_strike, plan_strike, rehearse, strike_metrics
 
 
 @dataclass(frozen=True)
@@ -297,6 +297,7 @@ def run_experiment(setup: Setup, progress=None, actuation_map: ActuationMap | No
     tip_axes = [a for k, a in zip(task.space.markers, task.space.axes) if k == tip_index] or [0, 1, 2]
     space = task.space
     u = pretension.copy()
+    balls = []                   # (exposure time, ball marker, tip marker) of the strike's frames
     total = sum(w for *_, w in schedule(task))
     second = int(round(1.0 / dt))
     t_start = 0.0
@@ -322,6 +323,8 @@ def run_experiment(setup: Setup, progress=None, actuation_map: ActuationMap | No
                 rec.tip.append(frame.markers[tip_index, tip_axes])
                 rec.tip_speed.append(frame.tip_speed)
                 rec.window.append(w_index)
+                if frame.ball is not None:
+                    balls.append((frame.stamp, frame.ball, frame.markers))
             if delivered:
                 ref = outer.frame(t, space.from_markers(delivered[-1].markers))
                 if ref is not None:
@@ -350,6 +353,12 @@ def run_experiment(setup: Setup, progress=None, actuation_map: ActuationMap | No
                                        tr.end - tr.start))
     stored = {k: outer.stored[outer.key(x)] for k, x in enumerate(task.targets)
               if outer.key(x) in outer.stored}
-    strike = None if plan is None else strike_metrics(rig.strike, plan, pc.timestep)
+    strike = None
+    if plan is not None:
+        strike = strike_metrics(rig.strike, plan, pc.timestep)
+        if rig.strike.release_time is not None and balls:
+            t_b, ball, markers = (np.array(v) for v in zip(*balls))
+            strike["measured"] = measured_strike(task.pendulum, rig.strike.release_time, t_b, ball, markers,
+                                                 setup.arm)
     return RunResult(transitions, rows, summarise(rows), rec, ctrl.actuation_map.rms_error,
                      ctrl.actuation_map.max_error, stored, [g.as_dict() for g in outer.reports], strike)

@@ -21,10 +21,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.interpolate
 
 from soft_arm_control.clik import ClikPoint
 from soft_arm_control.collocated import full_tensions
 from soft_arm_control.inner_loop import tendon_controller_for
+from soft_arm_drivers.sim.pendulum import Pendulum, closest_capsule
 from soft_arm_drivers.sim.simulated_rig import Plant, StrikeRecord
 
 
@@ -107,6 +109,80 @@ def strike_metrics(record: StrikeRecord, plan: StrikePlan, timestep: float) -> d
                ball_speed_after=float(np.linalg.norm(v[after])),
                ball_velocity_change=(v[after] - before).tolist(),
                arm_speed=float(record.arm_speed[first]), deepest_overlap=float(-gap[first:after + 1].min()))
+    return out
+
+
+DEVIATION = 0.003        # m: a ball this far off its free swing has been struck (mocap noise ~0.2 mm)
+SPEED_WINDOW = 0.02      # s of frames the ball's speeds are measured over, before and after
+
+
+def free_swing(pendulum, times) -> np.ndarray:
+    """The ball's centre [m] at ``times`` [s] after its release (ascending, >= 0) on a free swing."""
+    ball = Pendulum(pendulum, youngs_modulus=0.0)           # no arm: the modulus is not used
+    ball.release()
+    out, t, step = [], 0.0, 2e-4
+    for target in times:
+        while t < target - 1e-12:
+            h = min(step, target - t)
+            ball.advance(h)
+            t += h
+        out.append(ball.p.copy())
+    return np.array(out)
+
+
+BACKBONE_SAMPLES = 40    # points of the backbone the markers are interpolated to
+
+
+def marker_backbone(arm, markers) -> tuple[np.ndarray, np.ndarray]:
+    """The backbone as the markers (n_markers, 3) [m] of ``arm`` (an ArmConfig) show it: a cubic
+    spline in arc length through the base (arm_base's origin, leaving it along -z, clamped) and the
+    markers, with no curvature at the free tip; (points (BACKBONE_SAMPLES, 3) [m], the cone's
+    radius at each [m])."""
+    g = arm.geometry
+    X = np.concatenate([[0.0], arm.marker_positions])
+    spline = scipy.interpolate.CubicSpline(X, np.vstack([np.zeros(3), markers]),
+                                           bc_type=((1, np.array([0.0, 0.0, -1.0])), (2, np.zeros(3))))
+    fine = np.linspace(0.0, X[-1], BACKBONE_SAMPLES)
+    return spline(fine), g.base_radius + (g.tip_radius - g.base_radius) * fine / g.length
+
+
+def measured_strike(pendulum, release_time: float, t, ball, markers, arm) -> dict:
+    """The strike as the motion capture sees it (what the rig can measure): mocap frame times t
+    [s], the ball marker (N, 3) and the arm's markers (N, n_markers, 3) [m] of ``arm`` (an
+    ArmConfig: where the markers sit and the cone's radii). The ball is
+    struck at the last frame still within a third of :data:`DEVIATION` of its free swing
+    before it leaves it by more (``impact_time`` after the release); its speeds before and after are
+    fitted over :data:`SPEED_WINDOW` of frames on each side. Without an impact: the closest
+    approach of the ball's surface to the arm's (:func:`marker_backbone`) and when."""
+    t = np.asarray(t, dtype=float) - release_time
+    keep = t >= 0
+    t, ball, markers = t[keep], np.asarray(ball, dtype=float)[keep], np.asarray(markers, dtype=float)[keep]
+    out = {"struck": False}
+    if t.size < 3:
+        return out
+    deviation = np.linalg.norm(ball - free_swing(pendulum, t), axis=1)
+    off = deviation > DEVIATION
+    if not off.any():
+        gap = np.array([closest_capsule(*marker_backbone(arm, m), b)[3]
+                        for m, b in zip(markers, ball)]) - pendulum.ball_radius
+        k = int(np.argmin(gap))
+        out.update(closest_approach=float(gap[k]), closest_time=float(t[k]))
+        return out
+    first = int(np.argmax(off))
+    still = np.flatnonzero(deviation[:first] <= DEVIATION / 3)   # on the free swing, noise aside
+    k = int(still[-1]) if still.size else 0
+
+    def velocity(sel):
+        if sel.sum() < 2:
+            return None
+        return np.polyfit(t[sel], ball[sel], 1)[0]
+    before = velocity((t <= t[k]) & (t > t[k] - SPEED_WINDOW))
+    after_start = t[k] + 2 * SPEED_WINDOW          # the contact lasts ~10 ms: skip it
+    after = velocity((t >= after_start) & (t < after_start + SPEED_WINDOW))
+    out.update(struck=True, impact_time=float(t[k]),
+               ball_speed_before=None if before is None else float(np.linalg.norm(before)),
+               ball_speed_after=None if after is None else float(np.linalg.norm(after)),
+               ball_velocity_change=None if before is None or after is None else (after - before).tolist())
     return out
 
 

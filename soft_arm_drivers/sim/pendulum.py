@@ -42,6 +42,20 @@ def hertz_stiffness(youngs_modulus: float, arm_radius: float, ball_radius: float
     return 4.0 / 3.0 * reduced * np.sqrt(arm_radius * ball_radius / (arm_radius + ball_radius))
 
 
+def closest_capsule(points, radii, centre) -> tuple[int, float, np.ndarray, float]:
+    """The capsule of the chain through ``points`` (P, 3) [m] with radii (P,) [m] that ``centre``
+    [m] is closest to the surface of: (segment index i between points i and i+1, fraction s along
+    it, the backbone point Q [m], the gap [m] from Q's surface: |c - Q| - r(Q))."""
+    a, b = points[:-1], points[1:]
+    d = b - a
+    s = np.clip(np.einsum("ij,ij->i", centre - a, d) / np.maximum(np.einsum("ij,ij->i", d, d), 1e-18),
+                0.0, 1.0)
+    q = a + s[:, None] * d
+    gap = np.linalg.norm(centre - q, axis=1) - (radii[:-1] + s * (radii[1:] - radii[:-1]))
+    i = int(np.argmin(gap))
+    return i, float(s[i]), q[i], float(gap[i])
+
+
 @dataclass(frozen=True)
 class ArmSurface:
     """The arm at one instant, as the contact sees it: backbone points (P, 3) [m] in arm_base ordered
@@ -53,17 +67,8 @@ class ArmSurface:
     jacobians: np.ndarray
 
     def closest(self, centre) -> tuple[int, float, np.ndarray, float]:
-        """The capsule (segment index i between points i and i+1) the ball centre ``centre`` [m]
-        is deepest into: (i, fraction s along it, the backbone point Q [m], surface gap [m] from Q's
-        surface, without the ball's radius: |c - Q| - r(Q))."""
-        a, b = self.points[:-1], self.points[1:]
-        d = b - a
-        s = np.clip(np.einsum("ij,ij->i", centre - a, d) / np.maximum(np.einsum("ij,ij->i", d, d), 1e-18),
-                    0.0, 1.0)
-        q = a + s[:, None] * d
-        gap = np.linalg.norm(centre - q, axis=1) - (self.radii[:-1] + s * (self.radii[1:] - self.radii[:-1]))
-        i = int(np.argmin(gap))
-        return i, float(s[i]), q[i], float(gap[i])
+        """:func:`closest_capsule` of this surface."""
+        return closest_capsule(self.points, self.radii, centre)
 
     def generalised_force(self, i: int, s: float, force) -> np.ndarray:
         """The generalised force of ``force`` [N] (arm_base) applied at fraction s of segment i."""
