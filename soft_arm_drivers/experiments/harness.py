@@ -173,7 +173,9 @@ class RunResult:
     """The outcome of :func:`run_experiment`: transitions, per-transition metrics, summary, record,
     the actuation-map fit errors [m], the stored configurations per target, what the online CLIK
     did per goal (:meth:`~soft_arm_control.outer_loop.GoalReport.as_dict`, in transition order)
-    and, with a pendulum, what the strike did (:func:`~.strike.strike_metrics`)."""
+    and, with a pendulum, the strike: its ``plan``, what the ``simulated`` contact did
+    (:func:`~.strike.strike_metrics`) and what the motion capture ``measured``
+    (:func:`~.strike.measured_strike`)."""
     transitions: list
     metrics: list
     summary: object
@@ -355,7 +357,8 @@ def run_experiment(setup: Setup, progress=None, actuation_map: ActuationMap | No
               if outer.key(x) in outer.stored}
     strike = None
     if plan is not None:
-        strike = strike_metrics(rig.strike, plan, pc.timestep)
+        strike = {"plan": plan.as_dict(), "simulated": strike_metrics(rig.strike, pc.timestep),
+                  "measured": {"struck": False}}
         if rig.strike.release_time is not None and balls:
             t_b, ball, markers = (np.array(v) for v in zip(*balls))
             strike["measured"] = measured_strike(task.pendulum, rig.strike.release_time, t_b, ball, markers,

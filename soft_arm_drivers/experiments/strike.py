@@ -83,12 +83,13 @@ def plan_strike(task, arm_time: float, rehearsed_gap: float) -> StrikePlan:
                       task.strike_timing)
 
 
-def strike_metrics(record: StrikeRecord, plan: StrikePlan, timestep: float) -> dict:
-    """What the strike did (JSON-ready, SI units): ``struck``; with an impact its time after the
-    release [s], the ball's speed before and after [m/s] and velocity change [m/s, arm_base], the
-    arm's speed at the contact point [m/s] and the deepest overlap [m]; without, the closest
-    approach (smallest surface gap [m]) and its time after the release [s]; and the plan."""
-    out = {"plan": plan.as_dict(), "struck": False}
+def strike_metrics(record: StrikeRecord, timestep: float) -> dict:
+    """What the simulated contact did (JSON-ready, SI units): ``struck``; with an impact its time
+    after the release [s], the ball's speed before and after [m/s] and velocity change [m/s,
+    arm_base], the arm's speed at the contact point [m/s], the contact's duration [s] and deepest
+    overlap [m]; without, the closest approach (smallest surface gap [m]) and its time after the
+    release [s]."""
+    out = {"struck": False}
     if record.release_time is None or not record.t:
         return out
     t = np.asarray(record.t) - record.release_time
@@ -187,7 +188,8 @@ def measured_strike(pendulum, release_time: float, t, ball, markers, arm) -> dic
 
 
 def format_strike(strike: dict) -> str:
-    """The strike's plan and outcome as a few lines of text."""
+    """A strike's plan and outcome (``plan``; ``simulated``, the contact's, where the simulator's
+    own record is at hand; ``measured``, the motion capture's) as a few lines of text."""
     plan = strike["plan"]
     arm = ("never touches it" if plan["arm_time"] is None
            else f"touches it {plan['arm_time']:.3f} s after its step")
@@ -195,15 +197,22 @@ def format_strike(strike: dict) -> str:
              f"  plan ({plan['timing']}): the ball reaches its lowest point {plan['ball_time']:.3f} s after "
              f"the release; the rehearsed arm {arm}; reference at +{plan['send_delay']:.3f} s, release "
              f"at +{plan['release_delay']:.3f} s"]
-    if strike["struck"]:
-        lines.append(f"  struck {strike['impact_time']:.3f} s after the release: ball "
-                     f"{strike['ball_speed_before']:.2f} -> {strike['ball_speed_after']:.2f} m/s, arm "
-                     f"{strike['arm_speed']:.2f} m/s at the contact, "
-                     f"{strike['contact_duration'] * 1e3:.0f} ms "
-                     f"of contact, {strike['deepest_overlap'] * 1e3:.1f} mm deep")
-    elif "closest_approach" in strike:
-        lines.append(f"  missed: closest approach {strike['closest_approach'] * 1e3:.1f} mm, "
-                     f"{strike['closest_time']:.3f} s after the release")
-    else:
-        lines.append("  the ball was never released")
+    for source in ("simulated", "measured"):
+        outcome = strike.get(source)
+        if outcome is None:
+            continue
+        if outcome["struck"]:
+            speeds = "" if outcome.get("ball_speed_after") is None else (
+                f": ball {outcome['ball_speed_before']:.2f} -> {outcome['ball_speed_after']:.2f} m/s")
+            contact = "" if "arm_speed" not in outcome else (
+                f", arm {outcome['arm_speed']:.2f} m/s at the contact, "
+                f"{outcome['contact_duration'] * 1e3:.0f} ms of contact, "
+                f"{outcome['deepest_overlap'] * 1e3:.1f} mm deep")
+            lines.append(f"  {source}: struck {outcome['impact_time']:.3f} s after the release"
+                         f"{speeds}{contact}")
+        elif "closest_approach" in outcome:
+            lines.append(f"  {source}: missed, closest approach {outcome['closest_approach'] * 1e3:.1f} mm, "
+                         f"{outcome['closest_time']:.3f} s after the release")
+        else:
+            lines.append(f"  {source}: the ball was never released")
     return "\n".join(lines)
