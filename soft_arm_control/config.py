@@ -299,6 +299,14 @@ def task_of(params, arm: ArmConfig) -> TaskConfig:
     return parse_task(params.task_name({k.split(".")[0] for k in values}), values, arm)
 
 
+def pendulum_of(params, arm: ArmConfig) -> PendulumConfig | None:
+    """The pendulum of the task ``graph.task`` (None without one, and in the identification
+    experiment)."""
+    if params.graph["task"] == IDENTIFICATION:
+        return None
+    return task_of(params, arm).pendulum
+
+
 def payload_of(params, arm: ArmConfig) -> tuple:
     """The unmodelled tip payload (masses [kg], attach times [s]) of the task ``graph.task``; none
     in the identification experiment (the arm as it is)."""

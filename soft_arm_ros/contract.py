@@ -18,6 +18,7 @@ TOPICS = {
     "command": "tendon/command", "state": "tendon/state", "reference": "tendon/reference",
     "markers": "mocap/markers", "tip": "mocap/tip", "goal": "task/goal",
     "configuration": "arm/configuration_reference", "shape": "arm/shape", "clock": "/clock",
+    "ball": "mocap/pendulum", "release": "pendulum/release",
 }
 TYPES = {
     "tendon/command": "sensor_msgs/msg/JointState", "tendon/state": "sensor_msgs/msg/JointState",
@@ -25,6 +26,7 @@ TYPES = {
     "mocap/tip": "geometry_msgs/msg/PoseStamped", "task/goal": "std_msgs/msg/Float64MultiArray",
     "arm/configuration_reference": "std_msgs/msg/Float64MultiArray",
     "arm/shape": "visualization_msgs/msg/MarkerArray", "/clock": "rosgraph_msgs/msg/Clock",
+    "mocap/pendulum": "geometry_msgs/msg/PoseStamped", "pendulum/release": "std_msgs/msg/Header",
 }
 STREAM = QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT,
                     history=HistoryPolicy.KEEP_LAST)
@@ -33,7 +35,7 @@ RELIABLE = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                       history=HistoryPolicy.KEEP_LAST, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 QOS = {"tendon/command": STREAM, "tendon/state": STREAM, "mocap/markers": STREAM, "mocap/tip": STREAM,
        "arm/shape": STREAM, "/clock": STREAM, "tendon/reference": RELIABLE, "task/goal": RELIABLE,
-       "arm/configuration_reference": RELIABLE}
+       "arm/configuration_reference": RELIABLE, "mocap/pendulum": STREAM, "pendulum/release": RELIABLE}
 
 
 def message_class(type_name: str):

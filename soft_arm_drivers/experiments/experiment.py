@@ -34,6 +34,7 @@ from soft_arm_model.config import write_arm_file
 from soft_arm_model.parameters import ConfigError, default_config_dir
 
 from .metrics import Summary, TransitionMetrics, format_table
+from .strike import format_strike
 from .harness import add_setup_arguments, check_targets, load_setup, setup_overrides
 from .excitation import Excitation
 from .orchestration import STOP, request_stop, roles, run_emulated_hardware, run_processes
@@ -225,6 +226,9 @@ def main(argv=None) -> int:
             args.sets += closest
             setup = load_setup(args.task, args.config,
                                [s for s in args.sets if not s.startswith("graph.")], args.arm_file)
+        if args.emulated_hardware and setup.task is not None and setup.task.pendulum is not None:
+            raise ConfigError(f"the emulated rig has no pendulum: run {args.task} on the simulator "
+                              "(without --emulated-hardware)")
         ros_args = _ros_arguments(args.task, args.sets, args.config, args.arm_file)
     except (ConfigError, ValueError) as exc:          # TargetError is a ValueError
         print(f"soft-arm-experiment: {exc}", file=sys.stderr)
@@ -290,7 +294,7 @@ def _run(args, setup, ros_args: list, out: dict) -> int:
     figures = []
     if os.path.isdir(out["bag"]):
         from .figures import make_figures
-        figures = make_figures(out["bag"], setup.task, out["figures"])
+        figures = make_figures(out["bag"], setup.task, out["figures"], setup.arm)
     if failed is not None:
         _write_invalid(out["metrics"], facts, failed)
         print(f"soft-arm-experiment: {failed}: no result (metrics.json marked invalid); "
@@ -308,6 +312,8 @@ def _run(args, setup, ros_args: list, out: dict) -> int:
         print(json.dumps(data, indent=2))
     else:
         print(format_table(rows, summary))
+        if "strike" in data:
+            print("\n" + format_strike(data["strike"]))
         if facts.get("simulated_s"):
             print(f"\nsimulated {facts['simulated_s']:.1f} s in {facts['wall_s']:.1f} s "
                   f"(real-time factor {facts['simulated_s'] / facts['wall_s']:.2f})")

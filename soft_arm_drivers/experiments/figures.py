@@ -2,7 +2,8 @@
 
 ``task_error.png``: the task error per coordinate and its norm against time, with the 5 mm and
 10 mm bands and the window starts; ``actuation.png``: measured and reference tendon shortenings
-(the actuation coordinates) of the task's tendons; ``tensions.png``: the commanded tensions.
+(the actuation coordinates) of the task's tendons; ``tensions.png``: the commanded tensions;
+``strike.png`` (a task with a pendulum): the arm and the ball around the strike (Fig. 5).
 The bag is read with the independent ``rosbags`` reader.
 """
 from __future__ import annotations
@@ -36,11 +37,14 @@ def read_series(bag_dir: str, topics=None) -> dict:
     return out
 
 
-def make_figures(bag_dir: str, task, out_dir: str) -> list:
-    """Write the three PNGs for ``task`` (a TaskConfig) into out_dir; returns their paths."""
+def make_figures(bag_dir: str, task, out_dir: str, arm=None) -> list:
+    """Write the PNGs for ``task`` (a TaskConfig) into out_dir (``strike.png`` too for a task with a
+    pendulum, given its ``arm``, an ArmConfig); returns their paths."""
     series = read_series(bag_dir)
     os.makedirs(out_dir, exist_ok=True)
     paths = []
+    if task.pendulum is not None and arm is not None and series.get("pendulum/release"):
+        paths.append(strike_figure(series, task, arm, out_dir))
     frames = series.get("mocap/markers", [])
     if frames:
         t = np.array([s for s, _ in frames])
@@ -95,6 +99,53 @@ def make_figures(bag_dir: str, task, out_dir: str) -> list:
         ax.legend(fontsize=7)
         paths.append(save_figure(fig, out_dir, "tensions.png"))
     return paths
+
+
+def strike_figure(series: dict, task, arm, out_dir: str) -> str:
+    """``strike.png``, like the paper's Fig. 5: (A) the arm (base and markers) at instants from the
+    release, the tip's and the ball's paths, side view; (B) the same paths seen from above with the
+    ball's free swing (dashed), the target (circle) and the impact (crosses); all as the motion
+    capture saw them, the impact from :func:`~.strike.measured_strike`."""
+    from .strike import free_swing, measured_strike
+    release = series["pendulum/release"][-1][1].stamp
+    t_release = release.sec + 1e-9 * release.nanosec
+    arm_frames = {s: _positions(m) for s, m in series.get("mocap/markers", []) if s >= t_release}
+    balls = {s: m.pose.position for s, m in series.get("mocap/pendulum", []) if s >= t_release}
+    stamps = sorted(set(arm_frames) & set(balls))
+    markers = np.array([arm_frames[s] for s in stamps])
+    ball = np.array([[balls[s].x, balls[s].y, balls[s].z] for s in stamps])
+    rel = np.array(stamps) - t_release
+    strike = measured_strike(task.pendulum, t_release, np.array(stamps), ball, markers, arm)
+    impact = int(np.searchsorted(rel, strike["impact_time"])) if strike["struck"] else None
+    tip = markers[:, -1]
+    fig, (side, top) = plt.subplots(1, 2, figsize=(11, 5))
+    for j, when in enumerate(np.linspace(0.0, min(rel[-1], 0.5), 6)):
+        k = int(np.searchsorted(rel, when))
+        chain = np.vstack([np.zeros(3), markers[min(k, len(rel) - 1)]])
+        side.plot(chain[:, 1], chain[:, 2], "-o", ms=3, color=plt.cm.viridis(j / 5), lw=1.5,
+                  label=f"arm at {rel[min(k, len(rel) - 1)]:.2f} s")
+    nominal = free_swing(task.pendulum, rel)
+    for ax, (a, b) in ((side, (1, 2)), (top, (0, 1))):
+        ax.plot(tip[:, a], tip[:, b], color="tab:red", lw=1.0, label="tip")
+        ax.plot(ball[:, a], ball[:, b], color="tab:blue", lw=1.0, label="ball")
+        ax.plot(nominal[:, a], nominal[:, b], "k--", lw=0.8, label="ball, free swing")
+        ax.plot(task.pendulum.lowest_point[a], task.pendulum.lowest_point[b], "o", mfc="none", ms=14,
+                color="grey", label="target")
+        if impact is not None:
+            ax.plot(tip[impact, a], tip[impact, b], "x", color="tab:red", ms=10, mew=2)
+            ax.plot(ball[impact, a], ball[impact, b], "x", color="tab:blue", ms=10, mew=2)
+        ax.set_aspect("equal", adjustable="datalim")
+    side.set_xlabel("y [m]")
+    side.set_ylabel("z [m]")
+    side.set_title("A: shapes from the release, side view")
+    side.legend(fontsize=6, loc="lower left")
+    top.set_xlabel("x [m]")
+    top.set_ylabel("y [m]")
+    outcome = (f"struck {strike['impact_time']:.3f} s after the release" if strike["struck"]
+               else "missed")
+    top.set_title(f"B: tip and ball from above ({outcome})")
+    top.legend(fontsize=7)
+    return save_figure(fig, out_dir, "strike.png")
 
 
 def _positions(pose_array) -> np.ndarray:

@@ -288,7 +288,7 @@ def run_experiment(setup: Setup, progress=None, actuation_map: ActuationMap | No
     if task.pendulum is not None:            # the strike is the first window (precomputed)
         first = schedule(task)[0]
         arm_time, gap = rehearse(model, ctl, task, outer.clik.cm, ctrl.actuation_map, points[first[2]],
-                                 pc.timestep, first[3])
+                                 first[3])
         plan = plan_strike(task, arm_time, gap)
 
     dt = pc.timestep

@@ -23,11 +23,14 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.interpolate
 
+from soft_arm_control.actuation_map import actuation_map_for
 from soft_arm_control.clik import ClikPoint
 from soft_arm_control.collocated import full_tensions
 from soft_arm_control.inner_loop import tendon_controller_for
+from soft_arm_control.outer_loop import outer_loop_for
 from soft_arm_drivers.sim.pendulum import Pendulum, closest_capsule
 from soft_arm_drivers.sim.simulated_rig import Plant, StrikeRecord
+from soft_arm_model import build_model
 
 
 @dataclass(frozen=True)
@@ -47,8 +50,11 @@ class StrikePlan:
         return {k: None if isinstance(v, float) and not np.isfinite(v) else v for k, v in vars(self).items()}
 
 
-def rehearse(model, control, task, cm, actuation_map, goal: ClikPoint, timestep: float,
-             duration: float) -> tuple[float, float]:
+REHEARSAL_STEP = 1e-3     # s, the rehearsal's time step (the plant's of plant.yaml)
+
+
+def rehearse(model, control, task, cm, actuation_map, goal: ClikPoint, duration: float,
+             timestep: float = REHEARSAL_STEP) -> tuple[float, float]:
     """The step from the hanging arm (the pretension on every tendon, where the harness starts) to
     the reference ``goal``, simulated on the controller's ``model`` (collocated model ``cm``, the
     inner loop of ``control`` on the task's tendons through ``actuation_map``) for ``duration``
@@ -72,6 +78,18 @@ def rehearse(model, control, task, cm, actuation_map, goal: ClikPoint, timestep:
             u = tendons.update(k * timestep, s, sd)
         plant.step(u)
     return float("nan"), smallest
+
+
+def strike_plan_for(arm, control, task) -> StrikePlan:
+    """The plan of ``task``'s strike (its first window) as the graph's task runner makes it before
+    anything moves: the target precomputed on the controller's model, the move rehearsed."""
+    model = build_model(arm)
+    outer = outer_loop_for(model, control, task)
+    first = task.phases[0]
+    goal = outer.precompute(np.array(task.targets[first.sequence[0]]))
+    arm_time, gap = rehearse(model, control, task, outer.clik.cm, actuation_map_for(model, control), goal,
+                             first.window)
+    return plan_strike(task, arm_time, gap)
 
 
 def plan_strike(task, arm_time: float, rehearsed_gap: float) -> StrikePlan:

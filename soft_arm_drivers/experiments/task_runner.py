@@ -5,7 +5,9 @@ coordinates and the phase's mode). It keeps the measured task coordinates and ti
 every frame and, at the end, computes the paper's metrics (the peak tip speed from differences of
 the measured tip positions over at least 10 ms, as on the rig) and what became of each goal: the
 closest and the last measured task error, with the clik node's report of it (infeasible and held
-steps, status) when one arrived.
+steps, status) when one arrived. A task with a pendulum starts with the strike: the first goal and
+the ball's release are timed by the strike's plan (:mod:`.strike`), and the ball's frames give what
+the motion capture saw of the strike.
 """
 from __future__ import annotations
 
@@ -14,13 +16,22 @@ import numpy as np
 from soft_arm_control.config import TaskConfig
 
 from .metrics import measured_speed, summarise, transition_metrics
+from .strike import measured_strike
 
 
 class TaskRunner:
-    """Runs one task; ``tip_marker``: index of the tip among the markers."""
+    """Runs one task; ``tip_marker``: index of the tip among the markers. With a pendulum
+    (``plan``, a :class:`~.strike.StrikePlan`, and the ``arm`` whose markers the frames carry), the
+    first window's goal goes out ``plan.send_delay`` after its start, the ball is released
+    ``plan.release_delay`` after it (:attr:`release_at`), and the ball's frames (:meth:`ball`)
+    give the strike's metrics (:meth:`strike`)."""
 
-    def __init__(self, task: TaskConfig, tip_marker: int):
-        self.task = task
+    def __init__(self, task: TaskConfig, tip_marker: int, plan=None, arm=None):
+        if (task.pendulum is None) != (plan is None):
+            raise ValueError("a task with a pendulum needs a strike plan, and only such a task")
+        self.task, self.plan, self.arm = task, plan, arm
+        self._deferred = None          # the first window's goal, until plan.send_delay
+        self.arm_frames, self.ball_frames = {}, {}      # exposure time: markers / ball centre
         self.windows = [(ph.name, ph.mode, k, ph.window) for ph in task.phases for k in ph.sequence]
         self.tip = tip_marker
         self.tip_axes = [a for k, a in zip(task.space.markers, task.space.axes) if k == tip_marker] \
@@ -48,9 +59,16 @@ class TaskRunner:
         rel = t - self.t0
         while self.index < len(self.windows) and rel >= self.starts[self.index + 1] - 1e-9:
             self.index += 1
+            self._deferred = None
             if self.index < len(self.windows):
                 _, mode, k, _ = self.windows[self.index]
                 goal = (np.array(self.task.targets[k]), mode)
+                if self.index == 0 and self.plan is not None and self.plan.send_delay > 0:
+                    self._deferred, goal = goal, None
+        if self._deferred is not None and rel >= self.plan.send_delay - 1e-9:
+            goal, self._deferred = self._deferred, None
+        if self.plan is not None and self.release_at is not None and t >= self.release_at - 1e-9:
+            self.arm_frames[t] = np.asarray(markers, dtype=float).copy()
         if 0 <= self.index < len(self.windows):
             markers = np.asarray(markers, dtype=float)
             k = self.windows[self.index][2]
@@ -58,6 +76,33 @@ class TaskRunner:
                                  np.array(self.task.targets[k]), markers[self.tip, self.tip_axes],
                                  markers[self.tip].copy()))
         return goal
+
+    @property
+    def release_at(self) -> float | None:
+        """When the ball is to be released [s, frame time] (None before the first frame or
+        without a pendulum)."""
+        if self.plan is None or self.t0 is None:
+            return None
+        return self.t0 + self.plan.release_delay
+
+    def ball(self, t: float, centre):
+        """A frame of the ball's marker at exposure time t [s] (centre (3,) [m])."""
+        if self.release_at is not None and t >= self.release_at - 1e-9:
+            self.ball_frames[t] = np.asarray(centre, dtype=float).copy()
+
+    def strike(self) -> dict | None:
+        """The strike's ``plan`` and what the motion capture ``measured``
+        (:func:`~.strike.measured_strike` over the frames with both the arm and the ball); None
+        without a pendulum."""
+        if self.plan is None:
+            return None
+        stamps = sorted(set(self.arm_frames) & set(self.ball_frames))
+        measured = {"struck": False}
+        if stamps and self.release_at is not None:
+            measured = measured_strike(self.task.pendulum, self.release_at, np.array(stamps),
+                                       np.array([self.ball_frames[t] for t in stamps]),
+                                       np.array([self.arm_frames[t] for t in stamps]), self.arm)
+        return {"plan": self.plan.as_dict(), "measured": measured}
 
     def metrics(self):
         """(per-transition metrics, summary) of the windows played so far."""

@@ -3,7 +3,10 @@ publishes ``task/goal`` at each window start and, at the end, logs the paper-sty
 writes the metrics as JSON to the node parameter ``output`` (if given; written whole or not at
 all), with ``goals``: per window the closest and the last measured task error and the clik node's
 last report of the goal from ``/diagnostics`` (infeasible and held steps, status; for the last goal
-as of the clik's last report, at most a second old); then it stops.
+as of the clik's last report, at most a second old); then it stops. A task with a pendulum plans
+its strike at start-up (:func:`~.strike.strike_plan_for`), publishes ``pendulum/release``
+(std_msgs/Header stamped with the release time, sent ahead) with the first frame, reads the ball on
+``mocap/pendulum`` and writes the strike's plan and measurement under ``strike``.
 
 With the parameter ``wait_for_start`` true (on the rig: the motors are enabled first), the first
 window starts with the first frame after a call of ``~/start`` (std_srvs/Trigger), and the node
@@ -16,18 +19,19 @@ import os
 import sys
 
 from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import PoseArray
+from geometry_msgs.msg import PoseArray, PoseStamped
 from rclpy.node import Node
-from std_msgs.msg import Float64MultiArray
+from std_msgs.msg import Float64MultiArray, Header
 from std_srvs.srv import Trigger
 
-from soft_arm_control.config import task_of
-from soft_arm_ros.contract import QOS, TOPICS
-from soft_arm_ros.conversions import float_array, markers_of, stamp_to_seconds
+from soft_arm_control.config import control_of, task_of
+from soft_arm_ros.contract import FRAME, QOS, TOPICS
+from soft_arm_ros.conversions import float_array, markers_of, seconds_to_stamp, stamp_to_seconds
 from soft_arm_ros.parameters import NodeParameters
 from soft_arm_ros.runtime import run_node
 
 from .metrics import format_table, to_json
+from .strike import strike_plan_for
 from .task_runner import TaskRunner
 
 
@@ -37,7 +41,13 @@ class TaskRunnerNode(Node):
                          automatically_declare_parameters_from_overrides=True, **node_options)
         params = NodeParameters(self, config_dir)
         self.task = task = task_of(params, params.arm)
-        self.core = TaskRunner(task, len(params.arm.marker_positions) - 1)
+        plan = None
+        if task.pendulum is not None:
+            plan = strike_plan_for(params.arm, control_of(params, params.arm), task)
+            self.get_logger().info(f"strike plan ({plan.timing}): reference at +{plan.send_delay:.3f} s, "
+                                   f"release at +{plan.release_delay:.3f} s")
+        self.core = TaskRunner(task, len(params.arm.marker_positions) - 1, plan, params.arm)
+        self.release_sent = False
         self.output = self.get_parameter("output").value if self.has_parameter("output") else ""
         self.wait_for_start = bool(self.get_parameter("wait_for_start").value) \
             if self.has_parameter("wait_for_start") else False
@@ -46,6 +56,9 @@ class TaskRunnerNode(Node):
         self.create_service(Trigger, "~/start", self.on_start)
         self.pub = self.create_publisher(Float64MultiArray, TOPICS["goal"], QOS["task/goal"])
         self.create_subscription(PoseArray, TOPICS["markers"], self.on_markers, QOS["mocap/markers"])
+        if task.pendulum is not None:
+            self.release_pub = self.create_publisher(Header, TOPICS["release"], QOS["pendulum/release"])
+            self.create_subscription(PoseStamped, TOPICS["ball"], self.on_ball, QOS["mocap/pendulum"])
         self.create_subscription(DiagnosticArray, "/diagnostics", self.on_diagnostics, 10)
         self.get_logger().info(f"task {task.name}: {len(self.core.windows)} windows, "
                                f"{self.core.duration:.1f} s")
@@ -64,8 +77,18 @@ class TaskRunnerNode(Node):
         if goal is not None:
             x_d, mode = goal
             self.pub.publish(float_array(x_d, mode))
+        if self.core.release_at is not None and not self.release_sent:
+            # sent ahead, stamped with the release time: the release happens on time
+            release = Header(frame_id=FRAME)
+            seconds_to_stamp(release.stamp, self.core.release_at)
+            self.release_pub.publish(release)
+            self.release_sent = True
         if self.core.done:
             self.finish()
+
+    def on_ball(self, msg: PoseStamped):
+        p = msg.pose.position
+        self.core.ball(stamp_to_seconds(msg.header.stamp), (p.x, p.y, p.z))
 
     def on_diagnostics(self, msg: DiagnosticArray):
         for status in msg.status:
@@ -90,8 +113,10 @@ class TaskRunnerNode(Node):
             if self.output:
                 partial = self.output + ".partial"
                 with open(partial, "w", encoding="utf-8") as fh:
+                    strike = self.core.strike()
                     json.dump({"task": self.core.task.name, **to_json(rows, summary),
-                               "goals": self.core.goals()}, fh, indent=2)
+                               "goals": self.core.goals(), **({"strike": strike} if strike else {})},
+                              fh, indent=2)
                 os.replace(partial, self.output)
         self.finished = True
         self.done = not self.wait_for_start

@@ -3,7 +3,11 @@
 Publishes what the motor driver and the mocap bridge publish on the rig: ``tendon/state``
 (position: encoder shortening [m], velocity [m/s], effort: applied tension [N]), ``mocap/markers``
 and ``mocap/tip`` (mid-exposure stamps, at the mocap rate, with noise and latency), plus ``/clock``
-and ``arm/shape`` (MarkerArray). Subscribes ``tendon/command`` (effort: tensions [N]).
+and ``arm/shape`` (MarkerArray). Subscribes ``tendon/command`` (effort: tensions [N]). With a
+task's pendulum (``tasks.<graph.task>.pendulum``): the ball swings with the arm and strikes it, its
+marker goes out on ``mocap/pendulum`` (PoseStamped, the same exposures as the arm's markers; on the
+rig the mocap bridge publishes it as a second rigid body) and it is released at the stamp of a
+``pendulum/release`` message (std_msgs/Header).
 
 Modes (``graph.simulator.mode``): ``lockstep`` advances one inner-loop period per received command
 (deterministic, as fast as the graph answers); ``realtime`` advances on the wall clock. A command
@@ -24,9 +28,10 @@ from geometry_msgs.msg import Point, PoseArray, PoseStamped
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
+from std_msgs.msg import Header
 from visualization_msgs.msg import Marker, MarkerArray
 
-from soft_arm_control.config import control_of, payload_of
+from soft_arm_control.config import control_of, payload_of, pendulum_of
 from soft_arm_model import build_model, solve_equilibrium, tendon_lengths
 from soft_arm_ros.contract import FRAME, QOS, TOPICS
 from soft_arm_ros.conversions import (joint_state, ordered, pose_array, pose_stamped, seconds_to_stamp,
@@ -59,7 +64,8 @@ class SimulatorNode(Node):
         q_rest = solve_equilibrium(model, pretension).q
         offset = model.rest_tendon_lengths - tendon_lengths(model, q_rest)
         self.rig = SimulatedRig(build_model(plant.plant_arm(arm)), plant, offset, pretension,
-                                payload_of(params, arm))
+                                payload_of(params, arm), pendulum_of(params, arm))
+        self.release_at = None
         self.names = model.tendon_names
         self.steps_per_command = max(1, int(round(1.0 / (control.inner_rate * plant.timestep))))
         self.mode = graph["simulator.mode"]
@@ -77,6 +83,9 @@ class SimulatorNode(Node):
         self.shape_pub = self.create_publisher(MarkerArray, TOPICS["shape"], QOS["arm/shape"])
         sub = self.create_subscription(JointState, TOPICS["command"], self.on_command,
                                        QOS["tendon/command"])
+        if self.rig.pendulum is not None:
+            self.ball_pub = self.create_publisher(PoseStamped, TOPICS["ball"], QOS["mocap/pendulum"])
+            self.create_subscription(Header, TOPICS["release"], self.on_release, QOS["pendulum/release"])
         self.command_topic = sub.topic_name
         self.waiting_since = time.monotonic()
         period = 1.0 / control.inner_rate
@@ -113,6 +122,13 @@ class SimulatorNode(Node):
         if self.mode == "lockstep":
             self.advance()
 
+    def on_release(self, msg: Header):
+        """The ball goes at the message's stamp (at once if that has passed)."""
+        self.release_at = stamp_to_seconds(msg.stamp)
+        if self.release_at < self.rig.t - 1e-9:
+            self.get_logger().warning(f"release for t = {self.release_at:.4f} s came at {self.rig.t:.4f} s: "
+                                      "the ball goes now")
+
     def watchdog(self):
         """Lockstep: no command for ``command_timeout`` of wall time: step on the held tension."""
         if self._started and time.monotonic() - self.waiting_since > self.timeout:
@@ -132,8 +148,12 @@ class SimulatorNode(Node):
         for frame in frames:
             self.markers_pub.publish(pose_array(frame.markers, frame.stamp))
             self.tip_pub.publish(pose_stamped(frame.markers[-1], frame.stamp))
+            if frame.ball is not None:
+                self.ball_pub.publish(pose_stamped(frame.ball, frame.stamp))
 
     def _step(self):
+        if self.release_at is not None and self.rig.t >= self.release_at - 1e-9:
+            self.rig.release_pendulum()
         _, delivered = self.rig.begin_step()
         self._publish_frames(delivered)
         if self.shape_every and self.rig.step_index % self.shape_every == 0:
