@@ -93,6 +93,8 @@ TASK_SCHEMA = {
                          "tip masses in [0, 1] kg (optional: an unmodelled load on the plant)"),
     "*.payload.attach_times": ("floats", lambda v: all(0 <= a for a in v),
                                "times >= 0 s from the start, one per payload mass"),
+    "*.paper_peak_speed": ("float", lambda v: 0 < v <= 100,
+                           "the peak tip speed the paper reports for the task, in (0, 100] m/s (optional)"),
     # the strike experiment's pendulum (optional; pendulum_geometry.PendulumConfig)
     "*.pendulum.pivot": ("floats", lambda v: len(v) == 3, "the pivot's x, y, z [m] in arm_base"),
     "*.pendulum.length": ("float", lambda v: 0 < v <= 2, "a rod length in (0, 2] m"),
@@ -192,7 +194,8 @@ class TaskConfig:
     """An experiment: actuated tendons (0-based), task space, targets (k, m) [m], phases, the
     steady-state time [s] used by the metrics and the plant's unmodelled tip payload (masses [kg],
     attach times [s]); the strike experiment's pendulum (None without one) and when its strike's
-    reference is sent (:data:`STRIKE_TIMINGS`)."""
+    reference is sent (:data:`STRIKE_TIMINGS`); the peak tip speed the paper reports for it [m/s]
+    (None if it gives none)."""
     name: str
     tendons: tuple
     space: TaskSpace
@@ -202,6 +205,7 @@ class TaskConfig:
     payload: tuple = ((), ())
     pendulum: PendulumConfig | None = None
     strike_timing: str = "release"
+    paper_peak_speed: float | None = None
 
 
 def parse_task(name: str, v: dict, arm: ArmConfig) -> TaskConfig:
@@ -256,7 +260,7 @@ def parse_task(name: str, v: dict, arm: ArmConfig) -> TaskConfig:
         raise bad(f"phase.{phases[0].name}.mode", "precomputed or clik: a task with a pendulum strikes in "
                   "its first window, with the precomputed reference")
     return TaskConfig(name, tendons, space, targets, tuple(phases), get("steady_time"),
-                      (tuple(masses), tuple(times)), pendulum, timing)
+                      (tuple(masses), tuple(times)), pendulum, timing, v.get(f"{name}.paper_peak_speed"))
 
 
 def _pendulum(name: str, v: dict) -> tuple:

@@ -311,7 +311,7 @@ def _run(args, setup, ros_args: list, out: dict) -> int:
     if args.json:
         print(json.dumps(data, indent=2))
     else:
-        print(format_table(rows, summary))
+        print(format_table(rows, summary, setup.task.paper_peak_speed))
         if "strike" in data:
             print("\n" + format_strike(data["strike"]))
         if facts.get("simulated_s"):

@@ -60,13 +60,14 @@ def main(argv=None) -> int:
     simulated = result.transitions[-1].end if result.transitions else 0.0
     if args.json:
         out = to_json(result.metrics, result.summary)
-        out.update(task=args.task, simulated_s=simulated, wall_s=wall, targets=result.goals,
+        out.update(task=args.task, paper_peak_speed=setup.task.paper_peak_speed, simulated_s=simulated,
+                   wall_s=wall, targets=result.goals,
                    actuation_map={"rms_error": result.map_rms, "max_error": result.map_max})
         if result.strike is not None:
             out["strike"] = result.strike
         print(json.dumps(out, indent=2))
     else:
-        print(format_table(result.metrics, result.summary))
+        print(format_table(result.metrics, result.summary, setup.task.paper_peak_speed))
         if result.strike is not None:
             print("\n" + format_strike(result.strike))
         print(f"\nactuation map thetabar_a(L_c): validation RMS {result.map_rms * 1e3:.2f} mm, "

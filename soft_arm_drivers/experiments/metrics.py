@@ -137,8 +137,10 @@ def _fmt(v, scale=1.0, digits=3):
     return "-" if v is None else f"{v * scale:.{digits}f}"
 
 
-def format_table(rows: list[TransitionMetrics], summary: Summary) -> str:
-    """Per-transition table and the paper-style summary row, as plain text."""
+def format_table(rows: list[TransitionMetrics], summary: Summary,
+                 paper_peak_speed: float | None = None) -> str:
+    """Per-transition table and the paper-style summary row, as plain text (with the peak tip
+    speed the paper reports for the task [m/s], if given)."""
     lines = [f"{'phase':<10} {'tgt':>3} {'win[s]':>6} {'disp[m]':>7} {'t_cm[s]':>7} {'t_mm[s]':>7} "
              f"{'v_cm':>6} {'v_mm':>6} {'rms[mm]':>7} {'final[mm]':>9} {'peak[m/s]':>9}"]
     for r in rows:
@@ -154,7 +156,8 @@ def format_table(rows: list[TransitionMetrics], summary: Summary) -> str:
               f"({summary.reached_mm}/{summary.transitions} transitions reached)",
               f"  task velocity, cm band [m/s]   {_fmt(summary.velocity_cm)} "
               f"({summary.reached_cm}/{summary.transitions} transitions reached)",
-              f"  peak tip speed [m/s]           {summary.peak_speed:.2f}"]
+              f"  peak tip speed [m/s]           {summary.peak_speed:.2f}"
+              + ("" if paper_peak_speed is None else f" (the paper's arm: {paper_peak_speed:.2f})")]
     return "\n".join(lines)
 
 

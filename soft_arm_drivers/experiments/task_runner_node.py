@@ -114,7 +114,9 @@ class TaskRunnerNode(Node):
                 partial = self.output + ".partial"
                 with open(partial, "w", encoding="utf-8") as fh:
                     strike = self.core.strike()
-                    json.dump({"task": self.core.task.name, **to_json(rows, summary),
+                    task = self.core.task
+                    json.dump({"task": task.name, "paper_peak_speed": task.paper_peak_speed,
+                               **to_json(rows, summary),
                                "goals": self.core.goals(), **({"strike": strike} if strike else {})},
                               fh, indent=2)
                 os.replace(partial, self.output)

@@ -64,6 +64,7 @@ def test_cli_prints_metrics_as_json(capsys):
     assert code == 0
     out = json.loads(capsys.readouterr().out)
     assert out["task"] == "coiling" and len(out["transitions"]) == 1
+    assert out["paper_peak_speed"] == 3.63                     # printed beside the simulated one
     assert out["transitions"][0]["window"] == pytest.approx(3.0)
     assert out["actuation_map"]["rms_error"] > 0
 
