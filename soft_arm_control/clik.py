@@ -186,19 +186,21 @@ class Clik:
         return None
 
     # -- online variant ---------------------------------------------------------------------------
-    def step(self, q, x_d, dt: float, x=None, refresh: bool = True) -> tuple[ClikPoint | None, ClikStep]:
+    def step(self, q, x_d, dt: float, x=None, refresh: bool = True,
+             xd_dot=None) -> tuple[ClikPoint | None, ClikStep]:
         """One explicit Euler step of length dt [s] from q_d = q; x: measured task coordinates [m]
-        (online) or None (model); refresh: see :meth:`velocity`. Returns (the new reference,
+        (online) or None (model); refresh: see :meth:`velocity`; xd_dot: the target's velocity
+        [m/s] (a tracked trajectory's feedforward; default zero). Returns (the new reference,
         diagnostics). When the step would need tensions outside the limits, the bounded
         least-squares step is taken instead (``constrained``); the reference is None (``held``: keep
         the last one) only when no step within the limits and the model's domain is found."""
-        info = self.velocity(q, x_d, x, refresh=refresh)
+        info = self.velocity(q, x_d, x, xd_dot, refresh=refresh)
         u0 = self.cd.u_eq.copy()             # the tensions at q, before the trial moves cd
         q = np.asarray(q, dtype=float)
         ref = self._feasible_reference(q + dt * info.qdot)
         if ref is not None:
             return ref, info
-        qdot = self._bounded_velocity(u0, dt, info)
+        qdot = self._bounded_velocity(u0, dt, info, xd_dot)
         for scale in (1.0, 0.5, 0.25, 0.125):
             ref = self._feasible_reference(q + scale * dt * qdot)
             if ref is not None:
@@ -215,11 +217,11 @@ class Clik:
             return None
         return ref if self.feasibility_error(ref.u_ff) is None else None
 
-    def _bounded_velocity(self, u0, dt: float, info: ClikStep) -> np.ndarray:
+    def _bounded_velocity(self, u0, dt: float, info: ClikStep, xd_dot=None) -> np.ndarray:
         """qdot of the bounded least-squares step from the configuration of ``info`` with
         equilibrium tensions u0 [N] (see the module's docstring): the task velocity closest to
-        Gamma_Z e whose tension rate keeps u0 + dt udot within the limits, the equilibrium term
-        unchanged."""
+        xd_dot + Gamma_Z e whose tension rate keeps u0 + dt udot within the limits, the
+        equilibrium term unchanged."""
         m = self.task.m
         Z, Ga = self._Z, self._Ga            # as used by velocity() for this step
         task_columns = self._solve(Z, np.eye(Z.shape[0])[:, :m])[0]
@@ -231,7 +233,8 @@ class Clik:
         margin = _LIMIT_MARGIN * (self.u_max - self.u_min)      # room for the step's curvature
         lo = (self.u_min + margin - u0) / dt
         hi = (self.u_max - margin - u0) / dt
-        udot = lsq_linear(A, self.gains.task * info.error + A @ c, bounds=(lo, hi)).x
+        wanted = self.gains.task * info.error + (0.0 if xd_dot is None else np.asarray(xd_dot, dtype=float))
+        udot = lsq_linear(A, wanted + A @ c, bounds=(lo, hi)).x
         return task_columns @ (A @ (udot - c)) + qdot_eq
 
     def closest_feasible(self, x_d, starts, margin: float | None = None) -> ClikPoint:

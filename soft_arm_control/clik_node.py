@@ -1,7 +1,8 @@
 """``clik`` node: the underactuated CLIK, precomputed and online, with the paper's switch.
 
 Subscribes ``task/goal`` (Float64MultiArray: the task coordinates; ``layout.dim[0].label`` the mode:
-clik (default), replay, precomputed or online, see :mod:`soft_arm_control.outer_loop`) and
+clik (default), replay, precomputed, online, or ``track/<phase>``: that phase's trajectory from the
+goal's coordinates, see :mod:`soft_arm_control.outer_loop`) and
 ``mocap/markers``; publishes ``tendon/reference`` (position: reference shortenings [m] of all
 tendons; effort: feedforward tensions [N], the pretension on the tendons the task does not use) and
 ``arm/configuration_reference`` (q_d). A bad or infeasible goal is rejected with a logged reason;
@@ -39,6 +40,7 @@ class ClikNode(Node):
         params = NodeParameters(self, config_dir)
         self.control = control_of(params, params.arm)
         self.task = task_of(params, params.arm)
+        self.trajectories = {ph.name: ph.trajectory for ph in self.task.phases if ph.trajectory is not None}
         self.model = build_model(params.arm)
         self.outer = outer_loop_for(self.model, self.control, self.task)
         self.names = self.model.tendon_names
@@ -61,9 +63,16 @@ class ClikNode(Node):
         self.q_pub.publish(float_array(ref.q, "q_d"))
 
     def on_goal(self, msg: Float64MultiArray):
-        mode = (msg.layout.dim[0].label if msg.layout.dim and msg.layout.dim[0].label else "clik")
+        label = msg.layout.dim[0].label if msg.layout.dim and msg.layout.dim[0].label else "clik"
+        mode, _, phase = label.partition("/")        # track/<phase>: that phase's trajectory
         try:
-            ref = self.outer.goal(self.now, np.array(msg.data, dtype=float), mode)
+            trajectory = None
+            if mode == "track":
+                trajectory = self.trajectories.get(phase)
+                if trajectory is None:
+                    raise ValueError(f"a track goal names a phase of task {self.task.name} with a "
+                                     f"trajectory ({', '.join(sorted(self.trajectories))}), got {label!r}")
+            ref = self.outer.goal(self.now, np.array(msg.data, dtype=float), mode, trajectory=trajectory)
         except (TargetError, ValueError) as exc:
             self.rejected_goals += 1
             self.get_logger().error(f"goal rejected: {exc}; keeping the last reference")

@@ -18,9 +18,10 @@ from soft_arm_model.parameters import ConfigError, default_config_dir, load_sect
 
 from .input_shaping import SHAPERS
 from .pendulum_geometry import PendulumConfig
+from .trajectories import SHAPES, Trajectory
 from .task_space import AXES, TaskSpace
 
-PHASE_MODES = ("clik", "replay", "precomputed", "online")
+PHASE_MODES = ("clik", "replay", "precomputed", "online", "track")
 SHAPED_MODES = ("clik", "replay", "precomputed")   # the goal modes that start with a reference step
 
 
@@ -64,6 +65,7 @@ CONTROL_SCHEMA = {
                          "tensions in [0, 100] N (may be empty)"),
     "clik.closest_margin": ("float", lambda v: 0 <= v <= 100,
                             "a tension margin in [0, 100] N, less than half of the tension range"),
+    "clik.track_feedforward": ("bool", None, "true or false"),
     "clik.shaping.shaper": ("str", lambda v: v in SHAPERS, f"one of {list(SHAPERS)}"),
     "clik.shaping.level": ("float", lambda v: 0 < v <= 1, "a vibration amplitude in (0, 1] m"),
     "clik.shaping.modes": ("strs", lambda v: len(v) >= 1 and set(v) <= set(SHAPED_MODES),
@@ -89,6 +91,12 @@ TASK_SCHEMA = {
     "*.phase.*.window": ("float", lambda v: 0 < v <= 3600, "a window in (0, 3600] s"),
     "*.phase.*.sequence": ("ints", lambda v: len(v) >= 1 and all(a >= 1 for a in v),
                            "target numbers >= 1, in the order they are visited"),
+    # a track phase's path from each target of its sequence (trajectories.Trajectory)
+    "*.phase.*.trajectory.shape": ("str", lambda v: v in SHAPES, f"one of {list(SHAPES)}"),
+    "*.phase.*.trajectory.size": ("float", lambda v: 0 < v <= 1, "a size in (0, 1] m"),
+    "*.phase.*.trajectory.period": ("float", lambda v: 0 < v <= 3600, "a period in (0, 3600] s"),
+    "*.phase.*.trajectory.plane": ("ints", lambda v: len(v) == 2 and v[0] != v[1] and min(v) >= 1,
+                                   "two distinct task coordinate numbers >= 1 (1 = the first)"),
     "*.payload.masses": ("floats", lambda v: all(0 <= a <= 1 for a in v),
                          "tip masses in [0, 1] kg (optional: an unmodelled load on the plant)"),
     "*.payload.attach_times": ("floats", lambda v: all(0 <= a for a in v),
@@ -140,6 +148,7 @@ class ControlConfig:
     shaper: str
     shaping_level: float
     shaped_modes: tuple
+    track_feedforward: bool
 
 
 def parse_control(v: dict, arm: ArmConfig) -> ControlConfig:
@@ -169,7 +178,7 @@ def parse_control(v: dict, arm: ArmConfig) -> ControlConfig:
         v["clik.switch_delay"], v["clik.tolerance"],
         v["clik.seed_levels"], v["clik.reach_tolerance"], v["clik.stall_time"],
         v["clik.closest_margin"], v["clik.shaping.shaper"], v["clik.shaping.level"],
-        tuple(v["clik.shaping.modes"]))
+        tuple(v["clik.shaping.modes"]), v["clik.track_feedforward"])
 
 
 def load_control_config(arm: ArmConfig, path: str | None = None, overrides=None) -> ControlConfig:
@@ -182,11 +191,13 @@ def load_control_config(arm: ArmConfig, path: str | None = None, overrides=None)
 class Phase:
     """A phase of an experiment: ``mode`` clik (CLIK to each target, storing the reached q_d) or
     replay (the stored q_d given straight to the inner loop), a window [s] per target and the
-    sequence of target indices (0-based) visited."""
+    sequence of target indices (0-based) visited; a ``track`` phase's trajectory, followed from
+    each target of its sequence."""
     name: str
     mode: str
     window: float
     sequence: tuple
+    trajectory: Trajectory | None = None
 
 
 @dataclass(frozen=True)
@@ -242,7 +253,7 @@ def parse_task(name: str, v: dict, arm: ArmConfig) -> TaskConfig:
         if any(k > len(targets) for k in seq):
             raise bad(f"phase.{pname}.sequence", f"target numbers in 1..{len(targets)}")
         phases.append(Phase(pname, get(f"phase.{pname}.mode"), get(f"phase.{pname}.window"),
-                            tuple(k - 1 for k in seq)))
+                            tuple(k - 1 for k in seq), _trajectory(name, pname, v, space)))
     seen_clik = set()
     for ph in phases:
         if ph.mode == "clik":
@@ -261,6 +272,27 @@ def parse_task(name: str, v: dict, arm: ArmConfig) -> TaskConfig:
                   "its first window, with the precomputed reference")
     return TaskConfig(name, tendons, space, targets, tuple(phases), get("steady_time"),
                       (tuple(masses), tuple(times)), pendulum, timing, v.get(f"{name}.paper_peak_speed"))
+
+
+def _trajectory(name: str, phase: str, v: dict, space: TaskSpace) -> Trajectory | None:
+    """The trajectory of a track phase (None for the other modes, which must not give one)."""
+    prefix = f"{name}.phase.{phase}"
+    given = {k.rpartition(".")[2]: val for k, val in v.items() if k.startswith(prefix + ".trajectory.")}
+    mode = v[f"{prefix}.mode"]
+    if mode != "track":
+        if given:
+            raise ConfigError(f"tasks.{prefix}.trajectory is given, but only a track phase follows one "
+                              f"(its mode is {mode})")
+        return None
+    missing = [k for k in ("shape", "size", "period") if k not in given]
+    if missing:
+        raise ConfigError(f"tasks.{prefix}.trajectory lacks {', '.join(missing)}: a track phase needs "
+                          "shape, size and period (plane optional)")
+    plane = tuple(k - 1 for k in given.get("plane", (1, 2)))
+    if max(plane) >= space.m:
+        raise ConfigError(f"tasks.{prefix}.trajectory.plane = {[k + 1 for k in plane]} is not valid: "
+                          f"expected coordinate numbers in 1..{space.m}")
+    return Trajectory(given["shape"], given["size"], given["period"], plane)
 
 
 def _pendulum(name: str, v: dict) -> tuple:

@@ -7,7 +7,9 @@ A goal is a target in task coordinates with a mode:
   next goal arrives;
 - ``replay``: the reference stored for this target, straight to the inner loop (no CLIK);
 - ``precomputed``: the precomputed reference only (the pendulum strike);
-- ``online``: online refinement from the current reference, no precomputed step (sugar task).
+- ``online``: online refinement from the current reference, no precomputed step (sugar task);
+- ``track``: online CLIK along a trajectory (:class:`~soft_arm_control.trajectories.Trajectory`)
+  from the target, x_d(t) with its velocity as feedforward, from the goal's time on.
 
 The reference step of a goal whose mode is among ``shaped_modes`` is given in fractions by a
 :class:`~soft_arm_control.input_shaping.StepShaper` (zero-vibration input shaping for the arm's
@@ -28,8 +30,9 @@ from soft_arm_model import solve_equilibrium
 from .clik import Clik, ClikGains, ClikPoint, ClikStep, TargetError, equilibrium_seeds
 from .collocated import build_collocated
 from .input_shaping import ShapedStep, StepShaper
+from .trajectories import Trajectory
 
-MODES = ("clik", "replay", "precomputed", "online")
+MODES = ("clik", "replay", "precomputed", "online", "track")
 
 
 @dataclass
@@ -82,11 +85,14 @@ class GoalReport:
     def status(self) -> str:
         """held (no feasible step: the reference stayed), constrained (the reference keeps moving
         towards the closest feasible point), stalled (feasible steps, but the error stays above the
-        tolerance), unreached (closed away from the target) or ok."""
+        tolerance), unreached (closed away from the target) or ok (a track goal, whose error is a
+        tracking error, is never stalled or unreached)."""
         if self.held_steps:
             return "held"
         if self.infeasible_steps:
             return "constrained"
+        if self.mode == "track":          # a moving target: its error is the tracking error
+            return "ok"
         if self.stalled_steps >= self.stall_steps:
             return "stalled"
         return "unreached" if self.closed and self.reached is False else "ok"
@@ -105,13 +111,14 @@ class OuterLoop:
     [N]: tensions of the seed equilibria tried when a precomputation from ``start`` fails;
     ``tolerance`` [m]: precomputation tolerance; ``reach_tolerance`` [m] and ``stall_time`` [s]: when
     a goal counts as reached, and as stalled (:class:`GoalReport`); ``shaper`` and ``shaped_modes``:
-    the reference steps of goals in those modes are shaped (None: every step is a step).
+    the reference steps of goals in those modes are shaped (None: every step is a step);
+    ``track_feedforward``: a track goal's trajectory velocity is the CLIK's feedforward.
     """
 
     def __init__(self, clik, start: ClikPoint, switch_delay: float, rate: float,
                  jacobian_every: int = 1, seed_levels=(), tolerance: float = 1e-6,
                  reach_tolerance: float = 1e-3, stall_time: float = 2.0,
-                 shaper: StepShaper | None = None, shaped_modes=()):
+                 shaper: StepShaper | None = None, shaped_modes=(), track_feedforward: bool = True):
         self.clik = clik
         self.start = start
         self.reference = start
@@ -124,11 +131,13 @@ class OuterLoop:
         self.reports: list = []             # a GoalReport per goal, in order
         self.last_step: ClikStep | None = None
         self.shaper, self.shaped_modes = shaper, tuple(shaped_modes)
+        self.track_feedforward = bool(track_feedforward)
         self._move: ShapedStep | None = None
         self._fraction = 1.0
         self._seeds = None
         self._x_d = None
         self._mode = None
+        self._trajectory, self._t0 = None, 0.0
         self._online_from = np.inf
         self._next_step = np.inf
         self._steps = 0
@@ -151,14 +160,18 @@ class OuterLoop:
                 self._seeds = equilibrium_seeds(self.clik, self.seed_levels)
             return self.clik.precompute(x_d, self.start.q, self._seeds, tol=self.tolerance)
 
-    def goal(self, t: float, x_d, mode: str, point: ClikPoint | None = None) -> ClikPoint:
+    def goal(self, t: float, x_d, mode: str, point: ClikPoint | None = None,
+             trajectory: Trajectory | None = None) -> ClikPoint:
         """Take a new goal at time t [s]; returns the reference to use from now on.
 
         ``point`` is a reference precomputed beforehand for a clik or precomputed goal (the
-        harness solves every target before anything moves).
+        harness solves every target before anything moves); ``trajectory``: a track goal's, from
+        x_d at t.
         """
         if mode not in MODES:
             raise ValueError(f"goal mode {mode!r} is not one of {list(MODES)}")
+        if (mode == "track") != (trajectory is not None):
+            raise ValueError("a track goal needs a trajectory, and only a track goal takes one")
         x_d = np.asarray(x_d, dtype=float)
         space = self.clik.task
         if x_d.shape != (space.m,) or not np.all(np.isfinite(x_d)):
@@ -178,6 +191,7 @@ class OuterLoop:
         if mode == "replay":
             ref = self.stored[self.key(x_d)]
         self._x_d, self._mode = x_d, mode
+        self._trajectory, self._t0 = trajectory, t
         report = GoalReport([float(v) for v in x_d], mode, self.reach_tolerance, self.stall_steps)
         self.reports.append(report)
         settled = t
@@ -188,11 +202,20 @@ class OuterLoop:
             if self._move.mode is not None:
                 report.shaped_mode = (self._move.mode.frequency, self._move.mode.damping)
             ref = self._move.at(t)
-        self._online_from = {"clik": max(t + self.switch_delay, settled), "online": t}.get(mode, np.inf)
+        self._online_from = {"clik": max(t + self.switch_delay, settled), "online": t,
+                             "track": t}.get(mode, np.inf)
         self._next_step = self._online_from
         if ref is not None:
             self.reference = ref
         return self.reference
+
+    def target_at(self, t: float) -> tuple:
+        """(x_d [m], its velocity [m/s] or None) of the current goal at time t [s]: a track goal's
+        trajectory, the fixed target otherwise."""
+        if self._trajectory is None:
+            return self._x_d, None
+        x_d, velocity = self._trajectory.at(self._x_d, t - self._t0)
+        return x_d, velocity if self.track_feedforward else None
 
     def _close_goal(self):
         """Store the reference of a clik goal (the end of its shaped step if one is under way) and
@@ -219,7 +242,8 @@ class OuterLoop:
         self._next_step = max(self._next_step + self.period, t + 0.5 * self.period)
         refresh = self._steps % self.jacobian_every == 0
         self._steps += 1
-        ref, step = self.clik.step(self.reference.q, self._x_d, self.period, x_measured, refresh)
+        x_d, xd_dot = self.target_at(t)
+        ref, step = self.clik.step(self.reference.q, x_d, self.period, x_measured, refresh, xd_dot)
         self.reports[-1].add(step)
         self.last_step = step
         if ref is None:
@@ -252,4 +276,4 @@ def outer_loop_for(model, control, task) -> OuterLoop:
     return OuterLoop(clik, start, control.switch_delay, control.clik_rate,
                      int(round(control.clik_rate / control.jacobian_rate)), control.seed_levels,
                      control.tolerance, control.reach_tolerance, control.stall_time, shaper,
-                     control.shaped_modes)
+                     control.shaped_modes, control.track_feedforward)

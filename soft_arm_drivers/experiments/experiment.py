@@ -33,7 +33,7 @@ from soft_arm_control.config import IDENTIFICATION
 from soft_arm_model.config import write_arm_file
 from soft_arm_model.parameters import ConfigError, default_config_dir
 
-from .metrics import Summary, TransitionMetrics, format_table
+from .metrics import Summary, TrackingMetrics, TransitionMetrics, format_table, format_tracking
 from .strike import format_strike
 from .harness import add_setup_arguments, check_targets, load_setup, setup_overrides
 from .excitation import Excitation
@@ -314,6 +314,8 @@ def _run(args, setup, ros_args: list, out: dict) -> int:
         print(format_table(rows, summary, setup.task.paper_peak_speed))
         if "strike" in data:
             print("\n" + format_strike(data["strike"]))
+        if "tracking" in data:
+            print("\n" + format_tracking([TrackingMetrics(**r) for r in data["tracking"]]))
         if facts.get("simulated_s"):
             print(f"\nsimulated {facts['simulated_s']:.1f} s in {facts['wall_s']:.1f} s "
                   f"(real-time factor {facts['simulated_s'] / facts['wall_s']:.2f})")

@@ -3,7 +3,8 @@
 ``task_error.png``: the task error per coordinate and its norm against time, with the 5 mm and
 10 mm bands and the window starts; ``actuation.png``: measured and reference tendon shortenings
 (the actuation coordinates) of the task's tendons; ``tensions.png``: the commanded tensions;
-``strike.png`` (a task with a pendulum): the arm and the ball around the strike (Fig. 5).
+``strike.png`` (a task with a pendulum): the arm and the ball around the strike (Fig. 5);
+``tracking.png`` (a task with track phases): desired and measured paths.
 The bag is read with the independent ``rosbags`` reader.
 """
 from __future__ import annotations
@@ -49,11 +50,9 @@ def make_figures(bag_dir: str, task, out_dir: str, arm=None) -> list:
     if frames:
         t = np.array([s for s, _ in frames])
         x = np.array([task.space.from_markers(_positions(m)) for _, m in frames])
-        starts = np.cumsum([0.0] + [ph.window for ph in task.phases for _ in ph.sequence])[:-1]
-        targets = [np.array(task.targets[k]) for ph in task.phases for k in ph.sequence]
         rel = t - t[0]
-        index = np.clip(np.searchsorted(starts, rel, side="right") - 1, 0, len(targets) - 1)
-        err = np.array([targets[i] for i in index]) - x
+        starts, index, x_d = targets_at(task, rel)
+        err = x_d - x
         fig, ax = plt.subplots(figsize=(10, 4))
         for j, label in enumerate(task.space.labels()):
             ax.plot(rel, 1e3 * err[:, j], lw=0.6, alpha=0.6, label=label)
@@ -69,6 +68,10 @@ def make_figures(bag_dir: str, task, out_dir: str, arm=None) -> list:
         ax.set_title(f"{task.name}: task error (5 mm and 10 mm bands)")
         ax.legend(loc="upper right", fontsize=7, ncol=3)
         paths.append(save_figure(fig, out_dir, "task_error.png"))
+        windows = [(w, ph) for w, ph in enumerate(ph for ph in task.phases for _ in ph.sequence)
+                   if ph.trajectory is not None]
+        if windows:
+            paths.append(tracking_figure(windows, index, x, x_d, task, out_dir))
     states = series.get("tendon/state", [])
     refs = series.get("tendon/reference", [])
     if states:
@@ -99,6 +102,38 @@ def make_figures(bag_dir: str, task, out_dir: str, arm=None) -> list:
         ax.legend(fontsize=7)
         paths.append(save_figure(fig, out_dir, "tensions.png"))
     return paths
+
+
+def targets_at(task, rel) -> tuple:
+    """The window starts [s], the window of each time ``rel`` [s] from the first frame, and the
+    target [m] there (a track window's trajectory from its target)."""
+    plan = [(ph, k) for ph in task.phases for k in ph.sequence]
+    starts = np.cumsum([0.0] + [ph.window for ph, _ in plan])[:-1]
+    index = np.clip(np.searchsorted(starts, rel, side="right") - 1, 0, len(plan) - 1)
+    x_d = []
+    for r, i in zip(rel, index):
+        ph, k = plan[i]
+        target = np.array(task.targets[k], dtype=float)
+        x_d.append(target if ph.trajectory is None else ph.trajectory.at(target, r - starts[i])[0])
+    return starts, index, np.array(x_d)
+
+
+def tracking_figure(windows, index, x, x_d, task, out_dir: str) -> str:
+    """``tracking.png``: for each track window, the desired path (dashed) and the measured one in
+    the trajectory's plane [mm]."""
+    fig, axes = plt.subplots(1, len(windows), figsize=(3.6 * len(windows), 3.8), squeeze=False)
+    labels = task.space.labels()
+    for ax, (w, ph) in zip(axes[0], windows):
+        a, b = ph.trajectory.plane
+        sel = index == w
+        ax.plot(1e3 * x_d[sel, a], 1e3 * x_d[sel, b], "k--", lw=1.0, label="desired")
+        ax.plot(1e3 * x[sel, a], 1e3 * x[sel, b], color="tab:red", lw=0.8, label="measured")
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.set_xlabel(f"{labels[a]} [mm]")
+        ax.set_ylabel(f"{labels[b]} [mm]")
+        ax.set_title(f"{ph.name}: {ph.trajectory.shape}, {ph.trajectory.period:g} s", fontsize=9)
+    axes[0][0].legend(fontsize=7)
+    return save_figure(fig, out_dir, "tracking.png")
 
 
 def strike_figure(series: dict, task, arm, out_dir: str) -> str:

@@ -33,7 +33,7 @@ from soft_arm_model import ArmConfig, build_model, load_arm_config
 from soft_arm_model.parameters import default_config_dir, split_overrides
 
 from .excitation import ExcitationConfig, load_excitation
-from .metrics import summarise, transition_metrics
+from .metrics import summarise, tracking_metrics, transition_metrics
 from .strike import measured_strike, plan_strike, rehearse, strike_metrics
 
 
@@ -175,7 +175,8 @@ class RunResult:
     did per goal (:meth:`~soft_arm_control.outer_loop.GoalReport.as_dict`, in transition order)
     and, with a pendulum, the strike: its ``plan``, what the ``simulated`` contact did
     (:func:`~.strike.strike_metrics`) and what the motion capture ``measured``
-    (:func:`~.strike.measured_strike`)."""
+    (:func:`~.strike.measured_strike`); the track windows' figures
+    (:class:`~.metrics.TrackingMetrics`), which the transitions and the summary leave out."""
     transitions: list
     metrics: list
     summary: object
@@ -185,6 +186,7 @@ class RunResult:
     stored: dict
     goals: list
     strike: dict | None = None
+    tracking: list = field(default_factory=list)
 
 
 def goal_warning(goal: dict) -> str:
@@ -303,8 +305,10 @@ def run_experiment(setup: Setup, progress=None, actuation_map: ActuationMap | No
     total = sum(w for *_, w in schedule(task))
     second = int(round(1.0 / dt))
     t_start = 0.0
+    trajectories = {ph.name: ph.trajectory for ph in task.phases}
     for w_index, (phase, mode, k, window) in enumerate(schedule(task)):
         x_d = np.array(task.targets[k])
+        trajectory = trajectories[phase]
         send_at = t_start + (plan.send_delay if plan is not None and w_index == 0 else 0.0)
         release_at = t_start + plan.release_delay if plan is not None and w_index == 0 else np.inf
         sent = False
@@ -312,7 +316,7 @@ def run_experiment(setup: Setup, progress=None, actuation_map: ActuationMap | No
         while rig.t < t_end - 1e-9:
             t = rig.t
             if not sent and t >= send_at - 1e-9:
-                ctrl.reference = outer.goal(t, x_d, mode, points.get(k))
+                ctrl.reference = outer.goal(t, x_d, mode, points.get(k), trajectory)
                 sent = True
             if t >= release_at - 1e-9:
                 rig.release_pendulum()
@@ -321,7 +325,7 @@ def run_experiment(setup: Setup, progress=None, actuation_map: ActuationMap | No
                 rec.t_mocap.append(frame.stamp)
                 rec.x.append(space.from_markers(frame.markers))
                 rec.x_true.append(space.from_markers(frame.true_markers))
-                rec.x_d.append(x_d)
+                rec.x_d.append(x_d if trajectory is None else trajectory.at(x_d, frame.stamp - t_start)[0])
                 rec.tip.append(frame.markers[tip_index, tip_axes])
                 rec.tip_speed.append(frame.tip_speed)
                 rec.window.append(w_index)
@@ -347,8 +351,15 @@ def run_experiment(setup: Setup, progress=None, actuation_map: ActuationMap | No
     rec.theta = list(ctrl.actuation_map.batch(rec.shortening))
     rec.theta_ref = list(ctrl.actuation_map.batch(rec.shortening_ref))
     arrays = rec.arrays()
+    tracking = []
     for w_index, tr in enumerate(transitions):
         sel = arrays["window"] == w_index
+        if tr.mode == "track":
+            tracking.append(tracking_metrics(tr.phase, tr.target + 1, trajectories[tr.phase],
+                                             arrays["t_mocap"][sel] - tr.start,
+                                             arrays["x_d"][sel] - arrays["x"][sel],
+                                             min(task.steady_time, 0.5 * (tr.end - tr.start))))
+            continue
         rows.append(transition_metrics(tr.phase, tr.target + 1, arrays["t_mocap"][sel],
                                        arrays["x_d"][sel] - arrays["x"][sel], arrays["tip"][sel],
                                        arrays["tip_speed"][sel], task.steady_time,
@@ -364,4 +375,5 @@ def run_experiment(setup: Setup, progress=None, actuation_map: ActuationMap | No
             strike["measured"] = measured_strike(task.pendulum, rig.strike.release_time, t_b, ball, markers,
                                                  setup.arm)
     return RunResult(transitions, rows, summarise(rows), rec, ctrl.actuation_map.rms_error,
-                     ctrl.actuation_map.max_error, stored, [g.as_dict() for g in outer.reports], strike)
+                     ctrl.actuation_map.max_error, stored, [g.as_dict() for g in outer.reports], strike,
+                     tracking)

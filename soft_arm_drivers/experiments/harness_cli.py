@@ -13,13 +13,14 @@ import argparse
 import json
 import sys
 import time
+from dataclasses import asdict
 
 from soft_arm_control.clik import TargetError
 from soft_arm_model.parameters import ConfigError
 
 from .harness import (add_setup_arguments, check_targets, goal_warning, load_setup, run_experiment,
                       setup_overrides)
-from .metrics import format_table, to_json
+from .metrics import format_table, format_tracking, to_json
 from .strike import format_strike
 
 
@@ -65,11 +66,15 @@ def main(argv=None) -> int:
                    actuation_map={"rms_error": result.map_rms, "max_error": result.map_max})
         if result.strike is not None:
             out["strike"] = result.strike
+        if result.tracking:
+            out["tracking"] = [asdict(r) for r in result.tracking]
         print(json.dumps(out, indent=2))
     else:
         print(format_table(result.metrics, result.summary, setup.task.paper_peak_speed))
         if result.strike is not None:
             print("\n" + format_strike(result.strike))
+        if result.tracking:
+            print("\n" + format_tracking(result.tracking))
         print(f"\nactuation map thetabar_a(L_c): validation RMS {result.map_rms * 1e3:.2f} mm, "
               f"max {result.map_max * 1e3:.2f} mm")
         print(f"simulated {simulated:.1f} s in {wall:.1f} s (real-time factor {simulated / wall:.1f})")

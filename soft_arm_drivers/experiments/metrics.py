@@ -161,6 +161,45 @@ def format_table(rows: list[TransitionMetrics], summary: Summary,
     return "\n".join(lines)
 
 
+@dataclass(frozen=True)
+class TrackingMetrics:
+    """One track window: phase, target (1-based, the path's start), the trajectory's shape, size
+    [m] and period [s], its mean path speed [m/s], and the RMS and maximum of the task error norm
+    [m] from ``settle`` [s] after the window's start to its end."""
+    phase: str
+    target: int
+    shape: str
+    size: float
+    period: float
+    path_speed: float
+    settle: float
+    rms_error: float
+    max_error: float
+
+
+def tracking_metrics(phase: str, target: int, trajectory, t, errors, settle: float) -> TrackingMetrics:
+    """Tracking figures of one window: mocap times t [s] from the window's start and the task
+    errors (N, m) [m] against the moving target."""
+    t = np.asarray(t, dtype=float)
+    norm = np.linalg.norm(np.asarray(errors, dtype=float), axis=1)[t >= settle]
+    if norm.size == 0:
+        raise ValueError(f"no frame after the settling time ({settle} s) of the {phase} window")
+    return TrackingMetrics(phase, target, trajectory.shape, trajectory.size, trajectory.period,
+                           trajectory.path_speed(), settle, float(np.sqrt(np.mean(norm ** 2))),
+                           float(norm.max()))
+
+
+def format_tracking(rows: list[TrackingMetrics]) -> str:
+    """The track windows as a table: error against path speed."""
+    lines = ["Tracking (online CLIK with the trajectory's velocity as feedforward)",
+             f"{'phase':<12} {'shape':<8} {'size[mm]':>8} {'period[s]':>9} {'speed[m/s]':>10} "
+             f"{'rms[mm]':>7} {'max[mm]':>7}"]
+    for r in rows:
+        lines.append(f"{r.phase:<12} {r.shape:<8} {r.size * 1e3:>8.1f} {r.period:>9.1f} "
+                     f"{r.path_speed:>10.4f} {r.rms_error * 1e3:>7.2f} {r.max_error * 1e3:>7.2f}")
+    return "\n".join(lines)
+
+
 def to_json(rows: list[TransitionMetrics], summary: Summary) -> dict:
     """A JSON-ready dict of the transitions and the summary (SI units)."""
     return {"summary": asdict(summary), "transitions": [asdict(r) for r in rows]}

@@ -15,7 +15,7 @@ import numpy as np
 
 from soft_arm_control.config import TaskConfig
 
-from .metrics import measured_speed, summarise, transition_metrics
+from .metrics import measured_speed, summarise, tracking_metrics, transition_metrics
 from .strike import measured_strike
 
 
@@ -33,6 +33,7 @@ class TaskRunner:
         self._deferred = None          # the first window's goal, until plan.send_delay
         self.arm_frames, self.ball_frames = {}, {}      # exposure time: markers / ball centre
         self.windows = [(ph.name, ph.mode, k, ph.window) for ph in task.phases for k in ph.sequence]
+        self.trajectories = {ph.name: ph.trajectory for ph in task.phases}
         self.tip = tip_marker
         self.tip_axes = [a for k, a in zip(task.space.markers, task.space.axes) if k == tip_marker] \
             or [0, 1, 2]
@@ -61,8 +62,8 @@ class TaskRunner:
             self.index += 1
             self._deferred = None
             if self.index < len(self.windows):
-                _, mode, k, _ = self.windows[self.index]
-                goal = (np.array(self.task.targets[k]), mode)
+                phase, mode, k, _ = self.windows[self.index]
+                goal = (np.array(self.task.targets[k]), f"track/{phase}" if mode == "track" else mode)
                 if self.index == 0 and self.plan is not None and self.plan.send_delay > 0:
                     self._deferred, goal = goal, None
         if self._deferred is not None and rel >= self.plan.send_delay - 1e-9:
@@ -71,11 +72,19 @@ class TaskRunner:
             self.arm_frames[t] = np.asarray(markers, dtype=float).copy()
         if 0 <= self.index < len(self.windows):
             markers = np.asarray(markers, dtype=float)
-            k = self.windows[self.index][2]
+            phase, _, k, _ = self.windows[self.index]
             self.samples.append((rel, self.index, self.task.space.from_markers(markers),
-                                 np.array(self.task.targets[k]), markers[self.tip, self.tip_axes],
+                                 self.target_at(self.index, rel), markers[self.tip, self.tip_axes],
                                  markers[self.tip].copy()))
         return goal
+
+    def target_at(self, window: int, rel: float) -> np.ndarray:
+        """The target [m] of ``window`` at ``rel`` [s] after the start: a track window's trajectory
+        from its target, the target itself otherwise."""
+        phase, _, k, _ = self.windows[window]
+        x = np.array(self.task.targets[k], dtype=float)
+        trajectory = self.trajectories[phase]
+        return x if trajectory is None else trajectory.at(x, rel - self.starts[window])[0]
 
     @property
     def release_at(self) -> float | None:
@@ -105,11 +114,12 @@ class TaskRunner:
         return {"plan": self.plan.as_dict(), "measured": measured}
 
     def metrics(self):
-        """(per-transition metrics, summary) of the windows played so far."""
+        """(per-transition metrics, summary) of the windows played so far, track windows aside
+        (:meth:`tracking`)."""
         rows = []
-        for w, (phase, _, k, window) in enumerate(self.windows):
+        for w, (phase, mode, k, window) in enumerate(self.windows):
             s = [x for x in self.samples if x[1] == w]
-            if len(s) < 3:
+            if len(s) < 3 or mode == "track":
                 continue
             t = np.array([x[0] for x in s])
             tip3 = np.array([x[5] for x in s])
@@ -118,6 +128,19 @@ class TaskRunner:
                                            np.array([x[4] for x in s]), speed,
                                            self.task.steady_time, window))
         return rows, (summarise(rows) if rows else None)
+
+    def tracking(self) -> list:
+        """:class:`~.metrics.TrackingMetrics` of the track windows played so far."""
+        rows = []
+        for w, (phase, mode, k, window) in enumerate(self.windows):
+            s = [x for x in self.samples if x[1] == w]
+            if mode != "track" or len(s) < 3:
+                continue
+            rows.append(tracking_metrics(phase, k + 1, self.trajectories[phase],
+                                         np.array([x[0] for x in s]) - self.starts[w],
+                                         np.array([x[3] - x[2] for x in s]),
+                                         min(self.task.steady_time, 0.5 * window)))
+        return rows
 
     def clik_report(self, t: float, values: dict):
         """The clik node's report of one goal at time t [s] (its ``/diagnostics`` values: ``goal``,

@@ -17,6 +17,7 @@ from __future__ import annotations
 import json
 import os
 import sys
+from dataclasses import asdict
 
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseArray, PoseStamped
@@ -115,10 +116,11 @@ class TaskRunnerNode(Node):
                 with open(partial, "w", encoding="utf-8") as fh:
                     strike = self.core.strike()
                     task = self.core.task
+                    tracking = [asdict(r) for r in self.core.tracking()]
                     json.dump({"task": task.name, "paper_peak_speed": task.paper_peak_speed,
-                               **to_json(rows, summary),
-                               "goals": self.core.goals(), **({"strike": strike} if strike else {})},
-                              fh, indent=2)
+                               **to_json(rows, summary), "goals": self.core.goals(),
+                               **({"strike": strike} if strike else {}),
+                               **({"tracking": tracking} if tracking else {})}, fh, indent=2)
                 os.replace(partial, self.output)
         self.finished = True
         self.done = not self.wait_for_start

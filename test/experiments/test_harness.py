@@ -195,3 +195,32 @@ def test_the_paper_timing_sends_the_step_with_the_release():
 def test_bad_pendulum_values_name_the_key(sets, message):
     with pytest.raises(ConfigError, match=message):
         load_setup("pendulum", overrides=sets)
+
+
+SHORT_TRACKING = ["tasks.tracking.phases=[approach, circle_slow]", "tasks.tracking.phase.approach.window=6.0"]
+
+
+def test_a_slow_circle_is_tracked_within_2_mm_and_the_feedforward_keeps_a_fast_one_on_its_path():
+    """The issue's figure: a circle of period 20 s on the declared plant, RMS below 2 mm; a circle
+    of period 5 s without the trajectory's velocity as feedforward lags behind it (a larger error)."""
+    result = run_experiment(load_setup("tracking", overrides=SHORT_TRACKING))
+    slow, = result.tracking
+    assert slow.shape == "circle" and slow.path_speed == pytest.approx(2 * 3.141592653589793 * 0.01 / 20)
+    assert slow.rms_error < 2e-3 and slow.max_error < 4e-3
+    assert [r.phase for r in result.metrics] == ["approach"]              # track windows aside
+    fast = ["tasks.tracking.phases=[approach, circle_fast]", "tasks.tracking.phase.approach.window=6.0"]
+    with_ff, = run_experiment(load_setup("tracking", overrides=fast)).tracking
+    no_feedforward = fast + ["control.clik.track_feedforward=false"]
+    without, = run_experiment(load_setup("tracking", overrides=no_feedforward)).tracking
+    assert without.rms_error > 1.5 * with_ff.rms_error
+
+
+@pytest.mark.parametrize("sets, message", [
+    (["tasks.tracking.phase.line.mode=online"], "only a track phase follows one"),
+    (["tasks.tracking.phase.approach.mode=track"], "lacks shape, size, period"),
+    (["tasks.tracking.phase.line.trajectory.plane=[1, 3]"], "coordinate numbers in 1..2"),
+    (["tasks.tracking.phase.line.trajectory.shape=spiral"], "one of"),
+])
+def test_bad_trajectories_in_tasks_yaml_name_the_key(sets, message):
+    with pytest.raises(ConfigError, match=message):
+        load_setup("tracking", overrides=sets)

@@ -173,3 +173,18 @@ def test_the_pendulum_strike_on_the_graph_matches_the_harness(tmp_path, capsys):
     assert types["/mocap/pendulum"] == TYPES["mocap/pendulum"] and len(messages["/pendulum/release"]) == 1
     assert abs(len(messages["/mocap/pendulum"]) - len(messages["/mocap/markers"])) <= 1
     assert (out / "figures" / "strike.png").exists()
+
+
+def test_tracking_on_the_graph_matches_the_harness(tmp_path):
+    """A track goal crosses the graph as track/<phase>: the clik node follows that phase's
+    trajectory, the task runner measures the tracking error against it, as the harness does."""
+    from soft_arm_drivers.experiments.experiment import main
+    sets = ["tasks.tracking.phases=[approach, circle_fast]", "tasks.tracking.phase.approach.window=4.0"]
+    out = tmp_path / "tracking"
+    assert main(["tracking", "--quiet", "--output", str(out)] + [a for s in sets for a in ("--set", s)]) == 0
+    with open(out / "metrics.json", encoding="utf-8") as fh:
+        graph, = json.load(fh)["tracking"]
+    harness, = run_experiment(load_setup("tracking", overrides=sets)).tracking
+    assert graph["phase"] == "circle_fast" and graph["rms_error"] < 2e-3
+    assert graph["rms_error"] == pytest.approx(harness.rms_error, abs=3e-4)
+    assert (out / "figures" / "tracking.png").exists()
