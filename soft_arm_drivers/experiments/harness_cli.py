@@ -78,6 +78,10 @@ def main(argv=None) -> int:
         print(f"\nactuation map thetabar_a(L_c): validation RMS {result.map_rms * 1e3:.2f} mm, "
               f"max {result.map_max * 1e3:.2f} mm")
         print(f"simulated {simulated:.1f} s in {wall:.1f} s (real-time factor {simulated / wall:.1f})")
+    if result.strike is not None and result.strike["plan"]["arm_time"] is None:
+        print(f"soft-arm-harness: the rehearsed arm never touched the ball at its lowest point (it passed "
+              f"{result.strike['plan']['rehearsed_gap'] * 1e3:.1f} mm away): the model says the strike "
+              "misses", file=sys.stderr)
     for goal in result.goals:
         if goal["status"] != "ok":
             print(f"soft-arm-harness: {goal_warning(goal)}", file=sys.stderr)

@@ -10,11 +10,12 @@ the arm is the slower, the ball is released ``arm_time - ball_time`` after the r
 that needs a release the runner triggers). With ``timing: release`` both go at once (the paper's
 protocol). Either way the plan and the rehearsal's prediction are reported.
 
-**Metrics** (:func:`strike_metrics`), from the simulated rig's
-:class:`~soft_arm_drivers.sim.simulated_rig.StrikeRecord`: the impact time after the release, the
+**Metrics.** :func:`strike_metrics`, from the simulated rig's own record of the contact
+(:class:`~soft_arm_drivers.sim.simulated_rig.StrikeRecord`): the impact time after the release, the
 ball's speed just before and after the contact and its velocity change, the arm's speed at the
-contact point; without an impact, the closest approach
-(smallest gap between the surfaces) and when it happened.
+contact point; without an impact, the closest approach (smallest gap between the surfaces) and when
+it happened. :func:`measured_strike`: the same, as far as the motion capture shows it (what the rig
+can measure, and what the graph's task runner reports).
 """
 from __future__ import annotations
 

@@ -19,6 +19,7 @@ import os
 import sys
 from dataclasses import asdict
 
+import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseArray, PoseStamped
 from rclpy.node import Node
@@ -47,6 +48,10 @@ class TaskRunnerNode(Node):
             plan = strike_plan_for(params.arm, control_of(params, params.arm), task)
             self.get_logger().info(f"strike plan ({plan.timing}): reference at +{plan.send_delay:.3f} s, "
                                    f"release at +{plan.release_delay:.3f} s")
+            if not np.isfinite(plan.arm_time):
+                self.get_logger().warning(
+                    f"the rehearsed arm never touches the ball at its lowest point (it passes "
+                    f"{plan.rehearsed_gap * 1e3:.1f} mm away): the strike will miss on the model")
         self.core = TaskRunner(task, len(params.arm.marker_positions) - 1, plan, params.arm)
         self.release_sent = False
         self.output = self.get_parameter("output").value if self.has_parameter("output") else ""
