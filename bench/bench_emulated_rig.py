@@ -1,14 +1,16 @@
 """Benchmark of the closed loop through the emulated hardware. Prints a table, writes JSON.
 
-    python bench/bench_emulated_rig.py [--task coiling] [--set ns.key=value ...]
+    python bench/bench_emulated_rig.py [--task coiling] [--runs 1] [--set ns.key=value ...]
         [--output bench/results/emulated_rig.json]
 
-Runs ``soft-arm-experiment <task> --emulated-hardware`` (each node its own process, real time) and
-reports: the task metrics (steady RMS, transitions in the mm band, best mm- and cm-band task
-velocities), the driver faults latched while the motors were enabled, whether real-time scheduling
-was granted; the CPU share of each node process over the enabled run (from /proc, sampled 2 s after
-enabling and 2 s before the task's end); and, from the bag, the motors' state period (p50, p99,
-max, stamps not increasing) and the mocap frame period.
+Runs ``soft-arm-experiment <task> --emulated-hardware`` (each node its own process, real time)
+``--runs`` times in a row and reports, per run: whether it is valid (a run the motor driver faulted
+in is not: its failure), the task metrics (steady RMS, transitions in the mm band, best mm- and
+cm-band task velocities), whether real-time scheduling was granted; the CPU share of each node
+process over the enabled run (from /proc, sampled 2 s after enabling and 2 s before the task's end);
+from the bag, the motors' state period (p50, p99, max, stamps not increasing), the mocap frame period
+and the driver's own cycle statistics (its last /diagnostics: period p50/p99/max, p99 error, deadline
+misses); then over the runs: the valid ones, the worst RMS and mm band, the cm-band velocity spread.
 """
 from __future__ import annotations
 
@@ -55,21 +57,28 @@ def _periods(stamps) -> dict:
             "not_increasing": int(np.sum(d <= 0))}
 
 
-def main():
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--task", default="coiling")
-    parser.add_argument("--set", dest="sets", action="append", default=[], metavar="NS.KEY=VALUE")
-    parser.add_argument("--output", default=results_path("emulated_rig.json"))
-    args = parser.parse_args()
-    setup = load_setup(args.task, overrides=[s for s in args.sets if not s.startswith("graph.")])
-    duration = sum(ph.window * len(ph.sequence) for ph in setup.task.phases)
+def _driver_timing(series) -> dict:
+    """The motor driver's last reported cycle statistics (its /diagnostics values, recorded)."""
+    for _, msg in reversed(series.get("diagnostics", [])):
+        for status in msg.status:
+            if status.name == "motor_driver":
+                values = {kv.key: kv.value for kv in status.values}
+                if "period_p99_ms" in values:
+                    return {k: float(values[k]) for k in ("period_p50_ms", "period_p99_ms", "period_max_ms",
+                                                          "period_error_p99_ms", "deadline_misses")}
+    return {}
+
+
+def one_run(task: str, sets: list, duration: float) -> dict:
+    """One ``soft-arm-experiment <task> --emulated-hardware`` run: its metrics (``valid`` false when
+    the driver faulted), CPU share per node, the state and mocap periods and the driver's timing."""
     env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYTHONUNBUFFERED="1")
     with tempfile.TemporaryDirectory() as tmp:
         run, log = os.path.join(tmp, "run"), os.path.join(tmp, "log")
-        sets = [a for s in args.sets for a in ("--set", s)]
         with open(log, "w", encoding="utf-8") as fh:
-            proc = subprocess.Popen([sys.executable, "-m", "soft_arm_drivers.experiment", args.task,
-                                     "--emulated-hardware", "--quiet", "--output", run] + sets,
+            proc = subprocess.Popen([sys.executable, "-m", "soft_arm_drivers.experiments.experiment", task,
+                                     "--emulated-hardware", "--quiet", "--output", run]
+                                    + [a for s in sets for a in ("--set", s)],
                                     stdout=fh, stderr=subprocess.STDOUT, env=env)
         try:
             while "[motor_driver]: enabled" not in open(log, encoding="utf-8").read():
@@ -81,34 +90,86 @@ def main():
             nodes = _nodes(proc.pid)
             t0, before = time.monotonic(), {n: _cpu_ticks(p) for n, p in nodes.items()}
             time.sleep(max(duration - 4.0, 1.0))
-            after = {n: _cpu_ticks(p) for n, p in nodes.items()}
+            after = {}
+            for n, p in nodes.items():
+                try:
+                    after[n] = _cpu_ticks(p)
+                except OSError:                     # the run ended early (a fault)
+                    after[n] = before[n]
             wall = time.monotonic() - t0
             status = proc.wait(timeout=duration + 120)
         finally:
             if proc.poll() is None:
                 proc.kill()
-        if status != 0:
-            raise RuntimeError(f"the experiment exited with {status}:\n" + open(log, encoding="utf-8").read())
-        with open(os.path.join(run, "metrics.json"), encoding="utf-8") as fh:
+        metrics_path = os.path.join(run, "metrics.json")
+        if not os.path.exists(metrics_path):
+            raise RuntimeError(f"the experiment exited with {status} and no metrics:\n"
+                               + open(log, encoding="utf-8").read())
+        with open(metrics_path, encoding="utf-8") as fh:
             metrics = json.load(fh)
         series = read_series(os.path.join(run, "bag"))
-    cpu = {n: (after[n] - before[n]) / TICKS / wall for n in sorted(nodes)}
-    state = _periods([t for t, _ in series["tendon/state"]])
-    mocap = _periods([t for t, _ in series["mocap/markers"]])
-    summary = metrics["summary"]
-    print(f"{args.task} through the emulated hardware ({duration:g} s of task, real-time scheduling "
-          f"{'granted' if metrics['run']['realtime'] else 'refused'}):")
-    print(f"  steady RMS {summary['rms_error'] * 1e3:.2f} mm, {summary['reached_mm']}/"
-          f"{summary['transitions']} transitions in the mm band, task velocity mm band "
-          f"{summary['velocity_mm']} m/s, cm band {summary['velocity_cm']} m/s")
-    print("  CPU per node: " + ", ".join(f"{n} {c:.0%}" for n, c in cpu.items())
-          + f" (total {sum(cpu.values()):.0%} of {os.cpu_count()} cores)")
-    for name, p in (("tendon/state", state), ("mocap/markers", mocap)):
-        print(f"  {name:14s} period p50 {p['p50_ms']:.2f} ms, p99 {p['p99_ms']:.2f} ms, max "
-              f"{p['max_ms']:.1f} ms, {p['not_increasing']} stamps not increasing ({p['messages']})")
+    return {"status": status, "valid": metrics.get("valid", False), "failure": metrics.get("failure"),
+            "summary": metrics.get("summary"), "run": metrics["run"],
+            "cpu_share": {n: (after[n] - before[n]) / TICKS / wall for n in sorted(nodes)},
+            "state_period": _periods([t for t, _ in series["tendon/state"]]),
+            "mocap_period": _periods([t for t, _ in series["mocap/markers"]]),
+            "driver_timing": _driver_timing(series)}
+
+
+def spread(runs: list) -> dict:
+    """Run-to-run figures of the valid runs: RMS worst, mm band worst, cm-band velocity max/min."""
+    valid = [r["summary"] for r in runs if r["valid"]]
+    out = {"runs": len(runs), "valid_runs": len(valid)}
+    if valid:
+        v_cm = [s["velocity_cm"] for s in valid if s["velocity_cm"]]
+        out.update(rms_worst_mm=1e3 * max(s["rms_error"] for s in valid),
+                   mm_band_worst=min(s["reached_mm"] for s in valid), transitions=valid[0]["transitions"],
+                   velocity_cm_spread=max(v_cm) / min(v_cm) if v_cm else None)
+    return out
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--task", default="coiling")
+    parser.add_argument("--runs", type=int, default=1, help="consecutive runs (the spread needs >= 2)")
+    parser.add_argument("--set", dest="sets", action="append", default=[], metavar="NS.KEY=VALUE")
+    parser.add_argument("--output", default=results_path("emulated_rig.json"))
+    args = parser.parse_args()
+    setup = load_setup(args.task, overrides=[s for s in args.sets if not s.startswith("graph.")])
+    duration = sum(ph.window * len(ph.sequence) for ph in setup.task.phases)
+    runs = []
+    for k in range(args.runs):
+        r = one_run(args.task, args.sets, duration)
+        runs.append(r)
+        summary = r["summary"]
+        print(f"run {k + 1}: {'valid' if r['valid'] else 'INVALID: ' + str(r['failure'])}; real-time "
+              f"scheduling {'granted' if r['run'].get('realtime') else 'refused'}")
+        if summary:
+            print(f"  steady RMS {summary['rms_error'] * 1e3:.2f} mm, {summary['reached_mm']}/"
+                  f"{summary['transitions']} transitions in the mm band, task velocity mm band "
+                  f"{summary['velocity_mm']} m/s, cm band {summary['velocity_cm']} m/s")
+        cpu = r["cpu_share"]
+        print("  CPU per node: " + ", ".join(f"{n} {c:.0%}" for n, c in cpu.items())
+              + f" (total {sum(cpu.values()):.0%} of {os.cpu_count()} cores)")
+        for name, key in (("tendon/state", "state_period"), ("mocap/markers", "mocap_period")):
+            p = r[key]
+            print(f"  {name:14s} period p50 {p['p50_ms']:.2f} ms, p99 {p['p99_ms']:.2f} ms, max "
+                  f"{p['max_ms']:.1f} ms, {p['not_increasing']} stamps not increasing ({p['messages']})")
+        d = r["driver_timing"]
+        if d:
+            print(f"  driver cycle (its last 1000): period p50 {d['period_p50_ms']:.2f} ms, p99 "
+                  f"{d['period_p99_ms']:.2f} ms, max {d['period_max_ms']:.1f} ms, p99 error "
+                  f"{d['period_error_p99_ms']:.2f} ms, {d['deadline_misses']:.0f} deadline misses in the run")
+    total = spread(runs)
+    line = f"{args.task} over {total['runs']} runs: {total['valid_runs']} valid"
+    if total["valid_runs"]:
+        v = total["velocity_cm_spread"]
+        line += (f"; RMS worst {total['rms_worst_mm']:.2f} mm, mm band worst {total['mm_band_worst']}/"
+                 f"{total['transitions']}, cm-band velocity spread (max/min) "
+                 + ("-" if v is None else f"{v:.2f}"))
+    print(line)
     write_results(args.output, {"task": args.task, "sets": args.sets, "duration_s": duration,
-                                "summary": summary, "run": metrics["run"], "cpu_share": cpu,
-                                "state_period": state, "mocap_period": mocap})
+                                "runs": runs, "spread": total})
 
 
 if __name__ == "__main__":

@@ -27,15 +27,20 @@ TYPES = {
     "arm/configuration_reference": "std_msgs/msg/Float64MultiArray",
     "arm/shape": "visualization_msgs/msg/MarkerArray", "/clock": "rosgraph_msgs/msg/Clock",
     "mocap/pendulum": "geometry_msgs/msg/PoseStamped", "pendulum/release": "std_msgs/msg/Header",
+    "/diagnostics": "diagnostic_msgs/msg/DiagnosticArray",
 }
 STREAM = QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT,
                     history=HistoryPolicy.KEEP_LAST)
 # goals and references are state: the last one is kept for subscribers that join late
 RELIABLE = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                       history=HistoryPolicy.KEEP_LAST, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+# /diagnostics as every node publishes it (rclpy's default profile, depth 10)
+EVENTS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST,
+                    durability=DurabilityPolicy.VOLATILE)
 QOS = {"tendon/command": STREAM, "tendon/state": STREAM, "mocap/markers": STREAM, "mocap/tip": STREAM,
        "arm/shape": STREAM, "/clock": STREAM, "tendon/reference": RELIABLE, "task/goal": RELIABLE,
-       "arm/configuration_reference": RELIABLE, "mocap/pendulum": STREAM, "pendulum/release": RELIABLE}
+       "arm/configuration_reference": RELIABLE, "mocap/pendulum": STREAM, "pendulum/release": RELIABLE,
+       "/diagnostics": EVENTS}
 
 
 def message_class(type_name: str):

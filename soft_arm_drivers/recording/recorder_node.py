@@ -44,7 +44,7 @@ class RecorderNode(Node):
         specs, subscriptions = [], []
         for entry in graph["recorder.topics"]:
             name, _, type_name = entry.partition(":")
-            known = name.lstrip("/") if name != "/clock" else name
+            known = name if name in TYPES else name.lstrip("/")       # absolute: /clock, /diagnostics
             type_name = type_name or TYPES.get(known, "")
             if not type_name:
                 raise ConfigError(f"graph.recorder.topics entry {entry!r} is not valid: expected a "

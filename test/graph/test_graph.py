@@ -60,10 +60,10 @@ def test_bag_reads_back_with_every_topic_type_and_count(graph_run):
     facts, _, out = graph_run
     messages, types = _messages(out["bag"])
     expected = {"/tendon/command", "/tendon/state", "/tendon/reference", "/mocap/markers",
-                "/mocap/tip", "/task/goal", "/arm/configuration_reference", "/clock"}
+                "/mocap/tip", "/task/goal", "/arm/configuration_reference", "/clock", "/diagnostics"}
     assert set(messages) == expected
     for topic in expected:
-        key = topic if topic == "/clock" else topic[1:]
+        key = topic if topic in ("/clock", "/diagnostics") else topic[1:]
         assert types[topic] == TYPES[key]
     assert sum(len(v) for v in messages.values()) == facts["messages_recorded"]
     n_state = len(messages["/tendon/state"])
