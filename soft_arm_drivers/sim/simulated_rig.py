@@ -4,7 +4,8 @@ Shared by the closed-loop harness and the ROS ``simulator`` node, so that both s
 One call of :meth:`SimulatedRig.begin_step` and one of :meth:`SimulatedRig.end_step` advance the
 plant by ``plant.timestep``; in between, the true sensor values of the current state are readable.
 Mocap frames are exposed at ``mocap.rate`` (markers with Gaussian noise, seeded) and delivered
-``mocap.latency`` later; a frame carries its mid-exposure time stamp.
+``mocap.latency`` later; a frame carries its mid-exposure time stamp. A task's pendulum
+(:mod:`.pendulum`) swings with the arm, in contact with it, and its ball is in every frame.
 """
 from __future__ import annotations
 
