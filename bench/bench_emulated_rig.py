@@ -116,6 +116,10 @@ def one_run(task: str, sets: list, duration: float) -> dict:
             "driver_timing": _driver_timing(series)}
 
 
+def _speed(v) -> str:
+    return "-" if v is None else f"{v:.3f} m/s"
+
+
 def spread(runs: list) -> dict:
     """Run-to-run figures of the valid runs: RMS worst, mm band worst, cm-band velocity max/min."""
     valid = [r["summary"] for r in runs if r["valid"]]
@@ -147,7 +151,7 @@ def main():
         if summary:
             print(f"  steady RMS {summary['rms_error'] * 1e3:.2f} mm, {summary['reached_mm']}/"
                   f"{summary['transitions']} transitions in the mm band, task velocity mm band "
-                  f"{summary['velocity_mm']} m/s, cm band {summary['velocity_cm']} m/s")
+                  f"{_speed(summary['velocity_mm'])}, cm band {_speed(summary['velocity_cm'])}")
         cpu = r["cpu_share"]
         print("  CPU per node: " + ", ".join(f"{n} {c:.0%}" for n, c in cpu.items())
               + f" (total {sum(cpu.values()):.0%} of {os.cpu_count()} cores)")
