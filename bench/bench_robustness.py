@@ -16,8 +16,9 @@ status (ok, constrained, stalled, held) and silent stalls (a goal that ended awa
 with status ok: there must be none); whether the drawn plant itself can hold the targets (solved on
 its own model: within the limits and stable under the inner loop; a target it cannot hold no
 controller reaches); then the median and the worst draw per task, over all draws and over the draws
-whose plant holds the targets. The arm described in the robust-control issue runs too, as draw
-``issue``, outside the distribution.
+whose plant holds the targets; for a task with track windows (``--tasks tracking``) the tracking
+RMS and maximum error of each window too. The arm described in the robust-control issue runs too, as
+draw ``issue``, outside the distribution.
 """
 from __future__ import annotations
 
@@ -103,7 +104,10 @@ def run_one(task: str, plant: dict) -> dict:
             "infeasible_steps": sum(g["infeasible_steps"] for g in goals),
             "statuses": [g["status"] for g in goals],
             # a goal that ended away from its target with nothing reported: what must never happen
-            "silent_stalls": sum(g["status"] == "ok" and not g["reached"] for g in goals), **holds}
+            "silent_stalls": sum(g["status"] == "ok" and g["mode"] != "track" and not g["reached"]
+                                 for g in goals),
+            "tracking_rms_mm": [r["rms_error"] * 1e3 for r in out.get("tracking", [])],
+            "tracking_max_mm": [r["max_error"] * 1e3 for r in out.get("tracking", [])], **holds}
 
 
 def _distribution(drawn: list) -> dict:
@@ -115,7 +119,13 @@ def _distribution(drawn: list) -> dict:
     rms = np.array([r["rms_mm"] for r in ok])
     band = np.array([r["mm_band"] for r in ok])
     vmm = np.array([r["velocity_mm_band"] or 0.0 for r in ok])
-    return {"runs": len(ok), "failed": failed, "rms_mm_median": float(np.median(rms)),
+    tracking = {}
+    if ok[0]["tracking_rms_mm"]:
+        worst = np.array([max(r["tracking_rms_mm"]) for r in ok])
+        tracking = {"tracking_rms_mm_worst_window_median": float(np.median(worst)),
+                    "tracking_rms_mm_worst": float(worst.max()),
+                    "tracking_max_mm_worst": float(max(max(r["tracking_max_mm"]) for r in ok))}
+    return {**tracking, "runs": len(ok), "failed": failed, "rms_mm_median": float(np.median(rms)),
             "rms_mm_worst": float(rms.max()), "mm_band_median": float(np.median(band)),
             "mm_band_worst": int(band.min()), "transitions": ok[0]["transitions"],
             "velocity_mm_band_median": float(np.median(vmm)),
@@ -150,7 +160,9 @@ def main(argv=None) -> int:
             continue
         print(f"{head} {r['rms_mm']:7.2f} {r['mm_band']:4d}/{r['transitions']:<3d} "
               f"{r['velocity_mm_band'] or 0:8.3f} {r['velocity_cm_band'] or 0:8.3f} "
-              f"{r['infeasible_steps']:7d}  {' '.join(r['statuses'])}")
+              f"{r['infeasible_steps']:7d}  {' '.join(r['statuses'])}"
+              + (f"  tracking RMS {' '.join(f'{v:.2f}' for v in r['tracking_rms_mm'])} mm"
+                 if r["tracking_rms_mm"] else ""))
     summary = {}
     for task in args.tasks:
         drawn = [r for r in runs if r["task"] == task and r["draw"] != "issue"]
@@ -165,7 +177,11 @@ def main(argv=None) -> int:
                   f"{s['rms_mm_worst']:.2f} mm; mm band median {s['mm_band_median']:.0f}, worst "
                   f"{s['mm_band_worst']}/{s['transitions']}; mm-band velocity median "
                   f"{s['velocity_mm_band_median']:.3f} m/s; failed {s['failed']}; draws with infeasible "
-                  f"steps {s['draws_with_infeasibility']}; silent stalls {s['silent_stalls']}")
+                  f"steps {s['draws_with_infeasibility']}; silent stalls {s['silent_stalls']}"
+                  + (f"; tracking RMS of the worst window: median "
+                     f"{s['tracking_rms_mm_worst_window_median']:.2f} mm, worst "
+                     f"{s['tracking_rms_mm_worst']:.2f} mm (max error {s['tracking_max_mm_worst']:.2f} mm)"
+                     if "tracking_rms_mm_worst" in s else ""))
     write_results(args.output, {"tolerances": TOLERANCES, "seed": args.seed, "summary": summary,
                                 "runs": runs})
     return 0
