@@ -295,19 +295,11 @@ def _run(args, setup, ros_args: list, out: dict) -> int:
     if os.path.isdir(out["bag"]):
         from .figures import make_figures
         figures = make_figures(out["bag"], setup.task, out["figures"], setup.arm)
-    if failed is not None:
-        _write_invalid(out["metrics"], facts, failed)
-        print(f"soft-arm-experiment: {failed}: no result (metrics.json marked invalid); "
-              f"bag: {out['bag']}", file=sys.stderr)
-        return 130 if interrupted else 1
-    if not os.path.exists(out["metrics"]):
-        print(f"soft-arm-experiment: {'interrupted; ' if interrupted else ''}no metrics written; "
-              f"bag: {out['bag']}", file=sys.stderr)
-        return 130 if interrupted else 1
+    status = _no_result(out, facts, failed, interrupted, "no metrics written")
+    if status is not None:
+        return status
+    _mark_valid(out["metrics"], facts)
     data, rows, summary = _load_metrics(out["metrics"])
-    data["valid"], data["run"] = True, facts
-    with open(out["metrics"], "w", encoding="utf-8") as fh:
-        json.dump(data, fh, indent=2)
     if args.json:
         print(json.dumps(data, indent=2))
     else:
@@ -325,14 +317,36 @@ def _run(args, setup, ros_args: list, out: dict) -> int:
     return 130 if interrupted else 0
 
 
-def _write_invalid(path: str, facts: dict, failure: str):
-    """Mark a run's result file invalid: ``valid`` false, why (``failure``) and the run facts, over
-    whatever the run had written (a runner may have finished before the fault was seen)."""
+def _no_result(out: dict, facts: dict, failed: str | None, interrupted: bool, missing: str) -> int | None:
+    """The exit status of a run that left no result, None if it left one. A run that ``failed``
+    (a node died, the hardware faulted: the reason) has its result file marked invalid over
+    whatever it wrote (a runner may have finished before the fault was seen); one that wrote none
+    says ``missing``."""
+    name = os.path.basename(out["metrics"])
+    if failed is not None:
+        _update(out["metrics"], valid=False, failure=failed, run=facts)
+        print(f"soft-arm-experiment: {failed}: no result ({name} marked invalid); bag: {out['bag']}",
+              file=sys.stderr)
+    elif not os.path.exists(out["metrics"]):
+        print(f"soft-arm-experiment: {'interrupted; ' if interrupted else ''}{missing}; bag: {out['bag']}",
+              file=sys.stderr)
+    else:
+        return None
+    return 130 if interrupted else 1
+
+
+def _mark_valid(path: str, facts: dict):
+    """A run's result file is a result: ``valid`` true, with the run facts."""
+    _update(path, valid=True, run=facts)
+
+
+def _update(path: str, **values):
+    """Set ``values`` in the JSON file at ``path`` (created if missing)."""
     data = {}
     if os.path.exists(path):
         with open(path, encoding="utf-8") as fh:
             data = json.load(fh)
-    data.update(valid=False, failure=failure, run=facts)
+    data.update(values)
     with open(path, "w", encoding="utf-8") as fh:
         json.dump(data, fh, indent=2)
 
@@ -341,20 +355,13 @@ def _identification_result(args, out: dict, facts: dict, failed: str | None, int
     """The end of an identification experiment: the schedule it played (``excitation.json``, with the
     run facts) and the next command; exit 1 if it did not play to the end or the hardware faulted
     (such a bag is not an identification experiment: ``excitation.json`` is marked invalid)."""
-    if failed is not None:
-        _write_invalid(out["metrics"], facts, failed)
-        print(f"soft-arm-experiment: {failed}: the bag is not a valid identification experiment; "
-              f"bag: {out['bag']}", file=sys.stderr)
-        return 130 if interrupted else 1
-    if not os.path.exists(out["metrics"]):
-        print(f"soft-arm-experiment: {'interrupted; ' if interrupted else ''}the identification "
-              f"experiment did not play to its end; bag: {out['bag']}", file=sys.stderr)
-        return 130 if interrupted else 1
+    status = _no_result(out, facts, failed, interrupted,
+                        "the identification experiment did not play to its end")
+    if status is not None:
+        return status
+    _mark_valid(out["metrics"], facts)
     with open(out["metrics"], encoding="utf-8") as fh:
         data = json.load(fh)
-    data["run"], data["valid"] = facts, True
-    with open(out["metrics"], "w", encoding="utf-8") as fh:
-        json.dump(data, fh, indent=2)
     if args.json:
         print(json.dumps(data, indent=2))
     else:

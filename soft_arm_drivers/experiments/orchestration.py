@@ -172,24 +172,34 @@ def run_processes(ros_args: list, out: dict, task: str = "") -> dict:
     """Each node its own process, the same parameters: the recorder, the controller's nodes and the
     simulator start; once the graph is wired (the controller's, the plant's and the recorder's
     endpoints exist) the runner (task runner, or excitation for the identification experiment)
-    starts. Waits for it, then stops the others with SIGINT."""
+    starts, waiting for ``~/start``; once its publisher is known and discovery has settled it is
+    started (in lockstep the plant runs as fast as the graph answers: a goal discovered late would
+    reach the controller seconds of simulated time after the window began). Waits for its result,
+    then stops the nodes with SIGINT."""
     import rclpy
+    from std_srvs.srv import Trigger
     controller, runner = roles(task)
-    children = _Children(ros_args, {"recorder": ["-p", f"output:={out['bag']}", "-p", "use_sim_time:=true"],
-                                    runner: ["-p", f"output:={out['metrics']}"]})
+    children = _Children(ros_args, {
+        "recorder": ["-p", f"output:={out['bag']}", "-p", "use_sim_time:=true"],
+        runner: ["-p", f"output:={out['metrics']}", "-p", "wait_for_start:=true"]})
     start = time.monotonic()
     with _orchestrating(children) as node:
+        begin = node.create_client(Trigger, f"/{runner}/start")
         for name in ("recorder", *controller, "simulator"):
             children.start(name)
         _wait_for_graph(node, children, published=("command", "reference", "state", "markers")
                         if controller else ("state", "markers"))
+        if STOP.is_set():
+            return {"wall_s": time.monotonic() - start}
+        children.start(runner)
+        _wait_for_graph(node, children, settle=0.5, published=("goal",) if controller else ("command",))
+        if not STOP.is_set() and not begin.wait_for_service(timeout_sec=10.0):
+            raise RuntimeError(f"service {begin.srv_name} is not available")
         if not STOP.is_set():
-            children.start(runner)
-        while not STOP.is_set() and children.procs[runner].poll() is None:
-            children.check(may_end=(runner,))
+            _call(node, begin, Trigger.Request())
+        while not STOP.is_set() and not os.path.exists(out["metrics"]):
+            children.check()
             rclpy.spin_once(node, timeout_sec=0.2)
-        if not STOP.is_set():
-            children.check(may_end=(runner,))
     return {"wall_s": time.monotonic() - start}
 
 

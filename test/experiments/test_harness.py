@@ -186,15 +186,19 @@ def test_the_paper_timing_sends_the_step_with_the_release():
     assert plan["send_delay"] == 0.0 and plan["release_delay"] == 0.0
 
 
-@pytest.mark.parametrize("sets, message", [
-    (["tasks.pendulum.pendulum.restitution=1.5"], "restitution = 1.5 is not valid: expected a coefficient"),
-    (["tasks.pendulum.pendulum.timing=early"], "timing = 'early' is not valid"),
-    (["tasks.pendulum.pendulum.direction=[0, 0]"], "horizontal direction"),
-    (["tasks.pendulum.phase.strike.mode=online"], "strikes in its first window"),
+@pytest.mark.parametrize("task, sets, message", [
+    ("pendulum", ["tasks.pendulum.pendulum.restitution=1.5"], "restitution = 1.5 is not valid: expected a"),
+    ("pendulum", ["tasks.pendulum.pendulum.timing=early"], "timing = 'early' is not valid"),
+    ("pendulum", ["tasks.pendulum.pendulum.direction=[0, 0]"], "horizontal direction"),
+    ("pendulum", ["tasks.pendulum.phase.strike.mode=online"], "strikes in its first window"),
+    ("tracking", ["tasks.tracking.phase.line.mode=online"], "only a track phase follows one"),
+    ("tracking", ["tasks.tracking.phase.approach.mode=track"], "lacks shape, size, period"),
+    ("tracking", ["tasks.tracking.phase.line.trajectory.plane=[1, 3]"], "coordinate numbers in 1..2"),
+    ("tracking", ["tasks.tracking.phase.line.trajectory.shape=spiral"], "one of"),
 ])
-def test_bad_pendulum_values_name_the_key(sets, message):
+def test_bad_pendulum_and_trajectory_values_name_the_key(task, sets, message):
     with pytest.raises(ConfigError, match=message):
-        load_setup("pendulum", overrides=sets)
+        load_setup(task, overrides=sets)
 
 
 SHORT_TRACKING = ["tasks.tracking.phases=[approach, circle_slow]", "tasks.tracking.phase.approach.window=6.0"]
@@ -213,14 +217,3 @@ def test_a_slow_circle_is_tracked_within_2_mm_and_the_feedforward_keeps_a_fast_o
     no_feedforward = fast + ["control.clik.track_feedforward=false"]
     without, = run_experiment(load_setup("tracking", overrides=no_feedforward)).tracking
     assert without.rms_error > 1.5 * with_ff.rms_error
-
-
-@pytest.mark.parametrize("sets, message", [
-    (["tasks.tracking.phase.line.mode=online"], "only a track phase follows one"),
-    (["tasks.tracking.phase.approach.mode=track"], "lacks shape, size, period"),
-    (["tasks.tracking.phase.line.trajectory.plane=[1, 3]"], "coordinate numbers in 1..2"),
-    (["tasks.tracking.phase.line.trajectory.shape=spiral"], "one of"),
-])
-def test_bad_trajectories_in_tasks_yaml_name_the_key(sets, message):
-    with pytest.raises(ConfigError, match=message):
-        load_setup("tracking", overrides=sets)
