@@ -11,6 +11,10 @@ from launch_ros.actions import Node
 
 PARAMETER_FILES = ["arm.yaml", "control.yaml", "plant.yaml", "tasks.yaml", "graph.yaml"]
 NODES = ["simulator", "inner_loop", "clik", "task_runner", "recorder"]
+# Nodes on the simulator's /clock (use_sim_time): the recorder, whose log times are the clock's.
+# The controller and the task runner run on the stamps of the messages they get (mocap exposures,
+# tendon states), so they follow the simulated time whatever their clock; the simulator is the clock.
+SIM_TIME_NODES = ["recorder"]
 
 
 def generate_launch_description():
@@ -20,4 +24,4 @@ def generate_launch_description():
     return LaunchDescription(
         [DeclareLaunchArgument("task", default_value="triangle")]
         + [Node(package="soft_arm", executable=name, name=name, output="screen",
-                parameters=params + [task]) for name in NODES])
+                parameters=params + [task, {"use_sim_time": name in SIM_TIME_NODES}]) for name in NODES])

@@ -35,6 +35,16 @@ def test_launch_file_names_existing_executables_and_parameter_files(path):
     assert "package=\"soft_arm\"" in path.read_text()
 
 
+def test_the_simulated_graph_records_on_the_simulators_clock():
+    """sim.launch.py gives the recorder use_sim_time (as soft-arm-experiment --processes does), and
+    only nodes it starts."""
+    text = (ROOT / "launch" / "sim.launch.py").read_text()
+    tree = ast.parse(text)
+    assert _constant(tree, "SIM_TIME_NODES") == ["recorder"]
+    assert set(_constant(tree, "SIM_TIME_NODES")) <= set(_constant(tree, "NODES"))
+    assert '"use_sim_time": name in SIM_TIME_NODES' in text
+
+
 def test_there_are_launch_files_for_the_simulated_and_the_physical_rig():
     assert (ROOT / "launch" / "sim.launch.py").is_file()
     assert (ROOT / "launch" / "rig.launch.py").is_file()
