@@ -17,8 +17,8 @@ with status ok: there must be none); whether the drawn plant itself can hold the
 its own model: within the limits and stable under the inner loop; a target it cannot hold no
 controller reaches); then the median and the worst draw per task, over all draws and over the draws
 whose plant holds the targets; for a task with track windows (``--tasks tracking``) the tracking
-RMS and maximum error of each window too. The arm described in the robust-control issue runs too, as
-draw ``issue``, outside the distribution.
+RMS and maximum error of each window too, for the pendulum whether the ball was struck. The arm
+described in the robust-control issue runs too, as draw ``issue``, outside the distribution.
 """
 from __future__ import annotations
 
@@ -107,7 +107,19 @@ def run_one(task: str, plant: dict) -> dict:
             "silent_stalls": sum(g["status"] == "ok" and g["mode"] != "track" and not g["reached"]
                                  for g in goals),
             "tracking_rms_mm": [r["rms_error"] * 1e3 for r in out.get("tracking", [])],
-            "tracking_max_mm": [r["max_error"] * 1e3 for r in out.get("tracking", [])], **holds}
+            "tracking_max_mm": [r["max_error"] * 1e3 for r in out.get("tracking", [])],
+            "strike": out.get("strike"), **holds}
+
+
+def _strike(strike: dict | None) -> str:
+    """The simulated strike's outcome in a few words ('' without a pendulum)."""
+    if strike is None:
+        return ""
+    sim = strike["simulated"]
+    if sim["struck"]:
+        return (f"  struck {sim['impact_time']:.3f} s after the release (ball peak at "
+                f"{strike['plan']['ball_time']:.3f} s)")
+    return f"  missed by {sim.get('closest_approach', float('nan')) * 1e3:.1f} mm"
 
 
 def _distribution(drawn: list) -> dict:
@@ -120,6 +132,8 @@ def _distribution(drawn: list) -> dict:
     band = np.array([r["mm_band"] for r in ok])
     vmm = np.array([r["velocity_mm_band"] or 0.0 for r in ok])
     tracking = {}
+    if ok[0]["strike"] is not None:
+        tracking["strikes"] = sum(r["strike"]["simulated"]["struck"] for r in ok)
     if ok[0]["tracking_rms_mm"]:
         worst = np.array([max(r["tracking_rms_mm"]) for r in ok])
         tracking = {"tracking_rms_mm_worst_window_median": float(np.median(worst)),
@@ -162,7 +176,7 @@ def main(argv=None) -> int:
               f"{r['velocity_mm_band'] or 0:8.3f} {r['velocity_cm_band'] or 0:8.3f} "
               f"{r['infeasible_steps']:7d}  {' '.join(r['statuses'])}"
               + (f"  tracking RMS {' '.join(f'{v:.2f}' for v in r['tracking_rms_mm'])} mm"
-                 if r["tracking_rms_mm"] else ""))
+                 if r["tracking_rms_mm"] else "") + _strike(r["strike"]))
     summary = {}
     for task in args.tasks:
         drawn = [r for r in runs if r["task"] == task and r["draw"] != "issue"]
@@ -181,7 +195,8 @@ def main(argv=None) -> int:
                   + (f"; tracking RMS of the worst window: median "
                      f"{s['tracking_rms_mm_worst_window_median']:.2f} mm, worst "
                      f"{s['tracking_rms_mm_worst']:.2f} mm (max error {s['tracking_max_mm_worst']:.2f} mm)"
-                     if "tracking_rms_mm_worst" in s else ""))
+                     if "tracking_rms_mm_worst" in s else "")
+                  + (f"; struck on {s['strikes']} of {s['runs']}" if "strikes" in s else ""))
     write_results(args.output, {"tolerances": TOLERANCES, "seed": args.seed, "summary": summary,
                                 "runs": runs})
     return 0
