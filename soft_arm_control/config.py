@@ -199,6 +199,12 @@ class Phase:
     sequence: tuple
     trajectory: Trajectory | None = None
 
+    def target_at(self, target, t: float) -> np.ndarray:
+        """The task coordinates [m] this phase asks for ``t`` [s] into a window on ``target``: a
+        track phase's trajectory from it, the target itself otherwise."""
+        x = np.array(target, dtype=float)
+        return x if self.trajectory is None else self.trajectory.at(x, t)[0]
+
 
 @dataclass(frozen=True)
 class TaskConfig:

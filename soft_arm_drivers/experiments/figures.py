@@ -110,11 +110,7 @@ def targets_at(task, rel) -> tuple:
     plan = [(ph, k) for ph in task.phases for k in ph.sequence]
     starts = np.cumsum([0.0] + [ph.window for ph, _ in plan])[:-1]
     index = np.clip(np.searchsorted(starts, rel, side="right") - 1, 0, len(plan) - 1)
-    x_d = []
-    for r, i in zip(rel, index):
-        ph, k = plan[i]
-        target = np.array(task.targets[k], dtype=float)
-        x_d.append(target if ph.trajectory is None else ph.trajectory.at(target, r - starts[i])[0])
+    x_d = [plan[i][0].target_at(task.targets[plan[i][1]], r - starts[i]) for r, i in zip(rel, index)]
     return starts, index, np.array(x_d)
 
 

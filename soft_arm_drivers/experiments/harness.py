@@ -305,10 +305,9 @@ def run_experiment(setup: Setup, progress=None, actuation_map: ActuationMap | No
     total = sum(w for *_, w in schedule(task))
     second = int(round(1.0 / dt))
     t_start = 0.0
-    trajectories = {ph.name: ph.trajectory for ph in task.phases}
+    phases = {ph.name: ph for ph in task.phases}
     for w_index, (phase, mode, k, window) in enumerate(schedule(task)):
         x_d = np.array(task.targets[k])
-        trajectory = trajectories[phase]
         send_at = t_start + (plan.send_delay if plan is not None and w_index == 0 else 0.0)
         release_at = t_start + plan.release_delay if plan is not None and w_index == 0 else np.inf
         sent = False
@@ -316,7 +315,7 @@ def run_experiment(setup: Setup, progress=None, actuation_map: ActuationMap | No
         while rig.t < t_end - 1e-9:
             t = rig.t
             if not sent and t >= send_at - 1e-9:
-                ctrl.reference = outer.goal(t, x_d, mode, points.get(k), trajectory)
+                ctrl.reference = outer.goal(t, x_d, mode, points.get(k), phases[phase].trajectory)
                 sent = True
             if t >= release_at - 1e-9:
                 rig.release_pendulum()
@@ -325,7 +324,7 @@ def run_experiment(setup: Setup, progress=None, actuation_map: ActuationMap | No
                 rec.t_mocap.append(frame.stamp)
                 rec.x.append(space.from_markers(frame.markers))
                 rec.x_true.append(space.from_markers(frame.true_markers))
-                rec.x_d.append(x_d if trajectory is None else trajectory.at(x_d, frame.stamp - t_start)[0])
+                rec.x_d.append(phases[phase].target_at(x_d, frame.stamp - t_start))
                 rec.tip.append(frame.markers[tip_index, tip_axes])
                 rec.tip_speed.append(frame.tip_speed)
                 rec.window.append(w_index)
@@ -355,7 +354,7 @@ def run_experiment(setup: Setup, progress=None, actuation_map: ActuationMap | No
     for w_index, tr in enumerate(transitions):
         sel = arrays["window"] == w_index
         if tr.mode == "track":
-            tracking.append(tracking_metrics(tr.phase, tr.target + 1, trajectories[tr.phase],
+            tracking.append(tracking_metrics(tr.phase, tr.target + 1, phases[tr.phase].trajectory,
                                              arrays["t_mocap"][sel] - tr.start,
                                              arrays["x_d"][sel] - arrays["x"][sel],
                                              min(task.steady_time, 0.5 * (tr.end - tr.start))))

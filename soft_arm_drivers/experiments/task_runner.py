@@ -33,7 +33,7 @@ class TaskRunner:
         self._deferred = None          # the first window's goal, until plan.send_delay
         self.arm_frames, self.ball_frames = {}, {}      # exposure time: markers / ball centre
         self.windows = [(ph.name, ph.mode, k, ph.window) for ph in task.phases for k in ph.sequence]
-        self.trajectories = {ph.name: ph.trajectory for ph in task.phases}
+        self.phases = {ph.name: ph for ph in task.phases}
         self.tip = tip_marker
         self.tip_axes = [a for k, a in zip(task.space.markers, task.space.axes) if k == tip_marker] \
             or [0, 1, 2]
@@ -68,11 +68,10 @@ class TaskRunner:
                     self._deferred, goal = goal, None
         if self._deferred is not None and rel >= self.plan.send_delay - 1e-9:
             goal, self._deferred = self._deferred, None
-        if self.plan is not None and self.release_at is not None and t >= self.release_at - 1e-9:
+        if self.release_at is not None and t >= self.release_at - 1e-9:
             self.arm_frames[t] = np.asarray(markers, dtype=float).copy()
         if 0 <= self.index < len(self.windows):
             markers = np.asarray(markers, dtype=float)
-            phase, _, k, _ = self.windows[self.index]
             self.samples.append((rel, self.index, self.task.space.from_markers(markers),
                                  self.target_at(self.index, rel), markers[self.tip, self.tip_axes],
                                  markers[self.tip].copy()))
@@ -82,9 +81,7 @@ class TaskRunner:
         """The target [m] of ``window`` at ``rel`` [s] after the start: a track window's trajectory
         from its target, the target itself otherwise."""
         phase, _, k, _ = self.windows[window]
-        x = np.array(self.task.targets[k], dtype=float)
-        trajectory = self.trajectories[phase]
-        return x if trajectory is None else trajectory.at(x, rel - self.starts[window])[0]
+        return self.phases[phase].target_at(self.task.targets[k], rel - self.starts[window])
 
     @property
     def release_at(self) -> float | None:
@@ -136,7 +133,7 @@ class TaskRunner:
             s = [x for x in self.samples if x[1] == w]
             if mode != "track" or len(s) < 3:
                 continue
-            rows.append(tracking_metrics(phase, k + 1, self.trajectories[phase],
+            rows.append(tracking_metrics(phase, k + 1, self.phases[phase].trajectory,
                                          np.array([x[0] for x in s]) - self.starts[w],
                                          np.array([x[3] - x[2] for x in s]),
                                          min(self.task.steady_time, 0.5 * window)))
