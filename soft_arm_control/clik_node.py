@@ -5,8 +5,9 @@ clik (default), replay, precomputed, online, or ``track/<phase>``: that phase's 
 goal's coordinates, see :mod:`soft_arm_control.outer_loop`) and
 ``mocap/markers``; publishes ``tendon/reference`` (position: reference shortenings [m] of all
 tendons; effort: feedforward tensions [N], the pretension on the tendons the task does not use) and
-``arm/configuration_reference`` (q_d). A bad or infeasible goal is rejected with a logged reason;
-the last good reference stays. Time is the mocap's (frame stamps), so it works on sim time and on
+``arm/configuration_reference`` (q_d). A bad, infeasible or fragile goal (one too near a fold of
+the model's equilibria to be held, ``control.clik.min_frequency``) is rejected with a logged
+reason; the last good reference stays. Time is the mocap's (frame stamps), so it works on sim time and on
 the rig alike.
 """
 from __future__ import annotations
@@ -31,6 +32,7 @@ from .clik import TargetError
 from .collocated import full_tensions
 from .config import control_of, task_of
 from .outer_loop import outer_loop_for
+from .target_margin import fragility_error
 
 
 class ClikNode(Node):
@@ -72,7 +74,14 @@ class ClikNode(Node):
                 if trajectory is None:
                     raise ValueError(f"a track goal names a phase of task {self.task.name} with a "
                                      f"trajectory ({', '.join(sorted(self.trajectories))}), got {label!r}")
-            ref = self.outer.goal(self.now, np.array(msg.data, dtype=float), mode, trajectory=trajectory)
+            x_d = np.array(msg.data, dtype=float)
+            point = None
+            if mode in ("clik", "precomputed") and x_d.shape == (self.task.space.m,):
+                point = self.outer.precompute(x_d)
+                reason = fragility_error(self.outer, self.control, self.task, point)
+                if reason is not None:
+                    raise TargetError(f"target {x_d.round(4).tolist()} m is fragile: {reason}")
+            ref = self.outer.goal(self.now, x_d, mode, point=point, trajectory=trajectory)
         except (TargetError, ValueError) as exc:
             self.rejected_goals += 1
             self.get_logger().error(f"goal rejected: {exc}; keeping the last reference")

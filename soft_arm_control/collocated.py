@@ -22,7 +22,7 @@ import numpy as np
 import scipy.linalg
 
 from soft_arm_model import ArmData, ArmModel, actuation_matrix, evaluate, residual_jacobian
-from soft_arm_model.dynamics import STATICS
+from soft_arm_model.dynamics import STATICS, mass_matrix
 
 
 @dataclass(frozen=True, eq=False)
@@ -176,6 +176,17 @@ def held_stiffness(cm: CollocatedModel, q, u_active, proportional) -> np.ndarray
     a = actuation_matrix(cm.model, q, cm.friction)[:, cols]
     a0 = actuation_matrix(cm.model, q, False)[:, cols] if cm.friction else a
     return jac + a @ np.diag(np.asarray(proportional, dtype=float)) @ a0.T
+
+
+def lowest_held_frequency(cm: CollocatedModel, q, u_active, proportional) -> float:
+    """The lowest natural frequency [Hz] of the arm at q held by the inner loop (as
+    :func:`held_stiffness`), from the smallest real part lambda of the eigenvalues of
+    ``M^-1 (dR/dq + A K_p A0^T)`` (lambda = omega^2): ``sign(lambda) sqrt(|lambda|) / 2 pi``, so
+    0 at a fold of the equilibria and negative (the divergence rate) where they are unstable. M is
+    the arm's mass matrix (the rotors not included)."""
+    stiffness = held_stiffness(cm, q, u_active, proportional)
+    lam = float(np.linalg.eigvals(np.linalg.solve(mass_matrix(cm.model, q), stiffness)).real.min())
+    return float(np.sign(lam) * np.sqrt(abs(lam)) / (2 * np.pi))
 
 
 def collocated_jacobian(cm: CollocatedModel, cd: CollocatedData) -> np.ndarray:

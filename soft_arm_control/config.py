@@ -66,6 +66,8 @@ CONTROL_SCHEMA = {
     "clik.closest_margin": ("float", lambda v: 0 <= v <= 100,
                             "a tension margin in [0, 100] N, less than half of the tension range"),
     "clik.track_feedforward": ("bool", None, "true or false"),
+    "clik.min_frequency": ("float", lambda v: 0 <= v <= 100,
+                           "a frequency in [0, 100] Hz (0: no check)"),
     "clik.shaping.shaper": ("str", lambda v: v in SHAPERS, f"one of {list(SHAPERS)}"),
     "clik.shaping.level": ("float", lambda v: 0 < v <= 1, "a vibration amplitude in (0, 1] m"),
     "clik.shaping.modes": ("strs", lambda v: len(v) >= 1 and set(v) <= set(SHAPED_MODES),
@@ -149,6 +151,7 @@ class ControlConfig:
     shaping_level: float
     shaped_modes: tuple
     track_feedforward: bool
+    min_frequency: float
 
 
 def parse_control(v: dict, arm: ArmConfig) -> ControlConfig:
@@ -178,7 +181,7 @@ def parse_control(v: dict, arm: ArmConfig) -> ControlConfig:
         v["clik.switch_delay"], v["clik.tolerance"],
         v["clik.seed_levels"], v["clik.reach_tolerance"], v["clik.stall_time"],
         v["clik.closest_margin"], v["clik.shaping.shaper"], v["clik.shaping.level"],
-        tuple(v["clik.shaping.modes"]), v["clik.track_feedforward"])
+        tuple(v["clik.shaping.modes"]), v["clik.track_feedforward"], v["clik.min_frequency"])
 
 
 def load_control_config(arm: ArmConfig, path: str | None = None, overrides=None) -> ControlConfig:

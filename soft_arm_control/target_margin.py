@@ -22,11 +22,13 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from soft_arm_model import ArmConfig, build_model
+from soft_arm_model.dynamics import OutOfDomainError
+from soft_arm_model.statics import EquilibriumError, solve_equilibrium
 
-from .clik import Clik, TargetError
-from .collocated import held_stiffness
+from .clik import Clik, ClikPoint, TargetError
+from .collocated import full_tensions, held_stiffness, lowest_held_frequency
 from .config import ControlConfig, TaskConfig
-from .outer_loop import clik_for, outer_loop_for
+from .outer_loop import OuterLoop, clik_for, outer_loop_for
 
 STIFFNESS_SCALES = (0.8, 1.0, 1.25)   # Young's modulus of the arm / the model's
 # kg, an unmodelled mass at the tip; a heavier load than 2 g belongs in arm.tip_mass (a curled arm
@@ -140,3 +142,89 @@ def is_robust(results, min_margin: float = MIN_MARGIN) -> bool:
     """The rule: every variant holds the target, stably, with at least ``min_margin`` [N]."""
     worst = worst_margin(results)
     return worst is not None and worst >= min_margin and all(r.stable for r in results)
+
+
+def target_frequency(outer: OuterLoop, control: ControlConfig, task: TaskConfig, point: ClikPoint) -> float:
+    """The lowest natural frequency [Hz] of the model's arm at the reference ``point`` held by the
+    inner loop (:func:`~soft_arm_control.collocated.lowest_held_frequency`; negative: unstable)."""
+    kp = [control.proportional[k] for k in task.tendons]
+    return lowest_held_frequency(outer.clik.cm, point.q, point.u_ff, kp)
+
+
+def fragility_error(outer: OuterLoop, control: ControlConfig, task: TaskConfig,
+                    point: ClikPoint) -> str | None:
+    """Why the reference ``point`` is too near a fold of the model's equilibria to be held (its
+    lowest frequency under the inner loop below ``control.min_frequency``), or None."""
+    if control.min_frequency <= 0:
+        return None
+    f = target_frequency(outer, control, task, point)
+    if f >= control.min_frequency:
+        return None
+    return (f"its equilibrium on the model is {'unstable' if f < 0 else 'near a fold'} (lowest natural "
+            f"frequency held by the inner loop {f:.2f} Hz, below control.clik.min_frequency "
+            f"{control.min_frequency:g} Hz): the smallest model error moves the arm far from it")
+
+
+def safe_point(outer: OuterLoop, control: ControlConfig, task: TaskConfig, point: ClikPoint,
+               steps: int = 20, iterations: int = 8) -> ClikPoint | None:
+    """The reference nearest to ``point`` on the straight path in the actuated tensions from the
+    start-up pose's to ``point``'s (inside the limits all the way) that is not fragile
+    (:func:`fragility_error`): the model's equilibria along the path, continued in ``steps`` steps
+    from the start-up pose, their task points precomputed as targets are (so that the point offered
+    passes :func:`target_point` itself), the last safe one refined by ``iterations`` bisections. What
+    ``--accept-closest`` runs for a fragile target. None when the start-up pose itself is fragile."""
+    clik = outer.clik
+    cm = clik.cm
+    u0, u1 = np.asarray(outer.start.u_ff, dtype=float), np.asarray(point.u_ff, dtype=float)
+
+    def at(s, q_start):
+        """The reference the run would use for the task point of the path's equilibrium at s
+        (precomputed as a target is), or None when it is not safe."""
+        try:
+            eq = solve_equilibrium(cm.model, full_tensions(cm, u0 + s * (u1 - u0)), q_start=q_start,
+                                   friction=cm.friction)
+            ref = outer.precompute(clik.reference(eq.q).x)
+        except (EquilibriumError, OutOfDomainError, TargetError):
+            return None
+        return None if fragility_error(outer, control, task, ref) else ref
+
+    best = outer.start if fragility_error(outer, control, task, outer.start) is None else None
+    if best is None:
+        return None
+    lo, hi = 0.0, None
+    for s in np.linspace(0.0, 1.0, steps + 1)[1:]:
+        ref = at(s, best.q)
+        if ref is None:
+            hi = s
+            break
+        lo, best = s, ref
+    if hi is None:
+        return best
+    for _ in range(iterations):
+        mid = 0.5 * (lo + hi)
+        ref = at(mid, best.q)
+        if ref is None:
+            hi = mid
+        else:
+            lo, best = mid, ref
+    return best
+
+
+def target_point(outer: OuterLoop, control: ControlConfig, task: TaskConfig, x_d) -> ClikPoint:
+    """The precomputed reference of x_d [m] (:meth:`OuterLoop.precompute`), refused with TargetError
+    when x_d is unreachable, infeasible, or fragile (too near a fold of the model's equilibria to
+    be held: :func:`fragility_error`). The error's ``closest`` is the point to run instead: the
+    closest feasible one, moved back along the straight tension path from the start-up pose until
+    it is not fragile (:func:`safe_point`)."""
+    try:
+        point = outer.precompute(x_d)
+    except TargetError as exc:
+        closest = exc.closest
+        if closest is not None and fragility_error(outer, control, task, closest):
+            closest = safe_point(outer, control, task, closest)
+        raise TargetError(str(exc), closest) from exc
+    reason = fragility_error(outer, control, task, point)
+    if reason is not None:
+        raise TargetError(f"target {np.round(x_d, 4).tolist()} m is fragile: {reason}",
+                          safe_point(outer, control, task, point))
+    return point

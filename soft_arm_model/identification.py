@@ -75,10 +75,18 @@ class Registration:
 
 @dataclass(frozen=True)
 class Estimate:
-    """One identified value with its standard error (from the Jacobian at the optimum), in ``unit``."""
+    """One identified value with its standard error (from the Jacobian at the optimum: the noise's
+    share), in ``unit``; ``basis_shift``: how far the same data fitted on another strain basis
+    moves it (:func:`with_basis_shift`: the model's share, which the standard error does not see)."""
     value: float
     standard_error: float
     unit: str
+    basis_shift: float = 0.0
+
+    @property
+    def uncertainty(self) -> float:
+        """Both shares together, ``hypot(standard_error, basis_shift)``."""
+        return float(np.hypot(self.standard_error, self.basis_shift))
 
 
 @dataclass(frozen=True)
@@ -293,19 +301,33 @@ class StaticProblem:
 
 
 def identify_static(arm: ArmConfig, samples, marker_sigma: float = 2e-4, shortening_sigma: float = 2e-5,
-                    registration: Registration | None = None, max_evaluations: int = 60) -> StaticFit:
+                    registration: Registration | None = None, max_evaluations: int = 60,
+                    start: StaticFit | None = None) -> StaticFit:
     """Fit the static parameters of ``arm`` (the starting guess and everything not identified) to
     ``samples`` (:class:`StaticSample`); ``marker_sigma`` and ``shortening_sigma`` [m]: the noise of
     one sample's markers and shortenings; ``registration``: a starting mocap registration (default:
-    identity). Raises IdentificationError when the data cannot determine the fit."""
+    identity); ``start``: a fit to start from instead (e.g. on another strain basis: the priors
+    stay ``arm``'s). Raises IdentificationError when the data cannot determine the fit."""
     pb = StaticProblem(arm, samples, marker_sigma, shortening_sigma, registration)
     layout, n_t, n = pb.layout, pb.n_t, len(pb.samples)
     lower, upper = np.full(layout.size, -np.inf), np.full(layout.size, np.inf)
     lower[2] = 0.0                                                  # tip mass
     lower[_TENDONS:_TENDONS + n_t] = 0.0                            # friction coefficients
     lower[_TENDONS + n_t:_TENDONS + 2 * n_t], upper[_TENDONS + n_t:_TENDONS + 2 * n_t] = OFFSET_BOUNDS
-    p0 = np.clip(pb.p0, lower + 1e-6, upper - 1e-6)
-    sol = least_squares(pb.residual, p0, jac=pb.jacobian, bounds=(lower, upper), method="trf",
+    p0 = pb.p0 if start is None else parameter_vector(layout, start)
+    p0 = np.clip(p0, lower + 1e-6, upper - 1e-6)
+    r0 = pb.residual(p0)                     # the start must have every equilibrium
+    rejected = np.full(r0.size, 1e3 * (1.0 + np.abs(r0).max()))
+
+    def residual(p):
+        """A trial step whose model has no equilibrium under some sample's tensions is refused
+        (a residual far above the start's: the trust region shrinks), not the fit."""
+        try:
+            return pb.residual(p)
+        except IdentificationError:
+            return rejected
+
+    sol = least_squares(residual, p0, jac=pb.jacobian, bounds=(lower, upper), method="trf",
                         x_scale="jac", xtol=1e-10, ftol=1e-10, gtol=1e-10, max_nfev=max_evaluations)
     p = sol.x
     r = pb.residual(p)
@@ -331,6 +353,22 @@ def identify_static(arm: ArmConfig, samples, marker_sigma: float = 2e-4, shorten
     return StaticFit(fitted, layout.encoder_zero(p).copy(), layout.registration(p), estimates,
                      np.sqrt(np.mean(np.sum(r_p ** 2, axis=2), axis=0)), np.sqrt(np.mean(r_s ** 2, axis=0)),
                      n, int(sol.nfev))
+
+
+def with_basis_shift(fit: StaticFit, check: StaticFit) -> StaticFit:
+    """``fit`` with the basis shift of each estimate: its distance from ``check``'s (the same
+    samples fitted on another strain basis, e.g. started from ``fit``)."""
+    return replace(fit, estimates={name: replace(e, basis_shift=abs(check.estimates[name].value - e.value))
+                                   for name, e in fit.estimates.items()})
+
+
+def parameter_vector(layout: _Layout, fit: StaticFit) -> np.ndarray:
+    """The parameter vector of ``layout`` (its arm's priors) that gives ``fit``'s values."""
+    p = np.array([fit.estimates[name].value for name in layout.names])
+    a0 = layout.arm0.material
+    p[0] = np.log(fit.arm.material.youngs_modulus / a0.youngs_modulus)
+    p[1] = np.log(fit.arm.material.density / a0.density)
+    return p
 
 
 def predict_samples(arm: ArmConfig, samples) -> tuple[np.ndarray, np.ndarray]:

@@ -40,6 +40,11 @@ SCHEMA = {
     "fit.dynamic_window": ("float", lambda v: 0 < v <= 60, "a time in (0, 60] s"),
     "fit.dynamic_timestep": ("float", lambda v: 1e-4 <= v <= 0.005, "a time step in [1e-4, 0.005] s"),
     "fit.max_evaluations": ("int", lambda v: 2 <= v <= 1000, "an integer in [2, 1000]"),
+    "fit.basis_check.legendre_order": ("ints", lambda v: len(v) >= 1 and all(0 <= a <= 8 for a in v),
+                                       "Legendre orders in [0, 8], one per division of the arm"),
+    "fit.basis_check.shear": ("bool", None, "true or false"),
+    "fit.basis_check.max_evaluations": ("int", lambda v: 0 <= v <= 1000,
+                                        "an integer in [0, 1000] (0: no check)"),
 }
 
 
@@ -76,7 +81,8 @@ class ExcitationConfig:
 @dataclass(frozen=True)
 class FitConfig:
     """identification.fit: how ``soft-arm-identify`` reads a recording (times [s], mass [kg]) and
-    the static fit's strain basis (Legendre order per division, shear)."""
+    the static fit's strain basis (Legendre order per division, shear), and the basis its result
+    is refitted on to see how far the basis moves it (``check_evaluations`` 0: not refitted)."""
     min_plateau: float
     average: float
     legendre_order: tuple
@@ -85,6 +91,9 @@ class FitConfig:
     dynamic_window: float
     dynamic_timestep: float
     max_evaluations: int
+    check_legendre_order: tuple
+    check_shear: bool
+    check_evaluations: int
 
 
 def parse_fit(v: dict) -> FitConfig:
@@ -94,7 +103,9 @@ def parse_fit(v: dict) -> FitConfig:
                           f"expected a time >= identification.average = {v['average']:g} s")
     return FitConfig(v["fit.min_plateau"], v["average"], v["fit.legendre_order"], v["fit.shear"],
                      v["fit.rotor_mass"], v["fit.dynamic_window"],
-                     v["fit.dynamic_timestep"], v["fit.max_evaluations"])
+                     v["fit.dynamic_timestep"], v["fit.max_evaluations"],
+                     v["fit.basis_check.legendre_order"], v["fit.basis_check.shear"],
+                     v["fit.basis_check.max_evaluations"])
 
 
 def parse_excitation(v: dict, n_tendons: int, tension_min: float, tension_max: float) -> ExcitationConfig:

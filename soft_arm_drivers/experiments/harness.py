@@ -26,6 +26,7 @@ from soft_arm_control.config import (IDENTIFICATION, ControlConfig, TaskConfig, 
                                      load_task_config)
 from soft_arm_control.inner_loop import tendon_controller_for
 from soft_arm_control.outer_loop import OuterLoop, outer_loop_for
+from soft_arm_control.target_margin import target_point
 from soft_arm_drivers.mocap.bridge_config import calibration_overrides
 from soft_arm_drivers.sim.plant_config import PlantConfig, load_plant_config, with_bridge_calibration
 from soft_arm_drivers.sim.simulated_rig import SimulatedRig
@@ -216,23 +217,23 @@ def _clik_targets(task: TaskConfig) -> list:
     return sorted({k for _, mode, k, _ in schedule(task) if mode in ("clik", "precomputed")})
 
 
-def precompute_targets(outer: OuterLoop, task: TaskConfig) -> dict:
+def precompute_targets(outer: OuterLoop, control: ControlConfig, task: TaskConfig) -> dict:
     """Precomputed references of every target a clik phase visits, each solved from the start-up
     pose (or the nearest seed equilibrium), so that a reference does not depend on the visiting
-    order. Raises TargetError, before anything moves, for an unreachable or infeasible target; its
-    message names the closest point the model reaches within the tension limits."""
+    order. Raises TargetError, before anything moves, for an unreachable, infeasible or fragile
+    target (:func:`target_point`); its message names the point --accept-closest would run."""
     points = {}
     for k in _clik_targets(task):
         x_d = np.array(task.targets[k])
         try:
-            points[k] = outer.precompute(x_d)
+            points[k] = target_point(outer, control, task, x_d)
         except TargetError as exc:
             if exc.closest is None:
                 raise TargetError(f"target {k + 1} of {task.name}: {exc}; no equilibrium within the "
-                                  "limits was found near it") from exc
+                                  "limits that can be held was found near it") from exc
             closest = exc.closest.x
             raise TargetError(
-                f"target {k + 1} of {task.name}: {exc}. The closest point the model reaches within "
+                f"target {k + 1} of {task.name}: {exc}. The closest point the model holds within "
                 f"the limits is {closest.round(4).tolist()} m "
                 f"({np.linalg.norm(closest - x_d) * 1e3:.1f} mm away): --accept-closest runs the "
                 "task with it", exc.closest) from exc
@@ -241,35 +242,42 @@ def precompute_targets(outer: OuterLoop, task: TaskConfig) -> dict:
 
 def check_targets(setup: Setup, accept_closest: bool = False) -> tuple[list, list]:
     """Every target a clik phase visits, solved on the controller's model before anything moves:
-    (overrides, notes). Without ``accept_closest`` a target the model cannot reach within the
-    tension limits raises TargetError (:func:`precompute_targets`). With it, such a target is
-    replaced by the closest point the model reaches (:meth:`~soft_arm_control.clik.Clik.closest_feasible`),
-    given back as a ``tasks.<task>.targets`` override (none when every target is feasible), with a
-    note per replaced target."""
+    (overrides, notes). Without ``accept_closest`` a target the model cannot hold (unreachable,
+    infeasible or fragile) raises TargetError (:func:`precompute_targets`). With it, such a target
+    is replaced by the point :func:`target_point` offers, given back as a ``tasks.<task>.targets``
+    override (none when every target can be held), with a note per replaced target."""
     task = setup.task
     if task is None:                          # the identification experiment: tensions, no targets
         return [], []
     outer = outer_loop_for(build_model(setup.arm), setup.control, task)
     if not accept_closest:
-        precompute_targets(outer, task)
+        precompute_targets(outer, setup.control, task)
         return [], []
     targets, notes = [list(x) for x in task.targets], []
     for k in _clik_targets(task):
         x_d = np.array(task.targets[k])
         try:
-            outer.precompute(x_d)
+            target_point(outer, setup.control, task, x_d)
         except TargetError as exc:
             if exc.closest is None:
                 raise
             targets[k] = [round(float(v), 7) for v in exc.closest.x]
             notes.append(f"target {k + 1} of {task.name} {x_d.round(4).tolist()} m replaced by the closest "
-                         f"feasible point {targets[k]} m "
+                         f"point the model holds {targets[k]} m "
                          f"({np.linalg.norm(np.array(targets[k]) - x_d) * 1e3:.1f} mm away; "
-                         f"{str(exc).partition(': ')[2].partition(';')[0]})")
+                         f"{_reason(exc)})")
     if not notes:
         return [], []
     flat = ", ".join(str(v) for x in targets for v in x)
     return [f"tasks.{task.name}.targets=[{flat}]"], notes
+
+
+def _reason(exc: TargetError) -> str:
+    """The first reason of a refusal, for a one-line note."""
+    text = str(exc)
+    if " is fragile: " in text:
+        return "fragile: " + text.partition(" is fragile: ")[2].partition(":")[0]
+    return text.partition(": ")[2].partition(";")[0]
 
 
 def run_experiment(setup: Setup, progress=None, actuation_map: ActuationMap | None = None) -> RunResult:
@@ -283,7 +291,7 @@ def run_experiment(setup: Setup, progress=None, actuation_map: ActuationMap | No
     pretension = np.full(model.n_tendons, ctl.tension_min)
     outer = ctrl.outer
     start = ctrl.reference = outer.start           # the controller's view of start-up
-    points = precompute_targets(outer, task)
+    points = precompute_targets(outer, ctl, task)
     rig = SimulatedRig(build_model(pc.plant_arm(setup.arm)), pc, start.shortening, pretension,
                        task.payload, task.pendulum)
     plan = None

@@ -7,7 +7,9 @@ Young's modulus, density, the mass at the tip, per-tendon friction, offsets and 
 zeros and the mocap registration (:func:`soft_arm_model.identification.identify_static`); the
 steps and chirps between plateaus give the viscosity and the rotors' reflected mass
 (:func:`soft_arm_model.dynamic_identification.identify_dynamics`). Prints every estimate with its
-standard error and the residual RMS per marker; ``--output FILE`` writes the identified arm (the
+standard error (the noise's share), its basis shift (how far refitting on the richer basis of
+``identification.fit.basis_check`` moves it: the model's share) and the residual RMS per marker;
+``--output FILE`` writes the identified arm (the
 schema of ``arm.yaml``, with ``rig.mocap.calibration`` corrected) for ``--arm-file`` and
 ``--params-file``; ``--json`` prints the report as JSON; ``--plot DIR`` draws measured against
 predicted markers and shortenings, the hysteresis loops and the dynamic segments. Exit status 2
@@ -31,7 +33,7 @@ from soft_arm_drivers.mocap.bridge_config import load_mocap_config
 from soft_arm_model import load_arm_config
 from soft_arm_model.config import with_basis, write_arm_file
 from soft_arm_model.dynamic_identification import identify_dynamics
-from soft_arm_model.identification import IdentificationError, Registration, identify_static
+from soft_arm_model.identification import IdentificationError, Registration, identify_static, with_basis_shift
 from soft_arm_model.parameters import ConfigError, default_config_dir, split_overrides
 from soft_arm_model.recording import (SETTLED_LEAD, Recording, dynamic_segments, noise_levels,
                                       plateaus, static_samples)
@@ -105,19 +107,36 @@ def write_identified_arm(path: str, arm, calibration: tuple, header: str = ""):
 def identify(rec: Recording, arm, fit_config, workers: int | None = None) -> dict:
     """Both fits on a recording: a report (JSON-ready) and the fits themselves (keys ``static``,
     ``dynamic``; ``dynamic`` None without a step or chirp). The static fit runs on the basis of
-    ``fit_config``; the arm it returns has ``arm``'s (the controller's). IdentificationError when
+    ``fit_config``, and is refitted from its result on the basis check's for each estimate's
+    basis shift; the arm it returns has ``arm``'s basis (the controller's). IdentificationError when
     the data cannot determine the static fit."""
     held = plateaus(rec, fit_config.min_plateau)
     samples = static_samples(rec, held, fit_config.average)
     marker_sigma, shortening_sigma = noise_levels(rec, held, fit_config.average)
-    if len(fit_config.legendre_order) != len(arm.discretisation.division_ends):
-        raise ConfigError(f"identification.fit.legendre_order = {list(fit_config.legendre_order)} is not "
-                          f"valid: expected {len(arm.discretisation.division_ends)} orders, one per division")
+    for key, orders in (("legendre_order", fit_config.legendre_order),
+                        ("basis_check.legendre_order", fit_config.check_legendre_order)):
+        if len(orders) != len(arm.discretisation.division_ends):
+            raise ConfigError(f"identification.fit.{key} = {list(orders)} is not valid: expected "
+                              f"{len(arm.discretisation.division_ends)} orders, one per division")
     start = time.perf_counter()
     static = identify_static(with_basis(arm, fit_config.legendre_order, shear=fit_config.shear), samples,
                              marker_sigma, shortening_sigma, max_evaluations=fit_config.max_evaluations)
-    static = replace(static, arm=replace(static.arm, discretisation=arm.discretisation))
     static_s = time.perf_counter() - start
+    check = None
+    if fit_config.check_evaluations:
+        start = time.perf_counter()
+        check_arm = with_basis(arm, fit_config.check_legendre_order, shear=fit_config.check_shear)
+        check = {"legendre_order": list(fit_config.check_legendre_order), "shear": fit_config.check_shear}
+        try:
+            refit = identify_static(check_arm, samples, marker_sigma, shortening_sigma,
+                                    max_evaluations=fit_config.check_evaluations, start=static)
+        except IdentificationError as exc:       # the fit stands; its uncertainties are the noise's
+            check["failed"] = str(exc)
+        else:
+            static = with_basis_shift(static, refit)
+            check.update(evaluations=refit.evaluations, marker_rms=refit.marker_rms.tolist())
+        check["seconds"] = time.perf_counter() - start
+    static = replace(static, arm=replace(static.arm, discretisation=arm.discretisation))
     segments = dynamic_segments(held, SETTLED_LEAD, fit_config.dynamic_window)
     dynamic, dynamic_s = None, 0.0
     if segments:
@@ -131,9 +150,9 @@ def identify(rec: Recording, arm, fit_config, workers: int | None = None) -> dic
     report = {
         "plateaus": len(held), "dynamic_segments": len(segments),
         "noise": {"marker": marker_sigma, "shortening": shortening_sigma},
-        "estimates": {k: vars(e) for k, e in static.estimates.items()},
+        "estimates": {k: {**vars(e), "uncertainty": e.uncertainty} for k, e in static.estimates.items()},
         "marker_rms": static.marker_rms.tolist(), "shortening_rms": static.shortening_rms.tolist(),
-        "static": {"evaluations": static.evaluations, "seconds": static_s},
+        "static": {"evaluations": static.evaluations, "seconds": static_s}, "basis_check": check,
         "dynamic": None if dynamic is None else {
             "viscosity": vars(dynamic.viscosity), "rotor_mass": vars(dynamic.rotor_mass),
             "marker_rms": dynamic.marker_rms.tolist(), "shortening_rms": dynamic.shortening_rms.tolist(),
@@ -146,13 +165,19 @@ def _print_report(report: dict, registration: Registration):
     print(f"{report['plateaus']} plateaus, {report['dynamic_segments']} dynamic segments; noise of a "
           f"sample: markers {report['noise']['marker'] * 1e6:.0f} um, shortenings "
           f"{report['noise']['shortening'] * 1e6:.1f} um")
-    print(f"{'parameter':34s} {'value':>12s} {'std. error':>12s}")
+    print(f"{'parameter':34s} {'value':>12s} {'std. error':>12s} {'basis shift':>12s}")
     rows = list(report["estimates"].items())
     if report["dynamic"] is not None:
         rows += [(k, report["dynamic"][k]) for k in ("viscosity", "rotor_mass")]
     for name, e in rows:
         scale, unit = (180 / np.pi, "deg") if e["unit"] == "rad" else (1.0, e["unit"])
-        print(f"{name:34s} {e['value'] * scale:12.5g} {e['standard_error'] * scale:12.2g} {unit}")
+        checked = report["basis_check"] and "failed" not in report["basis_check"]
+        shift = (f"{e['basis_shift'] * scale:12.2g}" if checked and name in report["estimates"]
+                 else f"{'-':>12s}")
+        print(f"{name:34s} {e['value'] * scale:12.5g} {e['standard_error'] * scale:12.2g} {shift} {unit}")
+    if report["basis_check"] and "failed" in report["basis_check"]:
+        print(f"basis check failed ({report['basis_check']['failed']}): the uncertainties are the "
+              "standard errors alone")
     print(f"mocap registration: {np.degrees(registration.angle):.2f} deg, "
           f"{np.linalg.norm(registration.translation) * 1e3:.1f} mm")
     print("static residual RMS per marker [mm]: "

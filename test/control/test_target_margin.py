@@ -5,8 +5,12 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from soft_arm_control.clik import TargetError
 from soft_arm_control.config import load_control_config, load_task_config
-from soft_arm_control.target_margin import MarginChecker, Variant, check_arm, is_robust
+from soft_arm_control.input_shaping import step_modes
+from soft_arm_control.outer_loop import outer_loop_for
+from soft_arm_control.target_margin import (MarginChecker, Variant, check_arm, is_robust,
+                                            target_frequency, target_point)
 from soft_arm_control.targets_cli import main as targets_main
 from soft_arm_model import ImexStepper, build_model, load_arm_config, marker_positions, solve_equilibrium
 from soft_arm_control.collocated import full_tensions
@@ -106,3 +110,59 @@ def test_check_arm_solves_on_the_arm_itself_whatever_its_basis():
     results = check_arm(finer, control, task, [COILING_LOW])
     assert results[0].margin > 0.3 and results[0].stable and results[0].variant is None
     assert is_robust(results)
+
+
+TRIANGLE_SIDE = (-0.03, 0.138, -0.241, 0.056)      # the default triangle's second vertex
+
+
+def test_the_lowest_held_frequency_is_the_lowest_mode_and_its_sign_the_stability():
+    """Without friction the held stiffness is symmetric: the frequency is the lowest mode of the
+    generalised eigenproblem (input shaping's); with K_p = 0 its sign is the stability that the
+    simulated release of test_stability_says_which_equilibria_the_arm_leaves confirms."""
+    arm, control, task = _setup(control_overrides={"friction": False})
+    outer = outer_loop_for(build_model(arm), control, task)
+    point = outer.precompute(np.array(COILING_LOW))
+    kp, kd = ([getattr(control, g)[k] for k in task.tendons] for g in ("proportional", "derivative"))
+    modes = step_modes(outer.clik.cm, outer.clik.task, kp, kd, outer.start, point)
+    assert target_frequency(outer, control, task, point) == pytest.approx(modes[0].frequency, rel=1e-6)
+    arm, control, task = _setup(control_overrides={"inner_loop.proportional": [0.0] * 4})
+    loaded = Variant(1.0, 0.005).arm(arm)
+    outer = outer_loop_for(build_model(loaded), control, task)
+    for target, stable in ((COILING_LOW, True), (COILING_CURL, False)):
+        f = target_frequency(outer, control, task, outer.precompute(np.array(target)))
+        assert (f > 0) == stable, (target, f)
+
+
+def test_a_target_near_a_fold_is_refused_and_the_safe_point_offered_can_be_held():
+    """With 3.5 g at the tip the triangle's second vertex sits near a fold of the model's
+    equilibria (0.44 Hz held by the inner loop, tip mass 2 g: 0.84 Hz, none: 1.25 Hz). It is
+    refused, naming the frequency; the point offered instead is held above min_frequency within
+    the tension limits, and is where the model's equilibrium under its tensions is."""
+    arm = load_arm_config(overrides={"tip_mass": 0.0035})
+    control, task = load_control_config(arm), load_task_config("triangle", arm)
+    outer = outer_loop_for(build_model(arm), control, task)
+    fragile = r"fragile: .*near a fold .*0\.4\d Hz.*min_frequency 0\.8 Hz"
+    with pytest.raises(TargetError, match=fragile) as info:
+        target_point(outer, control, task, np.array(TRIANGLE_SIDE))
+    safe = info.value.closest
+    assert safe is not None
+    assert target_frequency(outer, control, task, safe) >= control.min_frequency
+    assert np.all(safe.u_ff >= control.tension_min) and np.all(safe.u_ff <= control.tension_max)
+    cm = outer.clik.cm
+    eq = solve_equilibrium(cm.model, full_tensions(cm, safe.u_ff), q_start=safe.q, friction=cm.friction)
+    assert np.allclose(outer.clik.task.evaluate(cm.model, eq.q)[0], safe.x, atol=1e-6)
+    assert np.allclose(target_point(outer, control, task, safe.x).q, safe.q)    # offered as it runs
+    # it lies between the hanging arm and the vertex, nearer the vertex than the start
+    assert np.linalg.norm(safe.x - TRIANGLE_SIDE) < np.linalg.norm(outer.start.x - TRIANGLE_SIDE)
+    off = replace(control, min_frequency=0.0)
+    assert target_point(outer, off, task, np.array(TRIANGLE_SIDE)).x == pytest.approx(TRIANGLE_SIDE, abs=1e-5)
+
+
+@pytest.mark.parametrize("task_name", ["triangle", "coiling"])
+def test_the_default_targets_are_not_fragile_on_the_nominal_arm(task_name):
+    arm = load_arm_config()
+    control, task = load_control_config(arm), load_task_config(task_name, arm)
+    outer = outer_loop_for(build_model(arm), control, task)
+    for x in task.targets:
+        point = target_point(outer, control, task, np.array(x))
+        assert target_frequency(outer, control, task, point) > control.min_frequency + 0.3   # Hz

@@ -89,7 +89,7 @@ def test_an_infeasible_target_is_refused_with_the_closest_feasible_point_and_run
     closest = json.loads(err.split("the limits is ")[1].split(" m (")[0])
     assert harness_main(["coiling", "--quiet", "--json", "--accept-closest", *short]) == 0
     out, err = capsys.readouterr()
-    assert "replaced by the closest feasible point" in err
+    assert "replaced by the closest point the model holds" in err
     target = json.loads(out)["targets"][0]["target"]
     assert target == pytest.approx(closest, abs=1e-4)
     assert abs(target[0] - 0.06) > 0.01

@@ -60,6 +60,19 @@ def test_a_different_arm_and_a_misplaced_mocap_frame_are_recovered():
         assert abs(t_fit.offset_fraction - t.offset_fraction) < 0.02
         assert abs(t_fit.start_angle - t.start_angle - turn) < np.radians(2.0)
         assert abs(t_fit.end_angle - t.end_angle - turn) < np.radians(2.0)
+        # the errors are the basis's (this arm is of order 4 with shear, the fit of order 3): the
+        # standard errors alone do not cover them, with the basis shift the uncertainties do
+        for group, shifted in (("friction", 0.0), ("offset_fraction", 0.0), ("start_angle", turn),
+                               ("end_angle", turn)):
+            e = fit.estimates[f"{group}[{t.name}]"]
+            error = abs(getattr(t_fit, group) - getattr(t, group) - shifted)
+            assert error < 2 * e.uncertainty + 1e-4, (group, t.name, error, e)
+    estimates = [(fit.estimates[f"{g}[{t.name}]"], getattr(t, g))
+                 for g in ("friction", "offset_fraction") for t in truth.tendons]
+    errors = [abs(e.value - true) / e.standard_error for e, true in estimates]
+    assert max(errors) > 4, "the standard errors alone cover the basis's error: the check above tests nothing"
+    E = fit.estimates["youngs_modulus"]
+    assert abs(E.value - truth.material.youngs_modulus) < 2 * E.uncertainty
     # the registration undoes the frame error, up to the common turn of the tendons about z
     error = Rotation.from_rotvec(np.radians([0.0, 1.2, 1.6]))
     undo = Rotation.from_rotvec([0.0, 0.0, turn]) * error.inv()

@@ -187,6 +187,38 @@ def test_clik_node_rejects_bad_goals_and_keeps_the_last_reference():
         rclpy.try_shutdown()
 
 
+def test_clik_node_rejects_a_fragile_goal():
+    """With 3.5 g at the tip the triangle's second vertex is near a fold of the model (0.44 Hz held
+    by the inner loop, below control.clik.min_frequency): rejected; the third (0.91 Hz) is taken."""
+    import rclpy
+    from rclpy.parameter import Parameter
+
+    from soft_arm_control.clik_node import ClikNode
+    from soft_arm_ros.conversions import float_array
+    rclpy.init()
+    try:
+        node = ClikNode(parameter_overrides=[Parameter("graph.task", value="triangle"),
+                                             Parameter("arm.tip_mass", value=0.0035)])
+        sent = []
+        node.ref_pub.publish = sent.append
+        node.q_pub.publish = lambda msg: None
+        node.on_goal(float_array([-0.03, 0.138, -0.241, 0.056], "clik"))
+        assert node.rejected_goals == 1 and not sent
+        node.on_goal(float_array([0.048, 0.123, -0.282, 0.043], "clik"))
+        assert node.rejected_goals == 1 and len(sent) == 1
+        node.destroy_node()
+        node = ClikNode(parameter_overrides=[Parameter("graph.task", value="triangle"),
+                                             Parameter("arm.tip_mass", value=0.0035),
+                                             Parameter("control.clik.min_frequency", value=0.0)])
+        node.ref_pub.publish = sent.append
+        node.q_pub.publish = lambda msg: None
+        node.on_goal(float_array([-0.03, 0.138, -0.241, 0.056], "clik"))       # the check off
+        assert node.rejected_goals == 0 and len(sent) == 2
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown()
+
+
 def test_task_runner_waits_for_start_and_stays_up_after_the_last_window(tmp_path):
     """wait_for_start: frames before ~/start are ignored; the schedule starts with the first frame
     after it; the metrics are written whole at the end and the node stays up (done is False)."""

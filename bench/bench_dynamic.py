@@ -1,0 +1,171 @@
+"""Dynamic-task benchmark: the pendulum strike over seeded runs, the peak tip speeds of coiling and
+triangle against the paper's, and the tracking error against path speed, on the declared plant.
+Prints three tables and writes JSON.
+
+    python bench/bench_dynamic.py [--runs 10] [--speeds 0.0125 0.025 0.05 0.1 0.2] [--jobs 2]
+                                  [--output bench/results/dynamic.json]
+
+Every figure is one ``soft-arm-harness TASK --json`` run (one process per run, ``--jobs`` at a
+time):
+- pendulum, ``--runs`` times with ``plant.mocap.seed`` 0, 1, ... (the mocap noise differs): struck
+  or not, the impact time after the release, the ball's speed before and after, and the equivalent
+  task velocity of the strike, the tip's displacement to the strike target over the time from the
+  reference step to the impact (the paper: 1.48 m/s, struck 0.35 s after the release);
+- coiling and triangle: the peak tip speed against the paper's (3.63 and 2.52 m/s; the pendulum's
+  4.37 m/s beside its runs), with the Table 1 figures;
+- tracking: the coiling plane's circle (``tasks.tracking``, its size) at each path speed of
+  ``--speeds`` [m/s] (period = 2 pi size / speed), a window of whole periods at least the task's
+  ``steady_time`` + 4 s long: tracking RMS and maximum error after ``steady_time``.
+The same strike on randomly drawn plants is ``bench_robustness.py --tasks pendulum``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import subprocess
+import sys
+from concurrent.futures import ProcessPoolExecutor
+
+import numpy as np
+
+from timing import results_path, write_results
+
+PAPER = {"strike_time": 0.35, "strike_velocity": 1.48}     # s after the release, m/s
+
+
+def harness(task: str, sets: list) -> dict:
+    """``soft-arm-harness TASK --json`` with ``--set`` overrides: its JSON, or {"error": ...}."""
+    args = [a for s in sets for a in ("--set", s)]
+    proc = subprocess.run([sys.executable, "-m", "soft_arm_drivers.experiments.harness_cli", task,
+                           "--json", "--quiet"] + args, capture_output=True, text=True)
+    if proc.returncode != 0:
+        return {"error": proc.stderr.strip().splitlines()[-1:]}
+    return json.loads(proc.stdout)
+
+
+def pendulum_run(seed: int) -> dict:
+    out = harness("pendulum", [f"plant.mocap.seed={seed}"])
+    if "error" in out:
+        return {"seed": seed, **out}
+    strike, plan = out["strike"]["simulated"], out["strike"]["plan"]
+    # the reference steps at send_delay, the ball goes at release_delay (both after the window starts)
+    travel = None
+    if strike["struck"]:
+        travel = plan["release_delay"] + strike["impact_time"] - plan["send_delay"]
+    displacement = out["transitions"][0]["displacement"]
+    return {"seed": seed, "struck": strike["struck"], "impact_time": strike["impact_time"],
+            "ball_speed_before": strike["ball_speed_before"],
+            "ball_speed_after": strike["ball_speed_after"],
+            "displacement": displacement, "travel_time": travel,
+            "equivalent_velocity": displacement / travel if travel else None,
+            "peak_speed": out["summary"]["peak_speed"], "paper_peak_speed": out["paper_peak_speed"]}
+
+
+def speed_run(task: str) -> dict:
+    out = harness(task, [])
+    if "error" in out:
+        return {"task": task, **out}
+    s = out["summary"]
+    return {"task": task, "peak_speed": s["peak_speed"], "paper_peak_speed": out["paper_peak_speed"],
+            "rms_mm": s["rms_error"] * 1e3, "velocity_mm": s["velocity_mm"],
+            "velocity_cm": s["velocity_cm"],
+            "mm_band": s["reached_mm"], "transitions": s["transitions"]}
+
+
+def tracking_run(speed: float, size: float, steady: float) -> dict:
+    period = 2 * math.pi * size / speed
+    window = period * math.ceil((steady + 4.0) / period)
+    out = harness("tracking", ['tasks.tracking.phases=["approach","circle_fast"]',
+                               f"tasks.tracking.phase.circle_fast.trajectory.period={period!r}",
+                               f"tasks.tracking.phase.circle_fast.window={window!r}"])
+    if "error" in out:
+        return {"speed": speed, "period": period, **out}
+    t = out["tracking"][0]
+    return {"speed": t["path_speed"], "period": period, "window": window,
+            "rms_mm": t["rms_error"] * 1e3, "max_mm": t["max_error"] * 1e3}
+
+
+def _run(job):
+    kind, arg = job
+    if kind == "pendulum":
+        return pendulum_run(*arg)
+    if kind == "speed":
+        return speed_run(*arg)
+    return tracking_run(*arg)
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--runs", type=int, default=10)
+    parser.add_argument("--speeds", type=float, nargs="+", default=[0.0125, 0.025, 0.05, 0.1, 0.2])
+    parser.add_argument("--jobs", type=int, default=os.cpu_count() or 2)
+    parser.add_argument("--output", default=results_path("dynamic.json"))
+    args = parser.parse_args(argv)
+    from soft_arm_drivers.experiments.harness import load_setup
+    track = load_setup("tracking").task
+    size = next(ph.trajectory.size for ph in track.phases if ph.name == "circle_fast")
+    jobs = ([("pendulum", (k,)) for k in range(args.runs)]
+            + [("speed", (t,)) for t in ("coiling", "triangle")]
+            + [("tracking", (v, size, track.steady_time)) for v in args.speeds])
+    with ProcessPoolExecutor(args.jobs) as pool:
+        results = list(pool.map(_run, jobs))
+    strikes = results[:args.runs]
+    speeds = results[args.runs:args.runs + 2]
+    tracking = results[args.runs + 2:]
+
+    print(f"pendulum strike on the declared plant ({args.runs} runs, mocap seeds 0-{args.runs - 1}; "
+          f"the paper: struck {PAPER['strike_time']} s after the release, {PAPER['strike_velocity']} m/s)")
+    print(f"{'seed':>4s} {'struck':>6s} {'impact s':>8s} {'ball m/s':>13s} {'disp m':>6s} "
+          f"{'travel s':>8s} {'v_eq m/s':>8s} {'peak m/s':>8s}")
+    for r in strikes:
+        if "error" in r:
+            print(f"{r['seed']:4d} failed: {' '.join(r['error'])}")
+            continue
+        print(f"{r['seed']:4d} {'yes' if r['struck'] else 'no':>6s} {r['impact_time'] or 0:8.3f} "
+              f"{r['ball_speed_before'] or 0:6.2f}>{r['ball_speed_after'] or 0:<6.2f} "
+              f"{r['displacement']:6.3f} {r['travel_time'] or 0:8.3f} "
+              f"{r['equivalent_velocity'] or 0:8.2f} {r['peak_speed']:8.2f}")
+    ok = [r for r in strikes if "error" not in r]
+    struck = [r for r in ok if r["struck"]]
+    print("\npeak tip speed against the paper's arm")
+    print(f"{'task':9s} {'peak m/s':>8s} {'paper':>6s} {'ratio':>6s} | {'RMS mm':>7s} {'v_mm':>6s} "
+          f"{'v_cm':>6s} {'mm band':>8s}")
+    for r in speeds:
+        if "error" in r:
+            print(f"{r['task']:9s} failed: {' '.join(r['error'])}")
+            continue
+        print(f"{r['task']:9s} {r['peak_speed']:8.2f} {r['paper_peak_speed']:6.2f} "
+              f"{r['peak_speed'] / r['paper_peak_speed']:6.2f} | {r['rms_mm']:7.2f} "
+              f"{r['velocity_mm'] or 0:6.3f} {r['velocity_cm'] or 0:6.3f} "
+              f"{r['mm_band']:4d}/{r['transitions']}")
+    if ok:
+        peak, paper = float(np.median([r["peak_speed"] for r in ok])), ok[0]["paper_peak_speed"]
+        print(f"{'pendulum':9s} {peak:8.2f} {paper:6.2f} {peak / paper:6.2f} | (median of the runs)")
+    print(f"\ntracking a circle of {size * 1e3:.0f} mm in the coiling plane against path speed")
+    print(f"{'speed m/s':>9s} {'period s':>8s} {'RMS mm':>7s} {'max mm':>7s}")
+    for r in tracking:
+        if "error" in r:
+            print(f"{r['speed']:9.4f} {r['period']:8.2f} failed: {' '.join(r['error'])}")
+            continue
+        print(f"{r['speed']:9.4f} {r['period']:8.2f} {r['rms_mm']:7.2f} {r['max_mm']:7.2f}")
+    velocities = [r["equivalent_velocity"] for r in struck]
+    summary = {
+        "strikes": len(struck), "runs": args.runs, "failed_runs": len(strikes) - len(ok),
+        "impact_time": [min((r["impact_time"] for r in struck), default=None),
+                        max((r["impact_time"] for r in struck), default=None)],
+        "equivalent_velocity_median": float(np.median(velocities)) if velocities else None,
+        "peak_speed_ratio": {r["task"]: r["peak_speed"] / r["paper_peak_speed"]
+                             for r in speeds if "error" not in r},
+        "tracking_rms_mm": {f"{r['speed']:.4f}": r.get("rms_mm") for r in tracking},
+    }
+    print(f"\nstruck {summary['strikes']}/{args.runs}, impact {summary['impact_time']} s after the "
+          f"release, equivalent velocity median {summary['equivalent_velocity_median']} m/s")
+    write_results(args.output, {"summary": summary, "strikes": strikes, "speeds": speeds,
+                                "tracking": tracking})
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
