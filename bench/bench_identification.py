@@ -14,7 +14,9 @@ the plant's dynamics, encoder quantisation, mocap noise and latency; the graph r
 series, minutes slower), fitted as ``soft-arm-identify`` fits it (one core per draw: ``--jobs``
 draws at a time). Reported per draw: the errors of E, viscosity, rotor mass, tip mass [g], friction, offsets,
 tendon angles (relative to their mean: the common turn is the mocap frame's), the mocap frame
-(rotation after removing that turn, translation), how many uncertainties (``/unc``: standard error
+(rotation after removing that turn, translation), which basis gave the estimates (``fit``:
+``identification.fit``'s, ``check``: the basis check's, the one with the lower weighted
+residual), how many uncertainties (``/unc``: standard error
 and basis shift together) and how many standard errors alone (``/se``) the worst of the E,
 friction, offset and angle errors is, the fit's wall time, whether the plant can hold
 the triangle's targets at all (``bench_robustness.plant_holds``: the triangle's goal is judged on
@@ -98,7 +100,9 @@ def identify_one(plant: dict) -> dict:
                    for a, b in zip(fit.arm.tendons, truth.tendons)]
     errors["per_uncertainty"] = max(err / e.uncertainty for err, e in ratios)
     errors["per_standard_error"] = max(err / e.standard_error for err, e in ratios)
+    check = result["report"]["basis_check"]
     out = {"experiment_s": t1 - t0, "fit_s": fit_s, "errors": errors,
+           "basis_kept": "check" if check.get("kept") else "fit" if "kept" in check else "failed",
            "tip_rms_mm": float(fit.marker_rms[-1] * 1e3),
            "plant_holds": plant_holds("triangle", overrides)["plant_holds"]}
     with tempfile.TemporaryDirectory() as tmp:
@@ -139,7 +143,7 @@ def main(argv=None) -> int:
     runs = [{"draw": i - 1 if i else "issue", "plant": p, **r}
             for i, (p, r) in enumerate(zip(plants, results))]
     print(f"{'draw':>5s} {'E %':>6s} {'visc %':>6s} {'rotor %':>7s} {'tip g':>6s} {'fric':>6s} "
-          f"{'offs':>6s} {'ang deg':>7s} {'frame deg':>9s} {'mm':>5s} {'/unc':>5s} {'/se':>5s} "
+          f"{'offs':>6s} {'ang deg':>7s} {'frame deg':>9s} {'mm':>5s} {'basis':>6s} {'/unc':>5s} {'/se':>5s} "
           f"{'fit s':>6s} | "
           f"{'holds':>5s} {'RMS mm':>7s} {'mm band':>8s} {'v_mm':>6s} {'moved mm':>8s}")
     for r in runs:
@@ -147,7 +151,7 @@ def main(argv=None) -> int:
         head = (f"{r['draw']!s:>5s} {e['youngs_modulus'] * 100:6.2f} {e['viscosity'] * 100:6.1f} "
                 f"{e['rotor_mass'] * 100:7.2f} {e['tip_mass_g']:6.2f} {e['friction']:6.3f} "
                 f"{e['offset_fraction']:6.3f} {e['angle_deg']:7.2f} {e['frame_rotation_deg']:9.2f} "
-                f"{e['frame_translation_mm']:5.2f} {e['per_uncertainty']:5.1f} "
+                f"{e['frame_translation_mm']:5.2f} {r['basis_kept']:>6s} {e['per_uncertainty']:5.1f} "
                 f"{e['per_standard_error']:5.1f} "
                 f"{r['fit_s']:6.1f} | "
                 f"{'yes' if r['plant_holds'] else 'no':>5s}")

@@ -93,7 +93,8 @@ class Estimate:
 class StaticFit:
     """The identified arm, encoder zeros (n_t,) [m], mocap registration, every estimate by name,
     residual RMS per marker [m] and per tendon shortening [m], the number of samples and of
-    least-squares evaluations."""
+    least-squares evaluations, and the weighted sum of squared residuals at the optimum (priors
+    included; fits of the same samples compare by it)."""
     arm: ArmConfig
     encoder_zero: np.ndarray
     registration: Registration
@@ -102,6 +103,7 @@ class StaticFit:
     shortening_rms: np.ndarray
     samples: int
     evaluations: int
+    cost: float
 
 
 _TENDONS = 3                # index of the first tendon parameter in the parameter vector
@@ -352,7 +354,7 @@ def identify_static(arm: ArmConfig, samples, marker_sigma: float = 2e-4, shorten
     r_s = r[n * n_m * 3:n * (n_m * 3 + n_t)].reshape(n, n_t) * pb.shortening_sigma
     return StaticFit(fitted, layout.encoder_zero(p).copy(), layout.registration(p), estimates,
                      np.sqrt(np.mean(np.sum(r_p ** 2, axis=2), axis=0)), np.sqrt(np.mean(r_s ** 2, axis=0)),
-                     n, int(sol.nfev))
+                     n, int(sol.nfev), float(r @ r))
 
 
 def with_basis_shift(fit: StaticFit, check: StaticFit) -> StaticFit:

@@ -107,8 +107,9 @@ def write_identified_arm(path: str, arm, calibration: tuple, header: str = ""):
 def identify(rec: Recording, arm, fit_config, workers: int | None = None) -> dict:
     """Both fits on a recording: a report (JSON-ready) and the fits themselves (keys ``static``,
     ``dynamic``; ``dynamic`` None without a step or chirp). The static fit runs on the basis of
-    ``fit_config``, and is refitted from its result on the basis check's for each estimate's
-    basis shift; the arm it returns has ``arm``'s basis (the controller's). IdentificationError when
+    ``fit_config``, and is refitted from its result on the basis check's: the one with the lower
+    weighted residual gives the estimates, their distance from the other's each estimate's basis
+    shift; the arm it returns has ``arm``'s basis (the controller's). IdentificationError when
     the data cannot determine the static fit."""
     held = plateaus(rec, fit_config.min_plateau)
     samples = static_samples(rec, held, fit_config.average)
@@ -132,9 +133,11 @@ def identify(rec: Recording, arm, fit_config, workers: int | None = None) -> dic
                                     max_evaluations=fit_config.check_evaluations, start=static)
         except IdentificationError as exc:       # the fit stands; its uncertainties are the noise's
             check["failed"] = str(exc)
-        else:
-            static = with_basis_shift(static, refit)
-            check.update(evaluations=refit.evaluations, marker_rms=refit.marker_rms.tolist())
+        else:                # the basis the data prefer gives the estimates, the other their shift
+            kept = refit.cost < static.cost
+            check.update(evaluations=refit.evaluations, marker_rms=refit.marker_rms.tolist(),
+                         cost=refit.cost, fit_cost=static.cost, kept=kept)
+            static = with_basis_shift(refit, static) if kept else with_basis_shift(static, refit)
         check["seconds"] = time.perf_counter() - start
     static = replace(static, arm=replace(static.arm, discretisation=arm.discretisation))
     segments = dynamic_segments(held, SETTLED_LEAD, fit_config.dynamic_window)
@@ -175,9 +178,14 @@ def _print_report(report: dict, registration: Registration):
         shift = (f"{e['basis_shift'] * scale:12.2g}" if checked and name in report["estimates"]
                  else f"{'-':>12s}")
         print(f"{name:34s} {e['value'] * scale:12.5g} {e['standard_error'] * scale:12.2g} {shift} {unit}")
-    if report["basis_check"] and "failed" in report["basis_check"]:
-        print(f"basis check failed ({report['basis_check']['failed']}): the uncertainties are the "
-              "standard errors alone")
+    check = report["basis_check"]
+    if check and "failed" in check:
+        print(f"basis check failed ({check['failed']}): the uncertainties are the standard errors alone")
+    elif check:
+        basis = f"order {check['legendre_order']}{' with shear' if check['shear'] else ''}"
+        print(f"estimates from the {'basis check (' + basis + ')' if check['kept'] else 'fit basis'}: "
+              f"weighted residual {min(check['cost'], check['fit_cost']):.4g} against "
+              f"{max(check['cost'], check['fit_cost']):.4g}")
     print(f"mocap registration: {np.degrees(registration.angle):.2f} deg, "
           f"{np.linalg.norm(registration.translation) * 1e3:.1f} mm")
     print("static residual RMS per marker [mm]: "
