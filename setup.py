@@ -57,5 +57,9 @@ setup(
             "emulated_rig = soft_arm_drivers.sim.emulated_rig:main",
             "motor_driver = soft_arm_drivers.can.motor_driver_node:main",
         ],
+        # python-can plugins: can.Bus(interface="soft_arm_loopback", channel="LOCAL:PEER")
+        "can.interface": [
+            "soft_arm_loopback = soft_arm_drivers.can.loopback_bus:LoopbackBus",
+        ],
     },
 )

@@ -1,0 +1,115 @@
+"""A CAN bus between two processes of one machine: python-can's ``soft_arm_loopback`` interface.
+
+python-can's ``virtual`` bus does not leave its process, SocketCAN's ``vcan`` needs a kernel module
+this machine lacks, and ``udp_multicast`` sends to a multicast group. This bus carries CAN 2.0
+frames as UDP datagrams between two ends on 127.0.0.1 only: ``channel`` is ``"LOCAL:PEER"``, the
+UDP port this end binds and the one the other end binds (the other end's channel is
+``"PEER:LOCAL"``). It is registered as a python-can plugin (entry point group ``can.interface``),
+so ``can.Bus(interface="soft_arm_loopback", channel="29536:29537")`` opens it and the motor driver
+takes it from ``rig.motors.interface`` like any other interface.
+
+Like a bus without the other node on it, a frame sent while the other end is not listening is lost;
+the sender does not know (the motor driver's watchdog notices the silence). Each datagram carries a
+sequence number and its sender's session: frames that never arrived or arrived out of order are
+counted (``lost``, ``reordered``; a restarted sender starts a new count). A received frame's
+``timestamp`` [s, system time] is the sender's (the time it was sent, or the message's own with
+``preserve_timestamps``), like a hardware bus's receive stamp up to the loopback's latency; frames
+are delivered in the order they were sent.
+"""
+from __future__ import annotations
+
+import os
+import select
+import socket
+import struct
+import time
+
+import can
+
+INTERFACE = "soft_arm_loopback"
+HOST = "127.0.0.1"
+# sender's session, sequence number, time stamp [s], arbitration id, dlc, flags, 8 data bytes
+_WIRE = struct.Struct("<IIdIBB8s")
+_EXTENDED, _REMOTE, _ERROR = 1, 2, 4
+
+
+def parse_channel(channel) -> tuple[int, int]:
+    """(local, peer) UDP ports of a ``"LOCAL:PEER"`` channel; CanInitializationError otherwise."""
+    try:
+        local, peer = (int(p) for p in str(channel).split(":"))
+    except ValueError:
+        local = peer = -1
+    if not (1024 <= local <= 65535 and 1024 <= peer <= 65535 and local != peer):
+        raise can.CanInitializationError(
+            f"{INTERFACE} channel {channel!r} is not valid: expected 'LOCAL:PEER', two different UDP "
+            "ports in [1024, 65535] on 127.0.0.1 (this end's and the other end's)")
+    return local, peer
+
+
+class LoopbackBus(can.BusABC):
+    """One end of a two-ended CAN bus over loopback UDP (see the module's docstring)."""
+
+    def __init__(self, channel, preserve_timestamps: bool = False, **kwargs):
+        local, peer = parse_channel(channel)
+        self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        try:
+            self._sock.bind((HOST, local))
+        except OSError as exc:
+            self._sock.close()
+            raise can.CanInitializationError(f"{INTERFACE} channel {channel!r}: cannot bind "
+                                             f"{HOST}:{local}: {exc.strerror}") from None
+        self._peer = (HOST, peer)
+        self._preserve = bool(preserve_timestamps)
+        self._session = int.from_bytes(os.urandom(4), "little")    # a restarted sender is a new one
+        self._sent = 0
+        self._peer_session = None
+        self._next = None                   # the sequence number expected next
+        self.lost = 0
+        self.reordered = 0
+        self.channel_info = f"{INTERFACE} {HOST}:{local} -> {HOST}:{peer}"
+        super().__init__(channel=channel, **kwargs)
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        if msg.is_fd or len(msg.data) > 8:
+            raise can.CanOperationError(f"{INTERFACE} carries CAN 2.0 frames (at most 8 data bytes)")
+        flags = ((_EXTENDED * msg.is_extended_id) | (_REMOTE * msg.is_remote_frame)
+                 | (_ERROR * msg.is_error_frame))
+        stamp = msg.timestamp if self._preserve else time.time()
+        frame = _WIRE.pack(self._session, self._sent & 0xFFFFFFFF, stamp, msg.arbitration_id, msg.dlc,
+                           flags, bytes(msg.data).ljust(8, b"\0"))
+        self._sent += 1
+        try:
+            self._sock.sendto(frame, self._peer)
+        except OSError as exc:
+            raise can.CanOperationError(f"{INTERFACE}: send failed: {exc.strerror}") from None
+
+    def _recv_internal(self, timeout: float | None):
+        ready, _, _ = select.select([self._sock], [], [], timeout)
+        if not ready:
+            return None, False
+        frame = self._sock.recv(64)
+        if len(frame) != _WIRE.size:
+            raise can.CanOperationError(f"{INTERFACE}: a datagram of {len(frame)} bytes is not a frame")
+        session, seq, stamp, arbitration_id, dlc, flags, data = _WIRE.unpack(frame)
+        if session != self._peer_session:            # the other end (re)started: count from here
+            self._peer_session, self._next = session, None
+        if self._next is not None and seq != self._next:
+            if (seq - self._next) & 0xFFFFFFFF < 1 << 31:
+                self.lost += (seq - self._next) & 0xFFFFFFFF
+            else:
+                self.reordered += 1
+        if self._next is None or (seq - self._next) & 0xFFFFFFFF < 1 << 31:
+            self._next = (seq + 1) & 0xFFFFFFFF
+        remote = bool(flags & _REMOTE)
+        msg = can.Message(timestamp=stamp, arbitration_id=arbitration_id,
+                          is_extended_id=bool(flags & _EXTENDED), is_remote_frame=remote,
+                          is_error_frame=bool(flags & _ERROR), dlc=dlc, data=b"" if remote else data[:dlc],
+                          channel=self.channel_info, check=False)
+        return msg, False
+
+    def fileno(self) -> int:
+        return self._sock.fileno()
+
+    def shutdown(self) -> None:
+        super().shutdown()
+        self._sock.close()

@@ -1,0 +1,120 @@
+"""The project's cross-process CAN bus (python-can plugin ``soft_arm_loopback``, UDP on 127.0.0.1):
+frames whole, in order, with their time stamps, between two processes; losses counted; bad
+channels refused; opened through python-can's plugin registry like any interface."""
+import socket
+import subprocess
+import sys
+import time
+
+import can
+import pytest
+
+from soft_arm_drivers.can.driver_config import load_driver_config
+from soft_arm_drivers.can.loopback_bus import INTERFACE, LoopbackBus
+
+
+def _free_ports(n=2) -> list:
+    socks = [socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(n)]
+    for s in socks:
+        s.bind(("127.0.0.1", 0))
+    ports = [s.getsockname()[1] for s in socks]
+    for s in socks:
+        s.close()
+    return ports
+
+
+def test_frames_cross_whole_both_ways_with_their_stamps():
+    a, b = _free_ports()
+    left, right = LoopbackBus(f"{a}:{b}", preserve_timestamps=True), LoopbackBus(f"{b}:{a}")
+    try:
+        sent = [can.Message(timestamp=123.25, arbitration_id=0x7, is_extended_id=False, data=[1, 2, 3]),
+                can.Message(timestamp=124.5, arbitration_id=0x1ABCDE, is_extended_id=True,
+                            data=bytes(range(8))),
+                can.Message(timestamp=125.0, arbitration_id=0x3, is_extended_id=False, is_remote_frame=True,
+                            dlc=4)]
+        for m in sent:
+            left.send(m)
+        for m in sent:
+            got = right.recv(timeout=1.0)
+            assert got is not None
+            fields = ("arbitration_id", "is_extended_id", "is_remote_frame", "dlc", "data", "timestamp")
+            assert [getattr(got, f) for f in fields] == [getattr(m, f) for f in fields]
+        before = time.time()
+        right.send(can.Message(arbitration_id=0x9, is_extended_id=False, data=[9]))   # stamped when sent
+        got = left.recv(timeout=1.0)
+        assert got.data == bytearray([9]) and before <= got.timestamp <= time.time()
+        assert right.recv(timeout=0.05) is None
+        with pytest.raises(can.CanOperationError, match="at most 8"):
+            left.send(can.Message(arbitration_id=1, is_fd=True, data=bytes(12)))
+    finally:
+        left.shutdown()
+        right.shutdown()
+
+
+def test_lost_frames_are_counted():
+    a, b = _free_ports()
+    left, right = LoopbackBus(f"{a}:{b}"), LoopbackBus(f"{b}:{a}")
+    try:
+        left.send(can.Message(arbitration_id=1, is_extended_id=False))
+        left._sent += 5                                 # five frames that never left
+        left.send(can.Message(arbitration_id=2, is_extended_id=False))
+        assert [right.recv(timeout=1.0).arbitration_id for _ in range(2)] == [1, 2]
+        assert right.lost == 5 and right.reordered == 0
+    finally:
+        left.shutdown()
+        right.shutdown()
+
+
+SENDER = """
+import sys, time, can
+from soft_arm_drivers.can.loopback_bus import LoopbackBus
+bus = LoopbackBus(sys.argv[1])
+time.sleep(0.3)                                         # the receiver is listening by now
+for k in range(int(sys.argv[2])):
+    bus.send(can.Message(arbitration_id=0x10, is_extended_id=False, data=k.to_bytes(4, "little")))
+    if k % 50 == 0:
+        time.sleep(0.001)
+bus.shutdown()
+"""
+
+
+def test_frames_cross_processes_in_order():
+    a, b = _free_ports()
+    n = 3000
+    receiver = LoopbackBus(f"{a}:{b}")
+    try:
+        proc = subprocess.Popen([sys.executable, "-c", SENDER, f"{b}:{a}", str(n)])
+        got = []
+        end = time.monotonic() + 30
+        while len(got) < n and time.monotonic() < end:
+            m = receiver.recv(timeout=1.0)
+            if m is not None:
+                got.append(m)
+        assert proc.wait(timeout=30) == 0
+        assert [int.from_bytes(m.data, "little") for m in got] == list(range(n))
+        stamps = [m.timestamp for m in got]
+        assert all(s1 <= s2 for s1, s2 in zip(stamps, stamps[1:])) and time.time() - stamps[-1] < 30
+        assert receiver.lost == 0 and receiver.reordered == 0
+    finally:
+        receiver.shutdown()
+
+
+@pytest.mark.parametrize("channel", ["29500", "a:b", "29500:29500", "80:29501"])
+def test_a_bad_channel_is_refused_naming_the_format(channel):
+    with pytest.raises(can.CanInitializationError, match="LOCAL:PEER"):
+        LoopbackBus(channel)
+
+
+def test_python_can_and_the_driver_config_take_it_as_an_interface():
+    a, b = _free_ports()
+    bus = can.Bus(interface=INTERFACE, channel=f"{a}:{b}")
+    try:
+        assert isinstance(bus, LoopbackBus)
+    finally:
+        bus.shutdown()
+    config = load_driver_config(overrides={"interface": json_str(INTERFACE), "channel": json_str(f"{a}:{b}")})
+    assert config.interface == INTERFACE
+
+
+def json_str(value: str) -> str:
+    return f'"{value}"'
