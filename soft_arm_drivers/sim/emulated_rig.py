@@ -1,24 +1,28 @@
 """``emulated_rig`` node: the ``motor_driver`` node with emulated hardware behind it, and an emulated
 Motive server, so that the rig's graph runs without the rig.
 
-In one process (python-can's ``virtual`` bus does not leave it):
-
-- the ``motor_driver`` node, unchanged, on a ``virtual`` bus;
+- the ``motor_driver`` node, unchanged, on the bus of ``rig.motors`` (``config/emulator.yaml``);
 - behind that bus, the CAN motor emulator (:mod:`.can_emulator`): MIT-protocol motors with the plant
   of ``plant.yaml`` (model error, rotors' reflected inertia, encoder resolution) driven by their
-  torques through the pulleys, stepped in real time on a thread, replying after
-  ``rig.emulator.reply_delay``; its motors start out of motor mode with arbitrary zeros, the arm
-  hanging with slack tendons;
+  torques through the pulleys, stepped in real time, replying after ``rig.emulator.reply_delay``;
+  its motors start out of motor mode with arbitrary zeros, the arm hanging with slack tendons;
 - a NatNet server emulator (:mod:`.natnet_emulator`) streaming the same plant's markers, with the
   noise, rate and latency of ``plant.mocap``, to 127.0.0.1 where ``rig.mocap`` says the Motive
   server is (``server_address``, which must be a loopback address, and ``command_port``).
+
+With ``rig.motors.interface`` ``soft_arm_loopback`` (the default) the motors and the arm run in a
+process of their own, as on the rig (:class:`.emulated_hardware.HardwareProcess`), on the project's
+cross-process bus (channel ``"LOCAL:PEER"``: the driver's UDP port and the motors'); with
+``virtual`` they run on threads of this process (python-can's in-process bus), where the driver's
+cycle competes with the plant for the interpreter lock. A hardware process that dies is hardware
+gone: the driver faults on the motors' silence.
 
 Run the ``mocap_bridge`` node against it and the controller nodes as on the rig; zero and enable the
 motors with the driver's services (``/motor_driver/zero``, ``/motor_driver/enable``) as on the rig.
 ``soft-arm-experiment <task> --emulated-hardware`` does all of that.
 
 Parameters: ``config/emulator.yaml`` holds ``rig.emulator.*`` (validated, see ``SCHEMA``) and the
-``rig.motors`` values of the emulated motors (interface ``virtual``, their firmware torque range),
+``rig.motors`` values of the emulated motors (interface, channel, their firmware torque range),
 laid over ``rig.yaml`` beneath the node's own ``rig.motors.*``; ``rig.mocap.*`` as the bridge reads
 them; ``plant.*`` and ``arm.*``. A bad value names the key and what is allowed (exit status 2).
 """
@@ -28,26 +32,24 @@ import ipaddress
 import json
 import os
 import sys
-import time
 
 import can
-import numpy as np
 
+from soft_arm_drivers.can.loopback_bus import INTERFACE as LOOPBACK
+from soft_arm_drivers.can.loopback_bus import parse_channel
 from soft_arm_drivers.can.motor_driver_node import MotorDriverNode
 from soft_arm_drivers.mocap.mocap_bridge_node import load_node_config
 from soft_arm_drivers.mocap.natnet import SUPPORTED_VERSIONS
-from soft_arm_model import ArmData, marker_positions
 from soft_arm_model.parameters import (ConfigError, default_config_dir, flatten_tree, load_section,
                                        read_parameters)
 from soft_arm_ros.parameters import NodeParameters, parameter_overrides
 from soft_arm_ros.runtime import run_node
 
-from .can_emulator import CanMotorEmulator, EmulatorThread
-from .natnet_emulator import NatNetEmulator
+from .emulated_hardware import HardwareProcess, HardwareSpec, start_hardware
 from .plant_config import plant_of
-from .simulated_rig import Plant
 
 NAMESPACE = "rig.emulator"
+INTERFACES = (LOOPBACK, "virtual")
 _VERSIONS = [f"{v.major}.{v.minor}" for v in SUPPORTED_VERSIONS]
 SCHEMA = {
     "reply_delay": ("float", lambda v: 0 <= v <= 0.01, "a delay in [0, 0.01] s from a frame to its reply"),
@@ -87,7 +89,7 @@ class EmulatedRigNode(MotorDriverNode):
     def __init__(self, config_dir: str | None = None, **node_options):
         self._dir = config_dir or default_config_dir()
         motors = read_emulated_motors(os.path.join(self._dir, "emulator.yaml"))
-        self._can_thread = self._natnet = self._bus = None
+        self._hardware = self._bus = None
         self._reported_error = False
         super().__init__(self._dir, defaults=motors, **node_options)
         try:
@@ -99,10 +101,15 @@ class EmulatedRigNode(MotorDriverNode):
 
     def check_config(self, config):
         """Everything the emulation needs is checked before the driver opens its bus."""
-        if config.interface != "virtual":
+        if config.interface not in INTERFACES:
             raise ConfigError(f"rig.motors.interface = {config.interface!r} is not valid for the "
-                              f"emulated rig: expected 'virtual' (the emulated motors share the bus "
-                              f"in this process)")
+                              f"emulated rig: expected one of {list(INTERFACES)} (a bus the emulated "
+                              "motors can share: across processes, or in this one)")
+        if config.interface == LOOPBACK:
+            try:
+                parse_channel(config.channel)
+            except can.CanInitializationError as exc:
+                raise ConfigError(f"rig.motors.channel = {config.channel!r} is not valid: {exc}") from None
         self.emulator_config = load_emulator_config(os.path.join(self._dir, "emulator.yaml"),
                                                     parameter_overrides(self, NAMESPACE))
         self.mocap_config = load_node_config(self, self._dir)
@@ -114,62 +121,41 @@ class EmulatedRigNode(MotorDriverNode):
         self.plant_config = plant_of(params, self.arm)
 
     def _start_emulators(self):
-        c, emulator, mocap = self.config, self.emulator_config, self.mocap_config
-        p = self.plant_config
-        plant = Plant.of(self.arm, p)
-        plant.settle(np.zeros(plant.model.n_tendons))           # hanging, tendons slack
-        self._bus = can.Bus(interface="virtual", channel=c.channel, preserve_timestamps=True)
-        motors = CanMotorEmulator.for_config(
-            c, self._bus, plant, reply_delay=emulator["reply_delay"],
-            encoder_resolution=p.encoder_resolution, zero_spread=emulator["zero_spread"],
-            seed=emulator["seed"], start_time=time.time())
-        self._can_thread = EmulatorThread(motors).start()
-        rng = np.random.default_rng(p.mocap_seed)
-        data = ArmData(plant.model)
-
-        def markers(t: float) -> np.ndarray:
-            """On the NatNet thread: the plant at the exposure time ``t`` [s, system time]."""
-            true = marker_positions(plant.model, motors.configuration_at(t), data)
-            return p.as_mocap_reports(true) + rng.normal(0.0, p.mocap_noise, true.shape)
-
-        ids = {"rigid_body_ids" if mocap.source == "rigid_bodies" else "labeled_marker_ids": mocap.ids}
-        try:
-            self._natnet = NatNetEmulator(
-                markers, version=emulator["natnet_version"], rate=p.mocap_rate, layout="both",
-                calibration=mocap.calibration, address=mocap.server_address,
-                command_port=mocap.command_port, latency=p.mocap_latency, **ids).start()
-        except OSError as exc:
-            raise ConfigError(f"rig.mocap.command_port = {mocap.command_port}: the emulated Motive "
-                              f"server cannot bind {mocap.server_address}:{mocap.command_port}: "
-                              f"{exc.strerror}") from None
+        c = self.config
+        spec = HardwareSpec(c, self.arm, self.plant_config, self.emulator_config, self.mocap_config)
+        if c.interface == LOOPBACK:
+            self._hardware = HardwareProcess(spec).start()
+            where, port = f"process {self._hardware.pid}, bus {c.channel}", self._hardware.command_port
+        else:
+            self._bus = can.Bus(interface="virtual", channel=c.channel, preserve_timestamps=True)
+            self._hardware = start_hardware(spec, self._bus)
+            where, port = f"virtual bus {c.channel!r}", self._hardware.natnet.command_port
         self.get_logger().info(
-            f"emulated rig: motors on virtual bus {c.channel!r} with the plant of plant.yaml, NatNet "
-            f"server on {mocap.server_address}:{self._natnet.command_port} at {p.mocap_rate:g} Hz")
+            f"emulated rig: motors ({where}) with the plant of plant.yaml, NatNet server on "
+            f"{self.mocap_config.server_address}:{port} at {self.plant_config.mocap_rate:g} Hz")
 
     def _check_emulators(self):
-        """An emulator thread that died is hardware gone: the driver faults on the silence; say why."""
-        error = self._can_thread.error if self._can_thread is not None else None
+        """Emulated hardware that stopped is hardware gone: the driver faults on the silence; say why."""
+        error = self._hardware.error if self._hardware is not None else None
         if error is not None and not self._reported_error:
             self._reported_error = True
             self.get_logger().fatal(f"the emulated motors stopped: {error!r}")
 
     def close(self):
         """The driver's close (zero torque, exit motor mode), then the emulators; idempotent."""
-        thread, natnet, bus = self._can_thread, self._natnet, self._bus
-        self._can_thread = self._natnet = self._bus = None
+        hardware, bus = self._hardware, self._bus
+        self._hardware = self._bus = None
         try:
             super().close()
         finally:
             try:
-                if thread is not None:
-                    thread.stop()
+                if isinstance(hardware, HardwareProcess):
+                    hardware.stop()
+                elif hardware is not None:
+                    hardware.close()
             finally:
-                try:
-                    if natnet is not None:
-                        natnet.close()
-                finally:
-                    if bus is not None:
-                        bus.shutdown()
+                if bus is not None:
+                    bus.shutdown()
 
 
 def main(args=None) -> int:

@@ -260,6 +260,7 @@ def test_task_runner_waits_for_start_and_stays_up_after_the_last_window(tmp_path
     ("rig.motors.interface:=socketcan", "rig.motors.interface = 'socketcan' is not valid for the "
                                         "emulated rig"),
     ("rig.mocap.server_address:=192.0.2.1", "rig.mocap.server_address = '192.0.2.1' is not valid"),
+    ("rig.motors.channel:=can0", "rig.motors.channel = 'can0' is not valid: soft_arm_loopback channel"),
     ("rig.emulator.reply_delay:=0.5", "rig.emulator.reply_delay = 0.5 is not valid"),
 ])
 def test_emulated_rig_refuses_what_is_not_an_emulation(param, message):

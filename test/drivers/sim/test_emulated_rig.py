@@ -40,7 +40,8 @@ def test_emulator_config_is_validated_and_laid_over_the_rig():
     assert load_emulator_config(overrides={"natnet_version": '"3.1"'})["natnet_version"] == "3.1"
     motors = read_emulated_motors()
     driver = load_driver_config(overrides=motors)
-    assert driver.interface == "virtual" and all(m.limits.t_max == 0.5 for m in driver.motors)
+    # the emulated motors and arm in a process of their own, on the cross-process bus
+    assert driver.interface == "soft_arm_loopback" and all(m.limits.t_max == 0.5 for m in driver.motors)
     with pytest.raises(ConfigError, match=r"rig\.emulator\.reply_delay = 0\.5 .*\[0, 0\.01\] s"):
         load_emulator_config(overrides={"reply_delay": 0.5})
     with pytest.raises(ConfigError, match=r"rig\.emulator\.natnet_version .*among"):
