@@ -38,15 +38,27 @@ def _cpu_ticks(pid: int) -> int:
     return int(fields[11]) + int(fields[12])            # utime + stime
 
 
-def _nodes(parent: int) -> dict:
-    """The experiment's node processes: module name -> pid."""
+def _children(parent: int) -> list:
+    """(pid, command line arguments) of ``parent``'s child processes."""
     pids = subprocess.run(["pgrep", "-P", str(parent)], capture_output=True, text=True).stdout.split()
-    out = {}
+    out = []
     for pid in map(int, pids):
         with open(f"/proc/{pid}/cmdline", encoding="utf-8") as fh:
-            args = fh.read().split("\0")
+            out.append((pid, fh.read().split("\0")))
+    return out
+
+
+def _nodes(parent: int) -> dict:
+    """The experiment's node processes: module name -> pid, and a node's own worker process (the
+    emulated hardware of emulated_rig) as ``<node>/hardware``."""
+    out = {}
+    for pid, args in _children(parent):
         if "-m" in args:
-            out[args[args.index("-m") + 1].rsplit(".", 1)[-1]] = pid
+            name = args[args.index("-m") + 1].rsplit(".", 1)[-1]
+            out[name] = pid
+            for child, child_args in _children(pid):
+                if any("multiprocessing" in a for a in child_args):
+                    out[f"{name}/hardware"] = child
     return out
 
 
