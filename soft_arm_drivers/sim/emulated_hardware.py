@@ -133,6 +133,7 @@ class HardwareProcess:
     def __init__(self, spec: HardwareSpec, timeout: float = 60.0):
         self.spec, self.timeout = spec, float(timeout)
         self._conn = self._process = None
+        self._error = None
         self.command_port = None
 
     def start(self) -> "HardwareProcess":
@@ -161,12 +162,14 @@ class HardwareProcess:
         """Why the child stopped, if it did on its own (None while it runs)."""
         if self._process is None or self._process.is_alive():
             return None
-        if self._conn is not None and self._conn.poll():
-            try:
-                return self._conn.recv()[1]
-            except EOFError:
-                pass
-        return f"the emulated hardware's process ended (exit code {self._process.exitcode})"
+        if self._error is None:
+            self._error = f"the emulated hardware's process ended (exit code {self._process.exitcode})"
+            if self._conn is not None and self._conn.poll():
+                try:
+                    self._error = self._conn.recv()[1]
+                except EOFError:
+                    pass
+        return self._error
 
     def stop(self):
         """Ask the child to close its emulators, wait for it (then terminate it); idempotent."""

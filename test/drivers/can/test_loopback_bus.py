@@ -1,7 +1,6 @@
 """The project's cross-process CAN bus (python-can plugin ``soft_arm_loopback``, UDP on 127.0.0.1):
 frames whole, in order, with their time stamps, between two processes; losses counted; bad
 channels refused; opened through python-can's plugin registry like any interface."""
-import socket
 import subprocess
 import sys
 import time
@@ -12,19 +11,11 @@ import pytest
 from soft_arm_drivers.can.driver_config import load_driver_config
 from soft_arm_drivers.can.loopback_bus import INTERFACE, LoopbackBus
 
-
-def _free_ports(n=2) -> list:
-    socks = [socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(n)]
-    for s in socks:
-        s.bind(("127.0.0.1", 0))
-    ports = [s.getsockname()[1] for s in socks]
-    for s in socks:
-        s.close()
-    return ports
+from conftest import free_udp_ports
 
 
 def test_frames_cross_whole_both_ways_with_their_stamps():
-    a, b = _free_ports()
+    a, b = free_udp_ports()
     left, right = LoopbackBus(f"{a}:{b}", preserve_timestamps=True), LoopbackBus(f"{b}:{a}")
     try:
         sent = [can.Message(timestamp=123.25, arbitration_id=0x7, is_extended_id=False, data=[1, 2, 3]),
@@ -52,7 +43,7 @@ def test_frames_cross_whole_both_ways_with_their_stamps():
 
 
 def test_lost_frames_are_counted():
-    a, b = _free_ports()
+    a, b = free_udp_ports()
     left, right = LoopbackBus(f"{a}:{b}"), LoopbackBus(f"{b}:{a}")
     try:
         left.send(can.Message(arbitration_id=1, is_extended_id=False))
@@ -79,7 +70,7 @@ bus.shutdown()
 
 
 def test_frames_cross_processes_in_order():
-    a, b = _free_ports()
+    a, b = free_udp_ports()
     n = 3000
     receiver = LoopbackBus(f"{a}:{b}")
     try:
@@ -106,7 +97,7 @@ def test_a_bad_channel_is_refused_naming_the_format(channel):
 
 
 def test_python_can_and_the_driver_config_take_it_as_an_interface():
-    a, b = _free_ports()
+    a, b = free_udp_ports()
     bus = can.Bus(interface=INTERFACE, channel=f"{a}:{b}")
     try:
         assert isinstance(bus, LoopbackBus)

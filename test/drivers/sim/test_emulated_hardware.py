@@ -3,7 +3,6 @@ the motor driver drives them like the in-process emulation, and when their proce
 driver latches a fault on the silence and sends nothing but zero torque from then on."""
 import os
 import signal
-import socket
 import time
 
 import numpy as np
@@ -19,19 +18,11 @@ from soft_arm_drivers.sim.plant_config import load_plant_config
 from soft_arm_model import load_arm_config
 from soft_arm_model.parameters import ConfigError
 
-
-def _free_ports(n, kind=socket.SOCK_DGRAM) -> list:
-    socks = [socket.socket(socket.AF_INET, kind) for _ in range(n)]
-    for s in socks:
-        s.bind(("127.0.0.1", 0))
-    ports = [s.getsockname()[1] for s in socks]
-    for s in socks:
-        s.close()
-    return ports
+from conftest import free_udp_ports
 
 
 def _spec(command_port=None) -> HardwareSpec:
-    driver_port, motors_port, free = _free_ports(3)
+    driver_port, motors_port, free = free_udp_ports(3)
     motors = {**read_emulated_motors(), "channel": f'"{driver_port}:{motors_port}"'}
     driver = load_driver_config(overrides=motors)
     arm = load_arm_config()
