@@ -148,7 +148,10 @@ def test_a_command_gap_faults_the_driver_and_the_run_is_no_result(tmp_path):
     assert metrics["valid"] is False and "stale command" in metrics["failure"]
     fault, = metrics["run"]["driver_faults"]
     assert "stale command" in fault["message"] and 1.5 < fault["time_s"] < 4.0
-    state = read_series(str(out / "bag"))["tendon/state"]
+    series = read_series(str(out / "bag"))
+    state = series["tendon/state"]
     assert len(state) > 500
-    # the run ended with the fault, not with the 8 s window
-    assert state[-1][0] - state[0][0] < 8.0
+    # the run ended with the fault, not with the 8 s window: the state stops within seconds of the
+    # goal (the clik node's first report), where the hardware's start-up precedes it by a variable time
+    goal = min(t for t, d in series["diagnostics"] if any(s.name == "clik" for s in d.status))
+    assert state[-1][0] - goal < 6.0
