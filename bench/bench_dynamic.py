@@ -24,22 +24,19 @@ import argparse
 import json
 import math
 import os
-import subprocess
 import sys
 from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
 
-from timing import results_path, write_results
+from timing import results_path, run_harness, write_results
 
 PAPER = {"strike_time": 0.35, "strike_velocity": 1.48}     # s after the release, m/s
 
 
 def harness(task: str, sets: list) -> dict:
     """``soft-arm-harness TASK --json`` with ``--set`` overrides: its JSON, or {"error": ...}."""
-    args = [a for s in sets for a in ("--set", s)]
-    proc = subprocess.run([sys.executable, "-m", "soft_arm_drivers.experiments.harness_cli", task,
-                           "--json", "--quiet"] + args, capture_output=True, text=True)
+    proc = run_harness(task, sets)
     if proc.returncode != 0:
         return {"error": proc.stderr.strip().splitlines()[-1:]}
     return json.loads(proc.stdout)

@@ -31,7 +31,6 @@ import argparse
 import json
 import os
 import re
-import subprocess
 import sys
 import tempfile
 import time
@@ -41,7 +40,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from bench_robustness import ISSUE_PLANT, draw_plant, plant_holds
-from timing import results_path, write_results
+from timing import results_path, run_harness, write_results
 
 FRAME_ROTATION_DEG = 1.5      # per axis, uniform
 FRAME_TRANSLATION = 0.005     # m per axis, uniform
@@ -109,11 +108,8 @@ def identify_one(plant: dict) -> dict:
         path = os.path.join(tmp, "arm.yaml")
         calibration = composed_calibration(fit.registration, load_mocap_config().calibration)
         write_identified_arm(path, fit.arm, calibration)
-        sets = [a for o in overrides for a in ("--set", o)]
         t2 = time.perf_counter()
-        proc = subprocess.run([sys.executable, "-m", "soft_arm_drivers.experiments.harness_cli", "triangle",
-                               "--json", "--quiet", "--arm-file", path, "--accept-closest"] + sets,
-                              capture_output=True, text=True)
+        proc = run_harness("triangle", overrides, "--arm-file", path, "--accept-closest")
         out["triangle_s"] = time.perf_counter() - t2
     if proc.returncode != 0:
         out["triangle"] = {"ok": False, "error": proc.stderr.strip().splitlines()[-1:]}

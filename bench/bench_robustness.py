@@ -25,14 +25,13 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import subprocess
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
 
-from timing import results_path, write_results
+from timing import results_path, run_harness, write_results
 
 TOLERANCES = {
     "youngs_modulus_scale": (0.8, 1.2), "viscosity_scale": (0.8, 1.2), "density_scale": (0.95, 1.05),
@@ -88,9 +87,7 @@ def run_one(task: str, plant: dict) -> dict:
     overrides = [f"plant.{key}={json.dumps(value)}" for key, value in plant.items()]
     holds = plant_holds(task, overrides)
     t0 = time.perf_counter()
-    sets = [a for o in overrides for a in ("--set", o)]
-    proc = subprocess.run([sys.executable, "-m", "soft_arm_drivers.experiments.harness_cli", task,
-                           "--json", "--quiet"] + sets, capture_output=True, text=True)
+    proc = run_harness(task, overrides)
     wall = time.perf_counter() - t0
     if proc.returncode != 0:
         return {"ok": False, "error": proc.stderr.strip().splitlines()[-1:] or [f"exit {proc.returncode}"],

@@ -1,7 +1,9 @@
-"""Helpers shared by the benchmark scripts: timing, and writing the results."""
+"""Helpers shared by the benchmark scripts: timing, writing the results, running the harness."""
 import json
 import os
 import platform
+import subprocess
+import sys
 import time
 
 import numpy as np
@@ -31,3 +33,11 @@ def write_results(path: str, results: dict):
     with open(path, "w", encoding="utf-8") as fh:
         json.dump({"machine": machine, **results}, fh, indent=2, default=float)
     print(f"wrote {path}")
+
+
+def run_harness(task: str, sets=(), *args: str) -> subprocess.CompletedProcess:
+    """``soft-arm-harness TASK --json --quiet`` in a process of its own, with ``--set`` for each of
+    ``sets`` (``ns.key=value``) and further command-line ``args``; stdout and stderr captured."""
+    command = [sys.executable, "-m", "soft_arm_drivers.experiments.harness_cli", task, "--json", "--quiet"]
+    command += [a for s in sets for a in ("--set", s)] + list(args)
+    return subprocess.run(command, capture_output=True, text=True)
