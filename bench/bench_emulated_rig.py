@@ -1,6 +1,6 @@
 """Benchmark of the closed loop through the emulated hardware. Prints a table, writes JSON.
 
-    python bench/bench_emulated_rig.py [--task coiling] [--runs 1] [--set ns.key=value ...]
+    python bench/bench_emulated_rig.py [--task coiling] [--runs 1] [--load 0] [--set ns.key=value ...]
         [--output bench/results/emulated_rig.json]
 
 Runs ``soft-arm-experiment <task> --emulated-hardware`` (each node its own process, real time)
@@ -10,7 +10,10 @@ cm-band task velocities), whether real-time scheduling was granted; the CPU shar
 process over the enabled run (from /proc, sampled 2 s after enabling and 2 s before the task's end);
 from the bag, the motors' state period (p50, p99, max, stamps not increasing), the mocap frame period
 and the driver's own cycle statistics (its last /diagnostics: period p50/p99/max, p99 error, deadline
-misses); then over the runs: the valid ones, the worst RMS and mm band, the cm-band velocity spread.
+misses; the state-to-command latency through the graph, p50/p99/max of its last 1000 answers and the
+worst p99 it reported during the run); then over the runs: the valid ones, the worst RMS and mm
+band, the cm-band velocity spread. ``--load N`` runs N other CPU-bound processes beside the runs (a
+lab PC's other work: single-threaded 200x200 matrix products, at the same priority as the nodes).
 """
 from __future__ import annotations
 
@@ -69,16 +72,39 @@ def _periods(stamps) -> dict:
             "not_increasing": int(np.sum(d <= 0))}
 
 
+DRIVER_TIMING = ("period_p50_ms", "period_p99_ms", "period_max_ms", "period_error_p99_ms", "deadline_misses",
+                 "state_to_command_p50_ms", "state_to_command_p99_ms", "state_to_command_max_ms",
+                 "unmatched_commands")
+
+
 def _driver_timing(series) -> dict:
-    """The motor driver's last reported cycle statistics (its /diagnostics values, recorded)."""
-    for _, msg in reversed(series.get("diagnostics", [])):
-        for status in msg.status:
-            if status.name == "motor_driver":
-                values = {kv.key: kv.value for kv in status.values}
-                if "period_p99_ms" in values:
-                    return {k: float(values[k]) for k in ("period_p50_ms", "period_p99_ms", "period_max_ms",
-                                                          "period_error_p99_ms", "deadline_misses")}
-    return {}
+    """The motor driver's last reported cycle statistics (its /diagnostics values, recorded) and the
+    worst state-to-command p99 it reported while commands came."""
+    reports = [{kv.key: kv.value for kv in status.values} for _, msg in series.get("diagnostics", [])
+               for status in msg.status if status.name == "motor_driver"]
+    reports = [r for r in reports if "period_p99_ms" in r]
+    if not reports:
+        return {}
+    out = {k: float(reports[-1].get(k, "nan")) for k in DRIVER_TIMING}
+    p99 = [float(r["state_to_command_p99_ms"]) for r in reports
+           if r.get("state_to_command_p99_ms", "nan") != "nan"]
+    out["state_to_command_p99_worst_ms"] = max(p99) if p99 else float("nan")
+    return out
+
+
+def _burn():
+    """One CPU-bound process of other work (until killed)."""
+    a = np.random.default_rng(0).standard_normal((200, 200))
+    while True:
+        a = np.tanh(a @ a)
+
+
+def start_load(n: int) -> list:
+    """``n`` processes of other work beside the runs, single-threaded each."""
+    env = dict(os.environ, OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
+    code = f"import sys; sys.path.insert(0, {os.path.dirname(os.path.abspath(__file__))!r}); " \
+           "import bench_emulated_rig; bench_emulated_rig._burn()"
+    return [subprocess.Popen([sys.executable, "-c", code], env=env) for _ in range(n)]
 
 
 def one_run(task: str, sets: list, duration: float) -> dict:
@@ -148,44 +174,59 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--task", default="coiling")
     parser.add_argument("--runs", type=int, default=1, help="consecutive runs (the spread needs >= 2)")
+    parser.add_argument("--load", type=int, default=0,
+                        help="CPU-bound processes of other work beside the runs")
     parser.add_argument("--set", dest="sets", action="append", default=[], metavar="NS.KEY=VALUE")
     parser.add_argument("--output", default=results_path("emulated_rig.json"))
     args = parser.parse_args()
     setup = load_setup(args.task, overrides=[s for s in args.sets if not s.startswith("graph.")])
     duration = sum(ph.window * len(ph.sequence) for ph in setup.task.phases)
-    runs = []
-    for k in range(args.runs):
-        r = one_run(args.task, args.sets, duration)
-        runs.append(r)
-        summary = r["summary"]
-        print(f"run {k + 1}: {'valid' if r['valid'] else 'INVALID: ' + str(r['failure'])}; real-time "
-              f"scheduling {'granted' if r['run'].get('realtime') else 'refused'}")
-        if summary:
-            print(f"  steady RMS {summary['rms_error'] * 1e3:.2f} mm, {summary['reached_mm']}/"
-                  f"{summary['transitions']} transitions in the mm band, task velocity mm band "
-                  f"{_speed(summary['velocity_mm'])}, cm band {_speed(summary['velocity_cm'])}")
-        cpu = r["cpu_share"]
-        print("  CPU per node: " + ", ".join(f"{n} {c:.0%}" for n, c in cpu.items())
-              + f" (total {sum(cpu.values()):.0%} of {os.cpu_count()} cores)")
-        for name, key in (("tendon/state", "state_period"), ("mocap/markers", "mocap_period")):
-            p = r[key]
-            print(f"  {name:14s} period p50 {p['p50_ms']:.2f} ms, p99 {p['p99_ms']:.2f} ms, max "
-                  f"{p['max_ms']:.1f} ms, {p['not_increasing']} stamps not increasing ({p['messages']})")
-        d = r["driver_timing"]
-        if d:
-            print(f"  driver cycle (its last 1000): period p50 {d['period_p50_ms']:.2f} ms, p99 "
-                  f"{d['period_p99_ms']:.2f} ms, max {d['period_max_ms']:.1f} ms, p99 error "
-                  f"{d['period_error_p99_ms']:.2f} ms, {d['deadline_misses']:.0f} deadline misses in the run")
+    runs, load = [], start_load(args.load)
+    try:
+        for k in range(args.runs):
+            runs.append(_report(k, one_run(args.task, args.sets, duration)))
+    finally:
+        for p in load:
+            p.kill()
     total = spread(runs)
-    line = f"{args.task} over {total['runs']} runs: {total['valid_runs']} valid"
+    line = f"{args.task} over {total['runs']} runs with {args.load} other CPU-bound processes: " \
+           f"{total['valid_runs']} valid"
     if total["valid_runs"]:
         v = total["velocity_cm_spread"]
         line += (f"; RMS worst {total['rms_worst_mm']:.2f} mm, mm band worst {total['mm_band_worst']}/"
                  f"{total['transitions']}, cm-band velocity spread (max/min) "
                  + ("-" if v is None else f"{v:.2f}"))
     print(line)
-    write_results(args.output, {"task": args.task, "sets": args.sets, "duration_s": duration,
-                                "runs": runs, "spread": total})
+    write_results(args.output, {"task": args.task, "sets": args.sets, "load": args.load,
+                                "duration_s": duration, "runs": runs, "spread": total})
+
+
+def _report(k: int, r: dict) -> dict:
+    """Print run k's figures; gives r back."""
+    summary = r["summary"]
+    print(f"run {k + 1}: {'valid' if r['valid'] else 'INVALID: ' + str(r['failure'])}; real-time "
+          f"scheduling {'granted' if r['run'].get('realtime') else 'refused'}")
+    if summary:
+        print(f"  steady RMS {summary['rms_error'] * 1e3:.2f} mm, {summary['reached_mm']}/"
+              f"{summary['transitions']} transitions in the mm band, task velocity mm band "
+              f"{_speed(summary['velocity_mm'])}, cm band {_speed(summary['velocity_cm'])}")
+    cpu = r["cpu_share"]
+    print("  CPU per node: " + ", ".join(f"{n} {c:.0%}" for n, c in cpu.items())
+          + f" (total {sum(cpu.values()):.0%} of {os.cpu_count()} cores)")
+    for name, key in (("tendon/state", "state_period"), ("mocap/markers", "mocap_period")):
+        p = r[key]
+        print(f"  {name:14s} period p50 {p['p50_ms']:.2f} ms, p99 {p['p99_ms']:.2f} ms, max "
+              f"{p['max_ms']:.1f} ms, {p['not_increasing']} stamps not increasing ({p['messages']})")
+    d = r["driver_timing"]
+    if d:
+        print(f"  driver cycle (its last 1000): period p50 {d['period_p50_ms']:.2f} ms, p99 "
+              f"{d['period_p99_ms']:.2f} ms, max {d['period_max_ms']:.1f} ms, p99 error "
+              f"{d['period_error_p99_ms']:.2f} ms, {d['deadline_misses']:.0f} deadline misses in the run")
+        print(f"  state to command (its last 1000): p50 {d['state_to_command_p50_ms']:.2f} ms, p99 "
+              f"{d['state_to_command_p99_ms']:.2f} ms, max {d['state_to_command_max_ms']:.1f} ms; worst p99 "
+              f"reported in the run {d['state_to_command_p99_worst_ms']:.2f} ms; "
+              f"{d['unmatched_commands']:.0f} commands matched no state")
+    return r
 
 
 if __name__ == "__main__":

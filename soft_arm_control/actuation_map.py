@@ -73,7 +73,7 @@ class ActuationMap:
         return (self.coef @ out) / SCALE
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _features(x, exps, out):
     """Monomials prod_j x_j^e_fj, one per row f of ``exps``."""
     for f in range(exps.shape[0]):
@@ -84,7 +84,7 @@ def _features(x, exps, out):
         out[f] = acc
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _feature_jacobian(x, exps, out):
     """d monomial_f / d x_j into out[f, j]."""
     for f in range(exps.shape[0]):

@@ -31,7 +31,7 @@ from .dynamics import OutOfDomainError
 from .model import ArmData, ArmModel
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _imex_prepare(model_args, data_args, A0, rotor_mass, shifted, q, qd, markers, adot_qd):
     """Evaluate the workspace at (q, qd) (dynamics level, markers if asked) and, with rotors, the
     tendon acceleration term Adot0^T qd (by a directional difference of A0 along qd) into adot_qd."""
@@ -55,7 +55,7 @@ def _imex_prepare(model_args, data_args, A0, rotor_mass, shifted, q, qd, markers
     return True
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _imex_advance(M, Cqd, Fg, Fel, Kt, Au, A0, D, rotor_mass, adot_qd, q, qd, u, f_ext, h, q_out,
                   qd_out):
     """The IMEX update from the prepared workspace (M .. A0 at (q, qd); Au: A or A0); f_ext: an

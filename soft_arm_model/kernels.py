@@ -25,7 +25,7 @@ from .lie import (TANGENT_SCRATCH, ad_apply, ad_apply_columns, expmap, inverse_a
 ZANNA = np.sqrt(3.0) / 12.0  # coefficient of the commutator in the 4th-order Magnus step
 
 
-@njit(cache=True, fastmath=True, error_model="numpy")
+@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
 def _strain(xi_star, Bx, q, out):
     for r in range(6):
         acc = xi_star[r]
@@ -34,7 +34,7 @@ def _strain(xi_star, Bx, q, out):
         out[r] = acc
 
 
-@njit(cache=True, fastmath=True, error_model="numpy")
+@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
 def _matvec(Bx, v, out):
     for r in range(Bx.shape[0]):
         acc = 0.0
@@ -43,7 +43,7 @@ def _matvec(Bx, v, out):
         out[r] = acc
 
 
-@njit(cache=True, fastmath=True, error_model="numpy")
+@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
 def new_scratch(n):
     """Scratch for ``_magnus_step``: (vectors (10, 6), 6 x n matrices (6, 6, n), 6x6 (13, 6, 6),
     3x3 (1, 3, 3)). Allocated once per evaluation."""
@@ -51,7 +51,7 @@ def new_scratch(n):
             np.zeros((1, 3, 3)))
 
 
-@njit(cache=True, fastmath=True, error_model="numpy")
+@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
 def _magnus_step(q, qd, xi_star, h, B1, B2, R_prev, p_prev, J_prev, R_out, p_out, J_out,
                  rates, eta_prev, psi_prev, Jd_prev, eta_out, psi_out, Jd_out, scratch):
     """One Zanna step of length h from the previous section frame.
@@ -133,14 +133,14 @@ def _magnus_step(q, qd, xi_star, h, B1, B2, R_prev, p_prev, J_prev, R_out, p_out
     inverse_adjoint_apply(Rs, ps, G, Jd_out)
 
 
-@njit(cache=True, fastmath=True, error_model="numpy")
+@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
 def _cross(a, b, out):
     out[0] = a[1] * b[2] - a[2] * b[1]
     out[1] = a[2] * b[0] - a[0] * b[2]
     out[2] = a[0] * b[1] - a[1] * b[0]
 
 
-@njit(cache=True, fastmath=True, error_model="numpy")
+@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
 def _elastic(w, B, xi, stiff_diag, neo_axial, col_lo, col_hi, Fel, Kt, energies):
     """Elastic force F_el = sum w B^T sigma(xi - xi*), tangent K_t, energy; False if stretch <= 0."""
     n = Fel.shape[0]
@@ -184,7 +184,7 @@ def _elastic(w, B, xi, stiff_diag, neo_axial, col_lo, col_hi, Fel, Kt, energies)
     return True
 
 
-@njit(cache=True, fastmath=True, error_model="numpy")
+@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
 def _gravity(lumped, gravity, R, p, J, Fg, energies):
     """F_g = sum m J_lin^T R^T g over the points' lumped masses m (quadrature weight included, the
     tip point mass too); the gravity potential energy into energies[2]."""
@@ -204,7 +204,7 @@ def _gravity(lumped, gravity, R, p, J, Fg, energies):
     energies[2] = ug
 
 
-@njit(cache=True, fastmath=True, error_model="numpy")
+@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
 def _tendons(w, B, Bd, xi, q, t_d, t_dp, t_dpp, t_active, t_mu, Q, smoothing, col_lo, col_hi,
              A, A0, Lc, theta, wrap, phi):
     """Tendon columns with and without friction, lengths and friction-aware integrals."""
@@ -278,7 +278,7 @@ def _tendons(w, B, Bd, xi, q, t_d, t_dp, t_dpp, t_active, t_mu, Q, smoothing, co
     return True
 
 
-@njit(cache=True, fastmath=True, error_model="numpy")
+@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
 def _ad_transpose_apply(x, y, out):
     """``out = ad(x)^T y`` = [-(w x a) - (v x b); -(w x b)] for x = [w; v], y = [a; b]."""
     w0, w1, w2, v0, v1, v2 = x[0], x[1], x[2], x[3], x[4], x[5]
@@ -291,7 +291,7 @@ def _ad_transpose_apply(x, y, out):
     out[5] = -(w0 * b1 - w1 * b0)
 
 
-@njit(cache=True, fastmath=True, error_model="numpy")
+@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
 def _mass_bias(lumped, J, eta, psi, col_hi, M, Cqd, energies):
     """M = sum J^T Mc J; C qd = sum J^T [Mc psi - ad_eta^T Mc eta] over the points' lumped inertias
     Mc; kinetic energy."""
@@ -330,7 +330,7 @@ def _mass_bias(lumped, J, eta, psi, col_hi, M, Cqd, energies):
     energies[0] = kin
 
 
-@njit(cache=True, fastmath=True, error_model="numpy")
+@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
 def _coriolis_matrix(lumped, J, eta, Jd, C):
     """C = sum J^T [Mc Jdot + (Mc ad_eta - ad_eta^T Mc) J] over the points' lumped inertias Mc, so
     that Mdot = C + C^T."""
@@ -361,7 +361,7 @@ def _coriolis_matrix(lumped, J, eta, Jd, C):
                 C[a, b] += acc
 
 
-@njit(cache=True, fastmath=True, error_model="numpy")
+@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
 def evaluate(w, B, Bd, h, B1, B2, xi_star, lumped, stiff_diag, neo_axial, R0, gravity,
              t_d, t_dp, t_dpp, t_active, t_mu, Q, smoothing, col_lo, col_hi,
              m_point, m_h, m_B1, m_B2,
@@ -411,7 +411,7 @@ def evaluate(w, B, Bd, h, B1, B2, xi_star, lumped, stiff_diag, neo_axial, R0, gr
     return True
 
 
-@njit(cache=True, fastmath=True, error_model="numpy")
+@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
 def tendon_matrices(w, B, Bd, h, B1, B2, xi_star, lumped, stiff_diag, neo_axial, R0, gravity,
                     t_d, t_dp, t_dpp, t_active, t_mu, Q, smoothing, col_lo, col_hi,
                     m_point, m_h, m_B1, m_B2, q, xi, A, A0, Lc, theta, wrap, phi):

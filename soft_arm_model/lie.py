@@ -32,7 +32,7 @@ _G_SERIES = np.array([
 ])
 
 
-@njit(cache=True, fastmath=True, error_model="numpy")
+@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
 def _even_series(coeffs, theta2):
     acc = 0.0
     for k in range(coeffs.shape[0] - 1, -1, -1):
@@ -40,7 +40,7 @@ def _even_series(coeffs, theta2):
     return acc
 
 
-@njit(cache=True, fastmath=True, error_model="numpy")
+@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
 def ad_matrix(x, out):
     """Write the 6x6 adjoint ``ad(x)`` of twist ``x = [w; v]`` into ``out``."""
     out[:, :] = 0.0
@@ -61,7 +61,7 @@ def ad_matrix(x, out):
     out[5, 1] = v0
 
 
-@njit(cache=True, fastmath=True, error_model="numpy")
+@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
 def ad_apply(x, y, out):
     """``out = ad(x) y`` for twists x, y (out must not alias x or y)."""
     w0, w1, w2, v0, v1, v2 = x[0], x[1], x[2], x[3], x[4], x[5]
@@ -73,7 +73,7 @@ def ad_apply(x, y, out):
     out[5] = w0 * y[4] - w1 * y[3] + v0 * y[1] - v1 * y[0]
 
 
-@njit(cache=True, fastmath=True, error_model="numpy")
+@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
 def ad_apply_columns(x, Y, out, scale, accumulate):
     """``out (+)= scale * ad(x) Y`` for a 6 x n matrix ``Y`` (row-wise loops, out must not alias Y)."""
     w0, w1, w2 = scale * x[0], scale * x[1], scale * x[2]
@@ -95,7 +95,7 @@ def ad_apply_columns(x, Y, out, scale, accumulate):
         out[5, j] += w0 * Y[4, j] - w1 * Y[3, j] + v0 * Y[1, j] - v1 * Y[0, j]
 
 
-@njit(cache=True, fastmath=True, error_model="numpy")
+@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
 def matmul_into(A, B, out):
     """``out = A @ B`` for small dense matrices (plain loops; out must not alias A or B)."""
     for i in range(A.shape[0]):
@@ -106,7 +106,7 @@ def matmul_into(A, B, out):
             out[i, j] = acc
 
 
-@njit(cache=True, fastmath=True, error_model="numpy")
+@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
 def expmap(omega, R, p):
     """Closed-form SE(3) exponential of the twist ``omega``: rotation ``R`` and translation ``p``."""
     wx, wy, wz = omega[0], omega[1], omega[2]
@@ -142,7 +142,7 @@ def expmap(omega, R, p):
         p[i] = acc
 
 
-@njit(cache=True, fastmath=True, error_model="numpy")
+@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
 def tangent_weights(theta2, f, g):
     """Weights f1..f4 of ``T = I + f1 ad + f2 ad^2 + f3 ad^3 + f4 ad^4`` and g_i = f_i'/theta."""
     if theta2 < _TANGENT_SERIES_BELOW * _TANGENT_SERIES_BELOW:
@@ -170,7 +170,7 @@ def tangent_weights(theta2, f, g):
 TANGENT_SCRATCH = 11  # number of 6x6 scratch matrices the tangent functions share
 
 
-@njit(cache=True, fastmath=True, error_model="numpy")
+@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
 def tangent(omega, T, work):
     """Tangent operator ``T(omega)``. Leaves ad(omega)^1..4 in work[0:4] and the weights f, g in
     work[10] for ``tangent_rate`` and ``tangent_rate_apply``; ``work`` has shape (TANGENT_SCRATCH, 6, 6).
@@ -189,7 +189,7 @@ def tangent(omega, T, work):
                 + f[2] * ad3[i, j] + f[3] * ad4[i, j]
 
 
-@njit(cache=True, fastmath=True, error_model="numpy")
+@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
 def tangent_rate(omega, omega_dot, Tdot, work):
     """Time derivative of ``T(omega)`` for ``d omega/dt = omega_dot`` (call ``tangent`` first)."""
     f = work[10, 0, 0:4]
@@ -215,7 +215,7 @@ def tangent_rate(omega, omega_dot, Tdot, work):
                 + f[0] * E[i, j] + f[1] * d2[i, j] + f[2] * d3[i, j] + f[3] * d4[i, j]
 
 
-@njit(cache=True, fastmath=True, error_model="numpy")
+@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
 def tangent_rate_apply(omega, omega_dot, out, work):
     """``out = (dT/dt) omega_dot`` without forming dT/dt (call ``tangent`` first).
 
@@ -247,7 +247,7 @@ def tangent_rate_apply(omega, omega_dot, out, work):
             + f[1] * e1[r] + f[2] * d3[r] + f[3] * d4[r]
 
 
-@njit(cache=True, fastmath=True, error_model="numpy")
+@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
 def inverse_adjoint_apply(R, p, X, out):
     """``out = Ad_{g^-1} X`` for g = (R, p) and a 6 x n matrix X (out must not alias X).
 

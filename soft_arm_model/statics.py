@@ -40,7 +40,7 @@ class Equilibrium:
     jacobian: np.ndarray
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _residual_kernel(model_args, data_args, Fg, Fel, Au, q, u, out):
     """out = F_el - F_g + A u at q; Fg, Fel and Au (A or A0) are the workspace arrays in data_args."""
     if not kernels.evaluate(*model_args, q, q, 1, False, *data_args):
@@ -53,7 +53,7 @@ def _residual_kernel(model_args, data_args, Fg, Fel, Au, q, u, out):
     return True
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _residual_jacobian(model_args, data_args, Fg, Fel, Au, q, u, r0, jac):
     """Residual at q into r0 and its forward-difference Jacobian into jac; False outside the domain.
     The workspace is left at the last perturbed state."""

@@ -8,8 +8,10 @@ runs one driver cycle, on a monotonic clock, and
   velocity [m/s]; effort = measured tension [N]), stamped with the oldest sensor time stamp of the
   cycle's replies, in every mode, whenever every motor replied;
 - publishes ``/diagnostics`` (diagnostic_msgs/DiagnosticArray: one status for the driver with mode,
-  fault reason, command counters and its cycle timing over the last 1000 cycles: period p50/p99/max
-  and p99 error from 1/rate [ms], deadline misses (cycles later than 1.5 periods); one per motor with
+  fault reason, command counters, its cycle timing over the last 1000 cycles: period p50/p99/max
+  and p99 error from 1/rate [ms], deadline misses (cycles later than 1.5 periods), and the
+  state-to-command latency over the last 1000 answers (:mod:`.command_latency`: from publishing a
+  state to receiving the command stamped like it, p50/p99/max [ms]); one per motor with
   temperature, error code and reply age) every 0.5 s and at once when the mode or the fault changes.
 
 Subscribes ``tendon/command`` (effort = tensions [N]; a command missing a tendon or with NaN or
@@ -39,10 +41,11 @@ from std_srvs.srv import SetBool, Trigger
 from soft_arm_model.config import load_arm_config
 from soft_arm_model.parameters import ConfigError, default_config_dir
 from soft_arm_ros.contract import QOS, TOPICS
-from soft_arm_ros.conversions import joint_state, ordered
+from soft_arm_ros.conversions import joint_state, ordered, stamp_to_seconds
 from soft_arm_ros.parameters import parameter_overrides
 from soft_arm_ros.runtime import run_node
 
+from .command_latency import CommandLatency
 from .driver_config import NAMESPACE, bus_load, load_driver_config
 from .motor_driver import Diagnostics, MotorDriver
 
@@ -69,6 +72,7 @@ class MotorDriverNode(Node):
             raise ConfigError(f"{NAMESPACE}: cannot open {c.interface} channel {c.channel!r}: "
                               f"{exc}") from None
         self.incomplete_cycles = self.malformed_commands = 0
+        self.latency = CommandLatency()
         self._status, self._last_diagnostics = None, -float("inf")
         self.state_pub = self.create_publisher(JointState, TOPICS["state"], QOS["tendon/state"])
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
@@ -89,6 +93,8 @@ class MotorDriverNode(Node):
         """Further checks of the validated configuration before the bus is opened (ConfigError)."""
 
     def on_command(self, msg: JointState):
+        received = time.monotonic()
+        self.latency.answered(stamp_to_seconds(msg.header.stamp), received)
         try:
             tensions = ordered(msg, "effort", self.names)
         except ValueError as exc:
@@ -96,7 +102,7 @@ class MotorDriverNode(Node):
             self.get_logger().warning(f"command ignored: {exc}", throttle_duration_sec=1.0)
             return
         try:
-            self.driver.command(tensions, time.monotonic())
+            self.driver.command(tensions, received)
         except ValueError as exc:
             self.get_logger().warning(f"command rejected: {exc}", throttle_duration_sec=1.0)
 
@@ -105,6 +111,7 @@ class MotorDriverNode(Node):
         if state.complete:
             self.state_pub.publish(joint_state(self.names, state.stamp, position=state.shortening,
                                                velocity=state.rate, effort=state.tension))
+            self.latency.published(state.stamp, time.monotonic())
         else:
             self.incomplete_cycles += 1
         self._report(diagnostics)
@@ -136,6 +143,11 @@ class MotorDriverNode(Node):
                                  period_max_ms=timing.period_max * 1e3,
                                  period_error_p99_ms=timing.period_error_p99 * 1e3,
                                  deadline_misses=timing.deadline_misses, timed_cycles=timing.cycles)
+        latency = self.latency.statistics()
+        driver.values += _values(state_to_command_p50_ms=latency.p50 * 1e3,
+                                 state_to_command_p99_ms=latency.p99 * 1e3,
+                                 state_to_command_max_ms=latency.max * 1e3, answered_states=latency.answers,
+                                 unmatched_commands=latency.unmatched)
         out.status.append(driver)
         for name, m in zip(self.names, diag.motors):
             s = DiagnosticStatus(name=f"motor_driver: {name}", hardware_id=f"{bus}:{m.can_id}")

@@ -69,6 +69,11 @@ class Harness:
         return self.diagnostics[-1].status[0] if self.diagnostics else None
 
 
+def values(harness):
+    """The driver status's values of the latest /diagnostics, by key."""
+    return {v.key: v.value for v in harness.driver_status().values}
+
+
 def spin_until(executor, predicate, timeout=10.0):
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
@@ -140,6 +145,11 @@ def test_node_drives_the_emulated_rig_through_topics_and_services(rig):
     start = len(harness.states)
     spin_until(executor, lambda: len(harness.states) > start + 150)          # 0.3 s at 500 Hz
     assert all(m.motor_mode for m in emulator.motors)
+    # the harness answers each state at once: the driver times each answer from its state
+    spin_until(executor, lambda: int(values(harness)["answered_states"]) > 100)
+    latency = values(harness)
+    assert 0.0 < float(latency["state_to_command_p50_ms"]) <= float(latency["state_to_command_p99_ms"]) \
+        <= float(latency["state_to_command_max_ms"]) < 200.0
     assert emulator.tensions[0] == pytest.approx(2.5, abs=0.45)             # one torque step: 0.88 N
     assert harness.latest("effort")[0] == pytest.approx(2.5, abs=0.9)
     assert harness.latest("position")[0] > 5e-3                              # tendon 1 shortened
