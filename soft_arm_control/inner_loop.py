@@ -16,7 +16,7 @@ clock. Tendons that the task does not use hold u_min.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -129,14 +129,21 @@ class TendonController:
                  feedforward: bool = True):
         self.n, self.gains, self.feedforward = n_tendons, gains, feedforward
         self.active = [int(k) for k in active]
-        a = self.active
-        self.pid = PSatID(InnerLoopGains(gains.proportional[a], gains.derivative[a],
-                                         gains.integral[a], gains.integral_saturation,
-                                         gains.tension_min, gains.tension_max,
-                                         gains.tension_rate_limit),
-                          actuation_map, a, n_tendons)
+        self.pid = PSatID(self._active_gains(gains), actuation_map, self.active, n_tendons)
         self.s_ref = None
         self.u_ff = np.full(n_tendons, gains.tension_min)
+
+    def _active_gains(self, gains: InnerLoopGains) -> InnerLoopGains:
+        if gains.proportional.size != self.n:
+            raise ValueError(f"the gains need one value per tendon ({self.n}), got {gains.proportional.size}")
+        a = self.active
+        return replace(gains, proportional=gains.proportional[a], derivative=gains.derivative[a],
+                       integral=gains.integral[a])
+
+    def set_gains(self, gains: InnerLoopGains):
+        """New gains and limits (over all tendons) from the next update on; the integral state is
+        kept. ValueError, with the old gains in place, when they do not fit the arm."""
+        self.pid.gains, self.gains = self._active_gains(gains), gains
 
     def set_reference(self, s_ref, u_ff):
         s_ref, u_ff = np.asarray(s_ref, dtype=float), np.asarray(u_ff, dtype=float)

@@ -2,12 +2,16 @@
 ``tendon/command`` (stamped like the state it answers) on every state message. It regulates the
 tendons of the task ``graph.task``; the others get their feedforward tension. Without a reference
 it holds the pretension. Parameters: ``control.*`` (gains, limits, the thetabar_a fit), ``arm.*``,
-``graph.task``.
+``graph.task``; the gains and the tension limits of the inner loop (:data:`LIVE`) may be set while it
+runs (``ros2 param set``) and apply from the next state on, the integral kept; every other value is
+read-only.
 """
 from __future__ import annotations
 
 import sys
+from dataclasses import replace
 
+import numpy as np
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 
@@ -22,12 +26,18 @@ from .config import control_of, task_of
 from .inner_loop import tendon_controller_for
 
 
+# control.* values the node applies while it runs (the limits are the inner loop's clamp only)
+LIVE = {f"control.{k}": k.rsplit(".", 1)[-1] for k in (
+    "inner_loop.proportional", "inner_loop.derivative", "inner_loop.integral",
+    "inner_loop.integral_saturation", "inner_loop.tension_rate_limit", "tension_min", "tension_max")}
+
+
 class InnerLoopNode(Node):
     def __init__(self, config_dir: str | None = None, actuation_map: ActuationMap | None = None,
                  **node_options):
         super().__init__("inner_loop", allow_undeclared_parameters=True,
                          automatically_declare_parameters_from_overrides=True, **node_options)
-        params = NodeParameters(self, config_dir)
+        params = NodeParameters(self, config_dir, live=LIVE)
         model = build_model(params.arm)
         self.control = ctl = control_of(params, params.arm)
         task = task_of(params, params.arm)
@@ -35,12 +45,20 @@ class InnerLoopNode(Node):
         self.names = model.tendon_names
         self.core = tendon_controller_for(model.n_tendons, ctl, task.tendons, actuation_map)
         self.rejected = 0
+        params.on_change(self.apply_gains)
         self.pub = self.create_publisher(JointState, TOPICS["command"], QOS["tendon/command"])
         self.create_subscription(JointState, TOPICS["reference"], self.on_reference,
                                  QOS["tendon/reference"])
         self.create_subscription(JointState, TOPICS["state"], self.on_state, QOS["tendon/state"])
         self.get_logger().info(
             f"inner loop ready: thetabar_a fit RMS {actuation_map.rms_error * 1e3:.2f} mm")
+
+    def apply_gains(self, changes: dict):
+        """Live parameter changes (full name -> checked value) into the inner loop's gains."""
+        fields = {LIVE[name]: np.asarray(v, dtype=float) if isinstance(v, list) else v
+                  for name, v in changes.items()}
+        self.core.set_gains(replace(self.core.gains, **fields))
+        self.get_logger().info("gains set: " + ", ".join(f"{k} = {v}" for k, v in changes.items()))
 
     def on_reference(self, msg: JointState):
         try:

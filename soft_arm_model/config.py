@@ -98,7 +98,7 @@ def _finite(v):
     return math.isfinite(v)
 
 
-_SCHEMA: dict[str, tuple[str, Any, str]] = {
+ARM_SCHEMA: dict[str, tuple[str, Any, str]] = {
     "geometry.length": ("float", lambda v: 0 < v <= 10, "a length in (0, 10] m"),
     "geometry.base_radius": ("float", lambda v: 0 < v <= 1, "a radius in (0, 1] m"),
     "geometry.tip_radius": ("float", lambda v: 0 < v <= 1, "a radius in (0, 1] m"),
@@ -133,13 +133,13 @@ _SCHEMA: dict[str, tuple[str, Any, str]] = {
                           "strictly increasing arc lengths > 0 m"),
 }
 for _mode in STRAIN_MODES:
-    _SCHEMA[f"discretisation.modes.{_mode}"] = ("bool", None, "true or false")
+    ARM_SCHEMA[f"discretisation.modes.{_mode}"] = ("bool", None, "true or false")
 
 
 def parse_arm_config(params: Mapping) -> ArmConfig:
     """Validate an ``arm`` parameter tree (the mapping under ``ros__parameters.arm``)."""
     flat = flatten_tree(params)
-    v = validate_tree(params, _SCHEMA, NAMESPACE)
+    v = validate_tree(params, ARM_SCHEMA, NAMESPACE)
 
     def require(ok, key, allowed):
         if not ok:
@@ -210,7 +210,7 @@ def load_arm_config(path: str | None = None, overrides: Mapping[str, Any] | None
     if NAMESPACE not in params or not isinstance(params[NAMESPACE], dict):
         raise ConfigError(f"{path}: no '{NAMESPACE}' parameters under {node}.ros__parameters")
     try:
-        return parse_arm_config(apply_overrides(params[NAMESPACE], overrides, _SCHEMA, NAMESPACE))
+        return parse_arm_config(apply_overrides(params[NAMESPACE], overrides, ARM_SCHEMA, NAMESPACE))
     except ConfigError as exc:
         raise ConfigError(f"{path}: {exc}") from None
 

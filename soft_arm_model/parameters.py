@@ -134,6 +134,38 @@ def _matches(key: str, pattern: str) -> bool:
     return len(parts) == len(pparts) and all(p == "*" or p == k for k, p in zip(parts, pparts))
 
 
+def schema_entry(schema: Mapping, key: str):
+    """The (kind, check, allowed) of the dotted ``key`` (its pattern's), or None when unknown."""
+    pattern = next((k for k in schema if _matches(key, k)), None)
+    return None if pattern is None else schema[pattern]
+
+
+def check_value(schema: Mapping, namespace: str, key: str, raw: Any):
+    """One value of ``namespace.key`` checked like :func:`validate_tree` checks a file's: the coerced
+    value, or ConfigError naming the key, the value and what is allowed (also for an unknown key)."""
+    entry = schema_entry(schema, key)
+    if entry is None:
+        raise _unknown_key(namespace, key, schema)
+    kind, check, allowed = entry
+    value = _coerce(f"{namespace}.{key}", raw, kind, allowed)
+    if check is not None and not check(value):
+        raise ConfigError(f"{namespace}.{key} = {raw!r} is not valid: expected {allowed}")
+    return value
+
+
+_INTERVAL = re.compile(r"\bin ([\[(])\s*([-+]?[0-9][0-9_.]*(?:e[-+]?[0-9]+)?)\s*,\s*"
+                       r"([-+]?[0-9][0-9_.]*(?:e[-+]?[0-9]+)?)\s*([\])])")
+
+
+def allowed_interval(allowed: str):
+    """The interval a schema's ``allowed`` text states, as (low, high, low included, high included),
+    or None when it states none: "a rate in (0, 1e6] N/s" -> (0.0, 1e6, False, True)."""
+    m = _INTERVAL.search(allowed)
+    if m is None:
+        return None
+    return float(m.group(2)), float(m.group(3)), m.group(1) == "[", m.group(4) == "]"
+
+
 def validate_tree(params: Mapping, schema: Mapping, namespace: str) -> dict:
     """Check a parameter tree against ``schema`` (dotted key -> (kind, check, allowed)).
 

@@ -24,9 +24,10 @@ def make_executor(context=None):
     return EventsExecutor(context=context)
 
 
-def run_node(factory, name: str, args=None) -> int:
-    """Create a node with ``factory()`` and spin it (:func:`make_executor`) until Ctrl-C, SIGTERM or
-    until it sets ``done``; a ConfigError while creating it is logged and gives exit status 2.
+def run_node(factory, name: str, args=None, executor_factory=make_executor) -> int:
+    """Create a node with ``factory()`` and spin it (``executor_factory()``, default
+    :func:`make_executor`) until Ctrl-C, SIGTERM or until it sets ``done``; a ConfigError while
+    creating it is logged and gives exit status 2.
 
     The first SIGINT or SIGTERM ends the spin between two callbacks (a callback is never cut short
     and the context stays valid while it runs); a second one interrupts the spin at once. A node's
@@ -51,7 +52,7 @@ def run_node(factory, name: str, args=None) -> int:
         # Collect once now and keep them out of every later collection.
         gc.collect()
         gc.freeze()
-        executor = make_executor()
+        executor = executor_factory()
         executor.add_node(node)
         while not stop and rclpy.ok() and not getattr(node, "done", False):
             executor.spin_once(timeout_sec=0.1)

@@ -22,9 +22,10 @@ disables), ``~/estop`` (std_srvs/Trigger: zero torque and out of motor mode, lat
 slack).
 
 Parameters: ``rig.motors.*`` of the package's ``config/rig.yaml`` overlaid with the node's own
-(``--params-file``, ``-p rig.motors.key:=value``), ``arm.*`` for the tendon names. A bad value logs the
-key, the value and the allowed range and exits with status 2. Leaving (Ctrl-C, SIGTERM, an exception)
-sends zero torque and exit-motor-mode to every motor.
+(``--params-file``, ``-p rig.motors.key:=value``), ``arm.*`` for the tendon names, each declared
+read-only with a description and range (:class:`~soft_arm_ros.parameters.NodeParameters`). A bad
+value logs the key, the value and the allowed range and exits with status 2. Leaving (Ctrl-C,
+SIGTERM, an exception) sends zero torque and exit-motor-mode to every motor.
 """
 from __future__ import annotations
 
@@ -38,15 +39,14 @@ from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from std_srvs.srv import SetBool, Trigger
 
-from soft_arm_model.config import load_arm_config
-from soft_arm_model.parameters import ConfigError, default_config_dir
+from soft_arm_model.parameters import ConfigError
 from soft_arm_ros.contract import QOS, TOPICS
 from soft_arm_ros.conversions import joint_state, ordered, stamp_to_seconds
-from soft_arm_ros.parameters import parameter_overrides
+from soft_arm_ros.parameters import NodeParameters
 from soft_arm_ros.runtime import run_node
 
 from .command_latency import CommandLatency
-from .driver_config import NAMESPACE, bus_load, load_driver_config
+from .driver_config import NAMESPACE, SCHEMA, bus_load, parse_driver_config
 from .motor_driver import Diagnostics, MotorDriver
 
 DIAGNOSTICS_PERIOD = 0.5        # s between /diagnostics messages when nothing changes
@@ -59,12 +59,13 @@ class MotorDriverNode(Node):
     def __init__(self, config_dir: str | None = None, defaults: dict | None = None, **node_options):
         super().__init__("motor_driver", allow_undeclared_parameters=True,
                          automatically_declare_parameters_from_overrides=True, **node_options)
-        d = config_dir or default_config_dir()
-        arm = load_arm_config(os.path.join(d, "arm.yaml"), parameter_overrides(self, "arm"))
-        self.names = tuple(t.name for t in arm.tendons)
-        self.config = c = load_driver_config(os.path.join(d, "rig.yaml"),
-                                             {**(defaults or {}), **parameter_overrides(self, NAMESPACE)},
-                                             len(self.names))
+        params = NodeParameters(self, config_dir)
+        self.names = tuple(t.name for t in params.arm.tendons)
+        values = params.section(NAMESPACE, SCHEMA, "rig.yaml", defaults)
+        try:
+            self.config = c = parse_driver_config(values, len(self.names))
+        except ConfigError as exc:
+            raise ConfigError(f"{os.path.join(params.config_dir, 'rig.yaml')}: {exc}") from None
         self.check_config(c)
         try:
             self.driver = MotorDriver(c)

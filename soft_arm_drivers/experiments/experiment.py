@@ -128,12 +128,17 @@ def run_composed(ros_args: list, out: dict, progress=None, config_dir: str | Non
         nodes += [runner, recorder]
         executor = WaveExecutor(nodes)
         start = time.monotonic()
-        while not sim._started:
+        # the recorder subscribes to what it discovers: every topic published here, before the first
+        # wave (what is published meanwhile is held for it), so that every run records the same
+        published = {pub.topic_name for node in nodes for pub in node.publishers}
+        while not sim._started or recorder.unsubscribed(published):
             executor.spin_timers(0.01)
             if time.monotonic() - start > 30.0:
-                raise RuntimeError("the simulator did not start within 30 s: it waits for a publisher "
-                                   "of tendon/command and a subscriber of mocap/markers (the recorder's "
-                                   "topics?)")
+                raise RuntimeError(
+                    "the simulator did not start within 30 s: it waits for a publisher of tendon/command "
+                    "and a subscriber of mocap/markers (the recorder's topics?)" if not sim._started else
+                    f"the recorder did not find the publishers of {recorder.unsubscribed(published)} "
+                    f"within 30 s")
         last_flush, reported = time.monotonic(), 0
         while not runner.done and not STOP.is_set():
             if executor.wave() == 0:

@@ -12,6 +12,7 @@ from __future__ import annotations
 import time
 
 from rclpy.executors import SingleThreadedExecutor
+from rclpy.subscription import Subscription
 
 
 class DeliveryTimeout(RuntimeError):
@@ -32,11 +33,9 @@ class WaveExecutor:
         self.timeout = timeout
         self.held = []
         self.waves = 0
-        self._subscriptions = {}
         for node in self.nodes:
             self.executor.add_node(node)
-            for sub in node.subscriptions:
-                self._subscriptions.setdefault(sub.topic_name, []).append(sub)
+        self._index_subscriptions()
         for node in self.nodes:
             for pub in node.publishers:
                 if pub.topic_name in ("/parameter_events", "/rosout"):
@@ -48,9 +47,17 @@ class WaveExecutor:
             self.held.append((pub, publish, msg))
         return held
 
+    def _index_subscriptions(self):
+        self._subscriptions = {}
+        for node in self.nodes:
+            for sub in node.subscriptions:
+                self._subscriptions.setdefault(sub.topic_name, []).append(sub)
+
     def spin_timers(self, timeout_sec: float = 0.0):
-        """Let timers and anything else ready run once (e.g. a simulator's start-up timer)."""
+        """Let timers and anything else ready run once (e.g. a simulator's start-up timer, the
+        recorder's subscribing to the publishers it found)."""
         self.executor.spin_once(timeout_sec=timeout_sec)
+        self._index_subscriptions()
 
     def wave(self) -> int:
         """Deliver the held messages; returns how many were published."""
@@ -67,8 +74,10 @@ class WaveExecutor:
                     taken = sub.handle.take_message(sub.msg_type, sub.raw)
                 if taken is None:
                     left.append(sub)
-                else:
+                elif sub._callback_type is Subscription.CallbackType.MessageOnly:
                     sub.callback(taken[0])
+                else:
+                    sub.callback(*taken)                    # message and message info
             waiting = left
             if waiting and time.monotonic() > deadline:
                 raise DeliveryTimeout(f"{len(waiting)} deliveries of wave {self.waves} did not "

@@ -4,32 +4,75 @@ version 9, CDR, ros2msg schemas with full definitions, the offered QoS) that ``r
 
 Topics: ``graph.recorder.topics``; a name of the graph (see README) is recorded with its known type,
 any other as ``name:pkg/msg/Type``. Output directory: the node parameter ``output`` (default
-``runs/bag-<UTC time>``). Messages are stored as received (raw CDR), stamped with the node clock
-(sim time when ``use_sim_time`` is set). A chunk is flushed every ``graph.recorder.flush_period``
-seconds and whenever ``graph.recorder.chunk_size`` bytes wait: SIGINT and SIGTERM close the bag
-cleanly, and after SIGKILL everything but the last chunk can still be read.
+``runs/bag-<UTC time>``).
+
+Subscriptions adapt to the publishers, as rosbag2's do (:mod:`.adaptive_qos`): every
+``graph.recorder.discovery_period`` the publishers of each topic are looked up
+(``get_publishers_info_by_topic``); a topic is subscribed once one appears, reliable / transient
+local only when every publisher offers it (so a best-effort publisher is recorded whatever the
+graph's table says, and a latched goal published before the recorder started is recorded), and
+subscribed again, to a weaker profile, when a publisher appears that the subscription does not
+match. The bag's topic metadata (what ``ros2 bag play`` offers again) holds the graph's QoS of each
+topic (:data:`~soft_arm_ros.contract.QOS`): its channels are written before any publisher is seen,
+and readers match the two.
+
+Time stamps, as rosbag2's: the receive time (the middleware's ``received_timestamp``; the node clock
+when ``use_sim_time`` is set, so that the bag runs on the simulator's time) is the MCAP log time, and
+the publisher's ``source_timestamp`` (system time) the publish time. Messages are stored as received
+(raw CDR). Messages the recorder did not receive (gaps in a publisher's sequence numbers) are counted
+per topic, logged as they are found, stored in ``metadata.yaml``'s ``custom_data``
+(``soft_arm.lost_messages``) and reported when the bag is closed.
+
+A chunk is flushed every ``graph.recorder.flush_period`` seconds and whenever
+``graph.recorder.chunk_size`` bytes wait: SIGINT and SIGTERM close the bag cleanly, and after SIGKILL
+everything but the last chunk can still be read.
 """
 from __future__ import annotations
 
 import datetime
+import json
 import os
 import sys
 
+from rclpy.clock import Clock, ClockType
+from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
-from rclpy.qos import QoSProfile
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from soft_arm_model.parameters import ConfigError
 from soft_arm_ros.contract import QOS, TYPES, message_class
 from soft_arm_ros.parameters import NodeParameters
 from soft_arm_ros.runtime import run_node
 
+from .adaptive_qos import LossCounter, resubscription
 from .rosbag_writer import QosProfile, RosbagWriter, TopicSpec
 
 
-def _qos(profile) -> QosProfile:
-    return QosProfile(reliability=profile.reliability.name.lower(),
-                      durability=profile.durability.name.lower(),
-                      history=profile.history.name.lower(), depth=profile.depth)
+def to_profile(profile: QoSProfile) -> QosProfile:
+    """The bag's QoS profile of an rclpy one. System-default and unknown policies read as the rmw
+    defaults (reliable, volatile, keep last); discovery does not carry a publisher's history and
+    depth (unknown, 0), which are then recorded as keep last 1."""
+    def name(policy, default):
+        text = policy.name.lower()
+        return default if text in ("system_default", "unknown") else text
+    return QosProfile(reliability=name(profile.reliability, "reliable"),
+                      durability=name(profile.durability, "volatile"),
+                      history=name(profile.history, "keep_last"), depth=max(int(profile.depth), 1))
+
+
+def to_rclpy(profile: QosProfile) -> QoSProfile:
+    return QoSProfile(depth=profile.depth, history=HistoryPolicy.KEEP_LAST,
+                      reliability=ReliabilityPolicy[profile.reliability.name],
+                      durability=DurabilityPolicy[profile.durability.name])
+
+
+class _Topic:
+    """One recorded topic: its name as given and resolved, message class, the subscription and its
+    profile (None until a publisher appears), how many publish on it."""
+
+    def __init__(self, name: str, resolved: str, message_type):
+        self.name, self.resolved, self.message_type = name, resolved, message_type
+        self.subscription, self.profile, self.publishers = None, None, 0
 
 
 class RecorderNode(Node):
@@ -41,7 +84,7 @@ class RecorderNode(Node):
         if not output:
             stamp = datetime.datetime.now(datetime.timezone.utc).strftime("%Y%m%d-%H%M%S")
             output = os.path.join("runs", f"bag-{stamp}")
-        specs, subscriptions = [], []
+        specs, self.topics = [], {}
         for entry in graph["recorder.topics"]:
             name, _, type_name = entry.partition(":")
             known = name if name in TYPES else name.lstrip("/")       # absolute: /clock, /diagnostics
@@ -49,36 +92,81 @@ class RecorderNode(Node):
             if not type_name:
                 raise ConfigError(f"graph.recorder.topics entry {entry!r} is not valid: expected a "
                                   f"topic of the graph ({', '.join(TYPES)}) or name:pkg/msg/Type")
-            qos = QOS.get(known, QOS["tendon/reference"])
             resolved = self.resolve_topic_name(name)
-            specs.append(TopicSpec(resolved, type_name, _qos(qos)))
-            subscriptions.append((name, resolved, type_name, qos))
+            # until its publishers are seen, the metadata holds the graph's QoS of the topic
+            specs.append(TopicSpec(resolved, type_name, to_profile(QOS.get(known, QOS["tendon/reference"]))))
+            self.topics[resolved] = _Topic(name, resolved, message_class(type_name))
         try:
             self.writer = RosbagWriter(output, specs, chunk_size=graph["recorder.chunk_size"])
         except (OSError, ValueError, LookupError) as exc:
             raise ConfigError(f"output = {output!r} is not valid: {exc}") from None
         self.output = output
         self.count = 0
-        for name, resolved, type_name, qos in subscriptions:
-            deep = QoSProfile(depth=1000, reliability=qos.reliability, history=qos.history)
-            self.create_subscription(message_class(type_name), name, self._writer_for(resolved), deep,
-                                     raw=True)
-        self.create_timer(graph["recorder.flush_period"], self.writer.flush)
+        self.losses = LossCounter()
+        self._sim_time = self.get_parameter("use_sim_time").value
+        self.discover()
+        # on the wall clock: under use_sim_time the simulator's clock starts only once it is recorded
+        wall = Clock(clock_type=ClockType.STEADY_TIME)
+        self.create_timer(graph["recorder.discovery_period"], self.discover, clock=wall)
+        self.create_timer(graph["recorder.flush_period"], self.flush, clock=wall)
         self.get_logger().info(f"recording {len(specs)} topics into {output}")
 
-    def _writer_for(self, topic: str):
-        def write(data: bytes):
-            self.writer.write(topic, self.get_clock().now().nanoseconds, data)
+    def discover(self):
+        """Subscribe to the topics whose publishers appeared, again where a new one's offer does
+        not match the subscription (:func:`~.adaptive_qos.resubscription`)."""
+        for topic in self.topics.values():
+            offered = [to_profile(info.qos_profile)
+                       for info in self.get_publishers_info_by_topic(topic.resolved)]
+            topic.publishers = len(offered)
+            profile = resubscription(topic.profile, offered)
+            if profile is None:
+                continue
+            if topic.subscription is not None:
+                self.destroy_subscription(topic.subscription)
+                self.get_logger().warning(
+                    f"{topic.resolved}: a publisher offers {offered} which the subscription "
+                    f"({topic.profile.reliability.value}, {topic.profile.durability.value}) does not "
+                    f"match: subscribing again {profile.reliability.value}, {profile.durability.value}")
+            topic.profile = profile
+            topic.subscription = self.create_subscription(
+                topic.message_type, topic.name, self._writer_for(topic), to_rclpy(profile), raw=True)
+
+    def unsubscribed(self, published) -> list:
+        """The recorded topics among ``published`` (resolved names) not subscribed yet."""
+        return sorted(t for t in published if t in self.topics and self.topics[t].subscription is None)
+
+    def _writer_for(self, topic: _Topic):
+        def write(data: bytes, info: dict):
+            received = self.get_clock().now().nanoseconds if self._sim_time else info["received_timestamp"]
+            self.writer.write(topic.resolved, received, data,
+                              publish_time_ns=info.get("source_timestamp") or received)
             self.count += 1
+            lost = self.losses.received(topic.resolved, info.get("publication_sequence_number"),
+                                        topic.publishers)
+            if lost:
+                self.get_logger().warning(f"{topic.resolved}: {lost} messages not received (publisher "
+                                          f"sequence gap; {self.losses.total} lost in all)",
+                                          throttle_duration_sec=1.0)
         return write
 
+    def flush(self):
+        """Write the open chunk and the metadata, with the losses so far."""
+        self.writer.set_custom_data("soft_arm.lost_messages", json.dumps(self.losses.lost, sort_keys=True))
+        self.writer.flush()
+
     def close(self):
-        """Close the bag (idempotent): summary, footer and final metadata.yaml."""
+        """Close the bag (idempotent): summary, footer and final metadata.yaml; report the losses."""
+        if self.losses.total:
+            self.get_logger().warning(f"{self.losses.total} messages were not received: "
+                                      + ", ".join(f"{t} {n}" for t, n in sorted(self.losses.lost.items())))
+        self.writer.set_custom_data("soft_arm.lost_messages", json.dumps(self.losses.lost, sort_keys=True))
         self.writer.close()
 
 
 def main(args=None) -> int:
-    return run_node(RecorderNode, "recorder", args)
+    # rclpy Jazzy's EventsExecutor fails on a callback that takes the message info ("SystemError:
+    # null argument to internal routine"), and the recorder needs the info's time stamps
+    return run_node(RecorderNode, "recorder", args, executor_factory=SingleThreadedExecutor)
 
 
 if __name__ == "__main__":

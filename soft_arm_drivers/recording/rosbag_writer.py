@@ -357,6 +357,10 @@ class RosbagWriter:
         if self._pending_bytes >= self._chunk_size:
             self.flush()
 
+    def set_custom_data(self, key: str, value: str):
+        """Set one string pair of ``custom_data`` in ``metadata.yaml`` (from the next flush on)."""
+        self._custom_data.update(_string_pairs({key: value}))
+
     def flush(self):
         """Write the open chunk to disk now and refresh ``metadata.yaml``; no-op when the open
         chunk is empty. Call it from a timer to bound what a crash loses in time, not only in

@@ -323,3 +323,18 @@ def test_sigterm_takes_the_motors_out_of_motor_mode(context):
     assert modes[-2:] == ["motor modes [True, True, True, True]",
                           "motor modes [False, False, False, False]"], out
     assert "torques [0.0, 0.0, 0.0, 0.0]" in out
+
+
+def test_parameters_are_declared_read_only_with_their_ranges(rig):
+    """The driver applies its configuration once, at start: every rig.motors value (the node's own
+    overrides included) is declared read-only, described, with its schema's range; a set is refused."""
+    executor, node, harness, emulator = rig
+    watchdog = node.describe_parameter("rig.motors.watchdog_timeout")
+    assert watchdog.read_only and watchdog.description == "expected a time in (0, 1] s"
+    assert watchdog.floating_point_range[0].to_value == 1.0
+    assert node.get_parameter("rig.motors.watchdog_timeout").value == 0.2          # the test's override
+    assert node.describe_parameter("rig.motors.rate").floating_point_range[0].to_value == 2000.0
+    assert node.describe_parameter("arm.tendons.names").read_only
+    result = node.set_parameters([Parameter("rig.motors.watchdog_timeout", value=0.5)])[0]
+    assert not result.successful and "read-only" in result.reason
+    assert node.config.watchdog_timeout == 0.2

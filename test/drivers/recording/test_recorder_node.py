@@ -1,0 +1,168 @@
+"""The recorder node on real rclpy, in this process: its subscriptions adapt to the publishers' QoS
+as rosbag2's do (a best-effort publisher on a topic the graph's table marks reliable is recorded; a
+latched goal published before the recorder started is recorded; a publisher the subscription does
+not match makes it subscribe again), the receive and source time stamps are recorded, and losses
+(gaps in a publisher's sequence numbers) are counted and stored in the metadata."""
+import json
+import pathlib
+import time
+
+import pytest
+import rclpy
+import yaml
+from mcap.reader import make_reader
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.parameter import Parameter
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.serialization import deserialize_message
+from std_msgs.msg import Float64MultiArray
+
+from soft_arm_drivers.recording.adaptive_qos import LossCounter, adapt_to_offers, matches, resubscription
+from soft_arm_drivers.recording.recorder_node import RecorderNode
+from soft_arm_drivers.recording.rosbag_writer import QosProfile
+
+BEST_EFFORT = QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT)
+LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+# -- the core ---------------------------------------------------------------------------------------
+def test_the_subscription_is_as_strict_as_every_offer_allows():
+    be, rel = QosProfile("best_effort", "volatile"), QosProfile("reliable", "volatile")
+    latched = QosProfile("reliable", "transient_local")
+    assert adapt_to_offers([]) is None
+    assert adapt_to_offers([latched]) == QosProfile("reliable", "transient_local", "keep_last", 1000)
+    assert adapt_to_offers([latched, rel]) == QosProfile("reliable", "volatile", "keep_last", 1000)
+    assert adapt_to_offers([latched, be]).reliability.value == "best_effort"
+    assert matches(adapt_to_offers([latched]), latched) and not matches(adapt_to_offers([latched]), be)
+    assert not matches(adapt_to_offers([latched]), rel) and matches(adapt_to_offers([be]), latched)
+    current = adapt_to_offers([latched])
+    assert resubscription(current, [latched, latched]) is None              # still matches: kept
+    assert resubscription(current, [latched, rel]) == QosProfile("reliable", "volatile", "keep_last", 1000)
+    assert resubscription(current, [latched, be]) == QosProfile("best_effort", "volatile", "keep_last", 1000)
+    assert resubscription(adapt_to_offers([be]), [latched]) is None         # never upward
+
+
+def test_losses_are_sequence_gaps_of_a_single_publisher():
+    losses = LossCounter()
+    assert [losses.received("/a", s, 1) for s in (1, 2, 5, 6, 10)] == [0, 0, 2, 0, 3]
+    assert losses.received("/a", 1, 1) == 0                          # the publisher restarted
+    assert losses.received("/a", 3, 1) == 1
+    assert losses.received("/b", 7, 2) == 0 and losses.received("/b", 20, 2) == 0   # two publishers
+    assert losses.received("/c", None, 1) == 0
+    assert losses.lost == {"/a": 6} and losses.total == 6 and losses.uncounted == {"/b", "/c"}
+
+
+# -- the node ---------------------------------------------------------------------------------------
+@pytest.fixture
+def context():
+    ctx = Context()
+    rclpy.init(context=ctx)
+    yield ctx
+    rclpy.try_shutdown(context=ctx)
+
+
+def spin_until(executor, predicate, timeout=10.0):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        executor.spin_once(timeout_sec=0.01)
+        if predicate():
+            return
+    raise AssertionError(f"timed out after {timeout} s")
+
+
+def goal(value):
+    return Float64MultiArray(data=[float(value)])
+
+
+def recorder(context, bag, topics):
+    return RecorderNode(context=context, parameter_overrides=[
+        Parameter("output", value=str(bag)), Parameter("graph.recorder.topics", value=topics),
+        Parameter("graph.recorder.flush_period", value=0.2)])
+
+
+def read(bag):
+    with open(pathlib.Path(bag) / f"{pathlib.Path(bag).name}_0.mcap", "rb") as fh:
+        reader = make_reader(fh)
+        return [(channel.topic, message) for _, channel, message in reader.iter_messages()]
+
+
+def metadata(bag):
+    return yaml.safe_load((pathlib.Path(bag) / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+
+
+def test_latched_and_best_effort_publishers_are_recorded(context, tmp_path):
+    """task/goal is reliable + transient local in the graph's table. A latched goal published before
+    the recorder starts reaches it; then a best-effort publisher appears on the same topic: the
+    recorder subscribes again, best effort, and records its messages too."""
+    publisher_node = rclpy.create_node("goal_publisher", context=context)
+    latched = publisher_node.create_publisher(Float64MultiArray, "task/goal", LATCHED)
+    before = time.time_ns()
+    latched.publish(goal(1.0))                                  # nobody listens yet
+    published = time.time_ns()
+    bag = tmp_path / "bag"
+    node = recorder(context, bag, ["task/goal"])
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    executor.add_node(publisher_node)
+    try:
+        spin_until(executor, lambda: node.count >= 1)
+        assert node.topics["/task/goal"].profile.durability.value == "transient_local"
+        streaming = publisher_node.create_publisher(Float64MultiArray, "task/goal", BEST_EFFORT)
+        spin_until(executor, lambda: node.topics["/task/goal"].profile.reliability.value == "best_effort")
+        spin_until(executor, lambda: streaming.get_subscription_count() > 0)
+        for k in range(2, 40):
+            streaming.publish(goal(k))
+            executor.spin_once(timeout_sec=0.002)
+        spin_until(executor, lambda: node.count >= 20)
+    finally:
+        executor.shutdown()
+        node.close()
+        node.destroy_node()
+        publisher_node.destroy_node()
+    after = time.time_ns()
+    messages = read(bag)
+    assert len(messages) == node.count >= 20
+    values = [deserialize_message(m.data, Float64MultiArray).data[0] for _, m in messages]
+    assert values[0] == 1.0 and set(values[1:]) <= set(range(2, 40)) and len(values) >= 20
+    for _, m in messages:
+        # the source time (publisher's) before the receive time, both inside the test's window
+        assert before <= m.publish_time <= m.log_time <= after
+    # the latched goal: stamped with when it was published, and when the recorder received it
+    assert before <= messages[0][1].publish_time <= published < messages[0][1].log_time
+    assert json.loads(metadata(bag)["custom_data"]["soft_arm.lost_messages"]) == {}
+
+
+def test_messages_the_recorder_could_not_keep_up_with_are_counted(context, tmp_path):
+    """3000 best-effort messages published while the recorder does not spin: its history (1000)
+    overflows; what it missed is counted from the publisher's sequence numbers, so that recorded +
+    lost covers every message, and the count is in the bag's metadata."""
+    publisher_node = rclpy.create_node("stream_publisher", context=context)
+    stream = publisher_node.create_publisher(Float64MultiArray, "arm/configuration_reference", BEST_EFFORT)
+    bag = tmp_path / "bag"
+    node = recorder(context, bag, ["arm/configuration_reference"])
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    try:
+        spin_until(executor, lambda: stream.get_subscription_count() > 0)
+        stream.publish(goal(0))
+        spin_until(executor, lambda: node.count == 1)
+        for k in range(1, 3000):
+            stream.publish(goal(k))
+        count = -1
+        while count != node.count:                               # until nothing more arrives
+            count = node.count
+            for _ in range(50):
+                executor.spin_once(timeout_sec=0.01)
+    finally:
+        executor.shutdown()
+        node.close()
+        node.destroy_node()
+        publisher_node.destroy_node()
+    lost = node.losses.lost.get("/arm/configuration_reference", 0)
+    assert lost >= 1000 and node.count + lost == 3000
+    stored = json.loads(metadata(bag)["custom_data"]["soft_arm.lost_messages"])
+    assert stored == {"/arm/configuration_reference": lost}
+    values = [deserialize_message(m.data, Float64MultiArray).data[0] for _, m in read(bag)]
+    assert values == sorted(values) and values[-1] == 2999.0
