@@ -1,7 +1,8 @@
 """The graph's contract: topic names, their message types and QoS, the frame of every pose.
 
 Topics are relative names (a node moved under a namespace, or remapped, keeps the wiring). Streams
-(state, command, mocap, shape, clock) are best effort with depth 1: a late sample is worth nothing.
+(state, command, mocap, clock) are best effort with depth 1: a late sample is worth nothing. What a
+viewer draws (the shape) is reliable with depth 1, the QoS RViz and Foxglove ask for by default.
 Goals and references are state: reliable and transient-local, so that the last one reaches a node
 that starts late. The README's topic table is this module in prose.
 """
@@ -34,11 +35,15 @@ STREAM = QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT,
 # goals and references are state: the last one is kept for subscribers that join late
 RELIABLE = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                       history=HistoryPolicy.KEEP_LAST, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+# what a viewer draws: reliable, so that RViz's and Foxglove's default (reliable) subscriptions
+# receive it (a best-effort publisher gives a reliable subscriber nothing); only the latest counts
+VISUAL = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST,
+                    durability=DurabilityPolicy.VOLATILE)
 # /diagnostics as every node publishes it (rclpy's default profile, depth 10)
 EVENTS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST,
                     durability=DurabilityPolicy.VOLATILE)
 QOS = {"tendon/command": STREAM, "tendon/state": STREAM, "mocap/markers": STREAM, "mocap/tip": STREAM,
-       "arm/shape": STREAM, "/clock": STREAM, "tendon/reference": RELIABLE, "task/goal": RELIABLE,
+       "arm/shape": VISUAL, "/clock": STREAM, "tendon/reference": RELIABLE, "task/goal": RELIABLE,
        "arm/configuration_reference": RELIABLE, "mocap/pendulum": STREAM, "pendulum/release": RELIABLE,
        "/diagnostics": EVENTS}
 

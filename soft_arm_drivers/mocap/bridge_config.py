@@ -210,6 +210,16 @@ def load_mocap_config(path: Optional[str] = None, overrides: Optional[Mapping] =
     """``rig.mocap`` of a parameter file (default: the package's ``config/mocap.yaml``) with dotted
     overrides relative to ``rig`` (``{"mocap.command_port": 1510}``), validated. Other ``rig.*``
     entries (other drivers' parameters) are left alone."""
+    return bridge_config(mocap_values(path, overrides, node))
+
+
+def bridge_config(values: Mapping) -> BridgeConfig:
+    """The configuration of validated ``rig`` values (:func:`mocap_values`)."""
+    return BridgeConfig(**{name: values[f"mocap.{key}"] for name, key in _FIELDS.items()})
+
+
+def mocap_values(path: Optional[str] = None, overrides: Optional[Mapping] = None, node: str = "/**") -> dict:
+    """The validated values of :func:`load_mocap_config`, by dotted key relative to ``rig``."""
     path = path or os.path.join(default_config_dir(), "mocap.yaml")
     params = read_parameters(path, node)
     rig = params.get(NAMESPACE)
@@ -217,10 +227,9 @@ def load_mocap_config(path: Optional[str] = None, overrides: Optional[Mapping] =
         raise ConfigError(f"{path}: no '{NAMESPACE}.mocap' parameters under {node}.ros__parameters")
     try:
         tree = apply_overrides({"mocap": rig["mocap"]}, overrides, MOCAP_SCHEMA, NAMESPACE)
-        values = validate_tree(tree, MOCAP_SCHEMA, NAMESPACE)
+        return validate_tree(tree, MOCAP_SCHEMA, NAMESPACE)
     except ConfigError as exc:
         raise ConfigError(f"{path}: {exc}") from None
-    return BridgeConfig(**{name: values[f"mocap.{key}"] for name, key in _FIELDS.items()})
 
 
 def calibration_overrides(path: str) -> dict:

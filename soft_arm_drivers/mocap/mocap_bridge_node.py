@@ -24,14 +24,13 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseArray, PoseStamped
 from rclpy.node import Node
 
-from soft_arm_model.config import load_arm_config
-from soft_arm_model.parameters import ConfigError, default_config_dir
+from soft_arm_model.parameters import ConfigError
 from soft_arm_ros.contract import QOS, TOPICS
 from soft_arm_ros.conversions import pose_array, pose_stamped, seconds_to_stamp
-from soft_arm_ros.parameters import parameter_overrides
+from soft_arm_ros.parameters import NodeParameters, parameter_overrides
 from soft_arm_ros.runtime import run_node
 
-from .bridge_config import NAMESPACE, BridgeConfig, load_mocap_config
+from .bridge_config import MOCAP_SCHEMA, NAMESPACE, BridgeConfig, bridge_config, mocap_values
 from .mocap_bridge import MocapBridge
 
 DIAGNOSTICS_TOPIC = "/diagnostics"
@@ -40,12 +39,15 @@ _POLL_TIMEOUT = 0.05       # s, how long the receive thread waits before checkin
 
 
 def load_node_config(node, config_dir: str | None = None) -> BridgeConfig:
-    """``rig.mocap`` of ``mocap.yaml`` with the node's parameters, checked against the arm's markers."""
-    d = config_dir or default_config_dir()
+    """``rig.mocap`` of ``mocap.yaml`` with the node's parameters, checked against the arm's markers;
+    each value declared read-only with its description and range
+    (:class:`~soft_arm_ros.parameters.NodeParameters`)."""
+    params = NodeParameters(node, config_dir)
     overrides = {f"mocap.{k}": v for k, v in parameter_overrides(node, "rig.mocap").items()}
-    config = load_mocap_config(os.path.join(d, "mocap.yaml"), overrides)
-    arm = load_arm_config(os.path.join(d, "arm.yaml"), parameter_overrides(node, "arm"))
-    n = len(arm.marker_positions)
+    values = mocap_values(os.path.join(params.config_dir, "mocap.yaml"), overrides)
+    config = bridge_config(values)
+    params.describe(NAMESPACE, MOCAP_SCHEMA, values)
+    n = len(params.arm.marker_positions)
     if len(config.ids) != n:
         raise ConfigError(f"{NAMESPACE}.mocap.markers.ids = {list(config.ids)} is not valid: expected "
                           f"{n} ids, one per marker of arm.markers.positions, base to tip")
