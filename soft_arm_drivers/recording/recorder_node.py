@@ -51,7 +51,8 @@ from .rosbag_writer import QosProfile, RosbagWriter, TopicSpec
 def to_profile(profile: QoSProfile) -> QosProfile:
     """The bag's QoS profile of an rclpy one. System-default and unknown policies read as the rmw
     defaults (reliable, volatile, keep last); discovery does not carry a publisher's history and
-    depth (unknown, 0), which are then recorded as keep last 1."""
+    depth (unknown, 0), which read as keep last 1 (only reliability and durability decide how the
+    recorder subscribes)."""
     def name(policy, default):
         text = policy.name.lower()
         return default if text in ("system_default", "unknown") else text
