@@ -97,3 +97,24 @@ def free_udp_ports(n: int = 2) -> list:
     for s in socks:
         s.close()
     return ports
+
+
+@pytest.fixture
+def context():
+    """An rclpy context of its own, shut down after the test."""
+    import rclpy
+    from rclpy.context import Context
+    ctx = Context()
+    rclpy.init(context=ctx)
+    yield ctx
+    rclpy.try_shutdown(context=ctx)
+
+
+def spin_until(executor, predicate, timeout: float = 10.0):
+    """Spin ``executor`` until ``predicate()`` holds; AssertionError after ``timeout`` [s]."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        executor.spin_once(timeout_sec=0.005)
+        if predicate():
+            return
+    raise AssertionError(f"timed out after {timeout} s")

@@ -19,7 +19,7 @@ from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
 from std_srvs.srv import SetBool, Trigger
 
-from conftest import killed_on_exit, stop
+from conftest import killed_on_exit, spin_until, stop
 from soft_arm_drivers.can.driver_config import load_driver_config
 from soft_arm_drivers.can.motor_driver_node import MotorDriverNode, main
 from soft_arm_drivers.sim.can_emulator import CanMotorEmulator, EmulatorThread, arm_plant
@@ -74,15 +74,6 @@ def values(harness):
     return {v.key: v.value for v in harness.driver_status().values}
 
 
-def spin_until(executor, predicate, timeout=10.0):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        executor.spin_once(timeout_sec=0.005)
-        if predicate():
-            return
-    raise AssertionError(f"timed out after {timeout} s")
-
-
 def call(executor, harness, service, **fields):
     client = harness.clients[service]
     spin_until(executor, client.service_is_ready)
@@ -90,14 +81,6 @@ def call(executor, harness, service, **fields):
     future = client.call_async(request)
     spin_until(executor, future.done)
     return future.result()
-
-
-@pytest.fixture
-def context():
-    ctx = Context()
-    rclpy.init(context=ctx)
-    yield ctx
-    rclpy.try_shutdown(context=ctx)
 
 
 @pytest.fixture

@@ -7,17 +7,16 @@ import json
 import pathlib
 import time
 
-import pytest
 import rclpy
 import yaml
 from mcap.reader import make_reader
-from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message
 from std_msgs.msg import Float64MultiArray
 
+from conftest import spin_until
 from soft_arm_drivers.recording.adaptive_qos import LossCounter, adapt_to_offers, matches, resubscription
 from soft_arm_drivers.recording.recorder_node import RecorderNode
 from soft_arm_drivers.recording.rosbag_writer import QosProfile
@@ -54,24 +53,7 @@ def test_losses_are_sequence_gaps_of_a_single_publisher():
     assert losses.lost == {"/a": 6} and losses.total == 6 and losses.uncounted == {"/b", "/c"}
 
 
-# -- the node ---------------------------------------------------------------------------------------
-@pytest.fixture
-def context():
-    ctx = Context()
-    rclpy.init(context=ctx)
-    yield ctx
-    rclpy.try_shutdown(context=ctx)
-
-
-def spin_until(executor, predicate, timeout=10.0):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        executor.spin_once(timeout_sec=0.01)
-        if predicate():
-            return
-    raise AssertionError(f"timed out after {timeout} s")
-
-
+# -- the node (the ``context`` fixture: conftest) -----------------------------------------------------
 def goal(value):
     return Float64MultiArray(data=[float(value)])
 
