@@ -175,19 +175,12 @@ def validate_tree(params: Mapping, schema: Mapping, namespace: str) -> dict:
     """
     flat = flatten_tree(params)
     for key in flat:
-        if not any(_matches(key, k) for k in schema):
+        if schema_entry(schema, key) is None:
             raise _unknown_key(namespace, key, schema)
     missing = [k for k in schema if "*" not in k and k not in flat]
     if missing:
         raise ConfigError(f"missing key {namespace}.{missing[0]} (expected {schema[missing[0]][2]})")
-    values = {}
-    for key, raw in flat.items():
-        pattern = next(k for k in schema if _matches(key, k))
-        kind, check, allowed = schema[pattern]
-        values[key] = _coerce(f"{namespace}.{key}", raw, kind, allowed)
-        if check is not None and not check(values[key]):
-            raise ConfigError(f"{namespace}.{key} = {raw!r} is not valid: expected {allowed}")
-    return values
+    return {key: check_value(schema, namespace, key, raw) for key, raw in flat.items()}
 
 
 def default_config_dir() -> str:

@@ -7,7 +7,6 @@ import time
 import numpy as np
 import pytest
 import rclpy
-from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
@@ -16,9 +15,7 @@ from soft_arm_control.inner_loop_node import LIVE, InnerLoopNode
 
 
 @pytest.fixture
-def inner_loop():
-    context = Context()
-    rclpy.init(context=context)
+def inner_loop(context):
     node = InnerLoopNode(context=context, parameter_overrides=[
         Parameter("control.inner_loop.integral_saturation", value=1)])     # an int for a float
     user = rclpy.create_node("ros2_param", context=context)
@@ -41,7 +38,6 @@ def inner_loop():
         executor.shutdown()
         node.destroy_node()
         user.destroy_node()
-        rclpy.try_shutdown(context=context)
 
 
 def test_every_value_read_is_declared_with_a_description_and_range(inner_loop):
