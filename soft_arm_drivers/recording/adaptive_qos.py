@@ -69,13 +69,11 @@ class LossCounter:
     def __init__(self):
         self.lost: dict = {}
         self._last: dict = {}
-        self.uncounted: set = set()
 
     def received(self, topic: str, sequence: int | None, publishers: int) -> int:
         """A message on ``topic`` with its publisher's ``sequence`` number (None when the middleware
         gives none) while ``publishers`` publish on it: the messages found lost before it."""
         if sequence is None or publishers != 1:
-            self.uncounted.add(topic)
             self._last.pop(topic, None)
             return 0
         last = self._last.get(topic)

@@ -94,7 +94,7 @@ class RecorderNode(Node):
                 raise ConfigError(f"graph.recorder.topics entry {entry!r} is not valid: expected a "
                                   f"topic of the graph ({', '.join(TYPES)}) or name:pkg/msg/Type")
             resolved = self.resolve_topic_name(name)
-            # until its publishers are seen, the metadata holds the graph's QoS of the topic
+            # the bag's metadata holds the graph's QoS of the topic (module docstring)
             specs.append(TopicSpec(resolved, type_name, to_profile(QOS.get(known, QOS["tendon/reference"]))))
             self.topics[resolved] = _Topic(name, resolved, message_class(type_name))
         try:
@@ -150,9 +150,12 @@ class RecorderNode(Node):
                                           throttle_duration_sec=1.0)
         return write
 
+    def _store_losses(self):
+        self.writer.set_custom_data("soft_arm.lost_messages", json.dumps(self.losses.lost, sort_keys=True))
+
     def flush(self):
         """Write the open chunk and the metadata, with the losses so far."""
-        self.writer.set_custom_data("soft_arm.lost_messages", json.dumps(self.losses.lost, sort_keys=True))
+        self._store_losses()
         self.writer.flush()
 
     def close(self):
@@ -160,7 +163,7 @@ class RecorderNode(Node):
         if self.losses.total:
             self.get_logger().warning(f"{self.losses.total} messages were not received: "
                                       + ", ".join(f"{t} {n}" for t, n in sorted(self.losses.lost.items())))
-        self.writer.set_custom_data("soft_arm.lost_messages", json.dumps(self.losses.lost, sort_keys=True))
+        self._store_losses()
         self.writer.close()
 
 
