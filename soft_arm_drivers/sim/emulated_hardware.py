@@ -10,6 +10,7 @@ The child ends when the parent closes it or dies (it watches a pipe to the paren
 from __future__ import annotations
 
 import multiprocessing
+import os
 import time
 from dataclasses import dataclass
 
@@ -64,12 +65,13 @@ def start_hardware(spec: HardwareSpec, bus: can.BusABC) -> Hardware:
     c, emulator, mocap, p = spec.driver, spec.emulator, spec.mocap, spec.plant
     plant = Plant.of(spec.arm, p)
     plant.settle(np.zeros(plant.model.n_tendons))
+    data = ArmData(plant.model)
+    _compile_kernels(plant, data)
     motors = CanMotorEmulator.for_config(
         c, bus, plant, reply_delay=emulator["reply_delay"], encoder_resolution=p.encoder_resolution,
         zero_spread=emulator["zero_spread"], seed=emulator["seed"], start_time=time.time())
     thread = EmulatorThread(motors).start()
     rng = np.random.default_rng(p.mocap_seed)
-    data = ArmData(plant.model)
 
     def markers(t: float) -> np.ndarray:
         """On the NatNet thread: the plant at the exposure time ``t`` [s, system time]."""
@@ -90,6 +92,31 @@ def start_hardware(spec: HardwareSpec, bus: can.BusABC) -> Hardware:
     return Hardware(thread, natnet)
 
 
+def _compile_kernels(plant: Plant, data: ArmData):
+    """Run every kernel the motors' and the NatNet threads call once, the plant's state kept: on a
+    cold numba cache (a fresh install) they compile here, before the hardware reports ready, not
+    in the first cycles after the driver enables the motors, where a stalled reply trips its
+    watchdog."""
+    q, qd = plant.q.copy(), plant.qd.copy()
+    plant.sense(markers=True)
+    plant.step(np.zeros(plant.model.n_tendons))
+    plant.q, plant.qd = q, qd
+    marker_positions(plant.model, q, data)
+
+
+def _below_the_driver():
+    """Under SCHED_FIFO (inherited from the driver's process), run one priority below it: the plant
+    and the Motive emulator stand for hardware that takes no CPU from the driver on the rig, so
+    they must not hold a core the driver is waiting for (equal FIFO priorities do not preempt)."""
+    try:
+        if os.sched_getscheduler(0) == os.SCHED_FIFO:
+            priority = os.sched_getparam(0).sched_priority
+            if priority > 1:
+                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority - 1))
+    except (AttributeError, OSError):
+        pass
+
+
 def peer_channel(channel: str) -> str:
     """The other end's channel of a ``soft_arm_loopback`` channel ``"LOCAL:PEER"``."""
     local, peer = parse_channel(channel)
@@ -100,6 +127,7 @@ def _serve(spec: HardwareSpec, conn):
     """The child: the hardware on the bus's other end until the parent closes the pipe or dies.
     Reports ``("ready", natnet command port)`` or ``("error", message)`` on the pipe."""
     bus = hardware = None
+    _below_the_driver()
     try:
         bus = LoopbackBus(peer_channel(spec.driver.channel), preserve_timestamps=True)
         hardware = start_hardware(spec, bus)

@@ -94,3 +94,30 @@ def test_a_hardware_process_that_cannot_start_says_why():
             HardwareProcess(second).start()
     finally:
         hardware.stop()
+
+
+def _fifo_permitted() -> bool:
+    try:
+        policy, param = os.sched_getscheduler(0), os.sched_getparam(0)
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(30))
+        os.sched_setscheduler(0, policy, param)
+        return True
+    except OSError:
+        return False
+
+
+@pytest.mark.skipif(not _fifo_permitted(), reason="SCHED_FIFO is not permitted here")
+def test_the_hardware_process_runs_below_the_fifo_priority_of_its_driver():
+    """The plant and the Motive emulator stand for hardware: under SCHED_FIFO they never hold a core
+    at the driver's priority."""
+    policy, param = os.sched_getscheduler(0), os.sched_getparam(0)
+    os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(30))
+    try:
+        hardware = HardwareProcess(_spec()).start()       # spawned under this process's FIFO 30
+    finally:
+        os.sched_setscheduler(0, policy, param)
+    try:
+        assert os.sched_getscheduler(hardware.pid) == os.SCHED_FIFO
+        assert os.sched_getparam(hardware.pid).sched_priority == 29
+    finally:
+        hardware.stop()
