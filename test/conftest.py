@@ -118,3 +118,13 @@ def spin_until(executor, predicate, timeout: float = 10.0):
         if predicate():
             return
     raise AssertionError(f"timed out after {timeout} s")
+
+
+def change_state(executor, client, label: str) -> bool:
+    """Ask a managed node for the lifecycle transition ``label`` through its change_state service
+    (``client``, as ``ros2 lifecycle set`` does), spinning ``executor``; whether it succeeded."""
+    from lifecycle_msgs.msg import Transition
+    spin_until(executor, client.service_is_ready)
+    future = client.call_async(client.srv_type.Request(transition=Transition(label=label)))
+    spin_until(executor, future.done)
+    return future.result().success

@@ -247,6 +247,18 @@ class MotorDriver:
     def __exit__(self, *exc):
         self.close()
 
+    def probe(self, now: float) -> np.ndarray:
+        """Before the cycle starts: read the replies waiting, then poll every motor with zero torque
+        (answered in and out of motor mode); which motors answered since the previous probe. No
+        silence or watchdog check, no cycle counted: a motor's first answer may take a while
+        (configure waits for it), a silence counts once the cycle runs. A reply's error code or
+        temperature latches its fault as in the cycle."""
+        if self._closed:
+            raise RuntimeError("the driver is closed")
+        fresh = self._read(float(now))
+        self._send_zero()
+        return fresh
+
     # -- the cycle -----------------------------------------------------------------------------
     def cycle(self, now: float) -> Cycle:
         """One period at ``now`` [s] (never earlier than the previous cycle's): read the replies,

@@ -16,10 +16,22 @@ runs one driver cycle, on a monotonic clock, and
 
 Subscribes ``tendon/command`` (effort = tensions [N]; a command missing a tendon or with NaN or
 infinity is counted and dropped: the previous one ages until the watchdog latches a fault).
-Services: ``~/enable`` (std_srvs/SetBool: true enters motor mode and clears a latched fault, false
-disables), ``~/estop`` (std_srvs/Trigger: zero torque and out of motor mode, latched) and ``~/zero``
-(std_srvs/Trigger: the current angles become the zero; refused while enabled: zero with the tendons
-slack).
+
+A managed (lifecycle) node (:mod:`soft_arm_ros.lifecycle`), driven with ``ros2 lifecycle set
+/motor_driver <transition>`` or by ``soft-arm-experiment`` and ``rig.launch.py``:
+
+- ``configure`` opens the bus, takes every motor out of motor mode and polls until every motor has
+  answered (refused, bus closed again, if one is silent for 1 s or reports an error); from then on the
+  cycle timer runs and the state flows (inactive: motors polled with zero torque, out of motor mode);
+- ``activate`` enters motor mode and applies the commands (clearing a latched fault, from zero
+  tension); a fault while active (watchdog, a silent or failing motor, e-stop) sends zero torque
+  at once and deactivates the node itself, the fault latched and reported until the next activate;
+- ``deactivate`` sends zero torque and exits motor mode; ``cleanup`` and ``shutdown`` close the bus
+  after the same.
+
+Services: ``~/estop`` (std_srvs/Trigger: zero torque and out of motor mode, latched, in any state;
+forces an active node inactive) and ``~/zero`` (std_srvs/Trigger: the current angles become the
+zero; only when inactive, with the tendons slack).
 
 Parameters: ``rig.motors.*`` of the package's ``config/rig.yaml`` overlaid with the node's own
 (``--params-file``, ``-p rig.motors.key:=value``), ``arm.*`` for the tendon names, each declared
@@ -35,12 +47,13 @@ import time
 
 import can
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from rclpy.node import Node
+import numpy as np
 from sensor_msgs.msg import JointState
-from std_srvs.srv import SetBool, Trigger
+from std_srvs.srv import Trigger
 
 from soft_arm_model.parameters import ConfigError
 from soft_arm_ros.contract import QOS, TOPICS
+from soft_arm_ros.lifecycle import SUCCESS, ManagedHardwareNode, transition
 from soft_arm_ros.conversions import joint_state, ordered, stamp_to_seconds
 from soft_arm_ros.parameters import NodeParameters
 from soft_arm_ros.runtime import run_node
@@ -50,11 +63,13 @@ from .driver_config import NAMESPACE, SCHEMA, bus_load, parse_driver_config
 from .motor_driver import Diagnostics, MotorDriver
 
 DIAGNOSTICS_PERIOD = 0.5        # s between /diagnostics messages when nothing changes
+CONFIGURE_TIMEOUT = 1.0         # s configure waits for every motor's first answer
 
 
-class MotorDriverNode(Node):
+class MotorDriverNode(ManagedHardwareNode):
     """``defaults``: ``rig.motors`` values (dotted, relative to it) laid over rig.yaml beneath the
-    node's own parameters (the emulated rig's motors)."""
+    node's own parameters (the emulated rig's motors). Created unconfigured: the bus opens at
+    ``configure``."""
 
     def __init__(self, config_dir: str | None = None, defaults: dict | None = None, **node_options):
         super().__init__("motor_driver", allow_undeclared_parameters=True,
@@ -67,35 +82,111 @@ class MotorDriverNode(Node):
         except ConfigError as exc:
             raise ConfigError(f"{os.path.join(params.config_dir, 'rig.yaml')}: {exc}") from None
         self.check_config(c)
-        try:
-            self.driver = MotorDriver(c)
-        except (can.CanError, OSError) as exc:
-            raise ConfigError(f"{NAMESPACE}: cannot open {c.interface} channel {c.channel!r}: "
-                              f"{exc}") from None
+        self.driver: MotorDriver | None = None
+        self._timer = None
         self.incomplete_cycles = self.malformed_commands = 0
         self.latency = CommandLatency()
+        self.activated_at = self.first_command_after = None    # monotonic [s]; activate -> command [s]
         self._status, self._last_diagnostics = None, -float("inf")
         self.state_pub = self.create_publisher(JointState, TOPICS["state"], QOS["tendon/state"])
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.create_subscription(JointState, TOPICS["command"], self.on_command, QOS["tendon/command"])
-        self.create_service(SetBool, "~/enable", self.on_enable)
         self.create_service(Trigger, "~/estop", self.on_estop)
         self.create_service(Trigger, "~/zero", self.on_zero)
-        self.create_timer(1.0 / c.rate, self.tick)
         load, worst = bus_load(c)
         if worst > 0.8:
             self.get_logger().warning(f"the motors take {load:.0%} of the bus ({worst:.0%} with worst-case "
                                       f"bit stuffing) at {c.rate:g} Hz: lower rig.motors.rate")
-        self.get_logger().info(
-            f"motor driver ready: {len(c.motors)} motors on {c.interface} {c.channel} at {c.rate:g} Hz, "
-            f"disabled (call ~/enable)")
+        self.get_logger().info(f"motor driver unconfigured: {len(c.motors)} motors on {c.interface} "
+                               f"{c.channel} at {c.rate:g} Hz (configure opens the bus)")
 
     def check_config(self, config):
         """Further checks of the validated configuration before the bus is opened (ConfigError)."""
 
+    # -- lifecycle -------------------------------------------------------------------------------
+    @transition
+    def on_configure(self, state):
+        c = self.config
+        try:
+            driver = MotorDriver(c)
+        except (can.CanError, OSError) as exc:
+            return self.refuse("configure", f"cannot open {c.interface} channel {c.channel!r}: {exc}")
+        silent = self._check_motors(driver)
+        if silent:
+            driver.close()
+            return self.refuse("configure", f"motors {silent} did not answer within "
+                                            f"{CONFIGURE_TIMEOUT:g} s on {c.interface} {c.channel}")
+        if driver.fault is not None:
+            driver.close()
+            return self.refuse("configure", driver.fault)
+        self.driver = driver
+        self._timer = self.create_timer(1.0 / c.rate, self.tick)
+        self.get_logger().info(f"motor driver configured: {len(c.motors)} motors answer on "
+                               f"{c.interface} {c.channel}, out of motor mode (activate to drive them)")
+        return SUCCESS
+
+    def _check_motors(self, driver: MotorDriver) -> list:
+        """Probe ``driver``'s motors at its rate until every one has answered, for at most
+        CONFIGURE_TIMEOUT; the CAN ids of those that did not."""
+        period = 1.0 / self.config.rate
+        deadline = time.monotonic() + CONFIGURE_TIMEOUT
+        answered = np.zeros(len(self.config.motors), dtype=bool)
+        while not answered.all() and time.monotonic() < deadline:
+            answered |= driver.probe(time.monotonic())
+            time.sleep(period)
+        return [m.can_id for m, ok in zip(self.config.motors, answered) if not ok]
+
+    @transition
+    def on_activate(self, state):
+        was = self.driver.fault
+        self.driver.enable(time.monotonic())
+        self.activated_at, self.first_command_after = time.monotonic(), None
+        self.get_logger().info("activated: motors in motor mode"
+                               + (f" (cleared fault: {was})" if was else ""))
+        self._report(self.driver.diagnostics(time.monotonic()), force=True)
+        return SUCCESS
+
+    @transition
+    def on_deactivate(self, state):
+        self.driver.disable()
+        self.activated_at = None
+        fault = self.driver.fault
+        self.get_logger().info("deactivated: zero torque, motors out of motor mode"
+                               + (f" (fault still latched: {fault})" if fault else ""))
+        self._report(self.driver.diagnostics(time.monotonic()), force=True)
+        return SUCCESS
+
+    @transition
+    def on_cleanup(self, state):
+        self._release()
+        return SUCCESS
+
+    @transition
+    def on_shutdown(self, state):
+        self._release()
+        return SUCCESS
+
+    @transition
+    def on_error(self, state):
+        self._release()
+        return SUCCESS
+
+    def _release(self):
+        """Stop cycling; zero torque and exit motor mode on every motor; close the bus."""
+        if self._timer is not None:
+            self.destroy_timer(self._timer)
+            self._timer = None
+        driver, self.driver = self.driver, None
+        if driver is not None:
+            driver.close()
+
     def on_command(self, msg: JointState):
         received = time.monotonic()
+        if self.driver is None:
+            return
         self.latency.answered(stamp_to_seconds(msg.header.stamp), received)
+        if self.activated_at is not None and self.first_command_after is None:
+            self.first_command_after = received - self.activated_at
         try:
             tensions = ordered(msg, "effort", self.names)
         except ValueError as exc:
@@ -116,6 +207,8 @@ class MotorDriverNode(Node):
         else:
             self.incomplete_cycles += 1
         self._report(diagnostics)
+        if diagnostics.fault is not None and self.lifecycle_state == "active":
+            self.trigger_deactivate()          # zero torque already; the node says it drives nothing
 
     def _report(self, diagnostics: Diagnostics, force: bool = False):
         """Publish /diagnostics if forced, on a change of mode or fault, or every DIAGNOSTICS_PERIOD."""
@@ -138,7 +231,9 @@ class MotorDriverNode(Node):
                                 malformed_commands=self.malformed_commands,
                                 foreign_frames=diag.foreign_frames, error_frames=diag.error_frames,
                                 late_cycles=diag.late_cycles, incomplete_cycles=self.incomplete_cycles,
-                                cycles=diag.cycles, zeroed=diag.zeroed)
+                                cycles=diag.cycles, zeroed=diag.zeroed, lifecycle_state=self.lifecycle_state,
+                                activate_to_first_command_ms="" if self.first_command_after is None
+                                else self.first_command_after * 1e3)
         timing = self.driver.cycle_statistics()
         driver.values += _values(period_p50_ms=timing.period_p50 * 1e3, period_p99_ms=timing.period_p99 * 1e3,
                                  period_max_ms=timing.period_max * 1e3,
@@ -163,42 +258,37 @@ class MotorDriverNode(Node):
             out.status.append(s)
         return out
 
-    def on_enable(self, request, response):
-        was = self.driver.fault
-        if request.data:
-            self.driver.enable(time.monotonic())
-            response.message = "enabled" + (f" (cleared fault: {was})" if was else "")
-        else:
-            self.driver.disable()
-            response.message = "disabled" + (f" (fault still latched: {was})" if was else "")
-        response.success = True
-        self.get_logger().info(response.message)
-        self._report(self.driver.diagnostics(time.monotonic()), force=True)
-        return response
-
     def on_estop(self, request, response):
+        response.success = True
+        if self.driver is None:
+            response.message = f"e-stop: nothing to stop, the node is {self.lifecycle_state} (no bus open)"
+            self.get_logger().warning(response.message)
+            return response
         was = self.driver.fault
         self.driver.estop()
-        response.success = True
-        response.message = "e-stop: zero torque, motors out of motor mode; ~/enable to resume" + (
+        response.message = "e-stop: zero torque, motors out of motor mode; activate to resume" + (
             f" (already in fault: {was})" if was else "")
         self.get_logger().warning(response.message)
         self._report(self.driver.diagnostics(time.monotonic()), force=True)
+        if self.lifecycle_state == "active":
+            self.trigger_deactivate()
         return response
 
     def on_zero(self, request, response):
-        try:
-            self.driver.zero()
-        except RuntimeError as exc:
-            response.success, response.message = False, str(exc)
+        state = self.lifecycle_state
+        if state != "inactive":
+            response.success = False
+            response.message = (f"zeroing needs the motors configured and slack: the node is {state} "
+                                f"({'deactivate' if state == 'active' else 'configure'} first)")
             return response
+        self.driver.zero()
         response.success, response.message = True, "zero set on every motor at the current angle"
         self.get_logger().info(response.message)
         return response
 
     def close(self):
-        """Zero torque and exit motor mode on every motor, close the bus."""
-        self.driver.close()
+        """Zero torque and exit motor mode on every motor, close the bus (if open)."""
+        self._release()
 
 
 def _values(**items) -> list:

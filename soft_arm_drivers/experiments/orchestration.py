@@ -96,8 +96,36 @@ def _call(node, client, request, timeout: float = 10.0):
         raise RuntimeError(f"service {client.srv_name} did not answer within {timeout:g} s")
     response = future.result()
     if not response.success:
-        raise RuntimeError(f"{client.srv_name} refused: {response.message}")
+        raise RuntimeError(f"{client.srv_name} refused" + (f": {response.message}"
+                                                           if getattr(response, "message", "") else ""))
     return response
+
+
+def _wait_for_services(node, children, clients, timeout: float = 120.0):
+    """Until every client's server is discovered (a node's set-up done); RuntimeError when a node
+    exits or after ``timeout`` [s]."""
+    import rclpy
+    deadline = time.monotonic() + timeout
+    while not STOP.is_set():
+        children.check()
+        missing = [c.srv_name for c in clients if not c.service_is_ready()]
+        if not missing:
+            return
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"services {missing} are not available after {timeout:g} s")
+        rclpy.spin_once(node, timeout_sec=0.05)
+
+
+def _change_state(node, client, label: str, timeout: float = 10.0):
+    """Ask a managed node for the lifecycle transition ``label`` (as ``ros2 lifecycle set``);
+    RuntimeError if it fails (the node logs why)."""
+    from lifecycle_msgs.msg import Transition
+    request = client.srv_type.Request(transition=Transition(label=label))
+    try:
+        _call(node, client, request, timeout)
+    except RuntimeError as exc:
+        raise RuntimeError(f"{label} of {client.srv_name.rsplit('/', 2)[-2]} failed: {exc} "
+                           f"(see that node's log)") from None
 
 
 class _Children:
@@ -213,19 +241,21 @@ def run_emulated_hardware(ros_args: list, out: dict, duration: float,
     emulator.yaml are (default: the package's), ``arm_file``: the controller's arm file, whose mocap
     calibration (if it has one) the bridge uses.
 
-    As an operator runs the rig: every node starts (the task runner waiting for ``~/start``); once
-    the graph is wired and settled and the controller answers the motors' state, the motors are
-    zeroed (tendons slack) and enabled through the driver's services and the task starts; when the
-    task runner has written the metrics (RuntimeError if not within ``duration`` + 60 s) the motors
-    are disabled, then the nodes are stopped. No process joins or leaves the graph while the motors
-    are enabled: DDS discovery can hold a publisher, the driver's included, for a few hundred ms.
-    A fault the driver latches while the motors are enabled (watchdog, motor error, e-stop) ends the
-    run at once, the motors disabled: the faults are printed as they latch and listed in the run
-    facts (``driver_faults``: message and ``time_s`` after the enable), and a faulted run is no
-    result (the caller marks its metrics invalid)."""
+    As an operator runs the rig: every node starts (the task runner waiting for ``~/start``); the
+    managed drivers are configured (the motor driver finds its motors, the bridge its Motive server)
+    and the bridge activated; once the graph is wired and settled and the controller answers the
+    motors' state, the motors are zeroed (tendons slack), the motor driver is activated and the task
+    starts; when the task runner has written the metrics (RuntimeError if not within ``duration`` +
+    60 s) the motor driver is deactivated, then the nodes are stopped. No process joins or leaves
+    the graph while the motors are enabled: DDS discovery can hold a publisher, the driver's
+    included, for a few hundred ms. A fault the driver latches while the motors are enabled
+    (watchdog, motor error, e-stop) ends the run at once, the driver inactive: the faults are
+    printed as they latch and listed in the run facts (``driver_faults``: message and ``time_s``
+    after the enable), and a faulted run is no result (the caller marks its metrics invalid)."""
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
-    from std_srvs.srv import SetBool, Trigger
+    from lifecycle_msgs.srv import ChangeState
+    from std_srvs.srv import Trigger
 
     from soft_arm_ros.conversions import stamp_to_seconds
 
@@ -270,24 +300,25 @@ def run_emulated_hardware(ros_args: list, out: dict, duration: float,
         node.create_subscription(DiagnosticArray, "/diagnostics", on_diagnostics, 10)
         # every client is created, and its server discovered, before the motors are enabled
         zero = node.create_client(Trigger, "/motor_driver/zero")
-        enable = node.create_client(SetBool, "/motor_driver/enable")
+        driver = node.create_client(ChangeState, "/motor_driver/change_state")
+        bridge = node.create_client(ChangeState, "/mocap_bridge/change_state")
         begin = node.create_client(Trigger, f"/{runner}/start")
         for name in ("recorder", "emulated_rig", "mocap_bridge", *controller, runner):
             children.start(name)
+        _wait_for_services(node, children, (zero, driver, bridge, begin))
+        if STOP.is_set():
+            return facts()
+        for client, label in ((driver, "configure"), (bridge, "configure"), (bridge, "activate")):
+            _change_state(node, client, label)
         _wait_for_graph(node, children, ("command", "markers"), settle=2.0,
                         published=("command", "reference", "state", "markers")
                         if controller else ("command", "state", "markers"))
-        for client in (zero, enable, begin):
-            if not STOP.is_set() and not client.wait_for_service(timeout_sec=10.0):
-                raise RuntimeError(f"service {client.srv_name} is not available")
         if STOP.is_set():
             return facts()
         _call(node, zero, Trigger.Request())
         try:
-            response = _call(node, enable, SetBool.Request(data=True))
+            _change_state(node, driver, "activate")
             enabled_at = time.time()
-            if response.message != "enabled":              # a fault latched while disabled
-                print(f"soft-arm-experiment: motor_driver {response.message}", file=sys.stderr)
             _call(node, begin, Trigger.Request())
             deadline = time.monotonic() + duration + 60.0
             while not STOP.is_set() and not faults and not os.path.exists(out["metrics"]):
@@ -297,17 +328,20 @@ def run_emulated_hardware(ros_args: list, out: dict, duration: float,
                 rclpy.spin_once(node, timeout_sec=0.1)
         finally:
             try:
-                _call(node, enable, SetBool.Request(data=False), timeout=2.0)
+                _change_state(node, driver, "deactivate", timeout=2.0)
             except RuntimeError as exc:
-                print(f"soft-arm-experiment: could not disable the motors: {exc}", file=sys.stderr)
+                # a fault deactivated the driver already (zero torque, motors out of motor mode)
+                print(f"soft-arm-experiment: motor_driver deactivate: {exc}", file=sys.stderr)
     return facts()
 
 
-# Real time on a shared computer. The emulated hardware (plant, motors and Motive in one process)
-# and the processes the loop closes through run under SCHED_FIFO where the system permits it: under
-# the normal policy a busy two-core computer holds one of them, or a DDS thread it waits on while it
-# publishes, for 0.1-0.3 s now and then, and the motor driver's watchdog rightly trips. On the rig,
-# run motor_driver, mocap_bridge and inner_loop the same way (README, "On the rig, and on the emulated rig").
+# Real time on a shared computer. The processes the loop closes through (the motor driver, in
+# emulated_rig, the mocap bridge and the inner loop) run under SCHED_FIFO where the system permits
+# it: under the normal policy a busy two-core computer holds one of them, or a DDS thread it waits
+# on while it publishes, for 0.1-0.3 s now and then, and the motor driver's watchdog rightly trips.
+# The emulated hardware's own process leaves the real-time policy (emulated_hardware.py says why).
+# On the rig, run motor_driver, mocap_bridge and inner_loop the same way (README, "On the rig, and
+# on the emulated rig").
 _REALTIME = {"emulated_rig": 30, "inner_loop": 20, "mocap_bridge": 20}
 
 

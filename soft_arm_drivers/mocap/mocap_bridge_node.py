@@ -3,10 +3,16 @@
 Publishes what the simulator publishes in its place: ``mocap/markers`` (geometry_msgs/PoseArray in
 ``arm_base``, the arm's markers base to tip, identity orientations) and ``mocap/tip``
 (PoseStamped, the last marker), both stamped at mid-exposure on the node's clock, best effort,
-depth 1; and once a second ``/diagnostics`` (diagnostic_msgs/DiagnosticArray: connection state and
-the bridge's counters). A thread waits on the NatNet sockets and publishes each frame as it
-arrives; frames with an occluded or missing marker are not published (see
+depth 1; and once a second ``/diagnostics`` (diagnostic_msgs/DiagnosticArray: lifecycle and
+connection state, the bridge's counters). A thread waits on the NatNet sockets and publishes each
+frame as it arrives; frames with an occluded or missing marker are not published (see
 :mod:`soft_arm_drivers.mocap.mocap_bridge`).
+
+A managed (lifecycle) node (:mod:`soft_arm_ros.lifecycle`): ``configure`` opens the sockets and
+waits for the Motive server's answer to the connect request (refused, sockets closed, when none
+comes within ``rig.mocap.timeout``), then the thread runs; ``activate`` publishes the frames (an
+inactive bridge keeps the stream and counts its frames, publishes none); ``deactivate`` stops
+publishing; ``cleanup`` and ``shutdown`` stop the thread and close the sockets.
 
 Parameters: ``rig.mocap.*`` of ``config/mocap.yaml`` overlaid with the node's own parameters
 (``--params-file``, ``-p rig.mocap.command_port:=1510``); the number of marker ids must match
@@ -19,13 +25,14 @@ from __future__ import annotations
 import os
 import sys
 import threading
+import time
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseArray, PoseStamped
-from rclpy.node import Node
 
 from soft_arm_model.parameters import ConfigError
 from soft_arm_ros.contract import QOS, TOPICS
+from soft_arm_ros.lifecycle import SUCCESS, ManagedHardwareNode, transition
 from soft_arm_ros.conversions import pose_array, pose_stamped, seconds_to_stamp
 from soft_arm_ros.parameters import NodeParameters, parameter_overrides
 from soft_arm_ros.runtime import run_node
@@ -54,31 +61,80 @@ def load_node_config(node, config_dir: str | None = None) -> BridgeConfig:
     return config
 
 
-class MocapBridgeNode(Node):
+class MocapBridgeNode(ManagedHardwareNode):
+    """Created unconfigured: the sockets open at ``configure``."""
+
     def __init__(self, config_dir: str | None = None, **node_options):
         super().__init__("mocap_bridge", allow_undeclared_parameters=True,
                          automatically_declare_parameters_from_overrides=True, **node_options)
-        self.config = c = load_node_config(self, config_dir)
-        try:
-            self.bridge = MocapBridge(c, clock=self.now)
-        except OSError as exc:
-            raise ConfigError(f"{NAMESPACE}.mocap.local_address = {c.local_address!r} / data_port = "
-                              f"{c.data_port} is not valid: cannot open the NatNet sockets ({exc})") from None
+        self.config = load_node_config(self, config_dir)
+        self.bridge: MocapBridge | None = None
         self.markers_pub = self.create_publisher(PoseArray, TOPICS["markers"], QOS["mocap/markers"])
         self.tip_pub = self.create_publisher(PoseStamped, TOPICS["tip"], QOS["mocap/tip"])
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, 10)
-        self.published = 0
+        self.published = self.received = 0
         self.last_latency = float("nan")
-        self._published_at_last_report = 0
+        self._received_at_last_report = 0
         self.create_timer(DIAGNOSTICS_PERIOD, self.publish_diagnostics)
         self._stop = threading.Event()
+        self._publishing = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.get_logger().info(f"mocap_bridge unconfigured: NatNet server {self.config.server_address}:"
+                               f"{self.config.command_port} (configure opens the sockets)")
+
+    # -- lifecycle -------------------------------------------------------------------------------
+    @transition
+    def on_configure(self, state):
+        c = self.config
+        try:
+            bridge = MocapBridge(c, clock=self.now)
+        except OSError as exc:
+            return self.refuse("configure", f"{NAMESPACE}.mocap.local_address = {c.local_address!r}, "
+                                            f"data_port = {c.data_port}: cannot open the NatNet "
+                                            f"sockets ({exc})")
+        bridge.connect()
+        deadline = time.monotonic() + c.timeout
+        while bridge.server_info is None and time.monotonic() < deadline:
+            bridge.poll(_POLL_TIMEOUT)
+        if bridge.server_info is None:
+            bridge.close()
+            return self.refuse("configure", f"no NatNet server answered at {c.server_address}:"
+                                            f"{c.command_port} within {c.timeout:g} s (is Motive streaming?)")
+        self.bridge = bridge
+        self._stop.clear()
         self._thread = threading.Thread(target=self._receive, name="natnet", daemon=True)
         self._thread.start()
         group = f", multicast {c.multicast_group}" if c.multicast else ""
         self.get_logger().info(
-            f"mocap_bridge ready: NatNet server {c.server_address}:{c.command_port}{group}, "
-            f"{c.source} {list(c.ids)} base to tip, frames on {self.bridge.command_address} and "
-            f"{self.bridge.data_address}")
+            f"mocap_bridge configured: {bridge.server_info.app_name} at {c.server_address}:{c.command_port}"
+            f"{group}, {c.source} {list(c.ids)} base to tip, frames on {bridge.command_address} and "
+            f"{bridge.data_address} (activate to publish them)")
+        return SUCCESS
+
+    @transition
+    def on_activate(self, state):
+        self._publishing.set()
+        return SUCCESS
+
+    @transition
+    def on_deactivate(self, state):
+        self._publishing.clear()
+        return SUCCESS
+
+    @transition
+    def on_cleanup(self, state):
+        self.close()
+        return SUCCESS
+
+    @transition
+    def on_shutdown(self, state):
+        self.close()
+        return SUCCESS
+
+    @transition
+    def on_error(self, state):
+        self.close()
+        return SUCCESS
 
     def now(self) -> float:
         """The node's clock [s]: the time base of the published stamps."""
@@ -87,9 +143,12 @@ class MocapBridgeNode(Node):
     def _receive(self):
         """The receive thread: wait for datagrams, publish each frame. It ends with :meth:`close`
         or, quietly, when the context is shut down under it (Ctrl-C)."""
-        self.bridge.connect()
         while not self._stop.is_set():
             for frame in self.bridge.poll(_POLL_TIMEOUT):
+                self.received += 1
+                self.last_latency = frame.latency
+                if not self._publishing.is_set():
+                    continue
                 try:
                     self.markers_pub.publish(pose_array(frame.markers, frame.stamp))
                     self.tip_pub.publish(pose_stamped(frame.markers[-1], frame.stamp))
@@ -98,14 +157,20 @@ class MocapBridgeNode(Node):
                         raise
                     return
                 self.published += 1
-                self.last_latency = frame.latency
 
     def status(self, fresh: int) -> DiagnosticStatus:
-        """The bridge's state and counters as one DiagnosticStatus; ``fresh``: frames published in
-        the last diagnostics period."""
+        """The bridge's state and counters as one DiagnosticStatus; ``fresh``: complete frames
+        received in the last diagnostics period."""
         b, c = self.bridge, self.config
+        hardware_id = f"natnet://{c.server_address}:{c.command_port}"
+        lifecycle = self.lifecycle_state
+        if b is None:
+            return DiagnosticStatus(level=DiagnosticStatus.OK, name="mocap_bridge: NatNet",
+                                    message=f"{lifecycle}: no sockets open", hardware_id=hardware_id,
+                                    values=[KeyValue(key="lifecycle_state", value=lifecycle)])
         version = f"{b.version.major}.{b.version.minor}" if b.version else ""
-        level, message = DiagnosticStatus.OK, f"streaming NatNet {version}"
+        level, message = DiagnosticStatus.OK, f"streaming NatNet {version}" + (
+            "" if lifecycle == "active" else f" ({lifecycle}: not published)")
         if not self._thread.is_alive():
             level, message = DiagnosticStatus.ERROR, "the receive thread stopped (see the log)"
         elif b.state == "unsupported":
@@ -115,27 +180,34 @@ class MocapBridgeNode(Node):
         elif fresh == 0:
             level, message = DiagnosticStatus.WARN, "no complete frame in the last period " \
                                                     "(occluded or missing markers)"
-        values = {"state": b.state, "note": b.note, "natnet_version": version,
-                  "server": b.server_info.app_name if b.server_info else "",
-                  "published": self.published, "rate_hz": fresh / DIAGNOSTICS_PERIOD,
-                  "latency_ms": 1e3 * self.last_latency, **b.counters}
+        values = {"lifecycle_state": lifecycle, "state": b.state, "note": b.note,
+                  "natnet_version": version, "server": b.server_info.app_name if b.server_info else "",
+                  "received": self.received, "published": self.published,
+                  "rate_hz": fresh / DIAGNOSTICS_PERIOD, "latency_ms": 1e3 * self.last_latency,
+                  **b.counters}
         return DiagnosticStatus(level=level, name="mocap_bridge: NatNet", message=message,
-                                hardware_id=f"natnet://{c.server_address}:{c.command_port}",
+                                hardware_id=hardware_id,
                                 values=[KeyValue(key=k, value=str(v)) for k, v in values.items()])
 
     def publish_diagnostics(self):
         msg = DiagnosticArray()
         seconds_to_stamp(msg.header.stamp, self.now())
-        published = self.published
-        msg.status.append(self.status(published - self._published_at_last_report))
-        self._published_at_last_report = published
+        received = self.received
+        msg.status.append(self.status(received - self._received_at_last_report))
+        self._received_at_last_report = received
         self.diagnostics_pub.publish(msg)
 
     def close(self):
-        """Stop the receive thread and close the sockets (run_node calls this on the way out)."""
+        """Stop publishing and the receive thread, close the sockets (run_node calls this on the
+        way out); idempotent."""
+        self._publishing.clear()
         self._stop.set()
-        self._thread.join(timeout=2.0)
-        self.bridge.close()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+            self._thread = None
+        bridge, self.bridge = self.bridge, None
+        if bridge is not None:
+            bridge.close()
 
 
 def main(args=None) -> int:

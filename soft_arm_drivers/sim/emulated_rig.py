@@ -17,8 +17,9 @@ cross-process bus (channel ``"LOCAL:PEER"``: the driver's UDP port and the motor
 cycle competes with the plant for the interpreter lock. A hardware process that dies is hardware
 gone: the driver faults on the motors' silence.
 
-Run the ``mocap_bridge`` node against it and the controller nodes as on the rig; zero and enable the
-motors with the driver's services (``/motor_driver/zero``, ``/motor_driver/enable``) as on the rig.
+Run the ``mocap_bridge`` node against it and the controller nodes as on the rig; configure, zero
+(``/motor_driver/zero``) and activate the motor driver as on the rig (it is a managed node). The
+emulated hardware is up from the node's start, as a rig is powered before its driver configures.
 ``soft-arm-experiment <task> --emulated-hardware`` does all of that.
 
 Parameters: ``config/emulator.yaml`` holds ``rig.emulator.*`` (validated, see ``SCHEMA``) and the

@@ -58,3 +58,17 @@ def test_parameter_file_parses_with_rcl(path):
     context = rclpy.Context()
     rclpy.init(args=["check", "--ros-args", "--params-file", str(path)], context=context)
     rclpy.shutdown(context=context)
+
+
+def test_the_rig_launch_manages_the_lifecycle_drivers():
+    """The launch configures the managed drivers (and activates only the bridge: the motors wait for
+    the operator); the nodes it manages are the ones that are lifecycle nodes."""
+    from soft_arm_drivers.can.motor_driver_node import MotorDriverNode
+    from soft_arm_drivers.mocap.mocap_bridge_node import MocapBridgeNode
+    from soft_arm_ros.lifecycle import ManagedHardwareNode
+    tree = ast.parse((ROOT / "launch" / "rig.launch.py").read_text())
+    managed = _constant(tree, "MANAGED")
+    assert managed == {"motor_driver": "inactive", "mocap_bridge": "active"}
+    assert set(managed) <= set(_constant(tree, "NODES"))
+    for cls in (MotorDriverNode, MocapBridgeNode):
+        assert issubclass(cls, ManagedHardwareNode)

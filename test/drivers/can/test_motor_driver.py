@@ -552,3 +552,22 @@ def test_emulator_gives_the_plant_configuration_at_past_times():
         np.testing.assert_array_equal(late.configuration_at(t), early.plant.q)
     assert not np.allclose(late.configuration_at(0.02), late.plant.q)     # it moved meanwhile
     np.testing.assert_array_equal(late.configuration_at(1.0), late.plant.q)
+
+
+def test_probe_finds_the_answering_motors_without_a_silence_fault(make_rig):
+    """Before the cycle: motors that take longer than reply_timeout to answer first are not a
+    fault; a silent one stays unanswered; an error code in a reply is."""
+    rig = make_rig()
+    rig.emulator.inject(2, silent=True)
+    period, answered, t = rig.period, np.zeros(4, dtype=bool), 0.0
+    while t < 3 * rig.config.reply_timeout:
+        answered |= rig.driver.probe(t)
+        rig.emulator.advance_to(t + period)
+        t += period
+    assert answered.tolist() == [True, False, True, True]
+    assert rig.driver.fault is None and rig.driver.cycles == 0 and not rig.driver.diagnostics(t).zeroed
+    rig.emulator.inject(4, error=2)
+    rig.driver.probe(t)
+    rig.emulator.advance_to(t + period)
+    rig.driver.probe(t + period)
+    assert rig.driver.fault is not None and "motor 4 reports error 2" in rig.driver.fault

@@ -1,6 +1,7 @@
 """The motor_driver node on real rclpy: in-process with the CAN emulator (and the arm behind it) on a
-python-can ``virtual`` bus served in real time; services, topics and diagnostics; rig.yaml through
-ROS's own parameter parser; a bad parameter; SIGTERM takes the motors out of motor mode."""
+python-can ``virtual`` bus served in real time; its lifecycle transitions, services, topics and
+diagnostics; rig.yaml through ROS's own parameter parser; a bad parameter; SIGTERM takes the motors
+out of motor mode."""
 import itertools
 import os
 import signal
@@ -15,11 +16,13 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
+from rclpy.lifecycle import TransitionCallbackReturn
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
-from std_srvs.srv import SetBool, Trigger
+from lifecycle_msgs.srv import ChangeState
+from std_srvs.srv import Trigger
 
-from conftest import killed_on_exit, spin_until, stop
+from conftest import change_state, killed_on_exit, spin_until, stop
 from soft_arm_drivers.can.driver_config import load_driver_config
 from soft_arm_drivers.can.motor_driver_node import MotorDriverNode, main
 from soft_arm_drivers.sim.can_emulator import CanMotorEmulator, EmulatorThread, arm_plant
@@ -45,17 +48,18 @@ def rig_parameters(name, **values):
 
 class Harness:
     """The other side of the node: answers every tendon/state with a command (like the inner loop)
-    while ``tension`` is set, records states and diagnostics, calls the services."""
+    while ``tension`` is set, records states and diagnostics, calls the services of the driver
+    node ``driver``."""
 
-    def __init__(self, context):
+    def __init__(self, context, driver="motor_driver"):
         self.node = rclpy.create_node("harness", context=context)
         self.states, self.diagnostics, self.tension = [], [], None
         self.pub = self.node.create_publisher(JointState, "tendon/command", QOS["tendon/command"])
         self.node.create_subscription(JointState, "tendon/state", self.on_state, QOS["tendon/state"])
         self.node.create_subscription(DiagnosticArray, "/diagnostics", self.diagnostics.append, 10)
-        self.clients = {"enable": self.node.create_client(SetBool, "/motor_driver/enable"),
-                        "estop": self.node.create_client(Trigger, "/motor_driver/estop"),
-                        "zero": self.node.create_client(Trigger, "/motor_driver/zero")}
+        self.clients = {"change_state": self.node.create_client(ChangeState, f"/{driver}/change_state"),
+                        "estop": self.node.create_client(Trigger, f"/{driver}/estop"),
+                        "zero": self.node.create_client(Trigger, f"/{driver}/zero")}
 
     def on_state(self, msg):
         self.states.append(msg)
@@ -72,6 +76,11 @@ class Harness:
 def values(harness):
     """The driver status's values of the latest /diagnostics, by key."""
     return {v.key: v.value for v in harness.driver_status().values}
+
+
+def change(executor, harness, label) -> bool:
+    """The driver's lifecycle transition ``label``; whether it succeeded."""
+    return change_state(executor, harness.clients["change_state"], label)
 
 
 def call(executor, harness, service, **fields):
@@ -107,14 +116,25 @@ def rig(context):
         bus.shutdown()
 
 
-def test_node_drives_the_emulated_rig_through_topics_and_services(rig):
+def test_node_drives_the_emulated_rig_through_its_lifecycle_topics_and_services(rig):
     executor, node, harness, emulator = rig
-    # disabled: the motors are polled, the state flows, stamped with the replies' (wall) time
+    # unconfigured: no bus, no state; what needs a configured driver is refused
+    assert node.lifecycle_state == "unconfigured" and node.driver is None
+    assert not change(executor, harness, "activate") and node.lifecycle_state == "unconfigured"
+    refused = call(executor, harness, "zero")
+    assert not refused.success and "configure first" in refused.message
+    executor.spin_once(timeout_sec=0.2)
+    assert not harness.states
+
+    # configure: the bus opens, every motor answered; inactive: polled, the state flows, stamped
+    # with the replies' (wall) time
+    assert change(executor, harness, "configure") and node.lifecycle_state == "inactive"
     spin_until(executor, lambda: len(harness.states) >= 20 and harness.driver_status() is not None)
     state = harness.states[-1]
     assert list(state.name) == NAMES
     assert abs(stamp_to_seconds(state.header.stamp) - time.time()) < 0.5
     assert harness.driver_status().message == "disabled"
+    assert values(harness)["lifecycle_state"] == "inactive"
     assert not any(m.motor_mode for m in emulator.motors)
 
     assert call(executor, harness, "zero").success
@@ -122,17 +142,18 @@ def test_node_drives_the_emulated_rig_through_topics_and_services(rig):
     spin_until(executor, lambda: np.allclose(harness.latest("position"), node.config.zero_shortening,
                                              atol=1e-5))
 
-    response = call(executor, harness, "enable", data=True)
-    assert response.success and response.message == "enabled"
+    assert change(executor, harness, "activate") and node.lifecycle_state == "active"
     harness.tension = [2.5, 0.0, 0.0, 0.0]
     start = len(harness.states)
     spin_until(executor, lambda: len(harness.states) > start + 150)          # 0.3 s at 500 Hz
     assert all(m.motor_mode for m in emulator.motors)
-    # the harness answers each state at once: the driver times each answer from its state
+    # the harness answers each state at once: the driver times each answer from its state, and
+    # the first command from the activation
     spin_until(executor, lambda: int(values(harness)["answered_states"]) > 100)
     latency = values(harness)
     assert 0.0 < float(latency["state_to_command_p50_ms"]) <= float(latency["state_to_command_p99_ms"]) \
         <= float(latency["state_to_command_max_ms"]) < 200.0
+    assert 0.0 < float(latency["activate_to_first_command_ms"]) < 1000.0
     assert emulator.tensions[0] == pytest.approx(2.5, abs=0.45)             # one torque step: 0.88 N
     assert harness.latest("effort")[0] == pytest.approx(2.5, abs=0.9)
     assert harness.latest("position")[0] > 5e-3                              # tendon 1 shortened
@@ -143,9 +164,11 @@ def test_node_drives_the_emulated_rig_through_topics_and_services(rig):
     assert np.all(periods > 0) and 0.0015 < np.median(periods) < 0.005
 
     refused = call(executor, harness, "zero")
-    assert not refused.success and "disable the motors first" in refused.message
+    assert not refused.success and "deactivate first" in refused.message
 
+    # e-stop: zero torque, out of motor mode, and the node drops to inactive by itself
     assert call(executor, harness, "estop").success
+    assert node.lifecycle_state == "inactive"
     spin_until(executor, lambda: harness.driver_status().level == DiagnosticStatus.ERROR)
     assert harness.driver_status().message == "fault: e-stop"
     spin_until(executor, lambda: not any(m.motor_mode for m in emulator.motors))
@@ -154,24 +177,51 @@ def test_node_drives_the_emulated_rig_through_topics_and_services(rig):
     assert [s.name for s in per_motor] == [f"motor_driver: {n}" for n in NAMES]
     assert {v.key: v.value for v in per_motor[0].values}["temperature"] == "30"
 
-    response = call(executor, harness, "enable", data=True)
-    assert response.success and response.message == "enabled (cleared fault: e-stop)"
+    # activate clears the fault
+    assert change(executor, harness, "activate")
     spin_until(executor, lambda: harness.driver_status().message == "enabled")
     spin_until(executor, lambda: emulator.tensions[0] > 2.0)
 
-    harness.tension = None                                                   # the controller stops
-    spin_until(executor, lambda: harness.driver_status().level == DiagnosticStatus.ERROR)
-    assert harness.driver_status().message.startswith("fault: stale command")
+    # the controller stops: the watchdog latches, zero torque, and the node deactivates itself
+    harness.tension = None
+    spin_until(executor, lambda: node.lifecycle_state == "inactive")
+    spin_until(executor, lambda: harness.driver_status().message.startswith("fault: stale command"))
     spin_until(executor, lambda: emulator.tensions.max() < 0.45)          # the next plant step
-
-    response = call(executor, harness, "enable", data=False)
-    assert response.success and response.message.startswith("disabled (fault still latched: stale command")
     spin_until(executor, lambda: not any(m.motor_mode for m in emulator.motors))
+    assert not change(executor, harness, "deactivate")                     # it is inactive already
+
+    # cleanup: zero torque, out of motor mode, the bus closed, no more state
+    assert change(executor, harness, "cleanup") and node.driver is None
+    count = len(harness.states)
+    executor.spin_once(timeout_sec=0.1)
+    executor.spin_once(timeout_sec=0.1)
+    assert len(harness.states) <= count + 1
+
+
+def test_configure_fails_when_the_motors_do_not_answer(context):
+    """Nothing on the bus: configure is refused with the silent motors named, the node stays
+    unconfigured, and a configure once the motors are there succeeds."""
+    name = channel()
+    node = MotorDriverNode(context=context, parameter_overrides=rig_parameters(name))
+    try:
+        assert node.trigger_configure() == TransitionCallbackReturn.FAILURE
+        assert node.lifecycle_state == "unconfigured" and node.driver is None
+        cfg = load_driver_config(overrides={"interface": "virtual", "channel": name})
+        bus = can.Bus(interface="virtual", channel=name, preserve_timestamps=True)
+        emulator = CanMotorEmulator.for_config(cfg, bus, start_time=time.time())
+        with EmulatorThread(emulator):
+            assert node.trigger_configure() == TransitionCallbackReturn.SUCCESS
+            assert node.lifecycle_state == "inactive"
+            node.trigger_cleanup()
+        bus.shutdown()
+    finally:
+        node.close()
+        node.destroy_node()
 
 
 def test_malformed_commands_are_rejected_by_the_node(rig):
     executor, node, harness, emulator = rig
-    assert call(executor, harness, "enable", data=True).success
+    assert change(executor, harness, "configure") and change(executor, harness, "activate")
     spin_until(executor, lambda: harness.pub.get_subscription_count() > 0)
 
     def send_until_counted(msg, count):
@@ -193,6 +243,7 @@ def test_diagnostics_report_a_delayed_cycle_as_a_deadline_miss(rig):
     """One driver cycle held for 25 ms (12 periods at 500 Hz): the driver's /diagnostics count a
     deadline miss and show the long period."""
     executor, node, harness, emulator = rig
+    assert change(executor, harness, "configure")
 
     def values():
         return {v.key: v.value for v in harness.driver_status().values}
@@ -234,12 +285,19 @@ def test_a_bad_parameter_raises_config_error_naming_it(context):
 
 def test_strings_stay_strings(context):
     """A channel YAML 1.1 would read as a boolean reaches python-can as the string it is."""
+    cfg = load_driver_config(overrides={"interface": "virtual", "channel": '"yes"'})
+    bus = can.Bus(interface="virtual", channel="yes", preserve_timestamps=True)
     node = MotorDriverNode(context=context, parameter_overrides=rig_parameters("yes"))
     try:
-        assert node.config.channel == "yes" and node.driver.bus.channel_id == "yes"
+        assert node.config.channel == "yes"
+        with EmulatorThread(CanMotorEmulator.for_config(cfg, bus, start_time=time.time())):
+            assert node.trigger_configure() == TransitionCallbackReturn.SUCCESS
+            assert node.driver.bus.channel_id == "yes"
+            node.close()
     finally:
         node.close()
         node.destroy_node()
+        bus.shutdown()
 
 
 def test_a_bad_parameter_exits_with_status_2():
@@ -273,7 +331,9 @@ watcher = threading.Thread(target=watch, daemon=True)
 with EmulatorThread(emulator):
     watcher.start()
     try:
-        status = main(["motor_driver", "--ros-args", "-p", "rig.motors.interface:=virtual",
+        # a node name of its own: the services of an earlier test's driver may linger in discovery
+        status = main(["motor_driver", "--ros-args", "-r", "__node:=sigterm_driver",
+                       "-p", "rig.motors.interface:=virtual",
                        "-p", "rig.motors.channel:=" + name, "-p", "rig.motors.watchdog_timeout:=1.0"])
     finally:                            # what the motors were left with, however main ended
         time.sleep(0.05)
@@ -290,10 +350,13 @@ def test_sigterm_takes_the_motors_out_of_motor_mode(context):
     proc = subprocess.Popen([sys.executable, "-c", SIGTERM_SCRIPT, channel()], env=env, text=True,
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
     with killed_on_exit(proc):
-        harness = Harness(context)
+        harness = Harness(context, "sigterm_driver")
         executor = SingleThreadedExecutor(context=context)
         executor.add_node(harness.node)
-        assert call(executor, harness, "enable", data=True).success
+        # rclpy's change_state would raise out of the node's executor on a transition the state
+        # does not have: the node refuses it and lives on
+        assert not change(executor, harness, "activate")
+        assert change(executor, harness, "configure") and change(executor, harness, "activate")
         executor.shutdown()
         harness.node.destroy_node()
         time.sleep(0.1)

@@ -1,6 +1,7 @@
 """The mocap_bridge node on real rclpy, in this process, against the NatNet emulator on 127.0.0.1
-streaming the simulated arm: mocap/markers and mocap/tip as the simulator publishes them,
-/diagnostics with the counters, and bad parameters stopping it with the key and status 2."""
+streaming the simulated arm: its lifecycle (configure finds the server, only an active bridge
+publishes), mocap/markers and mocap/tip as the simulator publishes them, /diagnostics with the
+counters, and bad parameters stopping it with the key and status 2."""
 import os
 import signal
 import socket
@@ -13,10 +14,12 @@ import pytest
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseArray, PoseStamped
+from lifecycle_msgs.srv import ChangeState
 from rclpy.executors import SingleThreadedExecutor
+from rclpy.lifecycle import TransitionCallbackReturn
 from rclpy.parameter import Parameter
 
-from conftest import killed_on_exit, stop
+from conftest import change_state, free_udp_ports, killed_on_exit, spin_until, stop
 from soft_arm_drivers.mocap.bridge_config import load_mocap_config
 from soft_arm_drivers.mocap.mocap_bridge_node import DIAGNOSTICS_TOPIC, MocapBridgeNode, main
 from soft_arm_drivers.sim.natnet_emulator import NatNetEmulator, plant_markers
@@ -73,6 +76,14 @@ def test_node_publishes_the_arms_markers_in_arm_base(ros, plant):
         for node in (bridge, listener):
             executor.add_node(node)
         try:
+            # configured: the stream is received and counted, nothing is published
+            assert bridge.trigger_configure() == TransitionCallbackReturn.SUCCESS
+            spin_until(executor, lambda: bridge.received >= 20)
+            assert not got["markers"] and bridge.published == 0
+            spin_until(executor, lambda: got["diagnostics"])
+            inactive = got["diagnostics"][-1][1].status[0]
+            assert inactive.message.endswith("(inactive: not published)")
+            assert bridge.trigger_activate() == TransitionCallbackReturn.SUCCESS
             deadline = time.monotonic() + 15.0
             while (len(got["markers"]) < 50 or len(got["tip"]) < 50 or not got["diagnostics"]) \
                     and time.monotonic() < deadline:
@@ -122,12 +133,37 @@ def test_bad_parameter_raises_config_error(ros, parameter, value, message):
     assert message in str(error.value)
 
 
-def test_a_data_port_in_use_is_a_config_error(ros):
+def test_configure_fails_on_a_data_port_in_use_and_without_a_server(ros, plant):
+    """Configure opens the sockets and waits for the server's answer: a port in use, or no server
+    at the command port within rig.mocap.timeout, is refused with the reason; the node stays
+    unconfigured, and configures once the server is there."""
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as taken:
         taken.bind(("127.0.0.1", 0))
         port = taken.getsockname()[1]
-        with pytest.raises(ConfigError, match=rf"data_port = {port} is not valid: cannot open the NatNet"):
-            MocapBridgeNode(parameter_overrides=[Parameter("rig.mocap.data_port", value=port)])
+        bridge = MocapBridgeNode(parameter_overrides=[Parameter("rig.mocap.data_port", value=port)])
+        try:
+            assert bridge.trigger_configure() == TransitionCallbackReturn.FAILURE
+            assert bridge.lifecycle_state == "unconfigured" and bridge.bridge is None
+        finally:
+            bridge.destroy_node()
+    nobody = free_udp_ports(1)[0]
+    bridge = MocapBridgeNode(parameter_overrides=[Parameter("rig.mocap.command_port", value=nobody),
+                                                  Parameter("rig.mocap.data_port", value=0),
+                                                  Parameter("rig.mocap.timeout", value=0.3)])
+    try:
+        started = time.monotonic()
+        assert bridge.trigger_configure() == TransitionCallbackReturn.FAILURE
+        assert 0.3 <= time.monotonic() - started < 2.0
+        assert bridge.lifecycle_state == "unconfigured" and bridge.bridge is None
+        with NatNetEmulator(plant_markers(plant), command_port=nobody) as emulator:
+            emulator.start()
+            assert bridge.trigger_configure() == TransitionCallbackReturn.SUCCESS
+            assert bridge.lifecycle_state == "inactive"
+            assert bridge.trigger_cleanup() == TransitionCallbackReturn.SUCCESS
+            assert bridge.bridge is None
+    finally:
+        bridge.close()
+        bridge.destroy_node()
 
 
 def test_bad_parameter_exits_with_status_2(capfd):
@@ -138,23 +174,37 @@ def test_bad_parameter_exits_with_status_2(capfd):
     assert "rig.mocap.markers.source = 'points' is not valid" in capfd.readouterr().err
 
 
-def test_node_process_streams_and_stops_cleanly_on_sigint(plant):
-    """As its own process (``ros2 run soft_arm mocap_bridge`` with the config file): Ctrl-C while
-    frames are being published ends it with status 0 and no traceback from the receive thread."""
+def test_node_process_streams_and_stops_cleanly_on_sigint(plant, context):
+    """As its own process (``ros2 run soft_arm mocap_bridge`` with the config file), brought up
+    through its change_state service (as ``ros2 lifecycle set``; one transition its state does not
+    have is refused, and the node lives on): Ctrl-C while frames are being published ends it with
+    status 0 and no traceback from the receive thread."""
     params = os.path.join(default_config_dir(), "mocap.yaml")
     with NatNetEmulator(plant_markers(plant), calibration=load_mocap_config().calibration) as emulator:
         emulator.start()
         env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYTHONUNBUFFERED="1")
         proc = subprocess.Popen(
             [sys.executable, "-m", "soft_arm_drivers.mocap.mocap_bridge_node", "--ros-args", "--params-file",
-             params, "-p", f"rig.mocap.command_port:={emulator.command_port}",
+             params, "-r", "__node:=sigint_bridge",     # the services of earlier tests' bridges may linger
+             "-p", f"rig.mocap.command_port:={emulator.command_port}",
              "-p", "rig.mocap.data_port:=0"],
             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
         with killed_on_exit(proc):
-            assert "mocap_bridge ready" in proc.stdout.readline()
-            deadline = time.monotonic() + 10.0
-            while emulator.counters["sent"] < 100 and time.monotonic() < deadline:
-                time.sleep(0.05)
+            assert "mocap_bridge unconfigured" in proc.stdout.readline()
+            operator = rclpy.create_node("operator", context=context)
+            markers = []
+            operator.create_subscription(PoseArray, "mocap/markers", markers.append, QOS["mocap/markers"])
+            client = operator.create_client(ChangeState, "/sigint_bridge/change_state")
+            executor = SingleThreadedExecutor(context=context)
+            executor.add_node(operator)
+            try:
+                assert not change_state(executor, client, "activate")
+                assert change_state(executor, client, "configure")
+                assert change_state(executor, client, "activate")
+                spin_until(executor, lambda: len(markers) >= 50)
+            finally:
+                executor.shutdown()
+                operator.destroy_node()
             out = stop(proc, signal.SIGINT, 20)
-    assert emulator.counters["sent"] >= 100
+    assert len(markers) >= 50
     assert proc.returncode == 0 and "Traceback" not in out, out

@@ -96,11 +96,11 @@ def test_ctrl_c_disables_the_emulated_motors_then_stops_every_node(tmp_path):
                              "--emulated-hardware", "--output", str(out)] + sets,
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
     with killed_on_exit(proc):
-        seen = wait_for_output(proc, "[motor_driver]: enabled", timeout=120)
+        seen = wait_for_output(proc, "[motor_driver]: activated", timeout=120)
         time.sleep(2.0)
         output = seen + stop(proc, signal.SIGINT, 60)
     assert proc.returncode == 130, output
-    assert "[motor_driver]: disabled" in output
+    assert "[motor_driver]: deactivated" in output
     assert len(read_series(str(out / "bag"))["tendon/state"]) > 500
     left = subprocess.run(["pgrep", "-f", str(out)], capture_output=True, text=True).stdout
     assert left == "", left
@@ -132,7 +132,7 @@ def test_a_command_gap_faults_the_driver_and_the_run_is_no_result(tmp_path):
                              "--emulated-hardware", "--quiet", "--output", str(out)] + sets,
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
     with killed_on_exit(proc):
-        seen = wait_for_output(proc, "[motor_driver]: enabled", timeout=120)
+        seen = wait_for_output(proc, "[motor_driver]: activated", timeout=120)
         time.sleep(2.0)
         inner_loop = _child(proc.pid, "inner_loop")
         os.kill(inner_loop, signal.SIGSTOP)
@@ -141,7 +141,7 @@ def test_a_command_gap_faults_the_driver_and_the_run_is_no_result(tmp_path):
         output = seen + proc.communicate(timeout=60)[0]
     assert proc.returncode == 1, output
     assert "stale command" in output and "no result" in output
-    assert "[motor_driver]: disabled" in output
+    assert "[motor_driver]: deactivated" in output
     assert "rms[mm]" not in output and "task velocity" not in output          # no Table 1 row
     with open(out / "metrics.json", encoding="utf-8") as fh:
         metrics = json.load(fh)

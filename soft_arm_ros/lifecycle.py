@@ -1,0 +1,70 @@
+"""Managed (lifecycle) nodes for the rig's hardware drivers, as ``ros2 lifecycle`` and launch files
+drive them: unconfigured -> configure (open the bus or sockets, check that the hardware answers) ->
+inactive (the hardware is read, not driven) -> activate (driven) -> active; deactivate, cleanup and
+shutdown go back. ros2_control's hardware components use the same states.
+
+:class:`ManagedHardwareNode` adds what rclpy's ``LifecycleNode`` leaves out:
+
+- a transition the current state does not have (``activate`` while unconfigured) is refused with a
+  warning that names the state and its transitions; rclpy's own service raises out of the
+  executor and would end the driver's process;
+- :func:`transition` makes a callback that raises log its reason (rclpy turns it into ``ERROR``
+  and says nothing); :meth:`~ManagedHardwareNode.refuse` logs why a transition fails;
+- :attr:`~ManagedHardwareNode.lifecycle_state`, the current state's label.
+"""
+from __future__ import annotations
+
+import functools
+import traceback
+
+from rclpy.lifecycle import LifecycleNode, TransitionCallbackReturn
+
+SUCCESS, FAILURE = TransitionCallbackReturn.SUCCESS, TransitionCallbackReturn.FAILURE
+
+__all__ = ["FAILURE", "ManagedHardwareNode", "SUCCESS", "transition"]
+
+
+def transition(callback):
+    """Decorate a node's ``on_<transition>`` so that an exception in it is logged (then re-raised
+    for rclpy, which enters error processing)."""
+    @functools.wraps(callback)
+    def logged(node, state):
+        try:
+            return callback(node, state)
+        except Exception:
+            node.get_logger().error(f"{callback.__name__[3:]} failed:\n{traceback.format_exc()}")
+            raise
+    return logged
+
+
+class ManagedHardwareNode(LifecycleNode):
+    """A ``LifecycleNode`` whose change_state service refuses a transition the current state does
+    not have (with a warning) instead of raising out of the executor."""
+
+    def __init__(self, node_name: str, **kwargs):
+        super().__init__(node_name, **kwargs)
+        service = self._service_change_state
+        change_state = service.callback
+
+        def guarded(request, response):
+            """rclpy's change_state, for the transitions the current state has."""
+            wanted = request.transition
+            available = {(t[0], t[1]) for t in self._state_machine.available_transitions}
+            if not any(label == wanted.label if wanted.label else i == wanted.id for i, label in available):
+                self.get_logger().warning(
+                    f"transition {wanted.label or wanted.id} refused: the node is {self.lifecycle_state}, "
+                    f"whose transitions are {sorted(label for _, label in available)}")
+                response.success = False
+                return response
+            return change_state(request, response)
+        service.callback = guarded
+
+    @property
+    def lifecycle_state(self) -> str:
+        """The current state's label: unconfigured, inactive, active, finalized (or a transition's)."""
+        return self._state_machine.current_state[1]
+
+    def refuse(self, transition_name: str, reason: str) -> TransitionCallbackReturn:
+        """Log why ``transition_name`` fails and return FAILURE (the node stays where it was)."""
+        self.get_logger().error(f"{transition_name} failed: {reason}")
+        return FAILURE
