@@ -11,9 +11,10 @@ process over the enabled run (from /proc, sampled 2 s after enabling and 2 s bef
 from the bag, the motors' state period (p50, p99, max, stamps not increasing), the mocap frame period
 and the driver's own cycle statistics (its last /diagnostics: period p50/p99/max, p99 error, deadline
 misses; the state-to-command latency through the graph, p50/p99/max of its last 1000 answers and the
-worst p99 it reported during the run); then over the runs: the valid ones, the worst RMS and mm
-band, the cm-band velocity spread. ``--load N`` runs N other CPU-bound processes beside the runs (a
-lab PC's other work: single-threaded 200x200 matrix products, at the same priority as the nodes).
+worst p99 it reported during the run; the time from its activation to the first command), the
+recorder's messages, their rate and its lost-message count; then over the runs: the valid ones, the
+worst RMS and mm band, the cm-band velocity spread. ``--load N`` runs N other CPU-bound processes
+beside the runs (a lab PC's other work: single-threaded 200x200 matrix products, normal policy).
 """
 from __future__ import annotations
 
@@ -26,6 +27,7 @@ import tempfile
 import time
 
 import numpy as np
+import yaml
 
 from soft_arm_drivers.experiments.figures import read_series
 from soft_arm_drivers.experiments.harness import load_setup
@@ -74,7 +76,7 @@ def _periods(stamps) -> dict:
 
 DRIVER_TIMING = ("period_p50_ms", "period_p99_ms", "period_max_ms", "period_error_p99_ms", "deadline_misses",
                  "state_to_command_p50_ms", "state_to_command_p99_ms", "state_to_command_max_ms",
-                 "unmatched_commands")
+                 "unmatched_commands", "activate_to_first_command_ms")
 
 
 def _driver_timing(series) -> dict:
@@ -85,11 +87,22 @@ def _driver_timing(series) -> dict:
     reports = [r for r in reports if "period_p99_ms" in r]
     if not reports:
         return {}
-    out = {k: float(reports[-1].get(k, "nan")) for k in DRIVER_TIMING}
+    out = {k: float(reports[-1].get(k) or "nan") for k in DRIVER_TIMING}
     p99 = [float(r["state_to_command_p99_ms"]) for r in reports
            if r.get("state_to_command_p99_ms", "nan") != "nan"]
     out["state_to_command_p99_worst_ms"] = max(p99) if p99 else float("nan")
     return out
+
+
+def _recording(bag_dir: str) -> dict:
+    """What the recorder kept (``metadata.yaml``): messages, their rate over the bag's span
+    [messages/s], and the messages it counted lost (per topic and in all)."""
+    with open(os.path.join(bag_dir, "metadata.yaml"), encoding="utf-8") as fh:
+        info = yaml.safe_load(fh)["rosbag2_bagfile_information"]
+    lost = json.loads((info.get("custom_data") or {}).get("soft_arm.lost_messages", "{}"))
+    span = info["duration"]["nanoseconds"] * 1e-9
+    return {"messages": info["message_count"], "rate_per_s": info["message_count"] / span if span else 0.0,
+            "lost": sum(lost.values()), "lost_by_topic": lost}
 
 
 def _burn():
@@ -119,7 +132,7 @@ def one_run(task: str, sets: list, duration: float) -> dict:
                                     + [a for s in sets for a in ("--set", s)],
                                     stdout=fh, stderr=subprocess.STDOUT, env=env)
         try:
-            while "[motor_driver]: enabled" not in open(log, encoding="utf-8").read():
+            while "[motor_driver]: activated" not in open(log, encoding="utf-8").read():
                 if proc.poll() is not None:
                     raise RuntimeError("the experiment ended before the motors were enabled:\n"
                                        + open(log, encoding="utf-8").read())
@@ -146,12 +159,13 @@ def one_run(task: str, sets: list, duration: float) -> dict:
         with open(metrics_path, encoding="utf-8") as fh:
             metrics = json.load(fh)
         series = read_series(os.path.join(run, "bag"))
+        recording = _recording(os.path.join(run, "bag"))
     return {"status": status, "valid": metrics.get("valid", False), "failure": metrics.get("failure"),
             "summary": metrics.get("summary"), "run": metrics["run"],
             "cpu_share": {n: (after[n] - before[n]) / TICKS / wall for n in sorted(nodes)},
             "state_period": _periods([t for t, _ in series["tendon/state"]]),
             "mocap_period": _periods([t for t, _ in series["mocap/markers"]]),
-            "driver_timing": _driver_timing(series)}
+            "driver_timing": _driver_timing(series), "recording": recording}
 
 
 def _speed(v) -> str:
@@ -226,6 +240,10 @@ def _report(k: int, r: dict) -> dict:
               f"{d['state_to_command_p99_ms']:.2f} ms, max {d['state_to_command_max_ms']:.1f} ms; worst p99 "
               f"reported in the run {d['state_to_command_p99_worst_ms']:.2f} ms; "
               f"{d['unmatched_commands']:.0f} commands matched no state")
+        print(f"  activate to the first motor command: {d['activate_to_first_command_ms']:.1f} ms")
+    rec = r["recording"]
+    print(f"  recorder: {rec['messages']} messages, {rec['rate_per_s']:.0f} messages/s, {rec['lost']} lost"
+          + (f" ({rec['lost_by_topic']})" if rec["lost"] else ""))
     return r
 
 
