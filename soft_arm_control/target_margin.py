@@ -20,8 +20,9 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
+from scipy.optimize import minimize
 
-from soft_arm_model import ArmConfig, build_model
+from soft_arm_model import STATICS, ArmConfig, ArmData, build_model, evaluate
 from soft_arm_model.dynamics import OutOfDomainError
 from soft_arm_model.statics import EquilibriumError, solve_equilibrium
 
@@ -35,6 +36,7 @@ STIFFNESS_SCALES = (0.8, 1.0, 1.25)   # Young's modulus of the arm / the model's
 # with 5 g at its tip buckles sideways above z = -0.28 m, whatever the controller knows)
 TIP_PAYLOADS = (0.0, 0.002)
 MIN_MARGIN = 0.1                      # N, on every variant
+SAFE_MARGIN = 0.02                    # Hz above min_frequency the closest safe point is searched at
 
 
 @dataclass(frozen=True)
@@ -210,21 +212,82 @@ def safe_point(outer: OuterLoop, control: ControlConfig, task: TaskConfig, point
     return best
 
 
+def closest_safe_point(outer: OuterLoop, control: ControlConfig, task: TaskConfig, x_d,
+                       start: ClikPoint, margin: float = SAFE_MARGIN) -> ClikPoint:
+    """The safe reference nearest to x_d [m], searched from the safe reference ``start`` (e.g.
+    :func:`safe_point`'s): ``min |x(u) - x_d|`` over the actuated tensions u within the limits,
+    subject to the lowest held frequency being at least ``control.min_frequency + margin`` [Hz]
+    (SLSQP; x(u) the task coordinates of the model's equilibrium under u, continued from the last
+    one, with dx/du from the implicit function theorem; the frequency's gradient by central
+    differences). The point found is precomputed as a target is and kept only when it is safe and
+    nearer x_d than ``start``; otherwise ``start``."""
+    clik = outer.clik
+    cm, kp = clik.cm, [control.proportional[k] for k in task.tendons]
+    model, active = cm.model, list(cm.active)
+    x_d = np.asarray(x_d, dtype=float)
+    h = 1e-3 * (control.tension_max - control.tension_min)
+    lo, hi = control.tension_min + h, control.tension_max - h       # inside, as a precomputed point
+    data = ArmData(model)
+    last = {"u": None, "q": np.asarray(start.q, dtype=float), "value": None}
+
+    def equilibrium(u):
+        """(q, x, dx/du) of the model's equilibrium under the actuated tensions u [N]."""
+        u = np.clip(np.asarray(u, dtype=float), control.tension_min, control.tension_max)
+        if last["u"] is None or not np.array_equal(u, last["u"]):
+            u_start = None if last["u"] is None else full_tensions(cm, last["u"])
+            eq = solve_equilibrium(model, full_tensions(cm, u), q_start=last["q"], u_start=u_start,
+                                   friction=cm.friction, data=data)
+            evaluate(model, data, eq.q, level=STATICS)
+            A = (data.A if cm.friction else data.A0)[:, active]
+            x, Jx = clik.task.evaluate(model, eq.q, data)
+            last.update(u=u.copy(), q=eq.q, value=(eq.q, x, -Jx @ np.linalg.solve(eq.jacobian, A)))
+        return last["value"]
+
+    def frequency(u):
+        return lowest_held_frequency(cm, equilibrium(u)[0], u, kp) - control.min_frequency - margin
+
+    def frequency_gradient(u):
+        return np.array([(frequency(u + h * e) - frequency(u - h * e)) / (2 * h)
+                         for e in np.eye(len(u))])
+
+    def distance(u):
+        r = equilibrium(u)[1] - x_d
+        return 0.5 * float(r @ r)
+
+    def distance_gradient(u):
+        _, x, dxdu = equilibrium(u)
+        return dxdu.T @ (x - x_d)
+
+    try:
+        sol = minimize(distance, np.asarray(start.u_ff, dtype=float), jac=distance_gradient,
+                       method="SLSQP", bounds=[(lo, hi)] * len(active),
+                       constraints=[{"type": "ineq", "fun": frequency, "jac": frequency_gradient}],
+                       options={"maxiter": 50, "ftol": 1e-12})
+        point = outer.precompute(equilibrium(sol.x)[1])
+    except (EquilibriumError, OutOfDomainError, TargetError):
+        return start
+    nearer = np.linalg.norm(point.x - x_d) < np.linalg.norm(start.x - x_d)
+    return point if nearer and fragility_error(outer, control, task, point) is None else start
+
+
 def target_point(outer: OuterLoop, control: ControlConfig, task: TaskConfig, x_d) -> ClikPoint:
     """The precomputed reference of x_d [m] (:meth:`OuterLoop.precompute`), refused with TargetError
     when x_d is unreachable, infeasible, or fragile (too near a fold of the model's equilibria to
     be held: :func:`fragility_error`). The error's ``closest`` is the point to run instead: the
-    closest feasible one, moved back along the straight tension path from the start-up pose until
-    it is not fragile (:func:`safe_point`)."""
+    closest feasible one, or when that is fragile the closest safe one (:func:`closest_safe_point`,
+    searched from :func:`safe_point`'s)."""
+    def safe_instead(point):
+        start = safe_point(outer, control, task, point)
+        return None if start is None else closest_safe_point(outer, control, task, x_d, start)
+
     try:
         point = outer.precompute(x_d)
     except TargetError as exc:
         closest = exc.closest
         if closest is not None and fragility_error(outer, control, task, closest):
-            closest = safe_point(outer, control, task, closest)
+            closest = safe_instead(closest)
         raise TargetError(str(exc), closest) from exc
     reason = fragility_error(outer, control, task, point)
     if reason is not None:
-        raise TargetError(f"target {np.round(x_d, 4).tolist()} m is fragile: {reason}",
-                          safe_point(outer, control, task, point))
+        raise TargetError(f"target {np.round(x_d, 4).tolist()} m is fragile: {reason}", safe_instead(point))
     return point

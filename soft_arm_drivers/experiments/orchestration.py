@@ -339,7 +339,7 @@ def run_emulated_hardware(ros_args: list, out: dict, duration: float,
 # emulated_rig, the mocap bridge and the inner loop) run under SCHED_FIFO where the system permits
 # it: under the normal policy a busy two-core computer holds one of them, or a DDS thread it waits
 # on while it publishes, for 0.1-0.3 s now and then, and the motor driver's watchdog rightly trips.
-# The emulated hardware's own process leaves the real-time policy (emulated_hardware.py says why).
+# The emulated hardware's own process runs below all of them (emulated_hardware.py says why).
 # On the rig, run motor_driver, mocap_bridge and inner_loop the same way (README, "On the rig, and
 # on the emulated rig").
 _REALTIME = {"emulated_rig": 30, "inner_loop": 20, "mocap_bridge": 20}

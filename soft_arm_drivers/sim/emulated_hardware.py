@@ -104,22 +104,20 @@ def _compile_kernels(plant: Plant, data: ArmData):
     marker_positions(plant.model, q, data)
 
 
-HARDWARE_NICE = -10      # the emulated hardware's niceness under the normal policy
+HARDWARE_PRIORITY = 10     # SCHED_FIFO priority of the emulated hardware: below every node's
 
 
-def _off_the_realtime_budget():
-    """Leave SCHED_FIFO (inherited from the driver's process) for the normal policy at niceness
-    HARDWARE_NICE (where permitted). The plant and the Motive emulator stand for hardware, which
-    takes no CPU on the rig; at a real-time priority their 0.4 core joins the nodes' real-time load,
-    and when a CPU's real-time tasks reach the kernel's budget (``sched_rt_runtime_us``: 950 ms of
-    each second) or starve the normal tasks (the fair deadline server), every real-time task on
-    that CPU, the driver's included, is held for tens of milliseconds: its watchdog trips. A
-    negative niceness keeps the hardware ahead of a lab PC's other work."""
+def _below_the_nodes():
+    """Under SCHED_FIFO (inherited from the driver's process), run at HARDWARE_PRIORITY, below every
+    node of the graph (the driver 30, the inner loop and the mocap bridge 20). The plant and the
+    Motive emulator stand for hardware, which takes no CPU from the nodes on the rig: at the driver's
+    priority a plant thread catching up holds a core the driver waits for (equal FIFO priorities
+    do not preempt). Under the normal policy (tried: niceness -10) a lab PC's other work delays
+    them past the driver's 50 ms reply timeout (3 runs in 3 under one CPU-bound process)."""
     try:
-        if os.sched_getscheduler(0) != os.SCHED_FIFO:
-            return
-        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
-        os.setpriority(os.PRIO_PROCESS, 0, HARDWARE_NICE)
+        if os.sched_getscheduler(0) == os.SCHED_FIFO and \
+                os.sched_getparam(0).sched_priority > HARDWARE_PRIORITY:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(HARDWARE_PRIORITY))
     except (AttributeError, OSError):
         pass
 
@@ -134,7 +132,7 @@ def _serve(spec: HardwareSpec, conn):
     """The child: the hardware on the bus's other end until the parent closes the pipe or dies.
     Reports ``("ready", natnet command port)`` or ``("error", message)`` on the pipe."""
     bus = hardware = None
-    _off_the_realtime_budget()
+    _below_the_nodes()
     try:
         bus = LoopbackBus(peer_channel(spec.driver.channel), preserve_timestamps=True)
         hardware = start_hardware(spec, bus)

@@ -9,8 +9,8 @@ from soft_arm_control.clik import TargetError
 from soft_arm_control.config import load_control_config, load_task_config
 from soft_arm_control.input_shaping import step_modes
 from soft_arm_control.outer_loop import outer_loop_for
-from soft_arm_control.target_margin import (MarginChecker, Variant, check_arm, is_robust,
-                                            target_frequency, target_point)
+from soft_arm_control.target_margin import (SAFE_MARGIN, MarginChecker, Variant, check_arm, is_robust,
+                                            safe_point, target_frequency, target_point)
 from soft_arm_control.targets_cli import main as targets_main
 from soft_arm_model import ImexStepper, build_model, load_arm_config, marker_positions, solve_equilibrium
 from soft_arm_control.collocated import full_tensions
@@ -152,8 +152,12 @@ def test_a_target_near_a_fold_is_refused_and_the_safe_point_offered_can_be_held(
     eq = solve_equilibrium(cm.model, full_tensions(cm, safe.u_ff), q_start=safe.q, friction=cm.friction)
     assert np.allclose(outer.clik.task.evaluate(cm.model, eq.q)[0], safe.x, atol=1e-6)
     assert np.allclose(target_point(outer, control, task, safe.x).q, safe.q)    # offered as it runs
-    # it lies between the hanging arm and the vertex, nearer the vertex than the start
-    assert np.linalg.norm(safe.x - TRIANGLE_SIDE) < np.linalg.norm(outer.start.x - TRIANGLE_SIDE)
+    # it is the closest safe point: nearer the vertex than the last safe point on the straight
+    # tension path from the hanging arm (29 mm), on the threshold (SAFE_MARGIN above it)
+    on_path = safe_point(outer, control, task, outer.precompute(np.array(TRIANGLE_SIDE)))
+    assert np.linalg.norm(safe.x - TRIANGLE_SIDE) < 0.5 * np.linalg.norm(on_path.x - TRIANGLE_SIDE)
+    assert target_frequency(outer, control, task, safe) == pytest.approx(control.min_frequency + SAFE_MARGIN,
+                                                                         abs=5e-3)
     off = replace(control, min_frequency=0.0)
     assert target_point(outer, off, task, np.array(TRIANGLE_SIDE)).x == pytest.approx(TRIANGLE_SIDE, abs=1e-5)
 

@@ -12,7 +12,8 @@ from soft_arm_drivers.can.driver_config import load_driver_config
 from soft_arm_drivers.can.loopback_bus import INTERFACE, LoopbackBus
 from soft_arm_drivers.can.motor_driver import MotorDriver
 from soft_arm_drivers.mocap.bridge_config import load_mocap_config
-from soft_arm_drivers.sim.emulated_hardware import HARDWARE_NICE, HardwareProcess, HardwareSpec
+from soft_arm_drivers.experiments.orchestration import _REALTIME
+from soft_arm_drivers.sim.emulated_hardware import HARDWARE_PRIORITY, HardwareProcess, HardwareSpec
 from soft_arm_drivers.sim.emulated_rig import load_emulator_config, read_emulated_motors
 from soft_arm_drivers.sim.plant_config import load_plant_config
 from soft_arm_model import load_arm_config
@@ -107,9 +108,9 @@ def _fifo_permitted() -> bool:
 
 
 @pytest.mark.skipif(not _fifo_permitted(), reason="SCHED_FIFO is not permitted here")
-def test_the_hardware_process_leaves_the_realtime_policy_of_its_driver():
+def test_the_hardware_process_runs_below_the_fifo_priority_of_every_node():
     """The plant and the Motive emulator stand for hardware: spawned by a driver under SCHED_FIFO,
-    they run under the normal policy, ahead of other work (niceness HARDWARE_NICE)."""
+    they never hold a core at a node's priority."""
     policy, param = os.sched_getscheduler(0), os.sched_getparam(0)
     os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(30))
     try:
@@ -117,7 +118,8 @@ def test_the_hardware_process_leaves_the_realtime_policy_of_its_driver():
     finally:
         os.sched_setscheduler(0, policy, param)
     try:
-        assert os.sched_getscheduler(hardware.pid) == os.SCHED_OTHER
-        assert os.getpriority(os.PRIO_PROCESS, hardware.pid) == HARDWARE_NICE
+        assert os.sched_getscheduler(hardware.pid) == os.SCHED_FIFO
+        assert os.sched_getparam(hardware.pid).sched_priority == HARDWARE_PRIORITY
+        assert HARDWARE_PRIORITY < min(_REALTIME.values())
     finally:
         hardware.stop()

@@ -15,8 +15,11 @@ import pytest
 from soft_arm_drivers.can.driver_config import load_driver_config
 from soft_arm_drivers.experiments.experiment import _ros_arguments, main, run_composed
 from soft_arm_drivers.experiments.figures import read_series
+from soft_arm_drivers.experiments.identify_cli import write_identified_arm
+from soft_arm_drivers.mocap.bridge_config import load_mocap_config
 from soft_arm_drivers.sim.emulated_rig import load_emulator_config, read_emulated_motors
-from soft_arm_model import build_model, load_arm_config, solve_equilibrium, tendon_lengths
+from soft_arm_model import build_model, load_arm_config, marker_positions, solve_equilibrium, tendon_lengths
+from soft_arm_ros.conversions import markers_of
 from soft_arm_model.parameters import ConfigError
 
 from conftest import killed_on_exit, stop, wait_for_output
@@ -155,3 +158,32 @@ def test_a_command_gap_faults_the_driver_and_the_run_is_no_result(tmp_path):
     # goal (the clik node's first report), where the hardware's start-up precedes it by a variable time
     goal = min(t for t, d in series["diagnostics"] if any(s.name == "clik" for s in d.status))
     assert state[-1][0] - goal < 6.0
+
+
+def test_the_bridge_takes_the_mocap_calibration_of_the_arm_file(tmp_path):
+    """An identified arm file carries the mocap calibration (soft-arm-identify writes it): with
+    ``--arm-file`` the bridge maps Motive's points with it, not with mocap.yaml's. A calibration
+    30 mm higher than mocap.yaml's puts the hanging arm's published markers 30 mm above the
+    model's (the plant differs from the model by millimetres); the run is stopped once the motors
+    are driven."""
+    calibration = load_mocap_config().calibration
+    shifted = (calibration.rotation, calibration.translation + np.array([0.0, 0.0, 0.03]))
+    arm_file = tmp_path / "identified_arm.yaml"
+    write_identified_arm(str(arm_file), load_arm_config(), shifted)
+    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYTHONUNBUFFERED="1")
+    out = tmp_path / "run"
+    sets = [a for s in ONE_TARGET for a in ("--set", s)]
+    proc = subprocess.Popen([sys.executable, "-m", "soft_arm_drivers.experiments.experiment", "coiling",
+                             "--emulated-hardware", "--arm-file", str(arm_file), "--output", str(out)] + sets,
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+    with killed_on_exit(proc):
+        seen = wait_for_output(proc, "[motor_driver]: activated", timeout=120)
+        output = seen + stop(proc, signal.SIGINT, 60)
+    assert proc.returncode == 130, output
+    frames = read_series(str(out / "bag"), topics=["mocap/markers"])["mocap/markers"]
+    first = markers_of(frames[0][1])                       # the arm hanging, before any command
+    model = build_model(load_arm_config())
+    hanging = marker_positions(model, solve_equilibrium(model, np.zeros(model.n_tendons)).q)
+    offset = (first - hanging).mean(axis=0)
+    assert offset[2] == pytest.approx(0.03, abs=0.008), offset
+    assert np.all(np.abs(offset[:2]) < 0.008), offset
