@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from soft_arm_control.actuation_map import ActuationMap
+from soft_arm_control.actuation_map import ActuationMap, _monomials
 from soft_arm_control.collocated import CollocatedData, build_collocated, evaluate_collocated
 from soft_arm_control.inner_loop import InnerLoopGains, PSatID
 from soft_arm_drivers.sim.simulated_rig import Plant
@@ -30,6 +30,56 @@ def test_one_step_is_the_paper_law():
     assert np.allclose(u[[1, 3]], expected)
     assert np.allclose(u[[0, 2]], 0.0)      # inactive tendons hold the pretension (0 here)
     assert np.allclose(pid.xi, xi)
+
+
+def _law(g, amap, active, state, t, s, sd, s_ref, u_ff):
+    """The P-satI-D+ law written out in numpy (the module docstring's), one update of ``state``
+    (xi, u, t) on the active tendons; the new state."""
+    xi_old, u_old, t_old = state
+    a = list(active)
+    dt = 0.0 if t_old is None else t - t_old
+    theta, theta_dot = amap(s)[a], (amap.jacobian(s) @ sd)[a]
+    e = amap(s_ref)[a] - theta
+    xi = xi_old + dt * g.integral_saturation * np.tanh(e / g.integral_saturation)
+    u_pd = g.proportional * e - g.derivative * theta_dot + u_ff
+    u_raw = u_pd + g.integral * xi
+    wind = ((u_raw > g.tension_max) & (xi > xi_old)) | ((u_raw < g.tension_min) & (xi < xi_old))
+    xi = np.where(wind, xi_old, xi)
+    u_a = u_pd + g.integral * xi
+    if g.tension_rate_limit > 0 and t_old is not None:
+        step = g.tension_rate_limit * dt
+        u_a = np.clip(u_a, u_old[a] - step, u_old[a] + step)
+    u = np.full(u_old.size, g.tension_min)
+    u[a] = np.clip(u_a, g.tension_min, g.tension_max)
+    return xi, u, t
+
+
+@pytest.mark.parametrize("polynomial", [False, True])
+def test_the_compiled_update_is_the_law_with_either_map(polynomial):
+    """Random states, references and feedforwards that saturate, wind up and meet the rate limit:
+    the compiled update equals the law written out, with the identity and with a polynomial map."""
+    rng = np.random.default_rng(3)
+    exps = _monomials(4, 2)
+    amap = ActuationMap(exps, np.eye(4, len(exps), 1) + 0.05 * rng.standard_normal((4, len(exps))),
+                        0.0, 0.0, 0) if polynomial else ActuationMap.identity()
+    g = InnerLoopGains(np.array([1500.0, 900.0, 1200.0]), np.array([120.0, 80.0, 100.0]),
+                       np.array([3000.0, 1000.0, 2000.0]), 0.01, 0.05, 5.0, 40.0)
+    active = (0, 2, 3)
+    pid, state = PSatID(g, amap, active, 4), (np.zeros(3), np.full(4, 0.05), None)
+    outputs = []
+    for k in range(300):
+        s, sd = 0.02 * rng.standard_normal(4), 0.1 * rng.standard_normal(4)
+        s_ref, u_ff = 0.02 * rng.standard_normal(4), rng.uniform(0.0, 6.0, 3)
+        dt = 0.002 if k % 3 else 0.2                    # long steps let the output reach the limits
+        t = (state[2] or 0.0) + dt
+        u = pid.update(t, s, sd, s_ref, u_ff)
+        state = _law(g, amap, active, state, t, s, sd, s_ref, u_ff)
+        np.testing.assert_allclose(u, state[1], rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(pid.xi, state[0], rtol=1e-12, atol=1e-15)
+        outputs.append((dt, u[list(active)]))
+    steps = [np.abs(u1 - u0) for (_, u0), (dt, u1) in zip(outputs, outputs[1:]) if dt == 0.002]
+    assert any(np.any(u == 5.0) for _, u in outputs) and any(np.any(u == 0.05) for _, u in outputs)
+    assert any(np.any(np.isclose(d, 40.0 * 0.002)) for d in steps)            # rate limited
 
 
 def test_rejects_bad_input_and_keeps_its_state():
