@@ -72,6 +72,13 @@ class PSatID:
         identity = actuation_map.coef is None
         self._exponents = np.zeros((0, n_tendons), dtype=np.int64) if identity else actuation_map.exponents
         self._coef = np.zeros((0, 0)) if identity else np.ascontiguousarray(actuation_map.coef)
+        # compile the kernel here (a cold numba cache: a fresh install), not in the first control
+        # period that meets a reference
+        zeros = np.zeros(n_tendons)
+        _p_sat_i_d(zeros, zeros, zeros, np.zeros(self.active.size), self.active, self._exponents, self._coef,
+                   gains.proportional, gains.derivative, gains.integral, gains.integral_saturation,
+                   gains.tension_min, gains.tension_max, 0.0, -1.0, np.zeros(self.active.size),
+                   self.u, np.empty(n_tendons))
 
     def reset(self):
         """Forget the integral, the last output and the last time stamp."""
