@@ -19,6 +19,7 @@ import threading
 import time
 
 from soft_arm_control.config import IDENTIFICATION
+from soft_arm_drivers.sim.emulated_hardware import hardware_cpu
 from soft_arm_model.parameters import ConfigError, default_config_dir
 
 STOP = threading.Event()       # set by the first Ctrl-C / SIGTERM: the run loops end at their next turn
@@ -150,6 +151,9 @@ class _Children:
         self.procs[name] = proc
         if name in self.realtime:
             os.sched_setscheduler(proc.pid, os.SCHED_FIFO, os.sched_param(self.realtime[name]))
+            off = hardware_cpu()                  # the emulated hardware's CPU (emulated_hardware.py)
+            if off is not None:
+                os.sched_setaffinity(proc.pid, os.sched_getaffinity(0) - {off})
         elif self.niceness:
             try:
                 os.setpriority(os.PRIO_PROCESS, proc.pid, self.niceness)
@@ -347,7 +351,8 @@ def run_emulated_hardware(ros_args: list, out: dict, duration: float,
 # emulated_rig, the mocap bridge and the inner loop) run under SCHED_FIFO where the system permits
 # it: under the normal policy a busy two-core computer holds one of them, or a DDS thread it waits
 # on while it publishes, for 0.1-0.3 s now and then, and the motor driver's watchdog rightly trips.
-# The emulated hardware's own process runs below all of them (emulated_hardware.py says why).
+# The emulated hardware's own process runs below all of them, on a CPU they keep off
+# (emulated_hardware.py says why).
 # On the rig, run motor_driver, mocap_bridge and inner_loop the same way (README, "On the rig, and
 # on the emulated rig").
 _REALTIME = {"emulated_rig": 30, "inner_loop": 20, "mocap_bridge": 20}

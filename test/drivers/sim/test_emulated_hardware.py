@@ -110,7 +110,7 @@ def _fifo_permitted() -> bool:
 @pytest.mark.skipif(not _fifo_permitted(), reason="SCHED_FIFO is not permitted here")
 def test_the_hardware_process_runs_below_the_fifo_priority_of_every_node():
     """The plant and the Motive emulator stand for hardware: spawned by a driver under SCHED_FIFO,
-    they never hold a core at a node's priority."""
+    they never hold a core at a node's priority, and run on a CPU of their own."""
     policy, param = os.sched_getscheduler(0), os.sched_getparam(0)
     os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(30))
     try:
@@ -121,5 +121,7 @@ def test_the_hardware_process_runs_below_the_fifo_priority_of_every_node():
         assert os.sched_getscheduler(hardware.pid) == os.SCHED_FIFO
         assert os.sched_getparam(hardware.pid).sched_priority == HARDWARE_PRIORITY
         assert HARDWARE_PRIORITY < min(_REALTIME.values())
+        if len(os.sched_getaffinity(0)) > 1:                  # a CPU of its own, the last
+            assert os.sched_getaffinity(hardware.pid) == {max(os.sched_getaffinity(0))}
     finally:
         hardware.stop()
