@@ -19,7 +19,8 @@ import threading
 import time
 
 from soft_arm_control.config import IDENTIFICATION
-from soft_arm_drivers.sim.emulated_hardware import hardware_cpu
+
+from . import realtime
 from soft_arm_model.parameters import ConfigError, default_config_dir
 
 STOP = threading.Event()       # set by the first Ctrl-C / SIGTERM: the run loops end at their next turn
@@ -131,8 +132,8 @@ def _change_state(node, client, label: str, timeout: float = 10.0):
 
 class _Children:
     """The node processes of one run (the console scripts' modules with the run's arguments), on
-    loopback; ``realtime``: the SCHED_FIFO priorities of the processes that have one, the others
-    at ``niceness`` (where permitted)."""
+    loopback; ``realtime``: the SCHED_FIFO priorities of the processes that have one (given by
+    :meth:`go_realtime`, once they are set up), the others at ``niceness`` (where permitted)."""
 
     def __init__(self, ros_args: list, extra: dict, realtime: dict | None = None, niceness: int = 0):
         self.ros_args, self.extra, self.realtime = ros_args, extra, realtime or {}
@@ -142,23 +143,30 @@ class _Children:
 
     def start(self, name: str):
         """Start a node in its own session (a Ctrl-C in the terminal reaches this process only,
-        which stops the nodes in order), under SCHED_FIFO if it has a priority, else at the
-        niceness: set before the interpreter has started a thread, so that every thread of the
-        node inherits it."""
+        which stops the nodes in order), at the niceness unless it will be real-time: set before
+        the interpreter has started a thread, so that every thread of the node inherits it."""
         proc = subprocess.Popen(
             [sys.executable, "-m", node_module(name)] + self.ros_args + self.extra.get(name, []),
             env=self.env, start_new_session=True)
         self.procs[name] = proc
-        if name in self.realtime:
-            os.sched_setscheduler(proc.pid, os.SCHED_FIFO, os.sched_param(self.realtime[name]))
-            off = hardware_cpu()                  # the emulated hardware's CPU (emulated_hardware.py)
-            if off is not None:
-                os.sched_setaffinity(proc.pid, os.sched_getaffinity(0) - {off})
-        elif self.niceness:
+        if name not in self.realtime and self.niceness:
             try:
                 os.setpriority(os.PRIO_PROCESS, proc.pid, self.niceness)
             except OSError:
                 pass
+
+    def go_realtime(self):
+        """The real-time nodes under SCHED_FIFO at their priorities, off the emulated hardware's
+        CPU, and the emulated hardware (emulated_rig's child process) at HARDWARE_PRIORITY on its
+        CPU (:mod:`.realtime` says why)."""
+        off = realtime.hardware_cpu()
+        nodes = None if off is None else os.sched_getaffinity(0) - {off}
+        for name, priority in self.realtime.items():
+            pid = self.procs[name].pid
+            realtime.schedule(pid, priority, nodes)
+            if name == "emulated_rig":
+                for hardware in realtime.child_processes(pid):
+                    realtime.schedule(hardware, realtime.HARDWARE_PRIORITY, None if off is None else {off})
 
     def check(self, may_end=()):
         """RuntimeError if a node exited (those in ``may_end`` with status 0 may)."""
@@ -275,8 +283,8 @@ def run_emulated_hardware(ros_args: list, out: dict, duration: float,
     files = [a for name in ("rig.yaml", "mocap.yaml", "emulator.yaml")
              for a in ("--params-file", os.path.join(d, name))]
     port = _free_udp_port()
-    realtime = _realtime_permitted()
-    if not realtime:
+    fifo = realtime.permitted(max(_REALTIME.values()))
+    if not fifo:
         print("soft-arm-experiment: real-time scheduling is not permitted here (it needs root, "
               "CAP_SYS_NICE or an rtprio limit): a busy computer may hold the emulated hardware "
               "long enough for the motor driver's watchdog to trip", file=sys.stderr)
@@ -289,13 +297,13 @@ def run_emulated_hardware(ros_args: list, out: dict, duration: float,
         # the emulated Motive stays in the rig's frame, that of mocap.yaml
         "mocap_bridge": files + (["--params-file", os.path.abspath(arm_file)] if arm_file else [])
         + ["-p", f"rig.mocap.command_port:={port}", "-p", "rig.mocap.data_port:=0"]},
-        _REALTIME if realtime else None, _NICENESS if realtime else 0)
+        _REALTIME if fifo else None, _NICENESS if fifo else 0)
     faults = []
     enabled_at = math.inf                  # system time [s] from which a fault counts
     start = time.monotonic()
 
     def facts():
-        return {"wall_s": time.monotonic() - start, "emulated_hardware": True, "realtime": realtime,
+        return {"wall_s": time.monotonic() - start, "emulated_hardware": True, "realtime": fifo,
                 "driver_faults": faults}
 
     def on_diagnostics(msg):
@@ -327,6 +335,7 @@ def run_emulated_hardware(ros_args: list, out: dict, duration: float,
                         if controller else ("command", "state", "markers"))
         if STOP.is_set():
             return facts()
+        children.go_realtime()
         _call(node, zero, Trigger.Request())
         try:
             _change_state(node, driver, "activate")
@@ -347,30 +356,15 @@ def run_emulated_hardware(ros_args: list, out: dict, duration: float,
     return facts()
 
 
-# Real time on a shared computer. The processes the loop closes through (the motor driver, in
+# Real time on a shared computer: the processes the loop closes through (the motor driver, in
 # emulated_rig, the mocap bridge and the inner loop) run under SCHED_FIFO where the system permits
-# it: under the normal policy a busy two-core computer holds one of them, or a DDS thread it waits
-# on while it publishes, for 0.1-0.3 s now and then, and the motor driver's watchdog rightly trips.
-# The emulated hardware's own process runs below all of them, on a CPU they keep off
-# (emulated_hardware.py says why).
-# On the rig, run motor_driver, mocap_bridge and inner_loop the same way (README, "On the rig, and
-# on the emulated rig").
+# it, once they are set up (realtime.py says why and how). On the rig, run motor_driver,
+# mocap_bridge and inner_loop the same way (README, "On the rig, and on the emulated rig").
 _REALTIME = {"emulated_rig": 30, "inner_loop": 20, "mocap_bridge": 20}
 # The other nodes (recorder, clik, task runner) run ahead of a lab PC's other work: at niceness 0
 # beside one CPU-bound process the recorder lost a quarter of the messages in 3 runs of 5
 # (bench_emulated_rig.py --load 1).
 _NICENESS = -10
-
-
-def _realtime_permitted() -> bool:
-    """Whether this process may give its children SCHED_FIFO (tried on itself, then undone)."""
-    try:
-        policy, param = os.sched_getscheduler(0), os.sched_getparam(0)
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(max(_REALTIME.values())))
-        os.sched_setscheduler(0, policy, param)
-        return True
-    except (AttributeError, OSError):
-        return False
 
 
 def node_module(name: str) -> str:

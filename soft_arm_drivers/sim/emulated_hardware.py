@@ -10,7 +10,6 @@ The child ends when the parent closes it or dies (it watches a pipe to the paren
 from __future__ import annotations
 
 import multiprocessing
-import os
 import time
 from dataclasses import dataclass
 
@@ -104,43 +103,6 @@ def _compile_kernels(plant: Plant, data: ArmData):
     marker_positions(plant.model, q, data)
 
 
-HARDWARE_PRIORITY = 10     # SCHED_FIFO priority of the emulated hardware: below every node's
-
-
-def _below_the_nodes():
-    """Under SCHED_FIFO (inherited from the driver's process), run at HARDWARE_PRIORITY, below every
-    node of the graph (the driver 30, the inner loop and the mocap bridge 20), on a CPU of its own
-    (the last one; the orchestration keeps the real-time nodes off it, :data:`HARDWARE_CPU`). The
-    plant and the Motive emulator stand for hardware, which takes no CPU from the nodes on the
-    rig:
-
-    - at the driver's priority a plant thread catching up holds a core the driver waits for
-      (equal FIFO priorities do not preempt);
-    - under the normal policy (tried: niceness -10) a lab PC's other work delays them past the
-      driver's 50 ms reply timeout (3 runs in 3 under one CPU-bound process);
-    - on the nodes' CPU its 0.4 core brings that CPU's real-time load near the kernel's limit
-      (``sched_rt_runtime_us``, 950 ms of each second), beyond which every real-time task there is
-      held for 50 ms (measured: a FIFO 50 task waits 50 ms each second beside a FIFO 10 busy loop
-      on its CPU), and the driver's watchdog trips."""
-    try:
-        if os.sched_getscheduler(0) != os.SCHED_FIFO:
-            return
-        if os.sched_getparam(0).sched_priority > HARDWARE_PRIORITY:
-            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(HARDWARE_PRIORITY))
-        cpu = hardware_cpu()
-        if cpu is not None:
-            os.sched_setaffinity(0, {cpu})
-    except (AttributeError, OSError):
-        pass
-
-
-def hardware_cpu() -> int | None:
-    """The CPU the emulated hardware runs on under SCHED_FIFO: the last of this machine's, or None
-    on a single-CPU machine."""
-    cpus = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else []
-    return cpus[-1] if len(cpus) > 1 else None
-
-
 def peer_channel(channel: str) -> str:
     """The other end's channel of a ``soft_arm_loopback`` channel ``"LOCAL:PEER"``."""
     local, peer = parse_channel(channel)
@@ -151,7 +113,6 @@ def _serve(spec: HardwareSpec, conn):
     """The child: the hardware on the bus's other end until the parent closes the pipe or dies.
     Reports ``("ready", natnet command port)`` or ``("error", message)`` on the pipe."""
     bus = hardware = None
-    _below_the_nodes()
     try:
         bus = LoopbackBus(peer_channel(spec.driver.channel), preserve_timestamps=True)
         hardware = start_hardware(spec, bus)

@@ -12,8 +12,7 @@ from soft_arm_drivers.can.driver_config import load_driver_config
 from soft_arm_drivers.can.loopback_bus import INTERFACE, LoopbackBus
 from soft_arm_drivers.can.motor_driver import MotorDriver
 from soft_arm_drivers.mocap.bridge_config import load_mocap_config
-from soft_arm_drivers.experiments.orchestration import _REALTIME
-from soft_arm_drivers.sim.emulated_hardware import HARDWARE_PRIORITY, HardwareProcess, HardwareSpec
+from soft_arm_drivers.sim.emulated_hardware import HardwareProcess, HardwareSpec
 from soft_arm_drivers.sim.emulated_rig import load_emulator_config, read_emulated_motors
 from soft_arm_drivers.sim.plant_config import load_plant_config
 from soft_arm_model import load_arm_config
@@ -93,35 +92,5 @@ def test_a_hardware_process_that_cannot_start_says_why():
         second = _spec(command_port=first.mocap.command_port)
         with pytest.raises(ConfigError, match="cannot bind"):
             HardwareProcess(second).start()
-    finally:
-        hardware.stop()
-
-
-def _fifo_permitted() -> bool:
-    try:
-        policy, param = os.sched_getscheduler(0), os.sched_getparam(0)
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(30))
-        os.sched_setscheduler(0, policy, param)
-        return True
-    except OSError:
-        return False
-
-
-@pytest.mark.skipif(not _fifo_permitted(), reason="SCHED_FIFO is not permitted here")
-def test_the_hardware_process_runs_below_the_fifo_priority_of_every_node():
-    """The plant and the Motive emulator stand for hardware: spawned by a driver under SCHED_FIFO,
-    they never hold a core at a node's priority, and run on a CPU of their own."""
-    policy, param = os.sched_getscheduler(0), os.sched_getparam(0)
-    os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(30))
-    try:
-        hardware = HardwareProcess(_spec()).start()       # spawned under this process's FIFO 30
-    finally:
-        os.sched_setscheduler(0, policy, param)
-    try:
-        assert os.sched_getscheduler(hardware.pid) == os.SCHED_FIFO
-        assert os.sched_getparam(hardware.pid).sched_priority == HARDWARE_PRIORITY
-        assert HARDWARE_PRIORITY < min(_REALTIME.values())
-        if len(os.sched_getaffinity(0)) > 1:                  # a CPU of its own, the last
-            assert os.sched_getaffinity(hardware.pid) == {max(os.sched_getaffinity(0))}
     finally:
         hardware.stop()

@@ -1,0 +1,75 @@
+"""Real-time scheduling of a run's processes, once they are set up (Linux, where permitted).
+
+The processes the loop closes through run under SCHED_FIFO: under the normal policy a busy
+two-core computer holds one of them, or a DDS thread it waits on while it publishes, for 0.1-0.3 s
+now and then, and the motor driver's watchdog rightly trips. Two limits of the kernel shape how:
+
+- when the real-time tasks of one CPU use more than ``sched_rt_runtime_us`` (950 ms) of a second,
+  every real-time task on that CPU waits 50 ms (measured: a FIFO 50 task beside a FIFO 10 busy
+  loop on its CPU waits 50 ms each second). So a node is made real-time only once its set-up
+  (seconds of computing) is done, and the emulated hardware, which stands for a machine that
+  takes no CPU on the rig, runs on a CPU of its own (:func:`hardware_cpu`) that the nodes keep off;
+- equal FIFO priorities do not preempt: the emulated hardware runs below every node
+  (:data:`HARDWARE_PRIORITY`), not at the driver's priority, where a plant thread catching up held
+  a core the driver waited for. Under the normal policy instead (tried: niceness -10) a lab PC's
+  other work delayed it past the driver's reply timeout.
+
+Every thread of a process is set (a thread inherits its creator's policy and CPUs from then on).
+"""
+from __future__ import annotations
+
+import os
+
+HARDWARE_PRIORITY = 10     # SCHED_FIFO priority of the emulated hardware: below every node's
+
+
+def permitted(priority: int) -> bool:
+    """Whether this process may give SCHED_FIFO ``priority`` (tried on itself, then undone): root,
+    CAP_SYS_NICE or an rtprio limit."""
+    try:
+        policy, param = os.sched_getscheduler(0), os.sched_getparam(0)
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+        os.sched_setscheduler(0, policy, param)
+        return True
+    except (AttributeError, OSError):
+        return False
+
+
+def hardware_cpu() -> int | None:
+    """The CPU the emulated hardware runs on under SCHED_FIFO: the last of this process's, or None
+    with a single CPU."""
+    cpus = sorted(os.sched_getaffinity(0))
+    return cpus[-1] if len(cpus) > 1 else None
+
+
+def threads(pid: int) -> list:
+    """The thread ids of process ``pid``."""
+    return [int(tid) for tid in os.listdir(f"/proc/{pid}/task")]
+
+
+def child_processes(pid: int) -> list:
+    """The process ids whose parent is ``pid``."""
+    out = []
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        try:
+            with open(f"/proc/{entry}/stat", encoding="utf-8") as fh:
+                ppid = int(fh.read().rsplit(")", 1)[1].split()[1])
+        except (OSError, ValueError, IndexError):
+            continue                                  # gone meanwhile
+        if ppid == pid:
+            out.append(int(entry))
+    return out
+
+
+def schedule(pid: int, priority: int, cpus=None):
+    """Every thread of process ``pid`` under SCHED_FIFO ``priority``, on ``cpus`` (a set) if
+    given. OSError if not permitted; threads that end meanwhile are skipped."""
+    for tid in threads(pid):
+        try:
+            os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(priority))
+            if cpus is not None:
+                os.sched_setaffinity(tid, cpus)
+        except ProcessLookupError:
+            continue

@@ -1,0 +1,56 @@
+"""Real-time scheduling of a run's processes once they are set up: every thread of a node under
+SCHED_FIFO off the emulated hardware's CPU, the hardware (the node's child process) below every
+node on that CPU."""
+import os
+import subprocess
+import sys
+import time
+
+import pytest
+
+from soft_arm_drivers.experiments import realtime
+from soft_arm_drivers.experiments.orchestration import _REALTIME, _Children
+
+# a node stand-in: a thread of its own and a child process, both waiting
+NODE = """
+import multiprocessing, threading, time
+threading.Thread(target=time.sleep, args=(60,), daemon=True).start()
+child = multiprocessing.get_context("spawn").Process(target=time.sleep, args=(60,), daemon=True)
+child.start()
+print("up", flush=True)
+time.sleep(60)
+"""
+
+pytestmark = pytest.mark.skipif(not realtime.permitted(max(_REALTIME.values())),
+                                reason="SCHED_FIFO is not permitted here")
+
+
+def _policies(pid):
+    return {tid: (os.sched_getscheduler(tid), os.sched_getparam(tid).sched_priority,
+                  os.sched_getaffinity(tid)) for tid in realtime.threads(pid)}
+
+
+def test_go_realtime_sets_every_thread_of_a_node_and_its_hardware_apart():
+    proc = subprocess.Popen([sys.executable, "-c", NODE], stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout.readline().strip() == "up"
+        children = _Children([], {}, {"emulated_rig": 30})
+        children.procs["emulated_rig"] = proc
+        hardware = realtime.child_processes(proc.pid)          # the child (and spawn's resource tracker)
+        assert hardware
+        assert len(realtime.threads(proc.pid)) >= 2
+        assert all(p == os.SCHED_OTHER for p, _, _ in _policies(proc.pid).values())  # set up: normal
+        children.go_realtime()
+        cpus, off = os.sched_getaffinity(0), realtime.hardware_cpu()
+        for policy, priority, affinity in _policies(proc.pid).values():
+            assert (policy, priority) == (os.SCHED_FIFO, 30)
+            assert affinity == (cpus if off is None else cpus - {off})
+        for pid in hardware:
+            for policy, priority, affinity in _policies(pid).values():
+                assert (policy, priority) == (os.SCHED_FIFO, realtime.HARDWARE_PRIORITY)
+                assert affinity == (cpus if off is None else {off})
+        assert realtime.HARDWARE_PRIORITY < min(_REALTIME.values())
+    finally:
+        proc.kill()
+        proc.wait()
+        time.sleep(0.1)
