@@ -132,8 +132,9 @@ def _change_state(node, client, label: str, timeout: float = 10.0):
 
 class _Children:
     """The node processes of one run (the console scripts' modules with the run's arguments), on
-    loopback; ``realtime``: the SCHED_FIFO priorities of the processes that have one (given by
-    :meth:`go_realtime`, once they are set up), the others at ``niceness`` (where permitted)."""
+    loopback; ``realtime``: the SCHED_FIFO priorities of the processes that have one (their CPUs
+    given by :meth:`go_realtime`, once they are set up), the others at ``niceness`` (where
+    permitted)."""
 
     def __init__(self, ros_args: list, extra: dict, realtime: dict | None = None, niceness: int = 0):
         self.ros_args, self.extra, self.realtime = ros_args, extra, realtime or {}
@@ -143,22 +144,25 @@ class _Children:
 
     def start(self, name: str):
         """Start a node in its own session (a Ctrl-C in the terminal reaches this process only,
-        which stops the nodes in order), at the niceness unless it will be real-time: set before
-        the interpreter has started a thread, so that every thread of the node inherits it."""
+        which stops the nodes in order), under SCHED_FIFO if it has a priority, else at the
+        niceness: set before the interpreter has started a thread, so that every thread of the
+        node inherits it."""
         proc = subprocess.Popen(
             [sys.executable, "-m", node_module(name)] + self.ros_args + self.extra.get(name, []),
             env=self.env, start_new_session=True)
         self.procs[name] = proc
-        if name not in self.realtime and self.niceness:
+        if name in self.realtime:
+            os.sched_setscheduler(proc.pid, os.SCHED_FIFO, os.sched_param(self.realtime[name]))
+        elif self.niceness:
             try:
                 os.setpriority(os.PRIO_PROCESS, proc.pid, self.niceness)
             except OSError:
                 pass
 
     def go_realtime(self):
-        """The real-time nodes under SCHED_FIFO at their priorities, off the emulated hardware's
-        CPU, and the emulated hardware (emulated_rig's child process) at HARDWARE_PRIORITY on its
-        CPU (:mod:`.realtime` says why)."""
+        """Once the nodes are set up: every thread of the real-time nodes off the emulated
+        hardware's CPU, and the emulated hardware (emulated_rig's child process) at
+        HARDWARE_PRIORITY on that CPU (:mod:`.realtime` says why)."""
         off = realtime.hardware_cpu()
         nodes = None if off is None else os.sched_getaffinity(0) - {off}
         for name, priority in self.realtime.items():
@@ -358,7 +362,7 @@ def run_emulated_hardware(ros_args: list, out: dict, duration: float,
 
 # Real time on a shared computer: the processes the loop closes through (the motor driver, in
 # emulated_rig, the mocap bridge and the inner loop) run under SCHED_FIFO where the system permits
-# it, once they are set up (realtime.py says why and how). On the rig, run motor_driver,
+# it, on their CPUs once they are set up (realtime.py says why and how). On the rig, run motor_driver,
 # mocap_bridge and inner_loop the same way (README, "On the rig, and on the emulated rig").
 _REALTIME = {"emulated_rig": 30, "inner_loop": 20, "mocap_bridge": 20}
 # The other nodes (recorder, clik, task runner) run ahead of a lab PC's other work: at niceness 0

@@ -6,9 +6,10 @@ now and then, and the motor driver's watchdog rightly trips. Two limits of the k
 
 - when the real-time tasks of one CPU use more than ``sched_rt_runtime_us`` (950 ms) of a second,
   every real-time task on that CPU waits 50 ms (measured: a FIFO 50 task beside a FIFO 10 busy
-  loop on its CPU waits 50 ms each second). So a node is made real-time only once its set-up
-  (seconds of computing) is done, and the emulated hardware, which stands for a machine that
-  takes no CPU on the rig, runs on a CPU of its own (:func:`hardware_cpu`) that the nodes keep off;
+  loop on its CPU waits 50 ms each second). So the emulated hardware, which stands for a machine
+  that takes no CPU on the rig, runs on a CPU of its own (:func:`hardware_cpu`) that the nodes keep
+  off, from when their set-up (seconds of computing) is done: set up on one CPU, the three
+  real-time nodes took 127 s to start once;
 - equal FIFO priorities do not preempt: the emulated hardware runs below every node
   (:data:`HARDWARE_PRIORITY`), not at the driver's priority, where a plant thread catching up held
   a core the driver waited for. Under the normal policy instead (tried: niceness -10) a lab PC's
