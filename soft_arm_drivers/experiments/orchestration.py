@@ -310,14 +310,22 @@ def run_emulated_hardware(ros_args: list, out: dict, duration: float,
         return {"wall_s": time.monotonic() - start, "emulated_hardware": True, "realtime": fifo,
                 "driver_faults": faults}
 
+    driving = []                           # not empty while the task runs on active motors
+
     def on_diagnostics(msg):
-        """Keep and print the motor driver's faults latched while the motors are enabled."""
+        """Keep and print the motor driver's faults latched while the motors are enabled, and its
+        leaving the active state while the task runs (``ros2 lifecycle set`` from elsewhere)."""
         stamp = stamp_to_seconds(msg.header.stamp)
         for status in msg.status:
-            if status.name == "motor_driver" and status.level == DiagnosticStatus.ERROR \
-                    and stamp >= enabled_at and all(f["message"] != status.message for f in faults):
-                faults.append({"message": status.message, "time_s": round(stamp - enabled_at, 3)})
-                print(f"\nsoft-arm-experiment: motor_driver {status.message} "
+            if status.name != "motor_driver" or stamp < enabled_at:
+                continue
+            state = next((kv.value for kv in status.values if kv.key == "lifecycle_state"), "active")
+            message = status.message if status.level == DiagnosticStatus.ERROR else (
+                f"left the active state ({state}) while the task ran" if driving and state != "active"
+                else None)
+            if message is not None and all(f["message"] != message for f in faults):
+                faults.append({"message": message, "time_s": round(stamp - enabled_at, 3)})
+                print(f"\nsoft-arm-experiment: motor_driver {message} "
                       f"({stamp - enabled_at:.2f} s after the enable): the run ends", file=sys.stderr)
 
     with _orchestrating(children) as node:
@@ -344,6 +352,7 @@ def run_emulated_hardware(ros_args: list, out: dict, duration: float,
         try:
             _change_state(node, driver, "activate")
             enabled_at = time.time()
+            driving.append(True)
             _call(node, begin, Trigger.Request())
             deadline = time.monotonic() + duration + 60.0
             while not STOP.is_set() and not faults and not os.path.exists(out["metrics"]):
@@ -352,6 +361,7 @@ def run_emulated_hardware(ros_args: list, out: dict, duration: float,
                     raise RuntimeError(f"the {runner} node wrote no result within {duration + 60.0:g} s")
                 rclpy.spin_once(node, timeout_sec=0.1)
         finally:
+            driving.clear()
             try:
                 _change_state(node, driver, "deactivate", timeout=2.0)
             except RuntimeError as exc:

@@ -11,6 +11,9 @@ import time
 
 import numpy as np
 import pytest
+import rclpy
+from lifecycle_msgs.srv import ChangeState
+from rclpy.executors import SingleThreadedExecutor
 
 from soft_arm_drivers.can.driver_config import load_driver_config
 from soft_arm_drivers.experiments.experiment import _ros_arguments, main, run_composed
@@ -22,7 +25,7 @@ from soft_arm_model import build_model, load_arm_config, marker_positions, solve
 from soft_arm_ros.conversions import markers_of
 from soft_arm_model.parameters import ConfigError
 
-from conftest import killed_on_exit, stop, wait_for_output
+from conftest import change_state, killed_on_exit, stop, wait_for_output
 
 ONE_TARGET = ["tasks.coiling.phases=[upward]", "tasks.coiling.phase.upward.sequence=[1]",
               "tasks.coiling.phase.upward.window=8.0"]
@@ -187,3 +190,33 @@ def test_the_bridge_takes_the_mocap_calibration_of_the_arm_file(tmp_path):
     offset = (first - hanging).mean(axis=0)
     assert offset[2] == pytest.approx(0.03, abs=0.008), offset
     assert np.all(np.abs(offset[:2]) < 0.008), offset
+
+
+def test_a_driver_deactivated_from_elsewhere_ends_the_run_as_no_result(tmp_path, context):
+    """``ros2 lifecycle set /motor_driver deactivate`` from another terminal while the task runs: no
+    fault latches (a deactivation is not one), but the motors no longer follow the controller, so
+    the run ends at once, status 1, metrics.json invalid naming it."""
+    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYTHONUNBUFFERED="1")
+    out = tmp_path / "run"
+    sets = [a for s in ONE_TARGET for a in ("--set", s)]
+    proc = subprocess.Popen([sys.executable, "-m", "soft_arm_drivers.experiments.experiment", "coiling",
+                             "--emulated-hardware", "--quiet", "--output", str(out)] + sets,
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+    with killed_on_exit(proc):
+        seen = wait_for_output(proc, "[motor_driver]: activated", timeout=120)
+        operator = rclpy.create_node("operator", context=context)
+        executor = SingleThreadedExecutor(context=context)
+        executor.add_node(operator)
+        try:
+            time.sleep(1.0)
+            assert change_state(executor, operator.create_client(ChangeState, "/motor_driver/change_state"),
+                                "deactivate")
+        finally:
+            executor.shutdown()
+            operator.destroy_node()
+        output = seen + proc.communicate(timeout=60)[0]
+    assert proc.returncode == 1, output
+    assert "left the active state" in output and "rms[mm]" not in output
+    with open(out / "metrics.json", encoding="utf-8") as fh:
+        metrics = json.load(fh)
+    assert metrics["valid"] is False and "left the active state" in metrics["failure"]
