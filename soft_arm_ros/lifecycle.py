@@ -10,7 +10,9 @@ shutdown go back. ros2_control's hardware components use the same states.
   executor and would end the driver's process;
 - :func:`transition` makes a callback that raises log its reason (rclpy turns it into ``ERROR``
   and says nothing); :meth:`~ManagedHardwareNode.refuse` logs why a transition fails;
-- :attr:`~ManagedHardwareNode.lifecycle_state`, the current state's label.
+- :attr:`~ManagedHardwareNode.lifecycle_state`, the current state's label;
+- cleanup, shutdown and error processing all call the node's :meth:`~ManagedHardwareNode.release`
+  (close the hardware), which its ``close()`` on the way out calls too.
 """
 from __future__ import annotations
 
@@ -63,6 +65,29 @@ class ManagedHardwareNode(LifecycleNode):
     def lifecycle_state(self) -> str:
         """The current state's label: unconfigured, inactive, active, finalized (or a transition's)."""
         return self._state_machine.current_state[1]
+
+    def release(self):
+        """Leave the hardware safe and closed (a driver's own); idempotent."""
+        raise NotImplementedError
+
+    @transition
+    def on_cleanup(self, state):
+        self.release()
+        return SUCCESS
+
+    @transition
+    def on_shutdown(self, state):
+        self.release()
+        return SUCCESS
+
+    @transition
+    def on_error(self, state):
+        self.release()
+        return SUCCESS
+
+    def close(self):
+        """What ``run_node`` calls on the way out, in any state: :meth:`release`."""
+        self.release()
 
     def refuse(self, transition_name: str, reason: str) -> TransitionCallbackReturn:
         """Log why ``transition_name`` fails and return FAILURE (the node stays where it was)."""

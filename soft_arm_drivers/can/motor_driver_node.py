@@ -156,22 +156,7 @@ class MotorDriverNode(ManagedHardwareNode):
         self._report(self.driver.diagnostics(time.monotonic()), force=True)
         return SUCCESS
 
-    @transition
-    def on_cleanup(self, state):
-        self._release()
-        return SUCCESS
-
-    @transition
-    def on_shutdown(self, state):
-        self._release()
-        return SUCCESS
-
-    @transition
-    def on_error(self, state):
-        self._release()
-        return SUCCESS
-
-    def _release(self):
+    def release(self):
         """Stop cycling; zero torque and exit motor mode on every motor; close the bus."""
         if self._timer is not None:
             self.destroy_timer(self._timer)
@@ -285,10 +270,6 @@ class MotorDriverNode(ManagedHardwareNode):
         response.success, response.message = True, "zero set on every motor at the current angle"
         self.get_logger().info(response.message)
         return response
-
-    def close(self):
-        """Zero torque and exit motor mode on every motor, close the bus (if open)."""
-        self._release()
 
 
 def _values(**items) -> list:

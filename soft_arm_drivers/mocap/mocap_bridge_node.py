@@ -121,21 +121,6 @@ class MocapBridgeNode(ManagedHardwareNode):
         self._publishing.clear()
         return SUCCESS
 
-    @transition
-    def on_cleanup(self, state):
-        self.close()
-        return SUCCESS
-
-    @transition
-    def on_shutdown(self, state):
-        self.close()
-        return SUCCESS
-
-    @transition
-    def on_error(self, state):
-        self.close()
-        return SUCCESS
-
     def now(self) -> float:
         """The node's clock [s]: the time base of the published stamps."""
         return self.get_clock().now().nanoseconds * 1e-9
@@ -197,9 +182,8 @@ class MocapBridgeNode(ManagedHardwareNode):
         self._received_at_last_report = received
         self.diagnostics_pub.publish(msg)
 
-    def close(self):
-        """Stop publishing and the receive thread, close the sockets (run_node calls this on the
-        way out); idempotent."""
+    def release(self):
+        """Stop publishing and the receive thread, close the sockets; idempotent."""
         self._publishing.clear()
         self._stop.set()
         if self._thread is not None:

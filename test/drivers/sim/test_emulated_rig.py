@@ -92,15 +92,21 @@ def test_closed_loop_through_the_emulated_hardware_reaches_the_target_like_the_s
     assert before < state[0] and state[-1] < after and before < markers[0] and markers[-1] < after
 
 
+def _experiment(out, *options) -> subprocess.Popen:
+    """``soft-arm-experiment coiling --emulated-hardware`` on one target as its own process (output
+    to a pipe), its results in ``out``."""
+    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYTHONUNBUFFERED="1")
+    sets = [a for s in ONE_TARGET for a in ("--set", s)]
+    return subprocess.Popen([sys.executable, "-m", "soft_arm_drivers.experiments.experiment", "coiling",
+                             "--emulated-hardware", *options, "--output", str(out)] + sets,
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+
+
 def test_ctrl_c_disables_the_emulated_motors_then_stops_every_node(tmp_path):
     """A Ctrl-C reaches the experiment only (the nodes run in their own sessions): it disables the
     motors, stops the nodes, keeps the bag and exits with 130; no node is left running."""
-    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYTHONUNBUFFERED="1")
     out = tmp_path / "run"
-    sets = [a for s in ONE_TARGET for a in ("--set", s)]
-    proc = subprocess.Popen([sys.executable, "-m", "soft_arm_drivers.experiments.experiment", "coiling",
-                             "--emulated-hardware", "--output", str(out)] + sets,
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+    proc = _experiment(out)
     with killed_on_exit(proc):
         seen = wait_for_output(proc, "[motor_driver]: activated", timeout=120)
         time.sleep(2.0)
@@ -131,12 +137,8 @@ def test_a_command_gap_faults_the_driver_and_the_run_is_no_result(tmp_path):
     """The inner loop held for 0.15 s (three watchdog periods) while the motors are enabled: the
     driver's watchdog trips, the run ends at once with status 1, the motors are disabled, the bag
     stays readable and metrics.json is marked invalid with the fault and its time; no Table 1 row."""
-    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYTHONUNBUFFERED="1")
     out = tmp_path / "run"
-    sets = [a for s in ONE_TARGET for a in ("--set", s)]
-    proc = subprocess.Popen([sys.executable, "-m", "soft_arm_drivers.experiments.experiment", "coiling",
-                             "--emulated-hardware", "--quiet", "--output", str(out)] + sets,
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+    proc = _experiment(out, "--quiet")
     with killed_on_exit(proc):
         seen = wait_for_output(proc, "[motor_driver]: activated", timeout=120)
         time.sleep(2.0)
@@ -173,12 +175,8 @@ def test_the_bridge_takes_the_mocap_calibration_of_the_arm_file(tmp_path):
     shifted = (calibration.rotation, calibration.translation + np.array([0.0, 0.0, 0.03]))
     arm_file = tmp_path / "identified_arm.yaml"
     write_identified_arm(str(arm_file), load_arm_config(), shifted)
-    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYTHONUNBUFFERED="1")
     out = tmp_path / "run"
-    sets = [a for s in ONE_TARGET for a in ("--set", s)]
-    proc = subprocess.Popen([sys.executable, "-m", "soft_arm_drivers.experiments.experiment", "coiling",
-                             "--emulated-hardware", "--arm-file", str(arm_file), "--output", str(out)] + sets,
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+    proc = _experiment(out, "--arm-file", str(arm_file))
     with killed_on_exit(proc):
         seen = wait_for_output(proc, "[motor_driver]: activated", timeout=120)
         output = seen + stop(proc, signal.SIGINT, 60)
@@ -196,12 +194,8 @@ def test_a_driver_deactivated_from_elsewhere_ends_the_run_as_no_result(tmp_path,
     """``ros2 lifecycle set /motor_driver deactivate`` from another terminal while the task runs: no
     fault latches (a deactivation is not one), but the motors no longer follow the controller, so
     the run ends at once, status 1, metrics.json invalid naming it."""
-    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYTHONUNBUFFERED="1")
     out = tmp_path / "run"
-    sets = [a for s in ONE_TARGET for a in ("--set", s)]
-    proc = subprocess.Popen([sys.executable, "-m", "soft_arm_drivers.experiments.experiment", "coiling",
-                             "--emulated-hardware", "--quiet", "--output", str(out)] + sets,
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+    proc = _experiment(out, "--quiet")
     with killed_on_exit(proc):
         seen = wait_for_output(proc, "[motor_driver]: activated", timeout=120)
         operator = rclpy.create_node("operator", context=context)
