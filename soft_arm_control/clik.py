@@ -237,24 +237,18 @@ class Clik:
         udot = lsq_linear(A, wanted + A @ c, bounds=(lo, hi)).x
         return task_columns @ (A @ (udot - c)) + qdot_eq
 
-    def closest_feasible(self, x_d, starts, margin: float | None = None) -> ClikPoint:
-        """The model equilibrium closest to x_d [m] whose actuated tensions lie in
-        [u_min + margin, u_max - margin] [N] (default margin: a thousandth of the range): bounded
-        least squares on the tensions, ``min |x(u) - x_d|`` with x(u) the task coordinates of the
-        equilibrium under u (the other tendons held) and dx/du = -J_x (dR/dq)^-1 A_a from the
-        implicit function theorem. Local: the best over ``starts`` (configurations; their
-        equilibrium tensions, clipped into the box, start the search). x_d itself when it is
-        feasible and reachable from a start."""
+    def equilibrium_of_tensions(self, q_start):
+        """A function of the actuated tensions u [N] (the other tendons held): (q, x, dx/du) of
+        the model's equilibrium under u, its task coordinates x [m] and dx/du = -J_x (dR/dq)^-1 A_a
+        from the implicit function theorem. Each solve starts from the last one's equilibrium
+        (the first from ``q_start``); the same u again returns the last result."""
         cm = self.cm
         model, active = cm.model, list(cm.active)
-        margin = _LIMIT_MARGIN * (self.u_max - self.u_min) if margin is None else float(margin)
-        lo, hi = self.u_min + margin, self.u_max - margin
-        x_d = np.asarray(x_d, dtype=float)
         data = ArmData(model)
-        # the last equilibrium: its tensions u, q and (q, x, dx/du); the next solve starts from it
-        last = {"u": None, "q": None, "value": None}
+        last = {"u": None, "q": np.asarray(q_start, dtype=float), "value": None}
 
         def equilibrium(u):
+            u = np.asarray(u, dtype=float)
             if last["u"] is None or not np.array_equal(u, last["u"]):
                 u_start = None if last["u"] is None else full_tensions(cm, last["u"])
                 eq = solve_equilibrium(model, full_tensions(cm, u), q_start=last["q"], u_start=u_start,
@@ -264,11 +258,23 @@ class Clik:
                 x, Jx = self.task.evaluate(model, eq.q, data)
                 last.update(u=u.copy(), q=eq.q, value=(eq.q, x, -Jx @ np.linalg.solve(eq.jacobian, A)))
             return last["value"]
+        return equilibrium
 
+    def closest_feasible(self, x_d, starts, margin: float | None = None) -> ClikPoint:
+        """The model equilibrium closest to x_d [m] whose actuated tensions lie in
+        [u_min + margin, u_max - margin] [N] (default margin: a thousandth of the range): bounded
+        least squares on the tensions, ``min |x(u) - x_d|`` with x(u) the task coordinates of the
+        equilibrium under u (the other tendons held) and dx/du = -J_x (dR/dq)^-1 A_a from the
+        implicit function theorem. Local: the best over ``starts`` (configurations; their
+        equilibrium tensions, clipped into the box, start the search). x_d itself when it is
+        feasible and reachable from a start."""
+        margin = _LIMIT_MARGIN * (self.u_max - self.u_min) if margin is None else float(margin)
+        lo, hi = self.u_min + margin, self.u_max - margin
+        x_d = np.asarray(x_d, dtype=float)
         best = None
         for q in starts:
             u0 = np.clip(self.reference(q).u_ff, lo, hi)
-            last.update(u=None, q=np.asarray(q, dtype=float), value=None)
+            equilibrium = self.equilibrium_of_tensions(q)
             try:
                 sol = least_squares(lambda u: equilibrium(u)[1] - x_d, u0, jac=lambda u: equilibrium(u)[2],
                                     bounds=(lo, hi), x_scale=hi - lo, xtol=1e-10, ftol=1e-10, gtol=1e-10)

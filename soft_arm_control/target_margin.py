@@ -22,7 +22,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy.optimize import minimize
 
-from soft_arm_model import STATICS, ArmConfig, ArmData, build_model, evaluate
+from soft_arm_model import ArmConfig, build_model
 from soft_arm_model.dynamics import OutOfDomainError
 from soft_arm_model.statics import EquilibriumError, solve_equilibrium
 
@@ -223,25 +223,14 @@ def closest_safe_point(outer: OuterLoop, control: ControlConfig, task: TaskConfi
     nearer x_d than ``start``; otherwise ``start``."""
     clik = outer.clik
     cm, kp = clik.cm, [control.proportional[k] for k in task.tendons]
-    model, active = cm.model, list(cm.active)
     x_d = np.asarray(x_d, dtype=float)
     h = 1e-3 * (control.tension_max - control.tension_min)
     lo, hi = control.tension_min + h, control.tension_max - h       # inside, as a precomputed point
-    data = ArmData(model)
-    last = {"u": None, "q": np.asarray(start.q, dtype=float), "value": None}
+    solve = clik.equilibrium_of_tensions(start.q)
 
     def equilibrium(u):
-        """(q, x, dx/du) of the model's equilibrium under the actuated tensions u [N]."""
-        u = np.clip(np.asarray(u, dtype=float), control.tension_min, control.tension_max)
-        if last["u"] is None or not np.array_equal(u, last["u"]):
-            u_start = None if last["u"] is None else full_tensions(cm, last["u"])
-            eq = solve_equilibrium(model, full_tensions(cm, u), q_start=last["q"], u_start=u_start,
-                                   friction=cm.friction, data=data)
-            evaluate(model, data, eq.q, level=STATICS)
-            A = (data.A if cm.friction else data.A0)[:, active]
-            x, Jx = clik.task.evaluate(model, eq.q, data)
-            last.update(u=u.copy(), q=eq.q, value=(eq.q, x, -Jx @ np.linalg.solve(eq.jacobian, A)))
-        return last["value"]
+        """(q, x, dx/du) under u clipped to the limits (a difference step may leave them)."""
+        return solve(np.clip(u, control.tension_min, control.tension_max))
 
     def frequency(u):
         return lowest_held_frequency(cm, equilibrium(u)[0], u, kp) - control.min_frequency - margin
@@ -260,7 +249,7 @@ def closest_safe_point(outer: OuterLoop, control: ControlConfig, task: TaskConfi
 
     try:
         sol = minimize(distance, np.asarray(start.u_ff, dtype=float), jac=distance_gradient,
-                       method="SLSQP", bounds=[(lo, hi)] * len(active),
+                       method="SLSQP", bounds=[(lo, hi)] * len(start.u_ff),
                        constraints=[{"type": "ineq", "fun": frequency, "jac": frequency_gradient}],
                        options={"maxiter": 50, "ftol": 1e-12})
         point = outer.precompute(equilibrium(sol.x)[1])
