@@ -40,14 +40,6 @@ class ActuationMap:
     max_error: float
     samples: int
 
-    def __post_init__(self):
-        """Evaluate once, so that the kernels compile (on a cold numba cache: a fresh install) where
-        the map is made, not in the first control period that meets a reference."""
-        if self.coef is not None:
-            s = np.zeros(self.exponents.shape[1])
-            self(s)
-            self.jacobian(s)
-
     @classmethod
     def identity(cls) -> "ActuationMap":
         """theta_a = s: the exact actuation coordinates without friction."""

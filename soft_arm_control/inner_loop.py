@@ -127,10 +127,14 @@ def _p_sat_i_d(s, s_dot, s_ref, u_ff, active, exponents, coef, kp, kd, ki, e_sat
     identity = coef.shape[0] == 0
     n_f = exponents.shape[0]
     f, f_ref, f_jac = np.empty(n_f), np.empty(n_f), np.empty((n_f, n))
+    f_rate = np.zeros(n_f)                    # d monomial / dt [1/s] from the shortening rates
     if not identity:
         _features(s / SCALE, exponents, f)
         _features(s_ref / SCALE, exponents, f_ref)
         _feature_jacobian(s / SCALE, exponents, f_jac)
+        for j in range(n_f):
+            for m in range(n):
+                f_rate[j] += f_jac[j, m] * s_dot[m] / SCALE
     for k in range(n):
         u_out[k] = u_min
     for i in range(active.shape[0]):
@@ -142,10 +146,7 @@ def _p_sat_i_d(s, s_dot, s_ref, u_ff, active, exponents, coef, kp, kd, ki, e_sat
             for j in range(n_f):
                 theta += coef[k, j] * f[j]
                 theta_ref += coef[k, j] * f_ref[j]
-                rate = 0.0
-                for m in range(n):
-                    rate += f_jac[j, m] * s_dot[m]
-                theta_dot += coef[k, j] * rate / SCALE
+                theta_dot += coef[k, j] * f_rate[j]
         e = theta_ref - theta
         x = xi[i] + dt * e_sat * np.tanh(e / e_sat)
         u_pd = kp[i] * e - kd[i] * theta_dot + u_ff[i]

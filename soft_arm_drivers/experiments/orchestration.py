@@ -19,9 +19,9 @@ import threading
 import time
 
 from soft_arm_control.config import IDENTIFICATION
+from soft_arm_model.parameters import ConfigError, default_config_dir
 
 from . import realtime
-from soft_arm_model.parameters import ConfigError, default_config_dir
 
 STOP = threading.Event()       # set by the first Ctrl-C / SIGTERM: the run loops end at their next turn
 
@@ -310,7 +310,7 @@ def run_emulated_hardware(ros_args: list, out: dict, duration: float,
         return {"wall_s": time.monotonic() - start, "emulated_hardware": True, "realtime": fifo,
                 "driver_faults": faults}
 
-    driving = []                           # not empty while the task runs on active motors
+    driving = False                        # the task runs on active motors
 
     def on_diagnostics(msg):
         """Keep and print the motor driver's faults latched while the motors are enabled, and its
@@ -352,7 +352,7 @@ def run_emulated_hardware(ros_args: list, out: dict, duration: float,
         try:
             _change_state(node, driver, "activate")
             enabled_at = time.time()
-            driving.append(True)
+            driving = True
             _call(node, begin, Trigger.Request())
             deadline = time.monotonic() + duration + 60.0
             while not STOP.is_set() and not faults and not os.path.exists(out["metrics"]):
@@ -361,7 +361,7 @@ def run_emulated_hardware(ros_args: list, out: dict, duration: float,
                     raise RuntimeError(f"the {runner} node wrote no result within {duration + 60.0:g} s")
                 rclpy.spin_once(node, timeout_sec=0.1)
         finally:
-            driving.clear()
+            driving = False
             try:
                 _change_state(node, driver, "deactivate", timeout=2.0)
             except RuntimeError as exc:
