@@ -9,6 +9,7 @@ The child ends when the parent closes it or dies (it watches a pipe to the paren
 """
 from __future__ import annotations
 
+import gc
 import multiprocessing
 import time
 from dataclasses import dataclass
@@ -111,12 +112,21 @@ def peer_channel(channel: str) -> str:
 
 def _serve(spec: HardwareSpec, conn):
     """The child: the hardware on the bus's other end until the parent closes the pipe or dies.
-    Reports ``("ready", natnet command port)`` or ``("error", message)`` on the pipe."""
+    Reports ``("ready", natnet command port, objects frozen out of the garbage collector)`` or
+    ``("error", message)`` on the pipe.
+
+    What the set-up allocated (the model, compiled kernels, scipy: some 1.5e5 objects) is collected
+    once and frozen out of the garbage collector, as every node's process does
+    (:func:`soft_arm_ros.runtime.run_node`): a full collection walking them holds the interpreter
+    lock, and with it the motors' and the NatNet threads, for 50-300 ms (measured, *ad hoc*), past
+    the driver's reply timeout: the motors fall silent and the driver faults."""
     bus = hardware = None
     try:
         bus = LoopbackBus(peer_channel(spec.driver.channel), preserve_timestamps=True)
         hardware = start_hardware(spec, bus)
-        conn.send(("ready", hardware.natnet.command_port))
+        gc.collect()
+        gc.freeze()
+        conn.send(("ready", hardware.natnet.command_port, gc.get_freeze_count()))
         while hardware.error is None:
             if conn.poll(0.2):               # the parent said stop, or its end closed (it died)
                 try:
@@ -141,13 +151,15 @@ def _serve(spec: HardwareSpec, conn):
 class HardwareProcess:
     """The emulated hardware of ``spec`` in a child process on the ``soft_arm_loopback`` bus whose
     driver end is ``spec.driver.channel``. ``start()`` returns once the hardware is up (ConfigError
-    with the child's reason otherwise, or after ``timeout`` [s])."""
+    with the child's reason otherwise, or after ``timeout`` [s]); then ``command_port`` is its
+    Motive server's and ``frozen_objects`` how many objects of its set-up the child froze out of
+    the garbage collector."""
 
     def __init__(self, spec: HardwareSpec, timeout: float = 60.0):
         self.spec, self.timeout = spec, float(timeout)
         self._conn = self._process = None
         self._error = None
-        self.command_port = None
+        self.command_port = self.frozen_objects = None
 
     def start(self) -> "HardwareProcess":
         ctx = multiprocessing.get_context("spawn")        # no copy of the parent's rclpy state
@@ -159,11 +171,11 @@ class HardwareProcess:
         if not self._conn.poll(self.timeout):
             self.stop()
             raise ConfigError(f"the emulated hardware did not start within {self.timeout:g} s")
-        kind, value = self._conn.recv()
+        kind, *values = self._conn.recv()
         if kind != "ready":
             self.stop()
-            raise ConfigError(f"the emulated hardware did not start: {value}")
-        self.command_port = value
+            raise ConfigError(f"the emulated hardware did not start: {values[0]}")
+        self.command_port, self.frozen_objects = values
         return self
 
     @property
