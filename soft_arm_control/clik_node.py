@@ -1,11 +1,13 @@
 """``clik`` node: the underactuated CLIK, precomputed and online, with the paper's switch.
 
-Subscribes ``task/goal`` (Float64MultiArray: the task coordinates; ``layout.dim[0].label`` the mode:
-clik (default), replay, precomputed, online, or ``track/<phase>``: that phase's trajectory from the
-goal's coordinates, see :mod:`soft_arm_control.outer_loop`) and
-``mocap/markers``; publishes ``tendon/reference`` (position: reference shortenings [m] of all
+Subscribes ``task/goal`` (soft_arm_interfaces/TaskGoal: the target task coordinates [m] in
+``arm_base``, taken by their labels, and the mode: clik (default), replay, precomputed, online, or
+track: the trajectory of the goal's phase from the target, see :mod:`soft_arm_control.outer_loop`)
+and ``mocap/markers``; publishes ``tendon/reference`` (position: reference shortenings [m] of all
 tendons; effort: feedforward tensions [N], the pretension on the tendons the task does not use) and
-``arm/configuration_reference`` (q_d). A bad, infeasible or fragile goal (one too near a fold of
+``arm/configuration_reference`` (soft_arm_interfaces/ConfigurationReference: q_d, the goal it
+answers, the goal's target now and the model's task coordinates at q_d [m]). A bad goal (another
+frame, coordinates not the task's), an infeasible or a fragile one (one too near a fold of
 the model's equilibria to be held, ``control.clik.min_frequency``) is rejected with a logged
 reason; the last good reference stays. Time is the mocap's (frame stamps), so it works on sim time and on
 the rig alike.
@@ -15,16 +17,16 @@ from __future__ import annotations
 import json
 import sys
 
-import numpy as np
 from geometry_msgs.msg import PoseArray
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
-from std_msgs.msg import Float64MultiArray
+from soft_arm_interfaces.msg import ConfigurationReference, TaskGoal
 
 from soft_arm_model import build_model
 from soft_arm_ros.contract import QOS, TOPICS
-from soft_arm_ros.conversions import float_array, joint_state, markers_of, seconds_to_stamp, stamp_to_seconds
+from soft_arm_ros.conversions import (configuration_reference, goal_of, joint_state, markers_of,
+                                      seconds_to_stamp, stamp_to_seconds)
 from soft_arm_ros.parameters import NodeParameters
 from soft_arm_ros.runtime import run_node
 
@@ -46,35 +48,37 @@ class ClikNode(Node):
         self.model = build_model(params.arm)
         self.outer = outer_loop_for(self.model, self.control, self.task)
         self.names = self.model.tendon_names
+        self.labels = self.task.space.labels()
         self.now = 0.0
         self.rejected_goals = 0
         self.ref_pub = self.create_publisher(JointState, TOPICS["reference"], QOS["tendon/reference"])
-        self.q_pub = self.create_publisher(Float64MultiArray, TOPICS["configuration"],
+        self.q_pub = self.create_publisher(ConfigurationReference, TOPICS["configuration"],
                                            QOS["arm/configuration_reference"])
-        self.create_subscription(Float64MultiArray, TOPICS["goal"], self.on_goal, QOS["task/goal"])
+        self.create_subscription(TaskGoal, TOPICS["goal"], self.on_goal, QOS["task/goal"])
         self.create_subscription(PoseArray, TOPICS["markers"], self.on_markers, QOS["mocap/markers"])
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self._reported = None                 # (goal index, status) last published
         self.create_timer(1.0, self.publish_diagnostics)
         self.get_logger().info(f"clik ready for task {self.task.name} "
-                               f"({', '.join(self.task.space.labels())})")
+                               f"({', '.join(self.labels)})")
 
     def publish(self, ref):
         self.ref_pub.publish(joint_state(self.names, self.now, position=ref.shortening,
                                          effort=full_tensions(self.outer.clik.cm, ref.u_ff)))
-        self.q_pub.publish(float_array(ref.q, "q_d"))
+        x_d, _ = self.outer.target_at(self.now)
+        goal = self.outer.reports[-1]
+        self.q_pub.publish(configuration_reference(self.now, len(self.outer.reports) - 1, goal.mode, ref.q,
+                                                   self.labels, x_d, ref.x))
 
-    def on_goal(self, msg: Float64MultiArray):
-        label = msg.layout.dim[0].label if msg.layout.dim and msg.layout.dim[0].label else "clik"
-        mode, _, phase = label.partition("/")        # track/<phase>: that phase's trajectory
+    def on_goal(self, msg: TaskGoal):
         try:
+            x_d, mode, phase = goal_of(msg, self.labels)
             trajectory = None
-            if mode == "track":
+            if mode == TaskGoal.MODE_TRACK:
                 trajectory = self.trajectories.get(phase)
                 if trajectory is None:
                     raise ValueError(f"a track goal names a phase of task {self.task.name} with a "
-                                     f"trajectory ({', '.join(sorted(self.trajectories))}), got {label!r}")
-            x_d = np.array(msg.data, dtype=float)
+                                     f"trajectory ({', '.join(sorted(self.trajectories))}), got {phase!r}")
             point = None
             if mode in ("clik", "precomputed") and x_d.shape == (self.task.space.m,):
                 point = self.outer.precompute(x_d)

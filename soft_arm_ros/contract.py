@@ -24,8 +24,8 @@ TOPICS = {
 TYPES = {
     "tendon/command": "sensor_msgs/msg/JointState", "tendon/state": "sensor_msgs/msg/JointState",
     "tendon/reference": "sensor_msgs/msg/JointState", "mocap/markers": "geometry_msgs/msg/PoseArray",
-    "mocap/tip": "geometry_msgs/msg/PoseStamped", "task/goal": "std_msgs/msg/Float64MultiArray",
-    "arm/configuration_reference": "std_msgs/msg/Float64MultiArray",
+    "mocap/tip": "geometry_msgs/msg/PoseStamped", "task/goal": "soft_arm_interfaces/msg/TaskGoal",
+    "arm/configuration_reference": "soft_arm_interfaces/msg/ConfigurationReference",
     "arm/shape": "visualization_msgs/msg/MarkerArray", "/clock": "rosgraph_msgs/msg/Clock",
     "mocap/pendulum": "geometry_msgs/msg/PoseStamped", "pendulum/release": "std_msgs/msg/Header",
     "/diagnostics": "diagnostic_msgs/msg/DiagnosticArray",

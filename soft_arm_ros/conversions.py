@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 from geometry_msgs.msg import Pose, PoseArray, PoseStamped
 from sensor_msgs.msg import JointState
-from std_msgs.msg import Float64MultiArray, MultiArrayDimension
+from soft_arm_interfaces.msg import ConfigurationReference, TaskGoal
 
 from .contract import FRAME
 
@@ -69,10 +69,43 @@ def markers_of(msg: PoseArray) -> np.ndarray:
     return np.array([[p.position.x, p.position.y, p.position.z] for p in msg.poses], dtype=float)
 
 
-def float_array(values, label: str = "") -> Float64MultiArray:
-    """A Float64MultiArray with one dimension labelled ``label`` (task/goal: the goal mode)."""
-    msg = Float64MultiArray()
-    values = [float(v) for v in values]
-    msg.layout.dim.append(MultiArrayDimension(label=label, size=len(values), stride=len(values)))
-    msg.data = values
+def task_goal(t: float, target, mode: str, phase: str, window: float, labels) -> TaskGoal:
+    """A TaskGoal stamped t [s] in arm_base: ``target`` [m] in the order of ``labels`` (the task
+    coordinates' names), ``mode`` one of ``TaskGoal.MODE_*``, the ``phase`` it belongs to and
+    ``window`` [s], how long it stands."""
+    msg = TaskGoal(mode=mode, phase=phase, window=float(window), labels=list(labels),
+                   target=[float(v) for v in target])
+    msg.header.frame_id = FRAME
+    seconds_to_stamp(msg.header.stamp, t)
+    return msg
+
+
+def goal_of(msg: TaskGoal, labels) -> tuple:
+    """(target [m] in the order of ``labels``, mode, phase) of a TaskGoal for the task coordinates
+    ``labels``: the goal's coordinates are taken by their labels (none: in the task's order) and an
+    empty mode is ``clik``. ValueError saying what does not fit: another frame than arm_base,
+    coordinates that are not the task's."""
+    if msg.header.frame_id not in ("", FRAME):
+        raise ValueError(f"a goal's target is in {FRAME}, got frame {msg.header.frame_id!r}")
+    target = np.array(msg.target, dtype=float)
+    if list(msg.labels):
+        if len(msg.labels) != len(target) or sorted(msg.labels) != sorted(labels):
+            raise ValueError(f"a goal's coordinates are {', '.join(labels)} (in any order, one "
+                             f"value each), got {list(msg.labels)} with {len(target)} values")
+        index = {label: k for k, label in enumerate(msg.labels)}
+        target = target[[index[label] for label in labels]]
+    return target, msg.mode or TaskGoal.MODE_CLIK, msg.phase
+
+
+def configuration_reference(t: float, goal: int, mode: str, q_d, labels, target,
+                            x_model) -> ConfigurationReference:
+    """A ConfigurationReference stamped t [s] in arm_base: the reference configuration ``q_d``
+    (generalised coordinates) answering goal number ``goal`` (``mode``), with the goal's ``target``
+    [m] at t and the task coordinates ``x_model`` [m] the model puts at q_d, both in the order of
+    ``labels``."""
+    msg = ConfigurationReference(goal=int(goal), mode=mode, q_d=[float(v) for v in q_d],
+                                 labels=list(labels), target=[float(v) for v in target],
+                                 x_model=[float(v) for v in x_model])
+    msg.header.frame_id = FRAME
+    seconds_to_stamp(msg.header.stamp, t)
     return msg

@@ -14,6 +14,12 @@ os.environ.setdefault("ROS_DOMAIN_ID", str(100 + os.getpid() % 100))
 
 from soft_arm_model import build_model, load_arm_config  # noqa: E402
 
+try:
+    from soft_arm_interfaces.msg import ConfigurationReference, TaskGoal  # noqa: E402, F401
+except ImportError as exc:
+    pytest.exit(f"the graph's messages are not built in this environment ({exc}): run "
+                "python soft_arm_interfaces/build_pypi.py", returncode=4)
+
 
 def make_model(**overrides):
     """A model of the default arm with dotted-key overrides (``**{"material.viscosity": 0.0}``)."""

@@ -77,3 +77,22 @@ def test_every_interface_package_imported_is_an_exec_depend():
     assert {"std_msgs", "rclpy", "launch_ros"} <= imported        # the scan sees the imports
     missing = imported - _manifest()["exec_depend"]
     assert not missing, f"imported but not an exec_depend of package.xml: {sorted(missing)}"
+
+
+def test_the_interface_package_builds_every_message_with_its_dependencies():
+    """soft_arm_interfaces: CMakeLists.txt generates exactly msg/*.msg, with DEPENDENCIES naming
+    every package whose types the messages use, each a <depend> of its package.xml."""
+    package = ROOT / "soft_arm_interfaces"
+    cmake = (package / "CMakeLists.txt").read_text()
+    call = re.search(r"rosidl_generate_interfaces\(\$\{PROJECT_NAME\}(.*?)\)", cmake, re.S).group(1)
+    listed = set(re.findall(r'"(msg/\w+\.msg)"', call))
+    assert listed == {f"msg/{p.name}" for p in (package / "msg").glob("*.msg")} and listed
+    dependencies = set(call.split("DEPENDENCIES", 1)[1].split())
+    used = {line.split()[0].split("/")[0] for p in (package / "msg").glob("*.msg")
+            for line in p.read_text().splitlines() if "/" in line.split("#")[0].split(" ")[0]}
+    assert used == dependencies == {"std_msgs"}
+    root = ET.parse(package / "package.xml").getroot()
+    assert root.findtext("name") == "soft_arm_interfaces"
+    assert dependencies <= {e.text for e in root.findall("depend")}
+    assert {e.text for e in root.findall("member_of_group")} == {"rosidl_interface_packages"}
+    assert all(f"find_package({d} REQUIRED)" in cmake for d in dependencies)

@@ -11,12 +11,23 @@ the motion capture saw of the strike.
 """
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 
 from soft_arm_control.config import TaskConfig
 
 from .metrics import measured_speed, summarise, tracking_metrics, transition_metrics
 from .strike import measured_strike
+
+
+class Goal(NamedTuple):
+    """A window's goal: ``target`` task coordinates [m], the clik ``mode`` of its ``phase`` and
+    ``window`` [s], how long it stands."""
+    target: np.ndarray
+    mode: str
+    phase: str
+    window: float
 
 
 class TaskRunner:
@@ -51,9 +62,9 @@ class TaskRunner:
     def done(self) -> bool:
         return self.t0 is not None and self.index >= len(self.windows)
 
-    def frame(self, t: float, markers) -> tuple | None:
-        """A mocap frame at time t [s] (markers (n, 3) [m]); returns (x_d, mode) when a new window
-        starts with this frame, else None."""
+    def frame(self, t: float, markers) -> Goal | None:
+        """A mocap frame at time t [s] (markers (n, 3) [m]); returns the :class:`Goal` when a new
+        window starts with this frame, else None."""
         if self.t0 is None:
             self.t0 = t
         goal = None
@@ -62,8 +73,8 @@ class TaskRunner:
             self.index += 1
             self._deferred = None
             if self.index < len(self.windows):
-                phase, mode, k, _ = self.windows[self.index]
-                goal = (np.array(self.task.targets[k]), f"track/{phase}" if mode == "track" else mode)
+                phase, mode, k, window = self.windows[self.index]
+                goal = Goal(np.array(self.task.targets[k]), mode, phase, window)
                 if self.index == 0 and self.plan is not None and self.plan.send_delay > 0:
                     self._deferred, goal = goal, None
         if self._deferred is not None and rel >= self.plan.send_delay - 1e-9:

@@ -1,12 +1,14 @@
 """``task_runner`` node: plays the experiment named by ``graph.task`` on ``mocap/markers`` time,
-publishes ``task/goal`` at each window start and, at the end, logs the paper-style table and
-writes the metrics as JSON to the node parameter ``output`` (if given; written whole or not at
-all), with ``goals``: per window the closest and the last measured task error and the clik node's
-last report of the goal from ``/diagnostics`` (infeasible and held steps, status; for the last goal
-as of the clik's last report, at most a second old); then it stops. A task with a pendulum plans
-its strike at start-up (:func:`~.strike.strike_plan_for`), publishes ``pendulum/release``
-(std_msgs/Header stamped with the release time, sent ahead) with the first frame, reads the ball on
-``mocap/pendulum`` and writes the strike's plan and measurement under ``strike``.
+publishes ``task/goal`` (soft_arm_interfaces/TaskGoal: the window's target, mode, phase and
+duration, stamped with the frame that starts it) at each window start and, at the end, logs the
+paper-style table and writes the metrics as JSON to the node parameter ``output`` (if given;
+written whole or not at all), with ``goals``: per window the closest and the last measured task
+error and the clik node's last report of the goal from ``/diagnostics`` (infeasible and held
+steps, status; for the last goal as of the clik's last report, at most a second old); then it
+stops. A task with a pendulum plans its strike at start-up (:func:`~.strike.strike_plan_for`),
+publishes ``pendulum/release`` (std_msgs/Header stamped with the release time, sent ahead) with
+the first frame, reads the ball on ``mocap/pendulum`` and writes the strike's plan and measurement
+under ``strike``.
 
 With the parameter ``wait_for_start`` true (on the rig: the motors are enabled first), the first
 window starts with the first frame after a call of ``~/start`` (std_srvs/Trigger), and the node
@@ -23,12 +25,13 @@ import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseArray, PoseStamped
 from rclpy.node import Node
-from std_msgs.msg import Float64MultiArray, Header
+from soft_arm_interfaces.msg import TaskGoal
+from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 
 from soft_arm_control.config import control_of, task_of
 from soft_arm_ros.contract import FRAME, QOS, TOPICS
-from soft_arm_ros.conversions import float_array, markers_of, seconds_to_stamp, stamp_to_seconds
+from soft_arm_ros.conversions import markers_of, seconds_to_stamp, stamp_to_seconds, task_goal
 from soft_arm_ros.parameters import NodeParameters
 from soft_arm_ros.runtime import run_node
 
@@ -60,7 +63,7 @@ class TaskRunnerNode(Node):
         self.started = not self.wait_for_start
         self.finished = self.done = False
         self.create_service(Trigger, "~/start", self.on_start)
-        self.pub = self.create_publisher(Float64MultiArray, TOPICS["goal"], QOS["task/goal"])
+        self.pub = self.create_publisher(TaskGoal, TOPICS["goal"], QOS["task/goal"])
         self.create_subscription(PoseArray, TOPICS["markers"], self.on_markers, QOS["mocap/markers"])
         if task.pendulum is not None:
             self.release_pub = self.create_publisher(Header, TOPICS["release"], QOS["pendulum/release"])
@@ -79,10 +82,11 @@ class TaskRunnerNode(Node):
     def on_markers(self, msg: PoseArray):
         if not self.started or self.finished:
             return
-        goal = self.core.frame(stamp_to_seconds(msg.header.stamp), markers_of(msg))
+        t = stamp_to_seconds(msg.header.stamp)
+        goal = self.core.frame(t, markers_of(msg))
         if goal is not None:
-            x_d, mode = goal
-            self.pub.publish(float_array(x_d, mode))
+            self.pub.publish(task_goal(t, goal.target, goal.mode, goal.phase, goal.window,
+                                       self.task.space.labels()))
         if self.core.release_at is not None and not self.release_sent:
             # sent ahead, stamped with the release time: the release happens on time
             release = Header(frame_id=FRAME)

@@ -18,7 +18,9 @@ def test_goals_go_out_at_the_window_starts_and_a_plan_needs_a_pendulum():
     task = load_setup("coiling").task
     runner = TaskRunner(task, 3)
     first = runner.frame(10.0, np.zeros((4, 3)))
-    assert first is not None and np.allclose(first[0], task.targets[task.phases[0].sequence[0]])
+    phase = task.phases[0]
+    assert first is not None and np.allclose(first.target, task.targets[phase.sequence[0]])
+    assert (first.mode, first.phase, first.window) == (phase.mode, phase.name, phase.window)
     assert runner.frame(10.0 + FRAME, np.zeros((4, 3))) is None
     assert runner.release_at is None and runner.strike() is None
     with pytest.raises(ValueError, match="strike plan"):
@@ -36,7 +38,7 @@ def test_the_strike_goal_waits_for_its_send_delay_and_the_release_is_timed():
         if goal is not None:
             goals[k] = goal
     assert list(goals) == [int(np.ceil(0.1 / FRAME - 1e-6))]          # the first frame at +0.1 s
-    assert goals[list(goals)[0]][1] == "precomputed"
+    assert goals[list(goals)[0]].mode == "precomputed"
     assert runner.release_at == 5.0
     delayed = TaskRunner(setup.task, 3, plan(release=0.2), setup.arm)
     assert delayed.frame(5.0, np.zeros((4, 3))) is not None and delayed.release_at == pytest.approx(5.2)

@@ -177,7 +177,7 @@ def test_the_pendulum_strike_on_the_graph_matches_the_harness(tmp_path, capsys):
 
 
 def test_tracking_on_the_graph_matches_the_harness(tmp_path):
-    """A track goal crosses the graph as track/<phase>: the clik node follows that phase's
+    """A track goal crosses the graph with its phase: the clik node follows that phase's
     trajectory, the task runner measures the tracking error against it, as the harness does."""
     from soft_arm_drivers.experiments.experiment import main
     sets = ["tasks.tracking.phases=[approach, circle_fast]", "tasks.tracking.phase.approach.window=4.0"]

@@ -161,26 +161,40 @@ def test_simulator_in_realtime_holds_the_tension_and_counts_missing_commands():
         rclpy.try_shutdown()
 
 
+def _goal(target, mode="clik", labels=None, frame="arm_base", phase=""):
+    from soft_arm_interfaces.msg import TaskGoal
+    msg = TaskGoal(mode=mode, phase=phase, labels=labels or [], target=[float(v) for v in target])
+    msg.header.frame_id = frame
+    return msg
+
+
 def test_clik_node_rejects_bad_goals_and_keeps_the_last_reference():
     import rclpy
     from rclpy.parameter import Parameter
 
     from soft_arm_control.clik_node import ClikNode
-    from soft_arm_ros.conversions import float_array
     rclpy.init()
     try:
         node = ClikNode(parameter_overrides=[Parameter("graph.task", value="coiling")])
-        sent = []
+        sent, references = [], []
         node.ref_pub.publish = sent.append
-        node.q_pub.publish = lambda msg: None
-        node.on_goal(float_array([-0.009, -0.349], "clik"))
+        node.q_pub.publish = references.append
+        x, z = node.labels                                     # marker4.x, marker4.z
+        node.on_goal(_goal([-0.349, -0.009], labels=[z, x]))    # taken by its labels
         assert len(sent) == 1 and node.rejected_goals == 0
+        ref, = references
+        assert (ref.goal, ref.mode, list(ref.labels), ref.header.frame_id) == (0, "clik", [x, z], "arm_base")
+        assert list(ref.target) == [-0.009, -0.349] and len(ref.q_d) == node.model.n
+        assert abs(ref.x_model[0] - ref.target[0]) < 1e-4 and abs(ref.x_model[1] - ref.target[1]) < 1e-4
         first = node.outer.reference
-        node.on_goal(float_array([0.3, 0.3], "clik"))             # unreachable
-        node.on_goal(float_array([0.01], "clik"))                 # wrong size
-        node.on_goal(float_array([0.0, -0.3], "sideways"))        # unknown mode
-        node.on_goal(float_array([0.017, -0.313], "replay"))      # never reached
-        assert node.rejected_goals == 4 and len(sent) == 1
+        node.on_goal(_goal([0.3, 0.3]))                         # unreachable
+        node.on_goal(_goal([0.01]))                             # wrong size
+        node.on_goal(_goal([0.0, -0.3], "sideways"))            # unknown mode
+        node.on_goal(_goal([0.017, -0.313], "replay"))          # never reached
+        node.on_goal(_goal([-0.009, -0.349], frame="world"))    # another frame
+        node.on_goal(_goal([-0.009, -0.349], labels=[x, "marker3.z"]))     # another task's
+        node.on_goal(_goal([-0.009, -0.349], "track", phase="upward"))     # a phase without trajectory
+        assert node.rejected_goals == 7 and len(sent) == 1
         assert node.outer.reference is first
         node.destroy_node()
     finally:
@@ -194,7 +208,6 @@ def test_clik_node_rejects_a_fragile_goal():
     from rclpy.parameter import Parameter
 
     from soft_arm_control.clik_node import ClikNode
-    from soft_arm_ros.conversions import float_array
     rclpy.init()
     try:
         node = ClikNode(parameter_overrides=[Parameter("graph.task", value="triangle"),
@@ -202,9 +215,9 @@ def test_clik_node_rejects_a_fragile_goal():
         sent = []
         node.ref_pub.publish = sent.append
         node.q_pub.publish = lambda msg: None
-        node.on_goal(float_array([-0.03, 0.138, -0.241, 0.056], "clik"))
+        node.on_goal(_goal([-0.03, 0.138, -0.241, 0.056]))
         assert node.rejected_goals == 1 and not sent
-        node.on_goal(float_array([0.048, 0.123, -0.282, 0.043], "clik"))
+        node.on_goal(_goal([0.048, 0.123, -0.282, 0.043]))
         assert node.rejected_goals == 1 and len(sent) == 1
         node.destroy_node()
         node = ClikNode(parameter_overrides=[Parameter("graph.task", value="triangle"),
@@ -212,7 +225,7 @@ def test_clik_node_rejects_a_fragile_goal():
                                              Parameter("control.clik.min_frequency", value=0.0)])
         node.ref_pub.publish = sent.append
         node.q_pub.publish = lambda msg: None
-        node.on_goal(float_array([-0.03, 0.138, -0.241, 0.056], "clik"))       # the check off
+        node.on_goal(_goal([-0.03, 0.138, -0.241, 0.056]))       # the check off
         assert node.rejected_goals == 0 and len(sent) == 2
         node.destroy_node()
     finally:

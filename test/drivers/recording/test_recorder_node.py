@@ -14,7 +14,7 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message
-from std_msgs.msg import Float64MultiArray
+from soft_arm_interfaces.msg import ConfigurationReference, TaskGoal
 
 from conftest import spin_until
 from soft_arm_drivers.recording.adaptive_qos import LossCounter, adapt_to_offers, matches, resubscription
@@ -55,7 +55,11 @@ def test_losses_are_sequence_gaps_of_a_single_publisher():
 
 # -- the node (the ``context`` fixture: conftest) -----------------------------------------------------
 def goal(value):
-    return Float64MultiArray(data=[float(value)])
+    return TaskGoal(mode=TaskGoal.MODE_CLIK, labels=["marker4.x"], target=[float(value)])
+
+
+def reference(value):
+    return ConfigurationReference(goal=int(value), q_d=[float(value)])
 
 
 def recorder(context, bag, topics):
@@ -79,7 +83,7 @@ def test_latched_and_best_effort_publishers_are_recorded(context, tmp_path):
     the recorder starts reaches it; then a best-effort publisher appears on the same topic: the
     recorder subscribes again, best effort, and records its messages too."""
     publisher_node = rclpy.create_node("goal_publisher", context=context)
-    latched = publisher_node.create_publisher(Float64MultiArray, "task/goal", LATCHED)
+    latched = publisher_node.create_publisher(TaskGoal, "task/goal", LATCHED)
     before = time.time_ns()
     latched.publish(goal(1.0))                                  # nobody listens yet
     published = time.time_ns()
@@ -91,7 +95,7 @@ def test_latched_and_best_effort_publishers_are_recorded(context, tmp_path):
     try:
         spin_until(executor, lambda: node.count >= 1)
         assert node.topics["/task/goal"].profile.durability.value == "transient_local"
-        streaming = publisher_node.create_publisher(Float64MultiArray, "task/goal", BEST_EFFORT)
+        streaming = publisher_node.create_publisher(TaskGoal, "task/goal", BEST_EFFORT)
         spin_until(executor, lambda: node.topics["/task/goal"].profile.reliability.value == "best_effort")
         spin_until(executor, lambda: streaming.get_subscription_count() > 0)
         for k in range(2, 40):
@@ -106,7 +110,7 @@ def test_latched_and_best_effort_publishers_are_recorded(context, tmp_path):
     after = time.time_ns()
     messages = read(bag)
     assert len(messages) == node.count >= 20
-    values = [deserialize_message(m.data, Float64MultiArray).data[0] for _, m in messages]
+    values = [deserialize_message(m.data, TaskGoal).target[0] for _, m in messages]
     assert values[0] == 1.0 and set(values[1:]) <= set(range(2, 40)) and len(values) >= 20
     for _, m in messages:
         # the source time (publisher's) before the receive time, both inside the test's window
@@ -121,17 +125,18 @@ def test_messages_the_recorder_could_not_keep_up_with_are_counted(context, tmp_p
     overflows; what it missed is counted from the publisher's sequence numbers, so that recorded +
     lost covers every message, and the count is in the bag's metadata."""
     publisher_node = rclpy.create_node("stream_publisher", context=context)
-    stream = publisher_node.create_publisher(Float64MultiArray, "arm/configuration_reference", BEST_EFFORT)
+    stream = publisher_node.create_publisher(ConfigurationReference, "arm/configuration_reference",
+                                             BEST_EFFORT)
     bag = tmp_path / "bag"
     node = recorder(context, bag, ["arm/configuration_reference"])
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(node)
     try:
         spin_until(executor, lambda: stream.get_subscription_count() > 0)
-        stream.publish(goal(0))
+        stream.publish(reference(0))
         spin_until(executor, lambda: node.count == 1)
         for k in range(1, 3000):
-            stream.publish(goal(k))
+            stream.publish(reference(k))
         count = -1
         while count != node.count:                               # until nothing more arrives
             count = node.count
@@ -146,5 +151,5 @@ def test_messages_the_recorder_could_not_keep_up_with_are_counted(context, tmp_p
     assert lost >= 1000 and node.count + lost == 3000
     stored = json.loads(metadata(bag)["custom_data"]["soft_arm.lost_messages"])
     assert stored == {"/arm/configuration_reference": lost}
-    values = [deserialize_message(m.data, Float64MultiArray).data[0] for _, m in read(bag)]
+    values = [deserialize_message(m.data, ConfigurationReference).q_d[0] for _, m in read(bag)]
     assert values == sorted(values) and values[-1] == 2999.0
