@@ -23,11 +23,15 @@ the triangle's targets at all (``bench_robustness.plant_holds``: the triangle's 
 those plants only), and the triangle run with
 the identified arm and its mocap calibration (``soft-arm-harness triangle --arm-file
 --accept-closest``): RMS error, mm band, mm-band velocity, and how far the targets the identified
-model cannot hold within ``control.clik.closest_margin`` of the tension limits were moved.
+model cannot hold within ``control.clik.closest_margin`` of the tension limits were moved; then
+the same run with the plant's true parameters (and true mocap calibration) as the controller's
+model, on the controller's strain basis: what a perfect identification would give, so that a
+figure the identified arm misses is told from one the plant itself cannot make.
 """
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import re
@@ -58,7 +62,7 @@ def identify_one(plant: dict) -> dict:
     from soft_arm_drivers.experiments.excitation import Excitation, load_identification, parse_fit
     from soft_arm_drivers.experiments.harness import load_setup
     from soft_arm_drivers.experiments.identification_run import simulate_recording
-    from soft_arm_drivers.experiments.identify_cli import composed_calibration, identify, write_identified_arm
+    from soft_arm_drivers.experiments.identify_cli import composed_calibration, identify
     from soft_arm_drivers.mocap.bridge_config import load_mocap_config
 
     overrides = [f"plant.{key}={json.dumps(value)}" for key, value in plant.items()]
@@ -104,24 +108,51 @@ def identify_one(plant: dict) -> dict:
            "basis_kept": "check" if check.get("kept") else "fit" if "kept" in check else "failed",
            "tip_rms_mm": float(fit.marker_rms[-1] * 1e3),
            "plant_holds": plant_holds("triangle", overrides)["plant_holds"]}
+    calibration = composed_calibration(fit.registration, load_mocap_config().calibration)
+    out["triangle"] = triangle_with(fit.arm, calibration, overrides)
+    # the same run with the plant's true parameters (on the controller's basis, the one the fit
+    # returns) and its true mocap calibration: what a perfect identification would give, so that
+    # a figure the identified arm misses is told from one the plant itself cannot make
+    true_arm = dataclasses.replace(truth, discretisation=setup.arm.discretisation)
+    out["triangle_true"] = triangle_with(true_arm, composed_calibration(true_registration(plant),
+                                                                        load_mocap_config().calibration),
+                                         overrides)
+    return out
+
+
+def true_registration(plant: dict):
+    """The mocap frame to arm_base of a plant whose markers arrive as R p + t (its frame error)."""
+    from soft_arm_model.identification import Registration
+    R = Rotation.from_rotvec(np.radians(plant["mocap.frame_error.rotation_deg"])).as_matrix()
+    return Registration(R.T, -R.T @ np.asarray(plant["mocap.frame_error.translation"], dtype=float))
+
+
+def triangle_with(arm, calibration, overrides: list) -> dict:
+    """The triangle on the plant of ``overrides`` with ``arm`` and its mocap ``calibration`` as the
+    controller's model (``soft-arm-harness triangle --arm-file --accept-closest``)."""
+    from soft_arm_drivers.experiments.identify_cli import write_identified_arm
     with tempfile.TemporaryDirectory() as tmp:
         path = os.path.join(tmp, "arm.yaml")
-        calibration = composed_calibration(fit.registration, load_mocap_config().calibration)
-        write_identified_arm(path, fit.arm, calibration)
-        t2 = time.perf_counter()
+        write_identified_arm(path, arm, calibration)
+        t0 = time.perf_counter()
         proc = run_harness("triangle", overrides, "--arm-file", path, "--accept-closest")
-        out["triangle_s"] = time.perf_counter() - t2
+        elapsed = time.perf_counter() - t0
     if proc.returncode != 0:
-        out["triangle"] = {"ok": False, "error": proc.stderr.strip().splitlines()[-1:]}
-    else:
-        s = json.loads(proc.stdout)["summary"]
-        # targets the identified model cannot hold with control.clik.closest_margin, moved by
-        # --accept-closest: how far [mm]
-        moved = [float(m) for m in re.findall(r"\(([\d.]+) mm away", proc.stderr)]
-        out["triangle"] = {"ok": True, "rms_mm": s["rms_error"] * 1e3, "mm_band": s["reached_mm"],
-                           "transitions": s["transitions"], "velocity_mm_band": s["velocity_mm"],
-                           "velocity_cm_band": s["velocity_cm"], "targets_moved_mm": moved}
-    return out
+        return {"ok": False, "error": proc.stderr.strip().splitlines()[-1:], "run_s": elapsed}
+    s = json.loads(proc.stdout)["summary"]
+    # targets the model cannot hold with control.clik.closest_margin, moved by --accept-closest: how far [mm]
+    moved = [float(m) for m in re.findall(r"\(([\d.]+) mm away", proc.stderr)]
+    return {"ok": True, "rms_mm": s["rms_error"] * 1e3, "mm_band": s["reached_mm"],
+            "transitions": s["transitions"], "velocity_mm_band": s["velocity_mm"],
+            "velocity_cm_band": s["velocity_cm"], "targets_moved_mm": moved, "run_s": elapsed}
+
+
+def format_triangle(tri: dict) -> str:
+    """RMS [mm], transitions in the mm band, mm-band velocity [m/s], farthest moved target [mm]."""
+    if not tri["ok"]:
+        return f" failed: {' '.join(tri['error'])}"
+    return (f" {tri['rms_mm']:7.2f} {tri['mm_band']:4d}/{tri['transitions']:<3d} "
+            f"{tri['velocity_mm_band'] or 0:6.3f} {max(tri['targets_moved_mm'], default=0.0):8.1f}")
 
 
 def main(argv=None) -> int:
@@ -141,34 +172,41 @@ def main(argv=None) -> int:
     print(f"{'draw':>5s} {'E %':>6s} {'visc %':>6s} {'rotor %':>7s} {'tip g':>6s} {'fric':>6s} "
           f"{'offs':>6s} {'ang deg':>7s} {'frame deg':>9s} {'mm':>5s} {'basis':>6s} {'/unc':>5s} {'/se':>5s} "
           f"{'fit s':>6s} | "
-          f"{'holds':>5s} {'RMS mm':>7s} {'mm band':>8s} {'v_mm':>6s} {'moved mm':>8s}")
+          f"{'holds':>5s} {'RMS mm':>7s} {'mm band':>8s} {'v_mm':>6s} {'moved mm':>8s} | true parameters: "
+          f"{'RMS mm':>7s} {'mm band':>8s} {'v_mm':>6s} {'moved mm':>8s}")
     for r in runs:
-        e, tri = r["errors"], r["triangle"]
-        head = (f"{r['draw']!s:>5s} {e['youngs_modulus'] * 100:6.2f} {e['viscosity'] * 100:6.1f} "
-                f"{e['rotor_mass'] * 100:7.2f} {e['tip_mass_g']:6.2f} {e['friction']:6.3f} "
-                f"{e['offset_fraction']:6.3f} {e['angle_deg']:7.2f} {e['frame_rotation_deg']:9.2f} "
-                f"{e['frame_translation_mm']:5.2f} {r['basis_kept']:>6s} {e['per_uncertainty']:5.1f} "
-                f"{e['per_standard_error']:5.1f} "
-                f"{r['fit_s']:6.1f} | "
-                f"{'yes' if r['plant_holds'] else 'no':>5s}")
-        tail = (f" {tri['rms_mm']:7.2f} {tri['mm_band']:4d}/{tri['transitions']:<3d} "
-                f"{tri['velocity_mm_band'] or 0:6.3f} {max(tri['targets_moved_mm'], default=0.0):8.1f}") \
-            if tri["ok"] else f" failed: {' '.join(tri['error'])}"
-        print(head + tail)
+        e = r["errors"]
+        print(f"{r['draw']!s:>5s} {e['youngs_modulus'] * 100:6.2f} {e['viscosity'] * 100:6.1f} "
+              f"{e['rotor_mass'] * 100:7.2f} {e['tip_mass_g']:6.2f} {e['friction']:6.3f} "
+              f"{e['offset_fraction']:6.3f} {e['angle_deg']:7.2f} {e['frame_rotation_deg']:9.2f} "
+              f"{e['frame_translation_mm']:5.2f} {r['basis_kept']:>6s} {e['per_uncertainty']:5.1f} "
+              f"{e['per_standard_error']:5.1f} {r['fit_s']:6.1f} | {'yes' if r['plant_holds'] else 'no':>5s}"
+              + format_triangle(r["triangle"]) + " |" + " " * 17 + format_triangle(r["triangle_true"]))
     worst = {k: max(abs(r["errors"][k]) for r in runs) for k in runs[0]["errors"]}
     # the triangle's goal applies to the plants that can hold its targets at all (as in
     # bench_robustness): on the others no model makes the arm reach them
-    done = [r["triangle"] for r in runs if r["triangle"]["ok"] and r["plant_holds"]]
+    holding = [r for r in runs if r["plant_holds"]]
+    done = [r["triangle"] for r in holding if r["triangle"]["ok"]]
+    # the identified arm against the plant's true parameters, run for run: mm-band velocity ratio
+    paired = [(r["triangle"], r["triangle_true"]) for r in holding
+              if r["triangle"]["ok"] and r["triangle_true"]["ok"]
+              and r["triangle"]["velocity_mm_band"] and r["triangle_true"]["velocity_mm_band"]]
     summary = {"worst_errors": worst, "fit_s_max": max(r["fit_s"] for r in runs),
                "triangle_rms_mm_median": float(np.median([t["rms_mm"] for t in done])) if done else None,
                "triangle_rms_mm_worst": max((t["rms_mm"] for t in done), default=None),
                "triangle_mm_band_worst": min((t["mm_band"] for t in done), default=None),
+               "triangle_velocity_mm_band_worst": min((t["velocity_mm_band"] or 0.0 for t in done),
+                                                      default=None),
+               "velocity_mm_band_identified_over_true_worst": min(
+                   (a["velocity_mm_band"] / b["velocity_mm_band"] for a, b in paired), default=None),
                "triangle_failed": sum(not r["triangle"]["ok"] for r in runs),
-               "plants_holding": sum(r["plant_holds"] for r in runs)}
+               "plants_holding": len(holding)}
     print("worst: " + ", ".join(f"{k} {v:.4g}" for k, v in worst.items()))
     print(f"fit <= {summary['fit_s_max']:.1f} s; on the {summary['plants_holding']} plants that hold the "
           f"triangle's targets: triangle RMS median {summary['triangle_rms_mm_median']} mm, "
           f"worst {summary['triangle_rms_mm_worst']} mm, mm band worst {summary['triangle_mm_band_worst']}, "
+          f"mm-band velocity worst {summary['triangle_velocity_mm_band_worst']} m/s "
+          f"(identified / true parameters, worst: {summary['velocity_mm_band_identified_over_true_worst']}), "
           f"failed {summary['triangle_failed']}")
     write_results(args.output, {"seed": args.seed, "summary": summary, "runs": runs})
     return 0
