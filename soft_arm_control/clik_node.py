@@ -64,6 +64,7 @@ class ClikNode(Node):
 
     def publish(self, ref):
         self.ref_pub.publish(joint_state(self.names, self.now, position=ref.shortening,
+                                         velocity=self.outer.reference_rate,
                                          effort=full_tensions(self.outer.clik.cm, ref.u_ff)))
         x_d, _ = self.outer.target_at(self.now)
         goal = self.outer.reports[-1]

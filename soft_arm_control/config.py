@@ -23,6 +23,7 @@ from .task_space import AXES, TaskSpace
 
 PHASE_MODES = ("clik", "replay", "precomputed", "online", "track")
 SHAPED_MODES = ("clik", "replay", "precomputed")   # the goal modes that start with a reference step
+RATE_MODES = ("clik", "online", "track")           # the goal modes that move the reference online
 
 
 def _positive(v):
@@ -66,6 +67,8 @@ CONTROL_SCHEMA = {
     "clik.closest_margin": ("float", lambda v: 0 <= v <= 100,
                             "a tension margin in [0, 100] N, less than half of the tension range"),
     "clik.track_feedforward": ("bool", None, "true or false"),
+    "clik.rate_modes": ("strs", lambda v: set(v) <= set(RATE_MODES),
+                        f"none or more of {list(RATE_MODES)}"),
     "clik.min_frequency": ("float", lambda v: 0 <= v <= 100,
                            "a frequency in [0, 100] Hz (0: no check)"),
     "clik.shaping.shaper": ("str", lambda v: v in SHAPERS, f"one of {list(SHAPERS)}"),
@@ -152,6 +155,7 @@ class ControlConfig:
     shaped_modes: tuple
     track_feedforward: bool
     min_frequency: float
+    rate_modes: tuple
 
 
 def parse_control(v: dict, arm: ArmConfig) -> ControlConfig:
@@ -181,7 +185,8 @@ def parse_control(v: dict, arm: ArmConfig) -> ControlConfig:
         v["clik.switch_delay"], v["clik.tolerance"],
         v["clik.seed_levels"], v["clik.reach_tolerance"], v["clik.stall_time"],
         v["clik.closest_margin"], v["clik.shaping.shaper"], v["clik.shaping.level"],
-        tuple(v["clik.shaping.modes"]), v["clik.track_feedforward"], v["clik.min_frequency"])
+        tuple(v["clik.shaping.modes"]), v["clik.track_feedforward"], v["clik.min_frequency"],
+        tuple(v["clik.rate_modes"]))
 
 
 def load_control_config(arm: ArmConfig, path: str | None = None, overrides=None) -> ControlConfig:

@@ -1,13 +1,17 @@
 """The inner loop: the paper's collocated P-satI-D+ law on tendon-length-based actuation coordinates.
 
-    u = G_P (theta_d - theta) - G_D thetadot + G_I xi + u_ff,
+    u = G_P (theta_d - theta) + G_D (thetadot_d - thetadot) + G_I xi + u_ff,
     xi' = e_sat tanh((theta_d - theta) / e_sat)
 
 (paper eq. PID+; e_sat = 1 m is the paper's literal tanh of the error in metres, a smaller e_sat
 bounds the integrator rate to e_sat per second per tendon while keeping the small-error slope 1).
 theta = thetabar_a(s) from the measured shortenings s [m] (:mod:`.actuation_map`), thetadot by the
 chain rule from the measured shortening rates, theta_d = thetabar_a(s_d) from the reference
-shortenings, u_ff = K_theta_a(q_d) + F_theta_a(q_d) [N] from the outer loop.
+shortenings, u_ff = K_theta_a(q_d) + F_theta_a(q_d) [N] from the outer loop. thetadot_d is the
+reference's own rate, by the chain rule from the reference's shortening rates: zero for a fixed
+reference (the paper's law, -G_D thetadot), the online CLIK's rate while it moves the reference
+(a tracked trajectory), so that the derivative term damps the arm's motion about the moving
+reference instead of dragging against the motion asked for.
 
 Tensions are clipped to [u_min, u_max] (pull only, u_min a small pretension) after an optional rate
 limit; the integral is frozen while the clipped output saturates in the direction it would push it
@@ -75,10 +79,10 @@ class PSatID:
         # compile the kernel here (a cold numba cache: a fresh install), not in the first control
         # period that meets a reference
         zeros = np.zeros(n_tendons)
-        _p_sat_i_d(zeros, zeros, zeros, np.zeros(self.active.size), self.active, self._exponents, self._coef,
-                   gains.proportional, gains.derivative, gains.integral, gains.integral_saturation,
-                   gains.tension_min, gains.tension_max, 0.0, -1.0, np.zeros(self.active.size),
-                   self.u, np.empty(n_tendons))
+        _p_sat_i_d(zeros, zeros, zeros, zeros, np.zeros(self.active.size), self.active,
+                   self._exponents, self._coef, gains.proportional, gains.derivative, gains.integral,
+                   gains.integral_saturation, gains.tension_min, gains.tension_max, 0.0, -1.0,
+                   np.zeros(self.active.size), self.u, np.empty(n_tendons))
 
     def reset(self):
         """Forget the integral, the last output and the last time stamp."""
@@ -86,32 +90,35 @@ class PSatID:
         self.u[:] = self.gains.tension_min
         self.t = None
 
-    def update(self, t: float, s, s_dot, s_ref, u_ff) -> np.ndarray:
+    def update(self, t: float, s, s_dot, s_ref, u_ff, s_ref_dot=None) -> np.ndarray:
         """Tensions [N] of all tendons at time t [s].
 
         s, s_dot: measured shortenings [m] and rates [m/s] of all tendons; s_ref: reference
         shortenings [m] of all tendons (from q_d); u_ff: feedforward tensions [N] of the active
-        tendons. Non-finite inputs or a time stamp earlier than the last raise ValueError and leave
-        the state unchanged. One compiled kernel (:func:`_p_sat_i_d`), some 10 us.
+        tendons; s_ref_dot: the reference's shortening rates [m/s] of all tendons (None: a fixed
+        reference). Non-finite inputs or a time stamp earlier than the last raise ValueError and
+        leave the state unchanged. One compiled kernel (:func:`_p_sat_i_d`), some 10 us.
         """
-        s, s_dot, s_ref, u_ff = (np.ascontiguousarray(v, dtype=float) for v in (s, s_dot, s_ref, u_ff))
+        s_ref_dot = np.zeros(self.n_tendons) if s_ref_dot is None else s_ref_dot
+        s, s_dot, s_ref, u_ff, s_ref_dot = (np.ascontiguousarray(v, dtype=float)
+                                            for v in (s, s_dot, s_ref, u_ff, s_ref_dot))
         if self.t is not None and t < self.t:
             raise ValueError(f"time stamp {t} s is earlier than the last one ({self.t} s)")
         dt = 0.0 if self.t is None else t - self.t
         g = self.gains
         rate_step = g.tension_rate_limit * dt if g.tension_rate_limit > 0 and self.t is not None else -1.0
         xi, u = self.xi.copy(), np.empty(self.n_tendons)
-        if not _p_sat_i_d(s, s_dot, s_ref, u_ff, self.active, self._exponents, self._coef, g.proportional,
-                          g.derivative, g.integral, g.integral_saturation, g.tension_min, g.tension_max,
-                          dt, rate_step, xi, self.u, u):
+        if not _p_sat_i_d(s, s_dot, s_ref, s_ref_dot, u_ff, self.active, self._exponents, self._coef,
+                          g.proportional, g.derivative, g.integral, g.integral_saturation,
+                          g.tension_min, g.tension_max, dt, rate_step, xi, self.u, u):
             raise ValueError("non-finite measurement, reference or feedforward")
         self.xi, self.u, self.t = xi, u, float(t)
         return u.copy()
 
 
 @njit(cache=True, nogil=True)
-def _p_sat_i_d(s, s_dot, s_ref, u_ff, active, exponents, coef, kp, kd, ki, e_sat, u_min, u_max, dt,
-               rate_step, xi, u_prev, u_out) -> bool:
+def _p_sat_i_d(s, s_dot, s_ref, s_ref_dot, u_ff, active, exponents, coef, kp, kd, ki, e_sat, u_min,
+               u_max, dt, rate_step, xi, u_prev, u_out) -> bool:
     """One P-satI-D+ update (the module docstring's law) into ``u_out`` [N] (all tendons) and ``xi``
     [m s] (active tendons), from the previous output ``u_prev`` [N]. The actuation map is the
     polynomial ``coef`` (n_t, F) in the monomials ``exponents`` (F, n_t) of s / SCALE, or the
@@ -119,7 +126,8 @@ def _p_sat_i_d(s, s_dot, s_ref, u_ff, active, exponents, coef, kp, kd, ki, e_sat
     none). False, and nothing written, when an input is not finite."""
     n = s.shape[0]
     for k in range(n):
-        if not (np.isfinite(s[k]) and np.isfinite(s_dot[k]) and np.isfinite(s_ref[k])):
+        if not (np.isfinite(s[k]) and np.isfinite(s_dot[k]) and np.isfinite(s_ref[k])
+                and np.isfinite(s_ref_dot[k])):
             return False
     for i in range(u_ff.shape[0]):
         if not np.isfinite(u_ff[i]):
@@ -128,6 +136,10 @@ def _p_sat_i_d(s, s_dot, s_ref, u_ff, active, exponents, coef, kp, kd, ki, e_sat
     n_f = exponents.shape[0]
     f, f_ref, f_jac = np.empty(n_f), np.empty(n_f), np.empty((n_f, n))
     f_rate = np.zeros(n_f)                    # d monomial / dt [1/s] from the shortening rates
+    f_ref_rate = np.zeros(n_f)                # the same from the reference's rates
+    moving = False
+    for k in range(n):
+        moving = moving or s_ref_dot[k] != 0.0
     if not identity:
         _features(s / SCALE, exponents, f)
         _features(s_ref / SCALE, exponents, f_ref)
@@ -135,21 +147,27 @@ def _p_sat_i_d(s, s_dot, s_ref, u_ff, active, exponents, coef, kp, kd, ki, e_sat
         for j in range(n_f):
             for m in range(n):
                 f_rate[j] += f_jac[j, m] * s_dot[m] / SCALE
+        if moving:
+            _feature_jacobian(s_ref / SCALE, exponents, f_jac)
+            for j in range(n_f):
+                for m in range(n):
+                    f_ref_rate[j] += f_jac[j, m] * s_ref_dot[m] / SCALE
     for k in range(n):
         u_out[k] = u_min
     for i in range(active.shape[0]):
         k = active[i]
         if identity:
-            theta, theta_ref, theta_dot = s[k], s_ref[k], s_dot[k]
+            theta, theta_ref, theta_dot, theta_ref_dot = s[k], s_ref[k], s_dot[k], s_ref_dot[k]
         else:
-            theta, theta_ref, theta_dot = 0.0, 0.0, 0.0
+            theta, theta_ref, theta_dot, theta_ref_dot = 0.0, 0.0, 0.0, 0.0
             for j in range(n_f):
                 theta += coef[k, j] * f[j]
                 theta_ref += coef[k, j] * f_ref[j]
                 theta_dot += coef[k, j] * f_rate[j]
+                theta_ref_dot += coef[k, j] * f_ref_rate[j]
         e = theta_ref - theta
         x = xi[i] + dt * e_sat * np.tanh(e / e_sat)
-        u_pd = kp[i] * e - kd[i] * theta_dot + u_ff[i]
+        u_pd = kp[i] * e + kd[i] * (theta_ref_dot - theta_dot) + u_ff[i]
         u_raw = u_pd + ki[i] * x
         # conditional integration: keep the old integral where the output saturates and the
         # integral would push it further out
@@ -167,18 +185,25 @@ class TendonController:
     """The inner loop as a node runs it: P-satI-D+ on the ``active`` tendons (the task's), the
     others held at their feedforward tension.
 
-    ``set_reference(s_ref, u_ff)``: reference shortenings [m] and feedforward tensions [N] of all
-    tendons (the shortenings of the tendons that are not actuated matter too: thetabar_a is a
-    function of all of them). Before any reference every tendon holds ``tension_min``. Without
-    ``feedforward`` the regulated tendons get no feedforward tension (the integral has to find it).
+    ``set_reference(s_ref, u_ff, s_ref_dot)``: reference shortenings [m], feedforward tensions [N]
+    and the reference's shortening rates [m/s] of all tendons (the shortenings of the tendons that
+    are not actuated matter too: thetabar_a is a function of all of them). Before any reference
+    every tendon holds ``tension_min``. Without ``feedforward`` the regulated tendons get no
+    feedforward tension (the integral has to find it). The reference's rate counts for
+    ``rate_hold`` seconds of the inner loop's own time from the first update after it arrived, then
+    as zero: a reference that stops coming (the outer loop stalled, its frames lost) is a fixed one,
+    not one that keeps moving.
     """
 
     def __init__(self, n_tendons: int, gains: InnerLoopGains, actuation_map: ActuationMap, active,
-                 feedforward: bool = True):
+                 feedforward: bool = True, rate_hold: float = 0.0):
         self.n, self.gains, self.feedforward = n_tendons, gains, feedforward
+        self.rate_hold = float(rate_hold)
         self.active = [int(k) for k in active]
         self.pid = PSatID(self._active_gains(gains), actuation_map, self.active, n_tendons)
         self.s_ref = None
+        self.s_ref_dot = np.zeros(n_tendons)
+        self._rate_since = None              # inner-loop time the current rate was first used [s]
         self.u_ff = np.full(n_tendons, gains.tension_min)
 
     def _active_gains(self, gains: InnerLoopGains) -> InnerLoopGains:
@@ -193,12 +218,17 @@ class TendonController:
         kept. ValueError, with the old gains in place, when they do not fit the arm."""
         self.pid.gains, self.gains = self._active_gains(gains), gains
 
-    def set_reference(self, s_ref, u_ff):
+    def set_reference(self, s_ref, u_ff, s_ref_dot=None):
+        """A new reference (see the class); ``s_ref_dot`` None or empty: a fixed reference."""
         s_ref, u_ff = np.asarray(s_ref, dtype=float), np.asarray(u_ff, dtype=float)
-        if s_ref.shape != (self.n,) or u_ff.shape != (self.n,) or not (
-                np.all(np.isfinite(s_ref)) and np.all(np.isfinite(u_ff))):
-            raise ValueError(f"a reference needs {self.n} finite shortenings and tensions")
+        rate = np.zeros(self.n) if s_ref_dot is None or len(s_ref_dot) == 0 else \
+            np.asarray(s_ref_dot, dtype=float)
+        if s_ref.shape != (self.n,) or u_ff.shape != (self.n,) or rate.shape != (self.n,) or not (
+                np.all(np.isfinite(s_ref)) and np.all(np.isfinite(u_ff)) and np.all(np.isfinite(rate))):
+            raise ValueError(f"a reference needs {self.n} finite shortenings and tensions (and "
+                             f"{self.n} finite shortening rates, or none)")
         self.s_ref, self.u_ff = s_ref, u_ff
+        self.s_ref_dot, self._rate_since = rate, None
 
     def update(self, t: float, s, s_dot) -> np.ndarray:
         """Tensions [N] of all tendons at time t [s] from measured shortenings [m] and rates [m/s]."""
@@ -206,7 +236,10 @@ class TendonController:
         if self.s_ref is None:
             return u
         u_ff = self.u_ff[self.active] if self.feedforward else np.zeros(len(self.active))
-        out = self.pid.update(t, s, s_dot, self.s_ref, u_ff)
+        if self._rate_since is None:
+            self._rate_since = t
+        rate = self.s_ref_dot if t - self._rate_since <= self.rate_hold else None
+        out = self.pid.update(t, s, s_dot, self.s_ref, u_ff, rate)
         u[self.active] = out[self.active]
         return u
 
@@ -218,4 +251,11 @@ def tendon_controller_for(n_tendons: int, control, active, actuation_map: Actuat
     gains = InnerLoopGains(np.array(control.proportional), np.array(control.derivative),
                            np.array(control.integral), control.integral_saturation,
                            control.tension_min, control.tension_max, control.tension_rate_limit)
-    return TendonController(n_tendons, gains, actuation_map, active, control.feedforward)
+    return TendonController(n_tendons, gains, actuation_map, active, control.feedforward,
+                            reference_rate_hold(control))
+
+
+def reference_rate_hold(control) -> float:
+    """How long [s] a moving reference's rate counts after it arrived: three online CLIK periods
+    (a reference is due every period; a late or lost frame is not a stop)."""
+    return 3.0 / control.clik_rate

@@ -1,10 +1,11 @@
 """``inner_loop`` node: P-satI-D+ on ``tendon/state`` and ``tendon/reference``, publishing
-``tendon/command`` (stamped like the state it answers) on every state message. It regulates the
-tendons of the task ``graph.task``; the others get their feedforward tension. Without a reference
-it holds the pretension. Parameters: ``control.*`` (gains, limits, the thetabar_a fit), ``arm.*``,
-``graph.task``; the gains and the tension limits of the inner loop (:data:`LIVE`) may be set while it
-runs (``ros2 param set``) and apply from the next state on, the integral kept; every other value is
-read-only.
+``tendon/command`` (stamped like the state it answers) on every state message. A reference's
+``velocity`` field holds its shortening rates [m/s] (the online CLIK's; empty: a fixed reference).
+It regulates the tendons of the task ``graph.task``; the others get their feedforward tension.
+Without a reference it holds the pretension. Parameters: ``control.*`` (gains, limits, the
+thetabar_a fit), ``arm.*``, ``graph.task``; the gains and the tension limits of the inner loop
+(:data:`LIVE`) may be set while it runs (``ros2 param set``) and apply from the next state on, the
+integral kept; every other value is read-only.
 """
 from __future__ import annotations
 
@@ -63,7 +64,8 @@ class InnerLoopNode(Node):
     def on_reference(self, msg: JointState):
         try:
             self.core.set_reference(ordered(msg, "position", self.names),
-                                    ordered(msg, "effort", self.names))
+                                    ordered(msg, "effort", self.names),
+                                    ordered(msg, "velocity", self.names) if msg.velocity else None)
         except ValueError as exc:
             self.rejected += 1
             self.get_logger().warning(f"reference rejected: {exc}")

@@ -16,6 +16,11 @@ The reference step of a goal whose mode is among ``shaped_modes`` is given in fr
 slowest-decaying mode), the later fractions at the mocap frames after their delays; online
 refinement starts when the last fraction is given, at the earliest.
 
+``reference_rate`` is the current reference's rate of shortening [m/s] (all tendons): an online
+step's change over the CLIK period in a goal whose mode is among ``rate_modes``, zero otherwise
+(and for a precomputed, replayed or shaped reference); the inner loop damps the arm's motion about
+it (:class:`~soft_arm_control.inner_loop.TendonController`).
+
 Times are the caller's [s] (simulated or wall). An unreachable or infeasible goal raises
 :class:`~soft_arm_control.clik.TargetError` and leaves the current reference untouched.
 """
@@ -112,16 +117,19 @@ class OuterLoop:
     ``tolerance`` [m]: precomputation tolerance; ``reach_tolerance`` [m] and ``stall_time`` [s]: when
     a goal counts as reached, and as stalled (:class:`GoalReport`); ``shaper`` and ``shaped_modes``:
     the reference steps of goals in those modes are shaped (None: every step is a step);
-    ``track_feedforward``: a track goal's trajectory velocity is the CLIK's feedforward.
+    ``track_feedforward``: a track goal's trajectory velocity is the CLIK's feedforward;
+    ``rate_modes``: the goal modes whose online steps set ``reference_rate``.
     """
 
     def __init__(self, clik, start: ClikPoint, switch_delay: float, rate: float,
                  jacobian_every: int = 1, seed_levels=(), tolerance: float = 1e-6,
                  reach_tolerance: float = 1e-3, stall_time: float = 2.0,
-                 shaper: StepShaper | None = None, shaped_modes=(), track_feedforward: bool = True):
+                 shaper: StepShaper | None = None, shaped_modes=(), track_feedforward: bool = True,
+                 rate_modes=("track",)):
         self.clik = clik
         self.start = start
         self.reference = start
+        self.reference_rate = np.zeros_like(start.shortening)
         self.switch_delay, self.period = float(switch_delay), 1.0 / float(rate)
         self.jacobian_every = max(1, int(jacobian_every))
         self.seed_levels, self.tolerance = tuple(seed_levels), float(tolerance)
@@ -132,6 +140,7 @@ class OuterLoop:
         self.last_step: ClikStep | None = None
         self.shaper, self.shaped_modes = shaper, tuple(shaped_modes)
         self.track_feedforward = bool(track_feedforward)
+        self.rate_modes = tuple(rate_modes)
         self._move: ShapedStep | None = None
         self._fraction = 1.0
         self._seeds = None
@@ -207,6 +216,7 @@ class OuterLoop:
         self._next_step = self._online_from
         if ref is not None:
             self.reference = ref
+        self.reference_rate = np.zeros_like(self.reference_rate)
         return self.reference
 
     def target_at(self, t: float) -> tuple:
@@ -235,6 +245,7 @@ class OuterLoop:
             if fraction != self._fraction:
                 self._fraction = fraction
                 self.reference = moved = self._move.at(t)
+                self.reference_rate = np.zeros_like(self.reference_rate)
             if fraction >= 1.0:
                 self._move = None
         if t < self._next_step - 1e-9:
@@ -248,6 +259,8 @@ class OuterLoop:
         self.last_step = step
         if ref is None:
             return moved
+        if self._mode in self.rate_modes:
+            self.reference_rate = (ref.shortening - self.reference.shortening) / self.period
         self.reference = ref
         return ref
 
@@ -276,4 +289,4 @@ def outer_loop_for(model, control, task) -> OuterLoop:
     return OuterLoop(clik, start, control.switch_delay, control.clik_rate,
                      int(round(control.clik_rate / control.jacobian_rate)), control.seed_levels,
                      control.tolerance, control.reach_tolerance, control.stall_time, shaper,
-                     control.shaped_modes, control.track_feedforward)
+                     control.shaped_modes, control.track_feedforward, control.rate_modes)

@@ -106,7 +106,8 @@ class TwoLevelController:
     """The paper's controller for one task, as the nodes run it: the outer loop (CLIK, its
     precomputed/online/replay protocol) and the inner loop (P-satI-D+ on the task's tendons).
 
-    Setting ``reference`` (a ClikPoint) hands the inner loop its shortenings and feedforward;
+    Setting ``reference`` (a ClikPoint) hands the inner loop its shortenings and feedforward, with
+    the outer loop's reference rate;
     ``inner`` computes tensions for all tendons from measured shortenings.
     """
 
@@ -127,7 +128,8 @@ class TwoLevelController:
     @reference.setter
     def reference(self, ref: ClikPoint):
         self._reference = ref
-        self.tendons.set_reference(ref.shortening, full_tensions(self.clik.cm, ref.u_ff))
+        self.tendons.set_reference(ref.shortening, full_tensions(self.clik.cm, ref.u_ff),
+                                   self.outer.reference_rate)
 
     def inner(self, t: float, s, s_dot) -> np.ndarray:
         """Tensions [N] of all tendons at time t [s] from measured shortenings [m] and rates [m/s]."""

@@ -269,3 +269,32 @@ def test_a_goal_that_ends_away_from_its_target_is_reported_unreached(paper_model
     assert outer.reports[-1].status == "ok" and outer.reports[-1].reached is False
     outer.finish()
     assert outer.reports[-1].status == "unreached"
+
+
+def test_only_a_track_goal_s_online_steps_give_the_inner_loop_a_reference_rate(paper_model, coiling_clik):
+    """``reference_rate`` is the online step's change of the shortenings over the CLIK period in a
+    goal whose mode is among ``rate_modes`` (a track goal by default), zero otherwise and from every
+    new goal on."""
+    from soft_arm_control.outer_loop import OuterLoop
+    from soft_arm_control.trajectories import Trajectory
+    start = coiling_clik.reference(solve_equilibrium(paper_model, [0.05, 0.05, 1.0, 1.0]).q)
+    outer = OuterLoop(coiling_clik, start, switch_delay=0.0, rate=50.0)
+    x0 = np.array(start.x)
+    outer.goal(0.0, x0, "track", trajectory=Trajectory("circle", 0.005, 2.0))
+    rates = []
+    for k in range(1, 30):
+        before = outer.reference.shortening
+        ref = outer.frame(k * 0.02, outer.reference.x)
+        assert ref is not None
+        assert np.allclose(outer.reference_rate, (ref.shortening - before) / 0.02)
+        rates.append(np.abs(outer.reference_rate[2:]).max())
+    assert min(rates) > 1e-4                      # the path moves the task's tendons all along
+    outer.goal(1.0, x0 + [0.002, 0.0], "online")
+    assert np.all(outer.reference_rate == 0.0)
+    for k in range(1, 10):
+        assert outer.frame(1.0 + k * 0.02, outer.reference.x) is not None
+        assert np.all(outer.reference_rate == 0.0)    # not among rate_modes: the paper's damping
+    both = OuterLoop(coiling_clik, start, switch_delay=0.0, rate=50.0, rate_modes=("online", "track"))
+    both.goal(0.0, x0 + [0.002, 0.0], "online")
+    both.frame(0.02, both.reference.x)
+    assert np.abs(both.reference_rate).max() > 1e-4

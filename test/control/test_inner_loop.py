@@ -30,18 +30,24 @@ def test_one_step_is_the_paper_law():
     assert np.allclose(u[[1, 3]], expected)
     assert np.allclose(u[[0, 2]], 0.0)      # inactive tendons hold the pretension (0 here)
     assert np.allclose(pid.xi, xi)
+    # a moving reference: the derivative term damps the rate error, G_D (thetadot_d - thetadot)
+    s_ref_dot = np.array([0.3, 0.05, -0.2, 0.1])
+    moving = pid.update(1.0, s, sd, s_ref, u_ff, s_ref_dot)
+    assert np.allclose(moving[[1, 3]] - pid.update(1.0, s, sd, s_ref, u_ff)[[1, 3]],
+                       g.derivative * s_ref_dot[[1, 3]])
 
 
-def _law(g, amap, active, state, t, s, sd, s_ref, u_ff):
+def _law(g, amap, active, state, t, s, sd, s_ref, u_ff, s_ref_dot):
     """The P-satI-D+ law written out in numpy (the module docstring's), one update of ``state``
     (xi, u, t) on the active tendons; the new state."""
     xi_old, u_old, t_old = state
     a = list(active)
     dt = 0.0 if t_old is None else t - t_old
     theta, theta_dot = amap(s)[a], (amap.jacobian(s) @ sd)[a]
+    theta_ref_dot = (amap.jacobian(s_ref) @ s_ref_dot)[a]
     e = amap(s_ref)[a] - theta
     xi = xi_old + dt * g.integral_saturation * np.tanh(e / g.integral_saturation)
-    u_pd = g.proportional * e - g.derivative * theta_dot + u_ff
+    u_pd = g.proportional * e + g.derivative * (theta_ref_dot - theta_dot) + u_ff
     u_raw = u_pd + g.integral * xi
     wind = ((u_raw > g.tension_max) & (xi > xi_old)) | ((u_raw < g.tension_min) & (xi < xi_old))
     xi = np.where(wind, xi_old, xi)
@@ -56,8 +62,9 @@ def _law(g, amap, active, state, t, s, sd, s_ref, u_ff):
 
 @pytest.mark.parametrize("polynomial", [False, True])
 def test_the_compiled_update_is_the_law_with_either_map(polynomial):
-    """Random states, references and feedforwards that saturate, wind up and meet the rate limit:
-    the compiled update equals the law written out, with the identity and with a polynomial map."""
+    """Random states, references (fixed, and moving every other update) and feedforwards that
+    saturate, wind up and meet the rate limit: the compiled update equals the law written out, with
+    the identity and with a polynomial map."""
     rng = np.random.default_rng(3)
     exps = _monomials(4, 2)
     amap = ActuationMap(exps, np.eye(4, len(exps), 1) + 0.05 * rng.standard_normal((4, len(exps))),
@@ -70,10 +77,12 @@ def test_the_compiled_update_is_the_law_with_either_map(polynomial):
     for k in range(300):
         s, sd = 0.02 * rng.standard_normal(4), 0.1 * rng.standard_normal(4)
         s_ref, u_ff = 0.02 * rng.standard_normal(4), rng.uniform(0.0, 6.0, 3)
+        s_ref_dot = 0.1 * rng.standard_normal(4) if k % 2 else None
         dt = 0.002 if k % 3 else 0.2                    # long steps let the output reach the limits
         t = (state[2] or 0.0) + dt
-        u = pid.update(t, s, sd, s_ref, u_ff)
-        state = _law(g, amap, active, state, t, s, sd, s_ref, u_ff)
+        u = pid.update(t, s, sd, s_ref, u_ff, s_ref_dot)
+        state = _law(g, amap, active, state, t, s, sd, s_ref, u_ff,
+                     np.zeros(4) if s_ref_dot is None else s_ref_dot)
         np.testing.assert_allclose(u, state[1], rtol=1e-12, atol=1e-12)
         np.testing.assert_allclose(pid.xi, state[0], rtol=1e-12, atol=1e-15)
         outputs.append((dt, u[list(active)]))
@@ -176,3 +185,29 @@ def test_tendon_controller_regulates_the_task_tendons_and_honours_the_feedforwar
     assert np.allclose(without.update(0.0, s, 0 * s), [0.3, 0.4, 0.05, 0.05])
     with pytest.raises(ValueError, match="finite"):
         with_ff.set_reference([np.nan] * 4, [0.3] * 4)
+
+
+def test_a_reference_rate_counts_for_its_hold_time_and_then_as_a_fixed_reference():
+    """The rate of a moving reference enters the derivative term from the first update after it
+    arrived for ``rate_hold`` seconds of the inner loop's own time, then counts as zero (a
+    reference that stops coming is not one that keeps moving); a new reference starts it again;
+    a reference without rates is fixed; a bad rate is refused."""
+    from soft_arm_control.inner_loop import TendonController
+    s, kd = np.array([0.01, 0.02, 0.03, 0.04]), 120.0
+    rate = np.array([0.0, 0.0, 0.01, -0.02])
+    tc = TendonController(4, _gains(kd=kd), ActuationMap.identity(), (2, 3), rate_hold=0.01)
+    u_ff = [0.3, 0.4, 1.5, 2.5]
+    tc.set_reference(s, u_ff, rate)
+    assert np.allclose(tc.update(5.0, s, 0 * s), [0.3, 0.4, 1.5 + kd * 0.01, 2.5 - kd * 0.02])
+    assert np.allclose(tc.update(5.01, s, 0 * s)[2:], [1.5 + kd * 0.01, 2.5 - kd * 0.02])
+    assert np.allclose(tc.update(5.012, s, 0 * s)[2:], [1.5, 2.5])        # expired
+    tc.set_reference(s, u_ff, rate)                                        # a new one
+    assert np.allclose(tc.update(5.014, s, 0 * s)[2:], [1.5 + kd * 0.01, 2.5 - kd * 0.02])
+    tc.set_reference(s, u_ff)                                              # fixed
+    assert np.allclose(tc.update(5.016, s, 0 * s)[2:], [1.5, 2.5])
+    tc.set_reference(s, u_ff, [])                                          # a message without rates
+    assert np.allclose(tc.update(5.018, s, 0 * s)[2:], [1.5, 2.5])
+    with pytest.raises(ValueError, match="shortening rates"):
+        tc.set_reference(s, u_ff, [0.0, np.inf, 0.0, 0.0])
+    with pytest.raises(ValueError, match="shortening rates"):
+        tc.set_reference(s, u_ff, [0.0, 0.0])

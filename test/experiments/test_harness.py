@@ -206,7 +206,9 @@ SHORT_TRACKING = ["tasks.tracking.phases=[approach, circle_slow]", "tasks.tracki
 
 def test_a_slow_circle_is_tracked_within_2_mm_and_the_feedforward_keeps_a_fast_one_on_its_path():
     """The issue's figure: a circle of period 20 s on the declared plant, RMS below 2 mm; a circle
-    of period 5 s without the trajectory's velocity as feedforward lags behind it (a larger error)."""
+    of period 5 s without the trajectory's velocity as feedforward lags behind it (a larger error),
+    and so it does with the paper's derivative term, -G_D thetadot, instead of the damping of the
+    rate error about the moving reference."""
     result = run_experiment(load_setup("tracking", overrides=SHORT_TRACKING))
     slow, = result.tracking
     assert slow.shape == "circle" and slow.path_speed == pytest.approx(2 * 3.141592653589793 * 0.01 / 20)
@@ -217,3 +219,6 @@ def test_a_slow_circle_is_tracked_within_2_mm_and_the_feedforward_keeps_a_fast_o
     no_feedforward = fast + ["control.clik.track_feedforward=false"]
     without, = run_experiment(load_setup("tracking", overrides=no_feedforward)).tracking
     assert without.rms_error > 1.5 * with_ff.rms_error
+    paper_damping, = run_experiment(load_setup("tracking", overrides=fast + ["control.clik.rate_modes=[]"])
+                                    ).tracking
+    assert paper_damping.rms_error > 1.2 * with_ff.rms_error

@@ -9,6 +9,7 @@ import subprocess
 import sys
 import time
 
+import numpy as np
 import pytest
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
@@ -183,6 +184,7 @@ def test_clik_node_rejects_bad_goals_and_keeps_the_last_reference():
         node.on_goal(_goal([-0.349, -0.009], labels=[z, x]))    # taken by its labels
         assert len(sent) == 1 and node.rejected_goals == 0
         ref, = references
+        assert list(sent[0].velocity) == [0.0] * 4                  # a precomputed step: fixed
         assert (ref.goal, ref.mode, list(ref.labels), ref.header.frame_id) == (0, "clik", [x, z], "arm_base")
         assert list(ref.target) == [-0.009, -0.349] and len(ref.q_d) == node.model.n
         assert abs(ref.x_model[0] - ref.target[0]) < 1e-4 and abs(ref.x_model[1] - ref.target[1]) < 1e-4
@@ -196,6 +198,32 @@ def test_clik_node_rejects_bad_goals_and_keeps_the_last_reference():
         node.on_goal(_goal([-0.009, -0.349], "track", phase="upward"))     # a phase without trajectory
         assert node.rejected_goals == 7 and len(sent) == 1
         assert node.outer.reference is first
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown()
+
+
+def test_inner_loop_node_takes_a_reference_s_rate_from_its_velocity_field():
+    """tendon/reference's velocity: the reference's shortening rates (by name, any order); an empty
+    field is a fixed reference; a field of the wrong length is refused, the last reference kept."""
+    import rclpy
+
+    from soft_arm_control.inner_loop_node import InnerLoopNode
+    from soft_arm_ros.conversions import joint_state
+    rclpy.init()
+    try:
+        node = InnerLoopNode()
+        names = list(node.names)
+        node.on_reference(joint_state(names[::-1], 0.0, position=[0.01, 0.02, 0.03, 0.04],
+                                      velocity=[0.4, 0.3, 0.2, 0.1], effort=[1.0] * 4))
+        assert np.allclose(node.core.s_ref_dot, [0.1, 0.2, 0.3, 0.4])
+        assert np.allclose(node.core.s_ref, [0.04, 0.03, 0.02, 0.01])
+        node.on_reference(joint_state(names, 0.0, position=[0.0] * 4, effort=[1.0] * 4))
+        assert np.all(node.core.s_ref_dot == 0.0) and node.rejected == 0
+        bad = joint_state(names, 0.0, position=[0.02] * 4, effort=[1.0] * 4)
+        bad.velocity = [0.1, 0.2]
+        node.on_reference(bad)
+        assert node.rejected == 1 and np.all(node.core.s_ref == 0.0)
         node.destroy_node()
     finally:
         rclpy.try_shutdown()
