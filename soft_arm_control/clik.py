@@ -32,7 +32,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares, lsq_linear
 
-from soft_arm_model import STATICS, ArmData, EquilibriumError, OutOfDomainError, evaluate, solve_equilibrium
+from soft_arm_model import (DYNAMICS, STATICS, ArmData, EquilibriumError, OutOfDomainError, evaluate,
+                            solve_equilibrium)
 
 from .collocated import (CollocatedData, CollocatedModel, collocated_jacobian, evaluate_collocated,
                          full_tensions)
@@ -208,6 +209,37 @@ class Clik:
                                      info.damped, constrained=True)
         return None, ClikStep(info.qdot, info.error, info.G_theta_u, info.condition, info.damped,
                               constrained=True, held=True)
+
+    def dynamic_reference(self, q, xd_dot, xd_ddot, rotor_mass: float = 0.0,
+                          refresh: bool = True) -> ClikPoint:
+        """The reference that keeps the arm on a moving task path through the equilibrium q, to first
+        order in the path's inertial and damping forces (a track goal's dynamic feedforward).
+
+        Along the path the equilibria move with qdot = Z^-1 [xd_dot; 0] and qddot = Z^-1 [xd_ddot; 0]
+        (xd_dot [m/s], xd_ddot [m/s^2]; the Zdot qdot term is neglected), which takes the forces
+        f = (M + m_r A A0^T) qddot + D qdot (the arm's mass matrix, the rotors' reflected mass
+        ``rotor_mass`` [kg] on every tendon, the body's damping). The quasi-static reference q
+        leaves them to the arm: it swings off the path. The returned reference q + dq balances them
+        where the inner loop cannot act, with the task point unchanged: Z dq = [0; -(J_h^-T f)_u];
+        its feedforward adds the actuated part, u_ff = G_theta_a(q + dq) + (J_h^-T f)_a. With
+        friction off, f uses the frictionless A. A first-order correction: right below the held
+        arm's lowest mode, wrong above it. The quasi-static reference itself if q + dq leaves the
+        model's domain. ``refresh``: see :meth:`velocity`."""
+        m = self.task.m
+        _, Z = self._stack(q, refresh)
+        arm = evaluate(self.cm.model, self.cd.arm, np.asarray(q, dtype=float), level=DYNAMICS)
+        zeros = np.zeros(Z.shape[0] - m)
+        qdot = self._solve(Z, np.concatenate([np.asarray(xd_dot, dtype=float), zeros]))[0]
+        qddot = self._solve(Z, np.concatenate([np.asarray(xd_ddot, dtype=float), zeros]))[0]
+        A = arm.A if self.cm.friction else arm.A0
+        f = arm.M @ qddot + rotor_mass * (A @ (arm.A0.T @ qddot)) + self.cm.model.D @ qdot
+        forces = self.cd.solve_transposed(f)
+        dq = self._solve(Z, np.concatenate([np.zeros(m), -forces[m:]]))[0]
+        try:
+            point = self.reference(np.asarray(q, dtype=float) + dq)
+        except (OutOfDomainError, ValueError):
+            return self.reference(q)
+        return ClikPoint(point.q, point.shortening, point.u_ff + forces[:m], point.x)
 
     def _feasible_reference(self, q) -> ClikPoint | None:
         """The reference of q if q is in the model's domain and its tensions within the limits."""

@@ -67,6 +67,7 @@ CONTROL_SCHEMA = {
     "clik.closest_margin": ("float", lambda v: 0 <= v <= 100,
                             "a tension margin in [0, 100] N, less than half of the tension range"),
     "clik.track_feedforward": ("bool", None, "true or false"),
+    "clik.track_dynamics": ("bool", None, "true or false"),
     "clik.rate_modes": ("strs", lambda v: set(v) <= set(RATE_MODES),
                         f"none or more of {list(RATE_MODES)}"),
     "clik.min_frequency": ("float", lambda v: 0 <= v <= 100,
@@ -156,6 +157,7 @@ class ControlConfig:
     track_feedforward: bool
     min_frequency: float
     rate_modes: tuple
+    track_dynamics: bool
 
 
 def parse_control(v: dict, arm: ArmConfig) -> ControlConfig:
@@ -186,7 +188,7 @@ def parse_control(v: dict, arm: ArmConfig) -> ControlConfig:
         v["clik.seed_levels"], v["clik.reach_tolerance"], v["clik.stall_time"],
         v["clik.closest_margin"], v["clik.shaping.shaper"], v["clik.shaping.level"],
         tuple(v["clik.shaping.modes"]), v["clik.track_feedforward"], v["clik.min_frequency"],
-        tuple(v["clik.rate_modes"]))
+        tuple(v["clik.rate_modes"]), v["clik.track_dynamics"])
 
 
 def load_control_config(arm: ArmConfig, path: str | None = None, overrides=None) -> ControlConfig:

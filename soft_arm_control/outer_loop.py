@@ -9,14 +9,19 @@ A goal is a target in task coordinates with a mode:
 - ``precomputed``: the precomputed reference only (the pendulum strike);
 - ``online``: online refinement from the current reference, no precomputed step (sugar task);
 - ``track``: online CLIK along a trajectory (:class:`~soft_arm_control.trajectories.Trajectory`)
-  from the target, x_d(t) with its velocity as feedforward, from the goal's time on.
+  from the target, x_d(t) with its velocity as feedforward, from the goal's time on; with
+  ``track_dynamics`` the inner loop gets the dynamic reference of the CLIK's
+  (:meth:`~soft_arm_control.clik.Clik.dynamic_reference`: the path's inertial and damping forces
+  balanced), while the CLIK integrates the quasi-static one.
 
 The reference step of a goal whose mode is among ``shaped_modes`` is given in fractions by a
 :class:`~soft_arm_control.input_shaping.StepShaper` (zero-vibration input shaping for the arm's
 slowest-decaying mode), the later fractions at the mocap frames after their delays; online
 refinement starts when the last fraction is given, at the earliest.
 
-``reference_rate`` is the current reference's rate of shortening [m/s] (all tendons): an online
+``command`` is the reference last handed to the inner loop (``reference`` is the CLIK's own, which
+differs only in a track goal with ``track_dynamics``). ``reference_rate`` is the command's rate of
+shortening [m/s] (all tendons): an online
 step's change over the CLIK period in a goal whose mode is among ``rate_modes``, zero otherwise
 (and for a precomputed, replayed or shaped reference); the inner loop damps the arm's motion about
 it (:class:`~soft_arm_control.inner_loop.TendonController`).
@@ -118,17 +123,19 @@ class OuterLoop:
     a goal counts as reached, and as stalled (:class:`GoalReport`); ``shaper`` and ``shaped_modes``:
     the reference steps of goals in those modes are shaped (None: every step is a step);
     ``track_feedforward``: a track goal's trajectory velocity is the CLIK's feedforward;
-    ``rate_modes``: the goal modes whose online steps set ``reference_rate``.
+    ``rate_modes``: the goal modes whose online steps set ``reference_rate``; ``track_dynamics``:
+    a track goal's references balance the path's inertial and damping forces, with the rotors'
+    reflected mass ``rotor_mass`` [kg] on every tendon.
     """
 
     def __init__(self, clik, start: ClikPoint, switch_delay: float, rate: float,
                  jacobian_every: int = 1, seed_levels=(), tolerance: float = 1e-6,
                  reach_tolerance: float = 1e-3, stall_time: float = 2.0,
                  shaper: StepShaper | None = None, shaped_modes=(), track_feedforward: bool = True,
-                 rate_modes=("track",)):
+                 rate_modes=("track",), track_dynamics: bool = False, rotor_mass: float = 0.0):
         self.clik = clik
         self.start = start
-        self.reference = start
+        self.reference = self.command = start
         self.reference_rate = np.zeros_like(start.shortening)
         self.switch_delay, self.period = float(switch_delay), 1.0 / float(rate)
         self.jacobian_every = max(1, int(jacobian_every))
@@ -141,6 +148,7 @@ class OuterLoop:
         self.shaper, self.shaped_modes = shaper, tuple(shaped_modes)
         self.track_feedforward = bool(track_feedforward)
         self.rate_modes = tuple(rate_modes)
+        self.track_dynamics, self.rotor_mass = bool(track_dynamics), float(rotor_mass)
         self._move: ShapedStep | None = None
         self._fraction = 1.0
         self._seeds = None
@@ -171,7 +179,7 @@ class OuterLoop:
 
     def goal(self, t: float, x_d, mode: str, point: ClikPoint | None = None,
              trajectory: Trajectory | None = None) -> ClikPoint:
-        """Take a new goal at time t [s]; returns the reference to use from now on.
+        """Take a new goal at time t [s]; returns the reference to hand the inner loop from now on.
 
         ``point`` is a reference precomputed beforehand for a clik or precomputed goal (the
         harness solves every target before anything moves); ``trajectory``: a track goal's, from
@@ -217,7 +225,12 @@ class OuterLoop:
         if ref is not None:
             self.reference = ref
         self.reference_rate = np.zeros_like(self.reference_rate)
-        return self.reference
+        self.command = self.reference
+        if trajectory is not None and self.track_dynamics:      # the path starts moving now
+            self.command = self.clik.dynamic_reference(self.reference.q, trajectory.at(x_d, 0.0)[1],
+                                                       trajectory.acceleration(x_d.size, 0.0),
+                                                       self.rotor_mass)
+        return self.command
 
     def target_at(self, t: float) -> tuple:
         """(x_d [m], its velocity [m/s] or None) of the current goal at time t [s]: a track goal's
@@ -244,7 +257,7 @@ class OuterLoop:
             fraction = self._move.fraction(t)
             if fraction != self._fraction:
                 self._fraction = fraction
-                self.reference = moved = self._move.at(t)
+                self.reference = self.command = moved = self._move.at(t)
                 self.reference_rate = np.zeros_like(self.reference_rate)
             if fraction >= 1.0:
                 self._move = None
@@ -259,9 +272,15 @@ class OuterLoop:
         self.last_step = step
         if ref is None:
             return moved
-        if self._mode in self.rate_modes:
-            self.reference_rate = (ref.shortening - self.reference.shortening) / self.period
         self.reference = ref
+        if self._trajectory is not None and self.track_dynamics:
+            tau = t - self._t0
+            ref = self.clik.dynamic_reference(ref.q, self._trajectory.at(self._x_d, tau)[1],
+                                              self._trajectory.acceleration(self._x_d.size, tau),
+                                              self.rotor_mass, refresh=False)
+        if self._mode in self.rate_modes:
+            self.reference_rate = (ref.shortening - self.command.shortening) / self.period
+        self.command = ref
         return ref
 
     def finish(self):
@@ -289,4 +308,5 @@ def outer_loop_for(model, control, task) -> OuterLoop:
     return OuterLoop(clik, start, control.switch_delay, control.clik_rate,
                      int(round(control.clik_rate / control.jacobian_rate)), control.seed_levels,
                      control.tolerance, control.reach_tolerance, control.stall_time, shaper,
-                     control.shaped_modes, control.track_feedforward, control.rate_modes)
+                     control.shaped_modes, control.track_feedforward, control.rate_modes,
+                     control.track_dynamics, control.rotor_mass)

@@ -8,7 +8,8 @@ plane of two task coordinates (``plane``: their indices, e1 and e2 the unit vect
 - ``circle``:   p0 + a ((cos(omega t) - 1) e1 + sin(omega t) e2) (radius a, through p0);
 - ``figure8``:  p0 + a (sin(omega t) e1 + sin(2 omega t) / 2 e2) (crossing at p0).
 
-:meth:`Trajectory.at` gives the desired coordinates and their velocity (the CLIK's feedforward).
+:meth:`Trajectory.at` gives the desired coordinates and their velocity (the CLIK's feedforward),
+:meth:`Trajectory.acceleration` their acceleration (the dynamic feedforward of a track goal).
 """
 from __future__ import annotations
 
@@ -45,6 +46,22 @@ class Trajectory:
             return a * np.array([c - 1.0, s]), a * w * np.array([-s, c])
         return (a * np.array([s, 0.5 * np.sin(2 * w * t)]),
                 a * w * np.array([c, np.cos(2 * w * t)]))
+
+    def offset_acceleration(self, t: float) -> np.ndarray:
+        """The acceleration [m/s^2] in the plane's (e1, e2) at time t [s]."""
+        w = 2 * np.pi / self.period
+        a, s, c = self.size, np.sin(w * t), np.cos(w * t)
+        if self.shape == "line":
+            return -a * w * w * np.array([s, 0.0])
+        if self.shape == "circle":
+            return -a * w * w * np.array([c, s])
+        return -a * w * w * np.array([s, 2.0 * np.sin(2 * w * t)])
+
+    def acceleration(self, m: int, t: float) -> np.ndarray:
+        """x_d's acceleration [m/s^2] at t [s], in a task space of m coordinates."""
+        acc = np.zeros(m)
+        acc[list(self.plane)] = self.offset_acceleration(t)
+        return acc
 
     def at(self, p0, t: float) -> tuple[np.ndarray, np.ndarray]:
         """(x_d [m], x_d velocity [m/s]) of the trajectory from ``p0`` (task coordinates) at t [s]."""

@@ -298,3 +298,68 @@ def test_only_a_track_goal_s_online_steps_give_the_inner_loop_a_reference_rate(p
     both.goal(0.0, x0 + [0.002, 0.0], "online")
     both.frame(0.02, both.reference.x)
     assert np.abs(both.reference_rate).max() > 1e-4
+
+
+def test_the_dynamic_reference_balances_the_path_s_forces_to_first_order(paper_model, coiling_clik):
+    """Along a path with velocity eps v and acceleration eps a from an equilibrium q, the forces
+    f = (M + m_r A A0^T) qddot + D qdot are linear in eps; the dynamic reference q + dq must hold
+    the task point and balance f where the tendons cannot: G_theta_u(q + dq) + (J_h^-T f)_u and
+    x(q + dq) - x(q) vanish to second order in eps, and the feedforward is G_theta_a(q + dq) plus
+    the actuated part of J_h^-T f. Without motion it is the quasi-static reference itself."""
+    from soft_arm_control.collocated import equilibrium_jacobian
+    from soft_arm_model.dynamics import mass_matrix
+    cm = coiling_clik.cm
+    q = solve_equilibrium(paper_model, [0.05, 0.05, 1.0, 1.0]).q
+    x0 = coiling_clik.reference(q).x
+    v, a = np.array([0.02, -0.01]), np.array([0.8, 1.5])
+    residuals = []
+    for eps in (0.2, 0.1, 0.05):
+        point = coiling_clik.dynamic_reference(q, eps * v, eps * a, rotor_mass=0.6)
+        cd = evaluate_collocated(cm, CollocatedData(cm), q)
+        Z = np.vstack([COILING.evaluate(paper_model, q)[1], equilibrium_jacobian(cm, cd)])
+        qdot, qddot = (np.linalg.solve(Z, np.concatenate([eps * w, np.zeros(paper_model.n - 2)]))
+                       for w in (v, a))
+        A, A0 = cd.arm.A, cd.arm.A0
+        f = mass_matrix(paper_model, q) @ qddot + 0.6 * A @ (A0.T @ qddot) + paper_model.D @ qdot
+        forces = np.linalg.solve(cd.J_h.T, f)
+        at = evaluate_collocated(cm, CollocatedData(cm), point.q)
+        assert np.allclose(point.u_ff, at.u_eq + forces[:2], atol=1e-12)
+        residuals.append((np.linalg.norm(at.G_theta_u + forces[2:]), np.linalg.norm(point.x - x0),
+                          np.linalg.norm(forces[2:])))
+    for (r1, dx1, f1), (r2, dx2, f2) in zip(residuals, residuals[1:]):
+        assert f2 == pytest.approx(f1 / 2, rel=1e-6)            # the forces are linear in eps
+        assert r2 < 0.3 * r1 and dx2 < 0.3 * dx1                 # the residuals are second order
+    assert residuals[-1][0] < 0.02 * residuals[-1][2] and residuals[-1][1] < 1e-5
+    still = coiling_clik.dynamic_reference(q, np.zeros(2), np.zeros(2), rotor_mass=0.6)
+    ref = coiling_clik.reference(q)
+    assert np.allclose(still.q, ref.q) and np.allclose(still.u_ff, ref.u_ff)
+
+
+def test_a_track_goal_hands_the_inner_loop_the_dynamic_reference_and_integrates_the_static_one(
+        paper_model, coiling_clik):
+    """With ``track_dynamics`` the command differs from the CLIK's own reference, which stays on
+    the equilibrium set; the command's rate is what the inner loop gets; a fixed goal's command is
+    the reference."""
+    from soft_arm_control.outer_loop import OuterLoop
+    from soft_arm_control.trajectories import Trajectory
+    start = coiling_clik.reference(solve_equilibrium(paper_model, [0.05, 0.05, 1.0, 1.0]).q)
+    path = Trajectory("circle", 0.01, 1.0)
+    plain = OuterLoop(coiling_clik, start, switch_delay=0.0, rate=100.0)
+    dynamic = OuterLoop(coiling_clik, start, switch_delay=0.0, rate=100.0, track_dynamics=True,
+                        rotor_mass=0.6)
+    for outer in (plain, dynamic):
+        first = outer.goal(0.0, np.array(start.x), "track", trajectory=path)
+        assert first is outer.command
+    assert np.array_equal(plain.command.q, start.q) and not np.allclose(dynamic.command.q, start.q)
+    for k in range(1, 40):
+        t = k * 0.01
+        before = dynamic.command.shortening
+        out = dynamic.frame(t, dynamic.reference.x)
+        plain.frame(t, plain.reference.x)
+        assert out is dynamic.command and out is not dynamic.reference
+        assert np.allclose(dynamic.reference_rate, (out.shortening - before) / 0.01)
+        assert np.linalg.norm(dynamic.reference.x - out.x) < 1e-4     # the same task point
+    # the CLIK's own references are the same with and without the dynamic command
+    assert np.allclose(dynamic.reference.q, plain.reference.q, atol=1e-9)
+    dynamic.goal(1.0, np.array(start.x), "online")
+    assert dynamic.command is dynamic.reference

@@ -9,7 +9,7 @@ P0 = np.array([0.02, -0.3, 0.01])
 
 
 @pytest.mark.parametrize("shape", SHAPES)
-def test_the_velocity_is_the_derivative_of_the_position(shape):
+def test_the_velocity_and_the_acceleration_are_the_derivatives_of_the_position(shape):
     traj = Trajectory(shape, 0.01, 4.0, (2, 0))
     h = 1e-6
     for t in np.linspace(0.0, 4.0, 17):
@@ -17,6 +17,10 @@ def test_the_velocity_is_the_derivative_of_the_position(shape):
         numeric = (traj.at(P0, t + h)[0] - traj.at(P0, t - h)[0]) / (2 * h)
         np.testing.assert_allclose(v, numeric, atol=1e-8)
         assert x[1] == P0[1] and v[1] == 0.0                 # the coordinate off the plane stays
+        acc = traj.acceleration(len(P0), t)
+        np.testing.assert_allclose(acc, (traj.at(P0, t + h)[1] - traj.at(P0, t - h)[1]) / (2 * h),
+                                   atol=1e-7)
+        assert acc[1] == 0.0
 
 
 @pytest.mark.parametrize("shape", SHAPES)
