@@ -2,7 +2,8 @@
 draw and the distribution, writes JSON.
 
     python bench/bench_robustness.py [--draws 10] [--seed 0] [--tasks triangle coiling]
-                                     [--jobs 2] [--output bench/results/robustness.json]
+                                     [--set ns.key=value ...] [--jobs 2]
+                                     [--output bench/results/robustness.json]
 
 Each draw is a plant that differs from the controller's arm the way a cast silicone arm differs from
 its drawing (tolerances below, uniform within them, seeded): Young's modulus and viscosity +-20 %,
@@ -81,10 +82,10 @@ def plant_holds(task: str, overrides: list) -> dict:
             "plant_margins": [r.margin for r in results], "plant_stable": [r.stable for r in results]}
 
 
-def run_one(task: str, plant: dict) -> dict:
-    """``soft-arm-harness TASK --json`` on the plant; its summary, or the error; whether the plant
-    can hold the targets at all."""
-    overrides = [f"plant.{key}={json.dumps(value)}" for key, value in plant.items()]
+def run_one(task: str, plant: dict, sets=()) -> dict:
+    """``soft-arm-harness TASK --json`` on the plant, with the ``--set`` overrides ``sets`` (e.g.
+    another trajectory); its summary, or the error; whether the plant can hold the targets at all."""
+    overrides = [f"plant.{key}={json.dumps(value)}" for key, value in plant.items()] + list(sets)
     holds = plant_holds(task, overrides)
     t0 = time.perf_counter()
     proc = run_harness(task, overrides)
@@ -149,6 +150,8 @@ def main(argv=None) -> int:
     parser.add_argument("--draws", type=int, default=10)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--tasks", nargs="+", default=["triangle", "coiling"])
+    parser.add_argument("--set", dest="sets", action="append", default=[], metavar="NS.KEY=VALUE",
+                        help="a configuration override for every run (soft-arm-harness --set)")
     parser.add_argument("--jobs", type=int, default=os.cpu_count() or 2)
     parser.add_argument("--output", default=results_path("robustness.json"))
     args = parser.parse_args(argv)
@@ -156,7 +159,8 @@ def main(argv=None) -> int:
     plants = [ISSUE_PLANT] + [draw_plant(rng) for _ in range(args.draws)]
     jobs = [(task, i) for i in range(len(plants)) for task in args.tasks]
     with ProcessPoolExecutor(args.jobs) as pool:
-        results = list(pool.map(run_one, [task for task, _ in jobs], [plants[i] for _, i in jobs]))
+        results = list(pool.map(run_one, [task for task, _ in jobs], [plants[i] for _, i in jobs],
+                                [args.sets] * len(jobs)))
     runs = [{"task": task, "draw": i - 1 if i else "issue", "plant": plants[i], **r}
             for (task, i), r in zip(jobs, results)]
     print(f"{'task':9s} {'draw':>5s} {'E':>5s} {'order':>5s} {'shear':>5s} {'tip g':>5s} {'holds':>5s} "
