@@ -7,7 +7,8 @@ Runs ``soft-arm-experiment <task> --emulated-hardware`` (each node its own proce
 ``--runs`` times in a row and reports, per run: whether it is valid (a run the motor driver faulted
 in is not: its failure), the task metrics (steady RMS, transitions in the mm band, best mm- and
 cm-band task velocities), whether real-time scheduling was granted; the CPU share of each node
-process over the enabled run (from /proc, sampled 2 s after enabling and 2 s before the task's end);
+process over the enabled run (from /proc, sampled 2 s after enabling and 2 s before the task's end,
+or when a fault ends the run early; not measured for a process that has exited by then);
 from the bag, the motors' state period (p50, p99, max, stamps not increasing), the mocap frame period
 and the driver's own cycle statistics (its last /diagnostics: period p50/p99/max, p99 error, deadline
 misses; the state-to-command latency through the graph, p50/p99/max of its last 1000 answers and the
@@ -37,10 +38,14 @@ from timing import results_path, write_results
 TICKS = os.sysconf("SC_CLK_TCK")
 
 
-def _cpu_ticks(pid: int) -> int:
-    with open(f"/proc/{pid}/stat", encoding="utf-8") as fh:
-        fields = fh.read().rsplit(")", 1)[1].split()
-    return int(fields[11]) + int(fields[12])            # utime + stime
+def _cpu_ticks(pid: int) -> int | None:
+    """utime + stime [clock ticks] of process ``pid``; None once it has exited."""
+    try:
+        with open(f"/proc/{pid}/stat", encoding="utf-8") as fh:
+            fields = fh.read().rsplit(")", 1)[1].split()
+    except OSError:
+        return None
+    return int(fields[11]) + int(fields[12])
 
 
 def _children(parent: int) -> list:
@@ -140,13 +145,13 @@ def one_run(task: str, sets: list, duration: float) -> dict:
             time.sleep(2.0)
             nodes = _nodes(proc.pid)
             t0, before = time.monotonic(), {n: _cpu_ticks(p) for n, p in nodes.items()}
-            time.sleep(max(duration - 4.0, 1.0))
-            after = {}
-            for n, p in nodes.items():
-                try:
-                    after[n] = _cpu_ticks(p)
-                except OSError:                     # the run ended early (a fault)
-                    after[n] = before[n]
+            before = {n: v for n, v in before.items() if v is not None}   # gone: a fault ended the run
+            try:
+                proc.wait(timeout=max(duration - 4.0, 1.0))
+            except subprocess.TimeoutExpired:
+                pass
+            after = {n: _cpu_ticks(nodes[n]) for n in before}
+            after = {n: v for n, v in after.items() if v is not None}    # gone: its share unknown
             wall = time.monotonic() - t0
             status = proc.wait(timeout=duration + 120)
         finally:
@@ -162,7 +167,7 @@ def one_run(task: str, sets: list, duration: float) -> dict:
         recording = _recording(os.path.join(run, "bag"))
     return {"status": status, "valid": metrics.get("valid", False), "failure": metrics.get("failure"),
             "summary": metrics.get("summary"), "run": metrics["run"],
-            "cpu_share": {n: (after[n] - before[n]) / TICKS / wall for n in sorted(nodes)},
+            "cpu_share": {n: (after[n] - before[n]) / TICKS / wall for n in sorted(after)},
             "state_period": _periods([t for t, _ in series["tendon/state"]]),
             "mocap_period": _periods([t for t, _ in series["mocap/markers"]]),
             "driver_timing": _driver_timing(series), "recording": recording}
@@ -225,8 +230,11 @@ def _report(k: int, r: dict) -> dict:
               f"{summary['transitions']} transitions in the mm band, task velocity mm band "
               f"{_speed(summary['velocity_mm'])}, cm band {_speed(summary['velocity_cm'])}")
     cpu = r["cpu_share"]
-    print("  CPU per node: " + ", ".join(f"{n} {c:.0%}" for n, c in cpu.items())
-          + f" (total {sum(cpu.values()):.0%} of {os.cpu_count()} cores)")
+    if cpu:
+        print("  CPU per node: " + ", ".join(f"{n} {c:.0%}" for n, c in cpu.items())
+              + f" (total {sum(cpu.values()):.0%} of {os.cpu_count()} cores)")
+    else:
+        print("  CPU per node: not measured (the nodes had exited before the second sample)")
     for name, key in (("tendon/state", "state_period"), ("mocap/markers", "mocap_period")):
         p = r[key]
         print(f"  {name:14s} period p50 {p['p50_ms']:.2f} ms, p99 {p['p99_ms']:.2f} ms, max "
