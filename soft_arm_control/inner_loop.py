@@ -79,6 +79,7 @@ class PSatID:
         # compile the kernel here (a cold numba cache: a fresh install), not in the first control
         # period that meets a reference
         zeros = np.zeros(n_tendons)
+        self._fixed = zeros                  # the rate of a fixed reference (no allocation per update)
         _p_sat_i_d(zeros, zeros, zeros, zeros, np.zeros(self.active.size), self.active,
                    self._exponents, self._coef, gains.proportional, gains.derivative, gains.integral,
                    gains.integral_saturation, gains.tension_min, gains.tension_max, 0.0, -1.0,
@@ -99,7 +100,7 @@ class PSatID:
         reference). Non-finite inputs or a time stamp earlier than the last raise ValueError and
         leave the state unchanged. One compiled kernel (:func:`_p_sat_i_d`), some 10 us.
         """
-        s_ref_dot = np.zeros(self.n_tendons) if s_ref_dot is None else s_ref_dot
+        s_ref_dot = self._fixed if s_ref_dot is None else s_ref_dot
         s, s_dot, s_ref, u_ff, s_ref_dot = (np.ascontiguousarray(v, dtype=float)
                                             for v in (s, s_dot, s_ref, u_ff, s_ref_dot))
         if self.t is not None and t < self.t:
@@ -219,10 +220,9 @@ class TendonController:
         self.pid.gains, self.gains = self._active_gains(gains), gains
 
     def set_reference(self, s_ref, u_ff, s_ref_dot=None):
-        """A new reference (see the class); ``s_ref_dot`` None or empty: a fixed reference."""
+        """A new reference (see the class); ``s_ref_dot`` None: a fixed reference."""
         s_ref, u_ff = np.asarray(s_ref, dtype=float), np.asarray(u_ff, dtype=float)
-        rate = np.zeros(self.n) if s_ref_dot is None or len(s_ref_dot) == 0 else \
-            np.asarray(s_ref_dot, dtype=float)
+        rate = np.zeros(self.n) if s_ref_dot is None else np.asarray(s_ref_dot, dtype=float)
         if s_ref.shape != (self.n,) or u_ff.shape != (self.n,) or rate.shape != (self.n,) or not (
                 np.all(np.isfinite(s_ref)) and np.all(np.isfinite(u_ff)) and np.all(np.isfinite(rate))):
             raise ValueError(f"a reference needs {self.n} finite shortenings and tensions (and "

@@ -36,38 +36,29 @@ class Trajectory:
             raise ValueError("a trajectory needs a size > 0 m, a period > 0 s and two distinct plane "
                              f"coordinates, got {self.size}, {self.period}, {self.plane}")
 
-    def offset(self, t: float) -> tuple[np.ndarray, np.ndarray]:
-        """(displacement from p0 [m], velocity [m/s]) in the plane's (e1, e2) at time t [s]."""
+    def offset(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(displacement from p0 [m], velocity [m/s], acceleration [m/s^2]) in the plane's (e1, e2)
+        at time t [s]."""
         w = 2 * np.pi / self.period
         a, s, c = self.size, np.sin(w * t), np.cos(w * t)
         if self.shape == "line":
-            return a * np.array([s, 0.0]), a * w * np.array([c, 0.0])
+            return a * np.array([s, 0.0]), a * w * np.array([c, 0.0]), -a * w * w * np.array([s, 0.0])
         if self.shape == "circle":
-            return a * np.array([c - 1.0, s]), a * w * np.array([-s, c])
-        return (a * np.array([s, 0.5 * np.sin(2 * w * t)]),
-                a * w * np.array([c, np.cos(2 * w * t)]))
-
-    def offset_acceleration(self, t: float) -> np.ndarray:
-        """The acceleration [m/s^2] in the plane's (e1, e2) at time t [s]."""
-        w = 2 * np.pi / self.period
-        a, s, c = self.size, np.sin(w * t), np.cos(w * t)
-        if self.shape == "line":
-            return -a * w * w * np.array([s, 0.0])
-        if self.shape == "circle":
-            return -a * w * w * np.array([c, s])
-        return -a * w * w * np.array([s, 2.0 * np.sin(2 * w * t)])
+            return a * np.array([c - 1.0, s]), a * w * np.array([-s, c]), -a * w * w * np.array([c, s])
+        s2, c2 = np.sin(2 * w * t), np.cos(2 * w * t)
+        return a * np.array([s, 0.5 * s2]), a * w * np.array([c, c2]), -a * w * w * np.array([s, 2.0 * s2])
 
     def acceleration(self, m: int, t: float) -> np.ndarray:
         """x_d's acceleration [m/s^2] at t [s], in a task space of m coordinates."""
         acc = np.zeros(m)
-        acc[list(self.plane)] = self.offset_acceleration(t)
+        acc[list(self.plane)] = self.offset(t)[2]
         return acc
 
     def at(self, p0, t: float) -> tuple[np.ndarray, np.ndarray]:
         """(x_d [m], x_d velocity [m/s]) of the trajectory from ``p0`` (task coordinates) at t [s]."""
         x = np.array(p0, dtype=float)
         v = np.zeros_like(x)
-        d, dv = self.offset(t)
+        d, dv, _ = self.offset(t)
         x[list(self.plane)] += d
         v[list(self.plane)] = dv
         return x, v

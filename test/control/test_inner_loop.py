@@ -205,8 +205,6 @@ def test_a_reference_rate_counts_for_its_hold_time_and_then_as_a_fixed_reference
     assert np.allclose(tc.update(5.014, s, 0 * s)[2:], [1.5 + kd * 0.01, 2.5 - kd * 0.02])
     tc.set_reference(s, u_ff)                                              # fixed
     assert np.allclose(tc.update(5.016, s, 0 * s)[2:], [1.5, 2.5])
-    tc.set_reference(s, u_ff, [])                                          # a message without rates
-    assert np.allclose(tc.update(5.018, s, 0 * s)[2:], [1.5, 2.5])
     with pytest.raises(ValueError, match="shortening rates"):
         tc.set_reference(s, u_ff, [0.0, np.inf, 0.0, 0.0])
     with pytest.raises(ValueError, match="shortening rates"):
