@@ -2,15 +2,17 @@
 triangle against the paper's, and the tracking error against path speed, on the declared plant.
 Prints three tables and writes JSON.
 
-    python bench/bench_dynamic.py [--runs 10] [--speeds 0.0125 0.025 0.05 0.1 0.2] [--jobs 2]
-                                  [--output bench/results/dynamic.json]
+    python bench/bench_dynamic.py [--runs 10] [--planned-runs 3] [--speeds 0.0125 0.025 0.05 0.1 0.2]
+                                  [--jobs 2] [--output bench/results/dynamic.json]
 
 Every figure is one ``soft-arm-harness TASK --json`` run (one process per run, ``--jobs`` at a
 time):
 - pendulum, ``--runs`` times with ``plant.mocap.seed`` 0, 1, ... (the mocap noise differs): struck
   or not, the impact time after the release, the ball's speed before and after, and the equivalent
   task velocity of the strike, the tip's displacement to the strike target over the time from the
-  reference step to the impact (the paper: 1.48 m/s, struck 0.35 s after the release);
+  reference step to the impact (the paper: 1.48 m/s, struck 0.35 s after the release); the same
+  with the planned move (``timing: planned``, :mod:`soft_arm_control.strike_planner`),
+  ``--planned-runs`` times;
 - coiling and triangle: the peak tip speed against the paper's (3.63 and 2.52 m/s; the pendulum's
   4.37 m/s beside its runs), with the Table 1 figures;
 - tracking: the coiling plane's circle (``tasks.tracking``, its size) at each path speed of
@@ -42,8 +44,8 @@ def harness(task: str, sets: list) -> dict:
     return json.loads(proc.stdout)
 
 
-def pendulum_run(seed: int) -> dict:
-    out = harness("pendulum", [f"plant.mocap.seed={seed}"])
+def pendulum_run(seed: int, timing: str = "rehearsed") -> dict:
+    out = harness("pendulum", [f"plant.mocap.seed={seed}", f"tasks.pendulum.pendulum.timing={timing}"])
     if "error" in out:
         return {"seed": seed, **out}
     strike, plan = out["strike"]["simulated"], out["strike"]["plan"]
@@ -84,36 +86,12 @@ def tracking_run(speed: float, size: float, steady: float) -> dict:
             "rms_mm": t["rms_error"] * 1e3, "max_mm": t["max_error"] * 1e3}
 
 
-def _run(job):
-    kind, arg = job
-    if kind == "pendulum":
-        return pendulum_run(*arg)
-    if kind == "speed":
-        return speed_run(*arg)
-    return tracking_run(*arg)
-
-
-def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--runs", type=int, default=10)
-    parser.add_argument("--speeds", type=float, nargs="+", default=[0.0125, 0.025, 0.05, 0.1, 0.2])
-    parser.add_argument("--jobs", type=int, default=os.cpu_count() or 2)
-    parser.add_argument("--output", default=results_path("dynamic.json"))
-    args = parser.parse_args(argv)
-    from soft_arm_drivers.experiments.harness import load_setup
-    track = load_setup("tracking").task
-    size = next(ph.trajectory.size for ph in track.phases if ph.name == "circle_fast")
-    jobs = ([("pendulum", (k,)) for k in range(args.runs)]
-            + [("speed", (t,)) for t in ("coiling", "triangle")]
-            + [("tracking", (v, size, track.steady_time)) for v in args.speeds])
-    with ProcessPoolExecutor(args.jobs) as pool:
-        results = list(pool.map(_run, jobs))
-    strikes = results[:args.runs]
-    speeds = results[args.runs:args.runs + 2]
-    tracking = results[args.runs + 2:]
-
-    print(f"pendulum strike on the declared plant ({args.runs} runs, mocap seeds 0-{args.runs - 1}; "
-          f"the paper: struck {PAPER['strike_time']} s after the release, {PAPER['strike_velocity']} m/s)")
+def strike_table(title: str, strikes: list) -> dict:
+    """Print the strikes of one timing rule (pendulum_run results) as a table and their summary;
+    return the summary."""
+    print(f"pendulum strike on the declared plant, {title} ({len(strikes)} runs, mocap seeds "
+          f"0-{len(strikes) - 1}; the paper: struck {PAPER['strike_time']} s after the release, "
+          f"{PAPER['strike_velocity']} m/s)")
     print(f"{'seed':>4s} {'struck':>6s} {'impact s':>8s} {'ball m/s':>13s} {'disp m':>6s} "
           f"{'travel s':>8s} {'v_eq m/s':>8s} {'peak m/s':>8s}")
     for r in strikes:
@@ -126,6 +104,51 @@ def main(argv=None) -> int:
               f"{r['equivalent_velocity'] or 0:8.2f} {r['peak_speed']:8.2f}")
     ok = [r for r in strikes if "error" not in r]
     struck = [r for r in ok if r["struck"]]
+    velocities = [r["equivalent_velocity"] for r in struck]
+    summary = {
+        "strikes": len(struck), "runs": len(strikes), "failed_runs": len(strikes) - len(ok),
+        "impact_time": [min((r["impact_time"] for r in struck), default=None),
+                        max((r["impact_time"] for r in struck), default=None)],
+        "equivalent_velocity_median": float(np.median(velocities)) if velocities else None,
+    }
+    print(f"struck {summary['strikes']}/{summary['runs']}, impact {summary['impact_time']} s after the "
+          f"release, equivalent velocity median {summary['equivalent_velocity_median']} m/s\n")
+    return summary
+
+
+def _run(job):
+    kind, arg = job
+    if kind == "pendulum":
+        return pendulum_run(*arg)
+    if kind == "speed":
+        return speed_run(*arg)
+    return tracking_run(*arg)
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--runs", type=int, default=10)
+    parser.add_argument("--planned-runs", type=int, default=3)
+    parser.add_argument("--speeds", type=float, nargs="+", default=[0.0125, 0.025, 0.05, 0.1, 0.2])
+    parser.add_argument("--jobs", type=int, default=os.cpu_count() or 2)
+    parser.add_argument("--output", default=results_path("dynamic.json"))
+    args = parser.parse_args(argv)
+    from soft_arm_drivers.experiments.harness import load_setup
+    track = load_setup("tracking").task
+    size = next(ph.trajectory.size for ph in track.phases if ph.name == "circle_fast")
+    jobs = ([("pendulum", (k,)) for k in range(args.runs)]
+            + [("pendulum", (k, "planned")) for k in range(args.planned_runs)]
+            + [("speed", (t,)) for t in ("coiling", "triangle")]
+            + [("tracking", (v, size, track.steady_time)) for v in args.speeds])
+    with ProcessPoolExecutor(args.jobs) as pool:
+        results = list(pool.map(_run, jobs))
+    strikes = results[:args.runs]
+    planned = results[args.runs:args.runs + args.planned_runs]
+    speeds = results[args.runs + args.planned_runs:args.runs + args.planned_runs + 2]
+    tracking = results[args.runs + args.planned_runs + 2:]
+    rehearsed_summary = strike_table("rehearsed step", strikes)
+    planned_summary = strike_table("planned move", planned) if planned else None
+    ok = [r for r in strikes if "error" not in r]
     print("\npeak tip speed against the paper's arm")
     print(f"{'task':9s} {'peak m/s':>8s} {'paper':>6s} {'ratio':>6s} | {'RMS mm':>7s} {'v_mm':>6s} "
           f"{'v_cm':>6s} {'mm band':>8s}")
@@ -147,20 +170,14 @@ def main(argv=None) -> int:
             print(f"{r['speed']:9.4f} {r['period']:8.2f} failed: {' '.join(r['error'])}")
             continue
         print(f"{r['speed']:9.4f} {r['period']:8.2f} {r['rms_mm']:7.2f} {r['max_mm']:7.2f}")
-    velocities = [r["equivalent_velocity"] for r in struck]
     summary = {
-        "strikes": len(struck), "runs": args.runs, "failed_runs": len(strikes) - len(ok),
-        "impact_time": [min((r["impact_time"] for r in struck), default=None),
-                        max((r["impact_time"] for r in struck), default=None)],
-        "equivalent_velocity_median": float(np.median(velocities)) if velocities else None,
+        **rehearsed_summary, "planned": planned_summary,
         "peak_speed_ratio": {r["task"]: r["peak_speed"] / r["paper_peak_speed"]
                              for r in speeds if "error" not in r},
         "tracking_rms_mm": {f"{r['speed']:.4f}": r.get("rms_mm") for r in tracking},
     }
-    print(f"\nstruck {summary['strikes']}/{args.runs}, impact {summary['impact_time']} s after the "
-          f"release, equivalent velocity median {summary['equivalent_velocity_median']} m/s")
-    write_results(args.output, {"summary": summary, "strikes": strikes, "speeds": speeds,
-                                "tracking": tracking})
+    write_results(args.output, {"summary": summary, "strikes": strikes, "planned_strikes": planned,
+                                "speeds": speeds, "tracking": tracking})
     return 0
 
 

@@ -37,6 +37,20 @@ from .outer_loop import outer_loop_for
 from .target_margin import fragility_error
 
 
+# A goal report's status (soft_arm_control.outer_loop.STATUSES) on /diagnostics: level and message
+LEVELS = {"ok": DiagnosticStatus.OK, "constrained": DiagnosticStatus.WARN,
+          "saturated": DiagnosticStatus.WARN, "stalled": DiagnosticStatus.WARN,
+          "unreached": DiagnosticStatus.WARN, "held": DiagnosticStatus.ERROR}
+MESSAGES = {"ok": "target feasible",
+            "constrained": "target infeasible for the model: moving to the closest feasible point",
+            "saturated": "the path is too fast for the tendons: its dynamic feedforward exceeds the "
+                         "tension limits and is clipped",
+            "stalled": "target not reached: the error does not fall although every step is feasible "
+                       "(out of reach, or a load the model lacks)",
+            "unreached": "the goal ended away from its target",
+            "held": "no feasible step: the last reference is held"}
+
+
 class ClikNode(Node):
     def __init__(self, config_dir: str | None = None, **node_options):
         super().__init__("clik", allow_undeclared_parameters=True,
@@ -112,23 +126,16 @@ class ClikNode(Node):
         """A goal's feasibility on ``/diagnostics`` (the current one once a second and on every
         change; ``index``: another, e.g. the one a new goal closed, with its final counts):
         OK; WARN while its online steps are projected onto the tension limits (the target is
-        infeasible for the model: the reference moves to the closest feasible point) and while it is
-        stalled (feasible steps, but the error does not fall); ERROR when a step found no feasible
+        infeasible for the model: the reference moves to the closest feasible point), while a
+        track goal's path needs tensions outside the limits (saturated) and while it is stalled
+        (feasible steps, but the error does not fall); ERROR when a step found no feasible
         reference and the last one was held. The values are those of the goal's report (JSON), with
         ``goal``, its index since start-up."""
         if not self.outer.reports:
             return
         index = len(self.outer.reports) - 1 if index is None else index
         report = self.outer.reports[index]
-        level = {"ok": DiagnosticStatus.OK, "constrained": DiagnosticStatus.WARN,
-                 "stalled": DiagnosticStatus.WARN, "unreached": DiagnosticStatus.WARN,
-                 "held": DiagnosticStatus.ERROR}[report.status]
-        message = {"ok": "target feasible",
-                   "constrained": "target infeasible for the model: moving to the closest feasible point",
-                   "stalled": "target not reached: the error does not fall although every step is "
-                              "feasible (out of reach, or a load the model lacks)",
-                   "unreached": "the goal ended away from its target",
-                   "held": "no feasible step: the last reference is held"}[report.status]
+        level, message = LEVELS[report.status], MESSAGES[report.status]
         status = DiagnosticStatus(level=level, name="clik", hardware_id="soft_arm", message=message)
         d = {"goal": index, **report.as_dict()}
         status.values = [KeyValue(key=k, value=v if k == "status" else json.dumps(v)) for k, v in d.items()]

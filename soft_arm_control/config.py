@@ -79,8 +79,10 @@ CONTROL_SCHEMA = {
 }
 
 # When the strike's reference is sent: with the release (the paper's protocol), or when the model's
-# rehearsal of the move says the tip will meet the ball at its speed peak
-STRIKE_TIMINGS = ("release", "rehearsed")
+# rehearsal of the move says the tip will meet the ball at its speed peak (rehearsed: the
+# precomputed step; planned: the fastest tension profile planned on the model, followed by the inner
+# loop, soft_arm_control.strike_planner)
+STRIKE_TIMINGS = ("release", "rehearsed", "planned")
 PENDULUM_KEYS = ("pivot", "length", "mass", "ball_radius", "release_angle", "direction", "restitution",
                  "timing")
 

@@ -6,7 +6,10 @@ A goal is a target in task coordinates with a mode:
   the mocap ``switch_delay`` seconds later; the reached reference is stored for the target when the
   next goal arrives;
 - ``replay``: the reference stored for this target, straight to the inner loop (no CLIK);
-- ``precomputed``: the precomputed reference only (the pendulum strike);
+- ``precomputed``: the precomputed reference only (the pendulum strike); with a planned move
+  (:class:`~soft_arm_control.strike_planner.StrikeProfile`) the inner loop follows the plan's
+  shortenings, their rates and its tensions as feedforward, sampled at the mocap frames, until the
+  move's duration has passed, then holds the precomputed reference;
 - ``online``: online refinement from the current reference, no precomputed step (sugar task);
 - ``track``: online CLIK along a trajectory (:class:`~soft_arm_control.trajectories.Trajectory`)
   from the target, x_d(t) with its velocity as feedforward, from the goal's time on; with
@@ -20,11 +23,11 @@ slowest-decaying mode), the later fractions at the mocap frames after their dela
 refinement starts when the last fraction is given, at the earliest.
 
 ``command`` is the reference last handed to the inner loop (``reference`` is the CLIK's own, which
-differs only in a track goal with ``track_dynamics``). ``reference_rate`` is the command's rate of
-shortening [m/s] (all tendons): an online
-step's change over the CLIK period in a goal whose mode is among ``rate_modes``, zero otherwise
-(and for a precomputed, replayed or shaped reference); the inner loop damps the arm's motion about
-it (:class:`~soft_arm_control.inner_loop.TendonController`).
+differs in a track goal with ``track_dynamics`` and during a planned move). ``reference_rate`` is
+the command's rate of shortening [m/s] (all tendons): an online step's change over the CLIK period
+in a goal whose mode is among ``rate_modes``, the plan's during a planned move, zero otherwise (and
+for a precomputed, replayed or shaped reference); the inner loop damps the arm's motion about it
+(:class:`~soft_arm_control.inner_loop.TendonController`).
 
 Times are the caller's [s] (simulated or wall). An unreachable or infeasible goal raises
 :class:`~soft_arm_control.clik.TargetError` and leaves the current reference untouched.
@@ -40,9 +43,11 @@ from soft_arm_model import solve_equilibrium
 from .clik import Clik, ClikGains, ClikPoint, ClikStep, TargetError, equilibrium_seeds
 from .collocated import build_collocated
 from .input_shaping import ShapedStep, StepShaper
+from .strike_planner import StrikeProfile
 from .trajectories import Trajectory
 
 MODES = ("clik", "replay", "precomputed", "online", "track")
+STATUSES = ("ok", "constrained", "saturated", "stalled", "unreached", "held")   # GoalReport.status
 
 
 @dataclass
@@ -58,7 +63,9 @@ class GoalReport:
     arm does not go where the model says it should (a target out of the arm's reach, an
     unmodelled load) although every step was feasible. A goal ``closed`` (the next one arrived, or
     the experiment ended) with its last error above the tolerance and nothing else to report is
-    *unreached*."""
+    *unreached*. ``saturated_steps``: online steps of a track goal whose dynamic reference needed
+    feedforward tensions outside the limits (the path asks more force than the tendons give: the
+    inner loop clips it, and the arm falls behind)."""
     target: list
     mode: str
     reach_tolerance: float = 1e-3
@@ -69,6 +76,7 @@ class GoalReport:
     closest_error: float | None = None
     error: float | None = None
     stalled_steps: int = 0
+    saturated_steps: int = 0
     closed: bool = False
     shaped_mode: tuple | None = None
     _progress_level: float = np.inf
@@ -94,13 +102,16 @@ class GoalReport:
     @property
     def status(self) -> str:
         """held (no feasible step: the reference stayed), constrained (the reference keeps moving
-        towards the closest feasible point), stalled (feasible steps, but the error stays above the
-        tolerance), unreached (closed away from the target) or ok (a track goal, whose error is a
-        tracking error, is never stalled or unreached)."""
+        towards the closest feasible point), saturated (a track goal whose path needed tensions
+        outside the limits), stalled (feasible steps, but the error stays above the tolerance),
+        unreached (closed away from the target) or ok (a track goal, whose error is a tracking
+        error, is never stalled or unreached)."""
         if self.held_steps:
             return "held"
         if self.infeasible_steps:
             return "constrained"
+        if self.saturated_steps:
+            return "saturated"
         if self.mode == "track":          # a moving target: its error is the tracking error
             return "ok"
         if self.stalled_steps >= self.stall_steps:
@@ -109,7 +120,7 @@ class GoalReport:
 
     def as_dict(self) -> dict:
         keys = ("target", "mode", "online_steps", "infeasible_steps", "held_steps", "closest_error",
-                "error", "stalled_steps", "closed", "shaped_mode")
+                "error", "stalled_steps", "saturated_steps", "closed", "shaped_mode")
         return {**{k: getattr(self, k) for k in keys}, "reached": self.reached, "status": self.status}
 
 
@@ -151,6 +162,8 @@ class OuterLoop:
         self.track_dynamics, self.rotor_mass = bool(track_dynamics), float(rotor_mass)
         self._move: ShapedStep | None = None
         self._fraction = 1.0
+        self._planned: StrikeProfile | None = None
+        self._planned_from = 0.0
         self._seeds = None
         self._x_d = None
         self._mode = None
@@ -178,17 +191,19 @@ class OuterLoop:
             return self.clik.precompute(x_d, self.start.q, self._seeds, tol=self.tolerance)
 
     def goal(self, t: float, x_d, mode: str, point: ClikPoint | None = None,
-             trajectory: Trajectory | None = None) -> ClikPoint:
+             trajectory: Trajectory | None = None, move: StrikeProfile | None = None) -> ClikPoint:
         """Take a new goal at time t [s]; returns the reference to hand the inner loop from now on.
 
         ``point`` is a reference precomputed beforehand for a clik or precomputed goal (the
         harness solves every target before anything moves); ``trajectory``: a track goal's, from
-        x_d at t.
+        x_d at t; ``move``: a precomputed goal's planned move from the hanging arm, started at t.
         """
         if mode not in MODES:
             raise ValueError(f"goal mode {mode!r} is not one of {list(MODES)}")
         if (mode == "track") != (trajectory is not None):
             raise ValueError("a track goal needs a trajectory, and only a track goal takes one")
+        if move is not None and mode != "precomputed":
+            raise ValueError("only a precomputed goal takes a planned move")
         x_d = np.asarray(x_d, dtype=float)
         space = self.clik.task
         if x_d.shape != (space.m,) or not np.all(np.isfinite(x_d)):
@@ -212,7 +227,8 @@ class OuterLoop:
         report = GoalReport([float(v) for v in x_d], mode, self.reach_tolerance, self.stall_steps)
         self.reports.append(report)
         settled = t
-        if ref is not None and self.shaper is not None and mode in self.shaped_modes:
+        self._planned, self._planned_from = move, t
+        if ref is not None and move is None and self.shaper is not None and mode in self.shaped_modes:
             self._move = self.shaper.shape(t, current, ref)
             self._fraction = self._move.fraction(t)
             settled = self._move.end_time
@@ -230,6 +246,23 @@ class OuterLoop:
             self.command = self.clik.dynamic_reference(self.reference.q, trajectory.at(x_d, 0.0)[1],
                                                        trajectory.acceleration(x_d.size, 0.0),
                                                        self.rotor_mass)
+        if move is not None:
+            self._follow_plan(t)
+        return self.command
+
+    def _follow_plan(self, t: float) -> ClikPoint:
+        """The planned move's command at time t [s] (its sample half a CLIK period later, so that
+        the held sample does not lag the plan), with its rate; the precomputed reference, fixed,
+        once the move's duration has passed."""
+        tau = t - self._planned_from
+        if tau >= self._planned.duration - 1e-9:
+            self._planned = None
+            self.reference_rate = np.zeros_like(self.reference_rate)
+            self.command = self.reference
+            return self.command
+        s, s_dot, u = self._planned.reference(tau + 0.5 * self.period)
+        self.command = ClikPoint(self.reference.q, s, u[list(self.clik.cm.active)], self.reference.x)
+        self.reference_rate = s_dot
         return self.command
 
     def target_at(self, t: float) -> tuple:
@@ -252,6 +285,8 @@ class OuterLoop:
         """A mocap frame delivered at time t [s] with the measured task coordinates [m]; returns
         the new reference when it changed: a fraction of a shaped step was given, or an online step
         was taken (None otherwise)."""
+        if self._planned is not None:
+            return self._follow_plan(t)
         moved = None
         if self._move is not None:
             fraction = self._move.fraction(t)
@@ -278,6 +313,8 @@ class OuterLoop:
             ref = self.clik.dynamic_reference(ref.q, self._trajectory.at(self._x_d, tau)[1],
                                               self._trajectory.acceleration(self._x_d.size, tau),
                                               self.rotor_mass, refresh=False)
+            if self.clik.feasibility_error(ref.u_ff) is not None:
+                self.reports[-1].saturated_steps += 1
         if self._mode in self.rate_modes:
             self.reference_rate = (ref.shortening - self.command.shortening) / self.period
         self.command = ref

@@ -34,7 +34,7 @@ from soft_arm_model.config import write_arm_file
 from soft_arm_model.parameters import ConfigError, default_config_dir
 
 from .metrics import Summary, TrackingMetrics, TransitionMetrics, format_table, format_tracking
-from .strike import format_strike
+from .strike import PLANNED_ON_THE_GRAPH, format_strike
 from .harness import add_setup_arguments, check_targets, load_setup, setup_overrides
 from .excitation import Excitation
 from .orchestration import STOP, request_stop, roles, run_emulated_hardware, run_processes
@@ -231,6 +231,9 @@ def main(argv=None) -> int:
             args.sets += closest
             setup = load_setup(args.task, args.config,
                                [s for s in args.sets if not s.startswith("graph.")], args.arm_file)
+        strike = setup.task is not None and setup.task.pendulum is not None
+        if strike and setup.task.strike_timing == "planned":
+            raise ConfigError(PLANNED_ON_THE_GRAPH)
         if args.emulated_hardware and setup.task is not None and setup.task.pendulum is not None:
             raise ConfigError(f"the emulated rig has no pendulum: run {args.task} on the simulator "
                               "(without --emulated-hardware)")

@@ -26,6 +26,7 @@ from soft_arm_control.config import (IDENTIFICATION, ControlConfig, TaskConfig, 
                                      load_task_config)
 from soft_arm_control.inner_loop import tendon_controller_for
 from soft_arm_control.outer_loop import OuterLoop, outer_loop_for
+from soft_arm_control.strike_planner import strike_move_for
 from soft_arm_control.target_margin import target_point
 from soft_arm_drivers.mocap.bridge_config import calibration_overrides
 from soft_arm_drivers.sim.plant_config import PlantConfig, load_plant_config, with_bridge_calibration
@@ -199,6 +200,10 @@ def goal_warning(goal: dict) -> str:
     if goal["status"] == "unreached":
         return (f"{head} not reached: the last measured error was {goal['error'] * 1e3:.2f} mm when the "
                 f"window ended; {closest}")
+    if goal["status"] == "saturated":
+        return (f"{head} is faster than the tendons can follow: on {goal['saturated_steps']} of "
+                f"{goal['online_steps']} online steps the path's dynamic feedforward lay outside the "
+                f"tension limits and was clipped; {closest}")
     if goal["status"] == "stalled":
         return (f"{head} stalled: the measured error stayed above the reach tolerance without falling "
                 f"for the last {goal['stalled_steps']} of {goal['online_steps']} online steps, although "
@@ -299,9 +304,9 @@ def run_experiment(setup: Setup, progress=None, actuation_map: ActuationMap | No
     plan = None
     if task.pendulum is not None:            # the strike is the first window (precomputed)
         first = schedule(task)[0]
-        arm_time, gap = rehearse(model, ctl, task, outer.clik.cm, ctrl.actuation_map, points[first[2]],
-                                 first[3])
-        plan = plan_strike(task, arm_time, gap)
+        move = strike_move_for(model, ctl, task, points[first[2]])
+        arm_time, gap = rehearse(model, ctl, task, ctrl.actuation_map, points[first[2]], first[3], move)
+        plan = plan_strike(task, arm_time, gap, move)
 
     dt = pc.timestep
     inner_every = max(1, int(round(1.0 / (ctl.inner_rate * dt))))
@@ -325,7 +330,8 @@ def run_experiment(setup: Setup, progress=None, actuation_map: ActuationMap | No
         while rig.t < t_end - 1e-9:
             t = rig.t
             if not sent and t >= send_at - 1e-9:
-                ctrl.reference = outer.goal(t, x_d, mode, points.get(k), phases[phase].trajectory)
+                ctrl.reference = outer.goal(t, x_d, mode, points.get(k), phases[phase].trajectory,
+                                            plan.move if plan is not None and w_index == 0 else None)
                 sent = True
             if t >= release_at - 1e-9:
                 rig.release_pendulum()

@@ -7,8 +7,11 @@ that point: the move is *rehearsed* before anything moves, on the controller's m
 ``control.rotor_mass``, the inner loop as configured, no model error and no noise). With
 ``timing: rehearsed`` the reference goes out ``ball_time - arm_time`` after the release, or, when
 the arm is the slower, the ball is released ``arm_time - ball_time`` after the reference (on the rig
-that needs a release the runner triggers). With ``timing: release`` both go at once (the paper's
-protocol). Either way the plan and the rehearsal's prediction are reported.
+that needs a release the runner triggers). With ``timing: planned`` (soft-arm-harness only) the
+move is not a step but the fastest tension profile the model allows
+(:mod:`soft_arm_control.strike_planner`), rehearsed and timed the same way. With ``timing:
+release`` both go at once (the paper's protocol). Either way the plan and the rehearsal's
+prediction are reported.
 
 **Metrics.** :func:`strike_metrics`, from the simulated rig's own record of the contact
 (:class:`~soft_arm_drivers.sim.simulated_rig.StrikeRecord`): the impact time after the release, the
@@ -29,6 +32,7 @@ from soft_arm_control.clik import ClikPoint
 from soft_arm_control.collocated import full_tensions
 from soft_arm_control.inner_loop import tendon_controller_for
 from soft_arm_control.outer_loop import outer_loop_for
+from soft_arm_control.strike_planner import StrikeProfile
 from soft_arm_drivers.sim.pendulum import Pendulum, closest_capsule
 from soft_arm_drivers.sim.simulated_rig import Plant, StrikeRecord
 from soft_arm_model import build_model
@@ -39,67 +43,95 @@ class StrikePlan:
     """Delays [s] after the strike window's start of the reference step and of the release; the
     rehearsed time [s] from the step to the first touch of a ball at the lowest point (nan if the
     rehearsal never touches it) and the rehearsal's smallest gap to it [m]; the ball's time [s]
-    from the release to the lowest point; the timing rule."""
+    from the release to the lowest point; the timing rule; the planned move (timing ``planned``;
+    None otherwise)."""
     send_delay: float
     release_delay: float
     arm_time: float
     rehearsed_gap: float
     ball_time: float
     timing: str
+    move: StrikeProfile | None = None
 
     def as_dict(self) -> dict:
-        return {k: None if isinstance(v, float) and not np.isfinite(v) else v for k, v in vars(self).items()}
+        out = {k: None if isinstance(v, float) and not np.isfinite(v) else v for k, v in vars(self).items()}
+        out["move"] = None if self.move is None else self.move.as_dict()
+        return out
 
 
 REHEARSAL_STEP = 1e-3     # s, the rehearsal's time step (the plant's of plant.yaml)
 
 
-def rehearse(model, control, task, cm, actuation_map, goal: ClikPoint, duration: float,
-             timestep: float = REHEARSAL_STEP) -> tuple[float, float]:
-    """The step from the hanging arm (the pretension on every tendon, where the harness starts) to
-    the reference ``goal``, simulated on the controller's ``model`` (collocated model ``cm``, the
-    inner loop of ``control`` on the task's tendons through ``actuation_map``) for ``duration``
-    [s]: (time [s] of the first touch of the task's ball waiting at its lowest point, nan if none;
-    the smallest surface gap to it [m])."""
+def rehearse(model, control, task, actuation_map, goal: ClikPoint, duration: float,
+             move: StrikeProfile | None = None, timestep: float = REHEARSAL_STEP) -> tuple[float, float]:
+    """The strike's move from the hanging arm (the pretension on every tendon, where the harness
+    starts), simulated on the controller's ``model`` for ``duration`` [s]: the precomputed goal
+    ``goal`` (a ClikPoint) given at 0 through the task's outer loop (with its planned ``move``, if
+    any, followed at the CLIK rate as in the run) and the inner loop of ``control`` on the task's
+    tendons through ``actuation_map``. Returns (time [s] of the first touch of the task's ball
+    waiting at its lowest point, nan if none; the smallest surface gap to it [m])."""
     pendulum = task.pendulum
     plant = Plant(model, timestep, control.rotor_mass)
     plant.settle(np.full(model.n_tendons, control.tension_min))
+    outer = outer_loop_for(model, control, task)
     tendons = tendon_controller_for(model.n_tendons, control, task.tendons, actuation_map)
-    tendons.set_reference(goal.shortening, full_tensions(cm, goal.u_ff))
+    cm = outer.clik.cm
+
+    def hand(ref):
+        tendons.set_reference(ref.shortening, full_tensions(cm, ref.u_ff), outer.reference_rate)
+    hand(outer.goal(0.0, goal.x, "precomputed", goal, move=move))
     inner_every = max(1, int(round(1.0 / (control.inner_rate * timestep))))
+    clik_every = max(1, int(round(1.0 / (control.clik_rate * timestep))))
     u, smallest = np.full(model.n_tendons, control.tension_min), np.inf
     for k in range(int(round(duration / timestep))):
+        t = k * timestep
         plant.sense(markers=True)
         gap = plant.surface().closest(pendulum.lowest_point)[3] - pendulum.ball_radius
         smallest = min(smallest, gap)
         if gap <= 0.0:
-            return k * timestep, smallest
+            return t, smallest
+        if k % clik_every == 0 and k:
+            ref = outer.frame(t, goal.x)
+            if ref is not None:
+                hand(ref)
         if k % inner_every == 0:
             s, sd = plant.tendons()
-            u = tendons.update(k * timestep, s, sd)
+            u = tendons.update(t, s, sd)
         plant.step(u)
     return float("nan"), smallest
 
 
+PLANNED_ON_THE_GRAPH = (
+    "the graph does not run a planned strike (tasks.<task>.pendulum.timing: planned): the planned "
+    "move passes the target at speed and must start within a few milliseconds of its plan, while the "
+    "graph times goals by mocap frames, 5-10 ms late; run it in soft-arm-harness, or use timing "
+    "rehearsed or release")
+
+
 def strike_plan_for(arm, control, task) -> StrikePlan:
     """The plan of ``task``'s strike (its first window) as the graph's task runner makes it before
-    anything moves: the target precomputed on the controller's model, the move rehearsed."""
+    anything moves: the target precomputed on the controller's model, the step rehearsed. A
+    planned strike raises ValueError (:data:`PLANNED_ON_THE_GRAPH`)."""
+    if task.strike_timing == "planned":
+        raise ValueError(PLANNED_ON_THE_GRAPH)
     model = build_model(arm)
     outer = outer_loop_for(model, control, task)
     first = task.phases[0]
     goal = outer.precompute(np.array(task.targets[first.sequence[0]]))
-    arm_time, gap = rehearse(model, control, task, outer.clik.cm, actuation_map_for(model, control), goal,
-                             first.window)
+    arm_time, gap = rehearse(model, control, task, actuation_map_for(model, control), goal, first.window)
     return plan_strike(task, arm_time, gap)
 
 
-def plan_strike(task, arm_time: float, rehearsed_gap: float) -> StrikePlan:
-    """When to step the reference and release the ball (delays after the window's start), from
-    the rehearsal's ``arm_time`` [s] (nan: it never touched) and the task's timing rule."""
+def plan_strike(task, arm_time: float, rehearsed_gap: float,
+                move: StrikeProfile | None = None) -> StrikePlan:
+    """When to step the reference (and start the planned ``move``) and release the ball (delays
+    after the window's start), from the rehearsal's ``arm_time`` [s] (nan: it never touched) and
+    the task's timing rule."""
     ball_time = task.pendulum.time_to_lowest()
-    lead = ball_time - arm_time if task.strike_timing == "rehearsed" and np.isfinite(arm_time) else 0.0
+    timed = task.strike_timing in ("rehearsed", "planned") and np.isfinite(arm_time)
+    lead = ball_time - arm_time if timed else 0.0
     return StrikePlan(max(lead, 0.0), max(-lead, 0.0), arm_time, rehearsed_gap, ball_time,
-                      task.strike_timing)
+                      task.strike_timing, move)
 
 
 def strike_metrics(record: StrikeRecord, timestep: float) -> dict:

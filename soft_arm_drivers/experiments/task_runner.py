@@ -30,12 +30,17 @@ class Goal(NamedTuple):
     window: float
 
 
+RELEASE_LEAD = 0.1       # s from the first frame to the start of a task with a pendulum
+
+
 class TaskRunner:
     """Runs one task; ``tip_marker``: index of the tip among the markers. With a pendulum
     (``plan``, a :class:`~.strike.StrikePlan`, and the ``arm`` whose markers the frames carry), the
     first window's goal goes out ``plan.send_delay`` after its start, the ball is released
     ``plan.release_delay`` after it (:attr:`release_at`), and the ball's frames (:meth:`ball`)
-    give the strike's metrics (:meth:`strike`)."""
+    give the strike's metrics (:meth:`strike`). With a pendulum the task starts
+    :data:`RELEASE_LEAD` after the first frame, so that the release, sent at that frame, reaches
+    the ball before its time even when the plan releases it at the start."""
 
     def __init__(self, task: TaskConfig, tip_marker: int, plan=None, arm=None):
         if (task.pendulum is None) != (plan is None):
@@ -66,7 +71,7 @@ class TaskRunner:
         """A mocap frame at time t [s] (markers (n, 3) [m]); returns the :class:`Goal` when a new
         window starts with this frame, else None."""
         if self.t0 is None:
-            self.t0 = t
+            self.t0 = t + (RELEASE_LEAD if self.plan is not None else 0.0)
         goal = None
         rel = t - self.t0
         while self.index < len(self.windows) and rel >= self.starts[self.index + 1] - 1e-9:

@@ -363,3 +363,27 @@ def test_a_track_goal_hands_the_inner_loop_the_dynamic_reference_and_integrates_
     assert np.allclose(dynamic.reference.q, plain.reference.q, atol=1e-9)
     dynamic.goal(1.0, np.array(start.x), "online")
     assert dynamic.command is dynamic.reference
+
+
+def test_a_path_faster_than_the_tendons_is_reported_saturated(paper_model, coiling_clik):
+    """A track goal whose dynamic reference needs tensions outside the limits (here: rotors of
+    1000 kg on a 1 cm circle at 1 Hz) counts those steps and is saturated, a WARN; with the rotor
+    of control.yaml the same path is ok."""
+    from soft_arm_control.outer_loop import OuterLoop
+    from soft_arm_control.trajectories import Trajectory
+    start = coiling_clik.reference(solve_equilibrium(paper_model, [0.05, 0.05, 1.0, 1.0]).q)
+    path = Trajectory("circle", 0.01, 1.0)
+    reports = {}
+    for rotor in (0.6, 1000.0):
+        outer = OuterLoop(coiling_clik, start, switch_delay=0.0, rate=100.0, track_dynamics=True,
+                          rotor_mass=rotor)
+        outer.goal(0.0, np.array(start.x), "track", trajectory=path)
+        for k in range(1, 60):
+            outer.frame(k * 0.01, outer.reference.x)
+        reports[rotor] = outer.reports[-1].as_dict()
+    assert reports[0.6]["saturated_steps"] == 0 and reports[0.6]["status"] == "ok"
+    assert 0 < reports[1000.0]["saturated_steps"] <= 59 and reports[1000.0]["status"] == "saturated"
+    # every status has its level and message on the clik node's /diagnostics
+    from soft_arm_control.clik_node import LEVELS, MESSAGES
+    from soft_arm_control.outer_loop import STATUSES
+    assert set(LEVELS) == set(MESSAGES) == set(STATUSES)

@@ -144,16 +144,27 @@ def test_every_triangle_target_is_reached_on_structurally_different_plants(plant
         assert goal["reached"] or goal["status"] != "ok", goal
 
 
-def test_the_rehearsed_strike_hits_the_ball_near_its_speed_peak_within_the_tension_limits():
-    """On the declared plant: the plan sends the step or releases the ball so that the rehearsed
-    arm meets it at its lowest point; the ball is struck within 30 ms of that instant (before it:
-    the surfaces touch before the centre gets there), slowed and pushed across its swing; every
-    tension stays inside the limits."""
+@pytest.mark.parametrize("timing", ["planned", "rehearsed"])
+def test_the_strike_hits_the_ball_near_its_speed_peak_within_the_tension_limits(timing):
+    """On the declared plant: the plan (the move planned on the model, or the precomputed step)
+    sends the reference or releases the ball so that the rehearsed arm meets it at its lowest point;
+    the ball is struck within 30 ms of that instant (before it: the surfaces touch before the centre
+    gets there), slowed and pushed across its swing; every tension stays inside the limits. The
+    planned move is the faster: it reaches the target within 1 mm of the model in less time than
+    the step's rehearsal takes to touch the ball."""
     import numpy as np
-    setup = load_setup("pendulum")
+    setup = load_setup("pendulum", overrides=[f"tasks.pendulum.pendulum.timing={timing}"])
     result = run_experiment(setup)
     strike, plan = result.strike["simulated"], result.strike["plan"]
-    assert plan["timing"] == "rehearsed" and plan["arm_time"] is not None
+    assert plan["timing"] == timing and plan["arm_time"] is not None
+    assert (plan["move"] is not None) == (timing == "planned")
+    if timing == "planned":
+        assert plan["move"]["miss"] <= 1e-3 and plan["move"]["duration"] < 0.3
+        assert setup.control.tension_min - 1e-12 <= plan["move"]["tension_range"][0]
+        assert plan["move"]["tension_range"][1] <= setup.control.tension_max + 1e-12
+        assert plan["arm_time"] < plan["move"]["duration"]       # touched before the centre arrives
+    else:
+        assert plan["arm_time"] > 0.3
     assert plan["send_delay"] == 0.0 or plan["release_delay"] == 0.0
     assert plan["send_delay"] + plan["arm_time"] == pytest.approx(plan["release_delay"] + plan["ball_time"])
     assert strike["struck"]
@@ -163,9 +174,11 @@ def test_the_rehearsed_strike_hits_the_ball_near_its_speed_peak_within_the_tensi
     tensions = np.array(result.record.tension)
     assert tensions.min() >= setup.control.tension_min - 1e-12
     assert tensions.max() <= setup.control.tension_max + 1e-12
-    # what the motion capture makes of it: the impact within a frame, the speed within 10 %
+    # what the motion capture makes of it: the impact within a frame (three for the planned move's
+    # glancing blow, which leaves the free swing slowly), the speed within 10 %
     measured = result.strike["measured"]
-    assert measured["struck"] and abs(measured["impact_time"] - strike["impact_time"]) <= 1 / 240 + 1e-3
+    frames = 1 if timing == "rehearsed" else 3
+    assert measured["struck"] and abs(measured["impact_time"] - strike["impact_time"]) <= frames / 240 + 1e-3
     assert measured["ball_speed_before"] == pytest.approx(strike["ball_speed_before"], rel=0.1)
 
 

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from soft_arm_drivers.experiments.harness import load_setup
-from soft_arm_drivers.experiments.strike import StrikePlan, free_swing
-from soft_arm_drivers.experiments.task_runner import TaskRunner
+from soft_arm_drivers.experiments.strike import StrikePlan, free_swing, strike_plan_for
+from soft_arm_drivers.experiments.task_runner import RELEASE_LEAD, TaskRunner
 
 FRAME = 1 / 240
 
@@ -27,21 +27,28 @@ def test_goals_go_out_at_the_window_starts_and_a_plan_needs_a_pendulum():
         TaskRunner(task, 3, plan())
     with pytest.raises(ValueError, match="strike plan"):
         TaskRunner(load_setup("pendulum").task, 3)
+    planned = load_setup("pendulum", overrides=["tasks.pendulum.pendulum.timing=planned"])
+    with pytest.raises(ValueError, match="the graph does not run a planned strike"):
+        strike_plan_for(planned.arm, planned.control, planned.task)
 
 
 def test_the_strike_goal_waits_for_its_send_delay_and_the_release_is_timed():
+    """The task starts RELEASE_LEAD after the first frame (the release, sent then, is ahead of its
+    time even at the start); the goal goes out send_delay after the start."""
     setup = load_setup("pendulum")
     runner = TaskRunner(setup.task, 3, plan(send=0.1), setup.arm)
     goals = {}
-    for k in range(60):
+    for k in range(120):
         goal = runner.frame(5.0 + k * FRAME, np.zeros((4, 3)))
         if goal is not None:
             goals[k] = goal
-    assert list(goals) == [int(np.ceil(0.1 / FRAME - 1e-6))]          # the first frame at +0.1 s
+    assert list(goals) == [int(np.ceil((RELEASE_LEAD + 0.1) / FRAME - 1e-6))]   # the first frame at +0.1 s
     assert goals[list(goals)[0]].mode == "precomputed"
-    assert runner.release_at == 5.0
+    assert runner.release_at == 5.0 + RELEASE_LEAD
     delayed = TaskRunner(setup.task, 3, plan(release=0.2), setup.arm)
-    assert delayed.frame(5.0, np.zeros((4, 3))) is not None and delayed.release_at == pytest.approx(5.2)
+    assert delayed.frame(5.0, np.zeros((4, 3))) is None
+    assert delayed.frame(5.0 + RELEASE_LEAD, np.zeros((4, 3))) is not None
+    assert delayed.release_at == pytest.approx(5.0 + RELEASE_LEAD + 0.2)
 
 
 def _frames(runner, pendulum, markers, t0, n, hit_at=None):
@@ -49,6 +56,7 @@ def _frames(runner, pendulum, markers, t0, n, hit_at=None):
     sideways by 2 cm from ``hit_at`` [s] on."""
     rel = np.arange(n) * FRAME
     ball = free_swing(pendulum, rel)
+    runner.frame(t0 - RELEASE_LEAD, markers)          # the first frame: the task starts at t0
     if hit_at is not None:
         ball[rel > hit_at] += np.outer(np.minimum((rel[rel > hit_at] - hit_at) / 0.01, 1.0), [0, 0.02, 0])
     for t, b in zip(t0 + rel, ball):

@@ -159,7 +159,8 @@ def test_a_node_that_fails_mid_run_leaves_an_invalid_result(tmp_path, monkeypatc
 def test_the_pendulum_strike_on_the_graph_matches_the_harness(tmp_path, capsys):
     """The simulator swings the ball and publishes it, the task runner releases it on its plan and
     measures the strike from the mocap topics: struck within two frames of the harness's measured
-    impact; the ball and the release are in the bag; the strike's figure is drawn."""
+    impact; the ball and the release are in the bag; the strike's figure is drawn. A planned strike
+    is refused before anything starts, with the reason."""
     from soft_arm_drivers.experiments.experiment import main
     out = tmp_path / "pendulum"
     assert main(["pendulum", "--quiet", "--output", str(out)]) == 0
@@ -174,6 +175,10 @@ def test_the_pendulum_strike_on_the_graph_matches_the_harness(tmp_path, capsys):
     assert types["/mocap/pendulum"] == TYPES["mocap/pendulum"] and len(messages["/pendulum/release"]) == 1
     assert abs(len(messages["/mocap/pendulum"]) - len(messages["/mocap/markers"])) <= 1
     assert (out / "figures" / "strike.png").exists()
+    assert main(["pendulum", "--quiet", "--output", str(tmp_path / "planned"),
+                 "--set", "tasks.pendulum.pendulum.timing=planned"]) == 2
+    assert "the graph does not run a planned strike" in capsys.readouterr().err
+    assert not (tmp_path / "planned").exists()
 
 
 def test_tracking_on_the_graph_matches_the_harness(tmp_path):

@@ -1,0 +1,185 @@
+"""The strike planned on the model: a tension profile that brings the task point to the strike
+target at a chosen time, as fast as the tendons allow, ROS-free.
+
+The paper sends the precomputed reference as one step and lets the inner loop carry the arm there;
+the arm arrives when its dynamics let it. The planner shapes the tensions in time instead: ``pieces``
+constant levels per tendon over equal parts of the move's duration T [s], each change passed
+through the inner loop's tension rate limit (``control.inner_loop.tension_rate_limit``, when on),
+then the target's equilibrium tensions from T on (the inner loop holds the precomputed reference
+after the strike). It is found by single shooting: the controller's model (its arm, its rotors'
+``control.rotor_mass`` on every tendon, the IMEX integrator) is simulated from the hanging arm under
+the profile, and ``scipy.optimize.least_squares`` fits the levels, bounded by the tension limits,
+so that the task coordinates are at the target at T. The arm passes through the target moving (the
+strike): an underactuated arm cannot also be brought to rest there by a few levels.
+
+:func:`plan_strike_move` searches the shortest T: bisection between ``min_duration`` and
+``max_duration`` for the shortest T whose fitted miss is within ``tolerance`` [m]. The result,
+:class:`StrikeProfile`, carries the planned tendon shortenings and rates beside the tensions, so
+that the inner loop follows the planned motion with the planned tensions as its feedforward
+(:meth:`StrikeProfile.reference`).
+
+Frames and units: task coordinates in ``arm_base`` [m]; tensions of all tendons [N]; times from the
+start of the move [s].
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.optimize
+
+from soft_arm_model import ImexStepper, OutOfDomainError, solve_equilibrium
+
+FIT_STEP = 2e-3           # s, the fit's time step
+PLAN_STEP = 1e-3          # s, the recorded plan's (the strike rehearsal's step)
+
+
+@dataclass(frozen=True)
+class StrikeProfile:
+    """A planned move of ``duration`` [s]: the tensions [N] of every tendon at ``sample_times``
+    [s] (the planning simulation's steps, from 0 to the duration), with the planned ``shortening``
+    [m] and ``shortening_rate`` [m/s] of every tendon at each; ``levels`` [N] (pieces, n_tendons):
+    the fitted levels before the rate limit; ``hold`` [N]: the tensions from the duration on;
+    ``miss`` [m]: the task error norm of the plan at the duration; ``arrival_speed`` [m/s]: the
+    planned tip speed there."""
+    duration: float
+    sample_times: np.ndarray
+    tensions: np.ndarray
+    shortening: np.ndarray
+    shortening_rate: np.ndarray
+    levels: np.ndarray
+    hold: np.ndarray
+    miss: float
+    arrival_speed: float
+
+    def reference(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """What the inner loop follows t [s] after the start: the planned shortenings [m], their
+        rates [m/s] and the tensions [N] of all tendons, at the last sample at or before t (the
+        first before 0; the last after the duration)."""
+        k = int(np.clip(np.searchsorted(self.sample_times, t, side="right") - 1, 0,
+                        self.sample_times.size - 1))
+        return self.shortening[k].copy(), self.shortening_rate[k].copy(), self.tensions[k].copy()
+
+    def as_dict(self) -> dict:
+        """The plan's duration, levels, miss and arrival speed (JSON-ready)."""
+        return {"duration": self.duration, "levels": self.levels.tolist(), "hold": self.hold.tolist(),
+                "miss": self.miss, "arrival_speed": self.arrival_speed,
+                "tension_range": [float(self.tensions.min()), float(self.tensions.max())]}
+
+
+class StrikeShooter:
+    """Simulates ``model`` (ArmModel) from the hanging arm (every tendon at ``pretension`` [N])
+    under a profile of levels on the task's ``tendons`` (indices; the others stay at the
+    pretension), ``rotor_mass`` [kg] on every tendon, steps of ``timestep`` [s], the tension
+    changes limited to ``rate_limit`` [N/s] (0: none); ``space``: the TaskSpace of the target."""
+
+    def __init__(self, model, space, tendons, pretension: float, rotor_mass: float, timestep: float,
+                 rate_limit: float = 0.0):
+        self.model, self.space = model, space
+        self.tendons = list(tendons)
+        self.pretension, self.rate_limit = float(pretension), float(rate_limit)
+        self.stepper = ImexStepper(model, timestep, rotor_mass=np.full(model.n_tendons, rotor_mass))
+        self.timestep = float(timestep)
+        self.q0 = solve_equilibrium(model, np.full(model.n_tendons, pretension)).q
+
+    def commands(self, levels: np.ndarray, hold: np.ndarray, duration: float) -> np.ndarray:
+        """The tensions [N] of all tendons at each step to the duration (steps + 1, n_tendons):
+        ``levels`` (pieces, len(tendons)) over equal parts, ``hold`` (len(tendons)) at the end, every
+        change rate-limited from the pretension on."""
+        steps = int(round(duration / self.timestep))
+        piece = np.minimum((np.arange(steps + 1) * len(levels)) // max(steps, 1), len(levels))
+        wanted = np.vstack([levels, hold])[piece]
+        out = np.full((steps + 1, self.model.n_tendons), self.pretension)
+        active = np.full(len(self.tendons), self.pretension)
+        limit = self.rate_limit * self.timestep
+        for k in range(steps + 1):
+            active = wanted[k] if limit <= 0 else np.clip(wanted[k], active - limit, active + limit)
+            out[k, self.tendons] = active
+        return out
+
+    def run(self, levels: np.ndarray, hold: np.ndarray, duration: float, record: bool = False):
+        """Simulate to the duration: (task coordinates there [m] (nan if the state left the model's
+        domain), the tip speed there [m/s], and with ``record`` (times, tensions, shortenings,
+        rates) at every step, else None)."""
+        u = self.commands(levels, hold, duration)
+        q, qd = self.q0.copy(), np.zeros(self.model.n)
+        d, m = self.stepper.data, self.model
+        last = u.shape[0] - 1
+        s, sd = [], []
+        try:
+            for k in range(last + 1):
+                self.stepper.prepare(q, qd, markers=k == last)
+                if record:
+                    s.append(m.rest_tendon_lengths - d.Lc)
+                    sd.append(-(d.A0.T @ qd))
+                if k == last:
+                    break
+                q, qd = self.stepper.advance(u[k])
+        except OutOfDomainError:
+            return np.full(self.space.m, np.nan), np.nan, None
+        x = self.space.from_markers(d.marker_p)
+        speed = float(np.linalg.norm(d.marker_R[-1] @ (d.marker_J[-1][3:] @ qd)))
+        if not record:
+            return x, speed, None
+        return x, speed, (np.arange(last + 1) * self.timestep, u, np.array(s), np.array(sd))
+
+
+def fit_levels(shooter: StrikeShooter, target, hold, duration: float, guess, bounds,
+               max_evaluations: int = 40) -> tuple[np.ndarray, float]:
+    """The levels (pieces, len(tendons)) [N] within ``bounds`` (lower, upper) [N] that bring the
+    task coordinates to ``target`` [m] at ``duration`` [s], from ``guess``; (levels, miss [m])."""
+    shape = np.shape(guess)
+
+    def residual(z):
+        x, _, _ = shooter.run(z.reshape(shape), hold, duration)
+        return x - target if np.all(np.isfinite(x)) else np.ones(target.size)
+
+    sol = scipy.optimize.least_squares(residual, np.ravel(guess), bounds=bounds, diff_step=1e-3,
+                                       max_nfev=max_evaluations)
+    miss = float(np.linalg.norm(residual(sol.x)))
+    return sol.x.reshape(shape), miss
+
+
+def plan_strike_move(model, control, space, tendons, goal, target, pieces: int = 3,
+                     min_duration: float = 0.1, max_duration: float = 0.5, tolerance: float = 1e-3,
+                     timestep: float = PLAN_STEP, bisections: int = 4) -> StrikeProfile:
+    """The fastest planned move of ``model`` (the controller's) from the hanging arm to ``target``
+    [m] (task coordinates of ``space``) on the task's ``tendons``, with ``control``'s tension
+    limits, tension rate limit and rotor mass. ``goal``: the target's precomputed reference (a
+    ClikPoint), whose equilibrium tensions start the fit and hold the arm after the move. The
+    duration is bisected ``bisections`` times between ``min_duration`` and ``max_duration`` [s];
+    the fit runs at :data:`FIT_STEP`, the plan is recorded at ``timestep`` [s]. Raises ValueError
+    when even ``max_duration`` misses by more than ``tolerance`` [m]."""
+    target = np.asarray(target, dtype=float)
+    hold = np.clip(np.asarray(goal.u_ff, dtype=float), control.tension_min, control.tension_max)
+    fit = StrikeShooter(model, space, tendons, control.tension_min, control.rotor_mass,
+                        max(timestep, FIT_STEP), control.tension_rate_limit)
+    bounds = (control.tension_min, control.tension_max)
+    best, miss = fit_levels(fit, target, hold, max_duration, np.tile(hold, (pieces, 1)), bounds)
+    if miss > tolerance:
+        raise ValueError(f"no tension profile within [{control.tension_min}, {control.tension_max}] N "
+                         f"brings the task point to the target in {max_duration} s: the closest "
+                         f"misses it by {miss * 1e3:.1f} mm")
+    lo, hi, best_T = min_duration, max_duration, max_duration
+    for _ in range(bisections):
+        T = 0.5 * (lo + hi)
+        levels, miss_T = fit_levels(fit, target, hold, T, best, bounds)
+        if miss_T <= tolerance:
+            best, best_T, hi = levels, T, T
+        else:
+            lo = T
+    record = StrikeShooter(model, space, tendons, control.tension_min, control.rotor_mass, timestep,
+                           control.tension_rate_limit)
+    best_T = round(best_T / timestep) * timestep
+    x, speed, (t, u, s, sd) = record.run(best, hold, best_T, record=True)
+    return StrikeProfile(best_T, t, u, s, sd, best, hold, float(np.linalg.norm(x - target)), speed)
+
+
+def strike_move_for(model, control, task, goal) -> StrikeProfile | None:
+    """The planned move of ``task``'s strike (a TaskConfig with a pendulum) to its precomputed
+    ``goal`` (a ClikPoint) on the controller's ``model``, recorded at :data:`PLAN_STEP`; None
+    unless the task's strike timing is ``planned``. The graph's clik node and task runner and the
+    harness all plan it alike, from the same configuration."""
+    if task.pendulum is None or task.strike_timing != "planned":
+        return None
+    return plan_strike_move(model, control, task.space, task.tendons, goal, goal.x, timestep=PLAN_STEP)
