@@ -218,7 +218,11 @@ class OuterLoop:
         if mode in ("clik", "precomputed"):
             ref = point if point is not None else self.precompute(x_d)
         self._close_goal()
-        current = self.reference if self._move is None else self._move.at(t)
+        current = self.reference                    # where a shaped step starts from
+        if self._move is not None:
+            current = self._move.at(t)
+        elif self._planned is not None:             # a planned move under way: where it is now
+            current = self.command
         self._move = None
         if mode == "replay":
             ref = self.stored[self.key(x_d)]

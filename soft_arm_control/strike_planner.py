@@ -38,8 +38,9 @@ PLAN_STEP = 1e-3          # s, the recorded plan's (the strike rehearsal's step)
 class StrikeProfile:
     """A planned move of ``duration`` [s]: the tensions [N] of every tendon at ``sample_times``
     [s] (the planning simulation's steps, from 0 to the duration), with the planned ``shortening``
-    [m] and ``shortening_rate`` [m/s] of every tendon at each; ``levels`` [N] (pieces, n_tendons):
-    the fitted levels before the rate limit; ``hold`` [N]: the tensions from the duration on;
+    [m] and ``shortening_rate`` [m/s] of every tendon at each; ``levels`` [N] (pieces, the task's
+    tendons): the fitted levels before the rate limit; ``hold`` [N] (the task's tendons): the
+    tensions from the duration on;
     ``miss`` [m]: the task error norm of the plan at the duration; ``arrival_speed`` [m/s]: the
     planned tip speed there."""
     duration: float
@@ -147,22 +148,31 @@ def plan_strike_move(model, control, space, tendons, goal, target, pieces: int =
     [m] (task coordinates of ``space``) on the task's ``tendons``, with ``control``'s tension
     limits, tension rate limit and rotor mass. ``goal``: the target's precomputed reference (a
     ClikPoint), whose equilibrium tensions start the fit and hold the arm after the move. The
-    duration is bisected ``bisections`` times between ``min_duration`` and ``max_duration`` [s];
-    the fit runs at :data:`FIT_STEP`, the plan is recorded at ``timestep`` [s]. Raises ValueError
-    when even ``max_duration`` misses by more than ``tolerance`` [m]."""
+    duration (a whole number of the fit's steps) is bisected ``bisections`` times between
+    ``min_duration`` and ``max_duration`` [s]; the fit runs at :data:`FIT_STEP`, then the levels
+    of the shortest duration are refined at ``timestep`` [s], at which the plan is recorded.
+    Raises ValueError when even ``max_duration`` misses by more than ``tolerance`` [m], or when
+    the recorded plan does."""
     target = np.asarray(target, dtype=float)
     hold = np.clip(np.asarray(goal.u_ff, dtype=float), control.tension_min, control.tension_max)
-    fit = StrikeShooter(model, space, tendons, control.tension_min, control.rotor_mass,
-                        max(timestep, FIT_STEP), control.tension_rate_limit)
+    step = max(timestep, FIT_STEP)
+    fit = StrikeShooter(model, space, tendons, control.tension_min, control.rotor_mass, step,
+                        control.tension_rate_limit)
     bounds = (control.tension_min, control.tension_max)
-    best, miss = fit_levels(fit, target, hold, max_duration, np.tile(hold, (pieces, 1)), bounds)
+
+    def whole(T):                   # a duration both the fit and the record take exactly
+        return max(1, round(T / step)) * step
+    lo, hi = whole(min_duration), whole(max_duration)
+    best, miss = fit_levels(fit, target, hold, hi, np.tile(hold, (pieces, 1)), bounds)
     if miss > tolerance:
         raise ValueError(f"no tension profile within [{control.tension_min}, {control.tension_max}] N "
                          f"brings the task point to the target in {max_duration} s: the closest "
                          f"misses it by {miss * 1e3:.1f} mm")
-    lo, hi, best_T = min_duration, max_duration, max_duration
+    best_T = hi
     for _ in range(bisections):
-        T = 0.5 * (lo + hi)
+        T = whole(0.5 * (lo + hi))
+        if not lo < T < hi:
+            break
         levels, miss_T = fit_levels(fit, target, hold, T, best, bounds)
         if miss_T <= tolerance:
             best, best_T, hi = levels, T, T
@@ -170,16 +180,20 @@ def plan_strike_move(model, control, space, tendons, goal, target, pieces: int =
             lo = T
     record = StrikeShooter(model, space, tendons, control.tension_min, control.rotor_mass, timestep,
                            control.tension_rate_limit)
-    best_T = round(best_T / timestep) * timestep
+    if timestep != step:
+        best, _ = fit_levels(record, target, hold, best_T, best, bounds, max_evaluations=10)
     x, speed, (t, u, s, sd) = record.run(best, hold, best_T, record=True)
-    return StrikeProfile(best_T, t, u, s, sd, best, hold, float(np.linalg.norm(x - target)), speed)
+    miss = float(np.linalg.norm(x - target))
+    if not miss <= tolerance:
+        raise ValueError(f"the planned move, recorded at {timestep} s steps, misses the target by "
+                         f"{miss * 1e3:.1f} mm (more than {tolerance * 1e3:.1f} mm)")
+    return StrikeProfile(best_T, t, u, s, sd, best, hold, miss, speed)
 
 
 def strike_move_for(model, control, task, goal) -> StrikeProfile | None:
     """The planned move of ``task``'s strike (a TaskConfig with a pendulum) to its precomputed
     ``goal`` (a ClikPoint) on the controller's ``model``, recorded at :data:`PLAN_STEP`; None
-    unless the task's strike timing is ``planned``. The graph's clik node and task runner and the
-    harness all plan it alike, from the same configuration."""
+    unless the task's strike timing is ``planned`` (soft-arm-harness only: the graph refuses it)."""
     if task.pendulum is None or task.strike_timing != "planned":
         return None
-    return plan_strike_move(model, control, task.space, task.tendons, goal, goal.x, timestep=PLAN_STEP)
+    return plan_strike_move(model, control, task.space, task.tendons, goal, goal.x)

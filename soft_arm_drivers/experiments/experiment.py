@@ -234,7 +234,7 @@ def main(argv=None) -> int:
         strike = setup.task is not None and setup.task.pendulum is not None
         if strike and setup.task.strike_timing == "planned":
             raise ConfigError(PLANNED_ON_THE_GRAPH)
-        if args.emulated_hardware and setup.task is not None and setup.task.pendulum is not None:
+        if strike and args.emulated_hardware:
             raise ConfigError(f"the emulated rig has no pendulum: run {args.task} on the simulator "
                               "(without --emulated-hardware)")
         ros_args = _ros_arguments(args.task, args.sets, args.config, args.arm_file)

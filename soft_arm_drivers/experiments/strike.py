@@ -36,6 +36,7 @@ from soft_arm_control.strike_planner import StrikeProfile
 from soft_arm_drivers.sim.pendulum import Pendulum, closest_capsule
 from soft_arm_drivers.sim.simulated_rig import Plant, StrikeRecord
 from soft_arm_model import build_model
+from soft_arm_model.parameters import ConfigError
 
 
 @dataclass(frozen=True)
@@ -67,8 +68,9 @@ def rehearse(model, control, task, actuation_map, goal: ClikPoint, duration: flo
     """The strike's move from the hanging arm (the pretension on every tendon, where the harness
     starts), simulated on the controller's ``model`` for ``duration`` [s]: the precomputed goal
     ``goal`` (a ClikPoint) given at 0 through the task's outer loop (with its planned ``move``, if
-    any, followed at the CLIK rate as in the run) and the inner loop of ``control`` on the task's
-    tendons through ``actuation_map``. Returns (time [s] of the first touch of the task's ball
+    any, sampled at the CLIK rate from the start; the run samples it at the delivered mocap frames,
+    up to a time step later) and the inner loop of ``control`` on the task's tendons through
+    ``actuation_map``. Returns (time [s] of the first touch of the task's ball
     waiting at its lowest point, nan if none; the smallest surface gap to it [m])."""
     pendulum = task.pendulum
     plant = Plant(model, timestep, control.rotor_mass)
@@ -111,25 +113,28 @@ PLANNED_ON_THE_GRAPH = (
 def strike_plan_for(arm, control, task) -> StrikePlan:
     """The plan of ``task``'s strike (its first window) as the graph's task runner makes it before
     anything moves: the target precomputed on the controller's model, the step rehearsed. A
-    planned strike raises ValueError (:data:`PLANNED_ON_THE_GRAPH`)."""
+    planned strike raises ConfigError (:data:`PLANNED_ON_THE_GRAPH`)."""
     if task.strike_timing == "planned":
-        raise ValueError(PLANNED_ON_THE_GRAPH)
+        raise ConfigError(PLANNED_ON_THE_GRAPH)
     model = build_model(arm)
     outer = outer_loop_for(model, control, task)
     first = task.phases[0]
     goal = outer.precompute(np.array(task.targets[first.sequence[0]]))
     arm_time, gap = rehearse(model, control, task, actuation_map_for(model, control), goal, first.window)
-    return plan_strike(task, arm_time, gap)
+    return plan_strike(task, arm_time, gap, period=1.0 / control.inner_rate)
 
 
-def plan_strike(task, arm_time: float, rehearsed_gap: float,
-                move: StrikeProfile | None = None) -> StrikePlan:
+def plan_strike(task, arm_time: float, rehearsed_gap: float, move: StrikeProfile | None = None,
+                period: float = 0.0) -> StrikePlan:
     """When to step the reference (and start the planned ``move``) and release the ball (delays
     after the window's start), from the rehearsal's ``arm_time`` [s] (nan: it never touched) and
-    the task's timing rule."""
+    the task's timing rule; the delays are whole multiples of ``period`` [s] (the inner loop's, so
+    that the move starts at an inner-loop update, as in the rehearsal; 0: not rounded)."""
     ball_time = task.pendulum.time_to_lowest()
     timed = task.strike_timing in ("rehearsed", "planned") and np.isfinite(arm_time)
     lead = ball_time - arm_time if timed else 0.0
+    if period > 0:
+        lead = round(lead / period) * period
     return StrikePlan(max(lead, 0.0), max(-lead, 0.0), arm_time, rehearsed_gap, ball_time,
                       task.strike_timing, move)
 

@@ -42,7 +42,8 @@ def test_the_strike_goal_waits_for_its_send_delay_and_the_release_is_timed():
         goal = runner.frame(5.0 + k * FRAME, np.zeros((4, 3)))
         if goal is not None:
             goals[k] = goal
-    assert list(goals) == [int(np.ceil((RELEASE_LEAD + 0.1) / FRAME - 1e-6))]   # the first frame at +0.1 s
+    # the first frame 0.1 s after the start
+    assert list(goals) == [int(np.ceil((RELEASE_LEAD + 0.1) / FRAME - 1e-6))]
     assert goals[list(goals)[0]].mode == "precomputed"
     assert runner.release_at == 5.0 + RELEASE_LEAD
     delayed = TaskRunner(setup.task, 3, plan(release=0.2), setup.arm)
