@@ -306,7 +306,7 @@ def run_experiment(setup: Setup, progress=None, actuation_map: ActuationMap | No
         first = schedule(task)[0]
         move = strike_move_for(model, ctl, task, points[first[2]])
         arm_time, gap = rehearse(model, ctl, task, ctrl.actuation_map, points[first[2]], first[3], move)
-        plan = plan_strike(task, arm_time, gap, move, 1.0 / ctl.inner_rate)
+        plan = plan_strike(task, arm_time, gap, 1.0 / ctl.inner_rate, move)
 
     dt = pc.timestep
     inner_every = max(1, int(round(1.0 / (ctl.inner_rate * dt))))

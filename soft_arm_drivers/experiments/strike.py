@@ -121,20 +121,18 @@ def strike_plan_for(arm, control, task) -> StrikePlan:
     first = task.phases[0]
     goal = outer.precompute(np.array(task.targets[first.sequence[0]]))
     arm_time, gap = rehearse(model, control, task, actuation_map_for(model, control), goal, first.window)
-    return plan_strike(task, arm_time, gap, period=1.0 / control.inner_rate)
+    return plan_strike(task, arm_time, gap, 1.0 / control.inner_rate)
 
 
-def plan_strike(task, arm_time: float, rehearsed_gap: float, move: StrikeProfile | None = None,
-                period: float = 0.0) -> StrikePlan:
+def plan_strike(task, arm_time: float, rehearsed_gap: float, period: float,
+                move: StrikeProfile | None = None) -> StrikePlan:
     """When to step the reference (and start the planned ``move``) and release the ball (delays
     after the window's start), from the rehearsal's ``arm_time`` [s] (nan: it never touched) and
     the task's timing rule; the delays are whole multiples of ``period`` [s] (the inner loop's, so
-    that the move starts at an inner-loop update, as in the rehearsal; 0: not rounded)."""
+    that the move starts at an inner-loop update, as in the rehearsal)."""
     ball_time = task.pendulum.time_to_lowest()
     timed = task.strike_timing in ("rehearsed", "planned") and np.isfinite(arm_time)
-    lead = ball_time - arm_time if timed else 0.0
-    if period > 0:
-        lead = round(lead / period) * period
+    lead = round((ball_time - arm_time if timed else 0.0) / period) * period
     return StrikePlan(max(lead, 0.0), max(-lead, 0.0), arm_time, rehearsed_gap, ball_time,
                       task.strike_timing, move)
 
