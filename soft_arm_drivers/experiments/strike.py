@@ -9,7 +9,10 @@ that point: the move is *rehearsed* before anything moves, on the controller's m
 the arm is the slower, the ball is released ``arm_time - ball_time`` after the reference (on the rig
 that needs a release the runner triggers). With ``timing: planned`` (soft-arm-harness only) the
 move is not a step but the fastest tension profile the model allows
-(:mod:`soft_arm_control.strike_planner`), rehearsed and timed the same way. With ``timing:
+(:mod:`soft_arm_control.strike_planner`): it passes through the target at speed rather than
+arriving there, so it is timed for the centres to meet, the task point at the target at the plan's
+duration as the ball reaches its lowest point, not for a first touch (which would be a glancing
+blow at the ball's leading edge); it is still rehearsed, as a check that it gets there. With ``timing:
 release`` both go at once (the paper's protocol). Either way the plan and the rehearsal's
 prediction are reported.
 
@@ -45,7 +48,8 @@ class StrikePlan:
     rehearsed time [s] from the step to the first touch of a ball at the lowest point (nan if the
     rehearsal never touches it) and the rehearsal's smallest gap to it [m]; the ball's time [s]
     from the release to the lowest point; the timing rule; the planned move (timing ``planned``;
-    None otherwise)."""
+    None otherwise); the arm's time [s] from the step to the instant that is put at the ball's
+    lowest point (``arm_time``, or the planned move's duration; nan if the step never touches)."""
     send_delay: float
     release_delay: float
     arm_time: float
@@ -53,6 +57,7 @@ class StrikePlan:
     ball_time: float
     timing: str
     move: StrikeProfile | None = None
+    intercept_time: float = float("nan")
 
     def as_dict(self) -> dict:
         out = {k: None if isinstance(v, float) and not np.isfinite(v) else v for k, v in vars(self).items()}
@@ -127,14 +132,16 @@ def strike_plan_for(arm, control, task) -> StrikePlan:
 def plan_strike(task, arm_time: float, rehearsed_gap: float, period: float,
                 move: StrikeProfile | None = None) -> StrikePlan:
     """When to step the reference (and start the planned ``move``) and release the ball (delays
-    after the window's start), from the rehearsal's ``arm_time`` [s] (nan: it never touched) and
-    the task's timing rule; the delays are whole multiples of ``period`` [s] (the inner loop's, so
-    that the move starts at an inner-loop update, as in the rehearsal)."""
+    after the window's start), from the rehearsal's ``arm_time`` [s] (nan: it never touched) or
+    the planned ``move``'s duration, and the task's timing rule; the delays are whole multiples of
+    ``period`` [s] (the inner loop's, so that the move starts at an inner-loop update, as in the
+    rehearsal)."""
     ball_time = task.pendulum.time_to_lowest()
-    timed = task.strike_timing in ("rehearsed", "planned") and np.isfinite(arm_time)
-    lead = round((ball_time - arm_time if timed else 0.0) / period) * period
+    intercept = arm_time if move is None else move.duration
+    timed = task.strike_timing in ("rehearsed", "planned") and np.isfinite(intercept)
+    lead = round((ball_time - intercept if timed else 0.0) / period) * period
     return StrikePlan(max(lead, 0.0), max(-lead, 0.0), arm_time, rehearsed_gap, ball_time,
-                      task.strike_timing, move)
+                      task.strike_timing, move, intercept)
 
 
 def strike_metrics(record: StrikeRecord, timestep: float) -> dict:
@@ -247,6 +254,8 @@ def format_strike(strike: dict) -> str:
     plan = strike["plan"]
     arm = ("never touches it" if plan["arm_time"] is None
            else f"touches it {plan['arm_time']:.3f} s after its step")
+    if plan["move"] is not None:
+        arm += f", the planned move passes the target {plan['move']['duration']:.3f} s after it starts"
     lines = ["Strike (paper: struck 0.35 s after the release, peak tip speed 4.37 m/s)",
              f"  plan ({plan['timing']}): the ball reaches its lowest point {plan['ball_time']:.3f} s after "
              f"the release; the rehearsed arm {arm}; reference at +{plan['send_delay']:.3f} s, release "

@@ -147,11 +147,12 @@ def test_every_triangle_target_is_reached_on_structurally_different_plants(plant
 @pytest.mark.parametrize("timing", ["planned", "rehearsed"])
 def test_the_strike_hits_the_ball_near_its_speed_peak_within_the_tension_limits(timing):
     """On the declared plant: the plan (the move planned on the model, or the precomputed step)
-    sends the reference or releases the ball so that the rehearsed arm meets it at its lowest point;
-    the ball is struck within 30 ms of that instant (before it: the surfaces touch before the centre
-    gets there), slowed and pushed across its swing; every tension stays inside the limits. The
-    planned move is the faster: it reaches the target within 1 mm of the model in less time than
-    the step's rehearsal takes to touch the ball."""
+    sends the reference or releases the ball so that the rehearsed arm meets it at its lowest point
+    (the step: its first touch; the planned move, which passes through: its task point at the
+    target); the ball is struck within 30 ms of that instant (before it: the surfaces touch before
+    the centre gets there), slowed and pushed across its swing; every tension stays inside the
+    limits. The planned move is the faster: it reaches the target within 1 mm of the model in less
+    time than the step's rehearsal takes to touch the ball."""
     import numpy as np
     setup = load_setup("pendulum", overrides=[f"tasks.pendulum.pendulum.timing={timing}"])
     result = run_experiment(setup)
@@ -163,13 +164,14 @@ def test_the_strike_hits_the_ball_near_its_speed_peak_within_the_tension_limits(
         assert setup.control.tension_min - 1e-12 <= plan["move"]["tension_range"][0]
         assert plan["move"]["tension_range"][1] <= setup.control.tension_max + 1e-12
         assert plan["arm_time"] < plan["move"]["duration"]       # touched before the centre arrives
+        assert plan["intercept_time"] == plan["move"]["duration"]
     else:
-        assert plan["arm_time"] > 0.3
+        assert plan["arm_time"] > 0.3 and plan["intercept_time"] == plan["arm_time"]
     assert plan["send_delay"] == 0.0 or plan["release_delay"] == 0.0
     # the delays are whole inner-loop periods, so that the move starts at an inner update
     half = 0.5 / setup.control.inner_rate
-    assert plan["send_delay"] + plan["arm_time"] == pytest.approx(plan["release_delay"] + plan["ball_time"],
-                                                                  abs=half + 1e-9)
+    assert plan["send_delay"] + plan["intercept_time"] == pytest.approx(
+        plan["release_delay"] + plan["ball_time"], abs=half + 1e-9)
     for delay in (plan["send_delay"], plan["release_delay"]):
         assert delay * setup.control.inner_rate == pytest.approx(round(delay * setup.control.inner_rate))
     assert strike["struck"]
