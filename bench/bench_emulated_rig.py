@@ -7,8 +7,9 @@ Runs ``soft-arm-experiment <task> --emulated-hardware`` (each node its own proce
 ``--runs`` times in a row and reports, per run: whether it is valid (a run the motor driver faulted
 in is not: its failure), the task metrics (steady RMS, transitions in the mm band, best mm- and
 cm-band task velocities), whether real-time scheduling was granted; the CPU share of each node
-process over the enabled run (from /proc, sampled 2 s after enabling and 2 s before the task's end,
-or when a fault ends the run early; not measured for a process that has exited by then);
+process over the enabled run (from /proc, sampled every 0.5 s from the enable until 2 s before the
+task's end or the run's end: each process between its first and its last sample, so that a run a
+fault ended early is measured too);
 from the bag, the motors' state period (p50, p99, max, stamps not increasing), the mocap frame period
 and the driver's own cycle statistics (its last /diagnostics: period p50/p99/max, p99 error, deadline
 misses; the state-to-command latency through the graph, p50/p99/max of its last 1000 answers and the
@@ -46,6 +47,31 @@ def _cpu_ticks(pid: int) -> int | None:
     except OSError:
         return None
     return int(fields[11]) + int(fields[12])
+
+
+CPU_SAMPLE_PERIOD = 0.5      # s
+
+
+def _sample_cpu(proc, nodes: dict, until: float) -> dict:
+    """CPU time of every node process (name -> pid), sampled every :data:`CPU_SAMPLE_PERIOD` until
+    the monotonic time ``until`` or the experiment's end: name -> [(time [s], ticks) of the first
+    sample, of the last sample taken while the process lived]."""
+    samples = {}
+    while True:
+        now = time.monotonic()
+        for name, pid in nodes.items():
+            ticks = _cpu_ticks(pid)
+            if ticks is not None:
+                samples.setdefault(name, [(now, ticks)] * 2)[1] = (now, ticks)
+        if now >= until or proc.poll() is not None:
+            return samples
+        time.sleep(min(CPU_SAMPLE_PERIOD, max(until - now, 0.0)))
+
+
+def _shares(samples: dict) -> dict:
+    """Each node's CPU share [cores] between its first and last sample; a node sampled once (it
+    exited within a sample period) is left out."""
+    return {n: (b[1] - a[1]) / TICKS / (b[0] - a[0]) for n, (a, b) in sorted(samples.items()) if b[0] > a[0]}
 
 
 def _children(parent: int) -> list:
@@ -142,17 +168,8 @@ def one_run(task: str, sets: list, duration: float) -> dict:
                     raise RuntimeError("the experiment ended before the motors were enabled:\n"
                                        + open(log, encoding="utf-8").read())
                 time.sleep(0.1)
-            time.sleep(2.0)
             nodes = _nodes(proc.pid)
-            t0, before = time.monotonic(), {n: _cpu_ticks(p) for n, p in nodes.items()}
-            before = {n: v for n, v in before.items() if v is not None}   # gone: a fault ended the run
-            try:
-                proc.wait(timeout=max(duration - 4.0, 1.0))
-            except subprocess.TimeoutExpired:
-                pass
-            after = {n: _cpu_ticks(nodes[n]) for n in before}
-            after = {n: v for n, v in after.items() if v is not None}    # gone: its share unknown
-            wall = time.monotonic() - t0
+            samples = _sample_cpu(proc, nodes, time.monotonic() + max(duration - 2.0, 1.0))
             status = proc.wait(timeout=duration + 120)
         finally:
             if proc.poll() is None:
@@ -167,7 +184,7 @@ def one_run(task: str, sets: list, duration: float) -> dict:
         recording = _recording(os.path.join(run, "bag"))
     return {"status": status, "valid": metrics.get("valid", False), "failure": metrics.get("failure"),
             "summary": metrics.get("summary"), "run": metrics["run"],
-            "cpu_share": {n: (after[n] - before[n]) / TICKS / wall for n in sorted(after)},
+            "cpu_share": _shares(samples),
             "state_period": _periods([t for t, _ in series["tendon/state"]]),
             "mocap_period": _periods([t for t, _ in series["mocap/markers"]]),
             "driver_timing": _driver_timing(series), "recording": recording}
@@ -234,7 +251,7 @@ def _report(k: int, r: dict) -> dict:
         print("  CPU per node: " + ", ".join(f"{n} {c:.0%}" for n, c in cpu.items())
               + f" (total {sum(cpu.values()):.0%} of {os.cpu_count()} cores)")
     else:
-        print("  CPU per node: not measured (the nodes had exited before the second sample)")
+        print("  CPU per node: not measured (the run ended within a sample period of the enable)")
     for name, key in (("tendon/state", "state_period"), ("mocap/markers", "mocap_period")):
         p = r[key]
         print(f"  {name:14s} period p50 {p['p50_ms']:.2f} ms, p99 {p['p99_ms']:.2f} ms, max "
