@@ -7,9 +7,9 @@ Runs ``soft-arm-experiment <task> --emulated-hardware`` (each node its own proce
 ``--runs`` times in a row and reports, per run: whether it is valid (a run the motor driver faulted
 in is not: its failure), the task metrics (steady RMS, transitions in the mm band, best mm- and
 cm-band task velocities), whether real-time scheduling was granted; the CPU share of each node
-process over the enabled run (from /proc, sampled every 0.5 s from the enable until 2 s before the
-task's end or the run's end: each process between its first and its last sample, so that a run a
-fault ended early is measured too);
+process (and of soft-arm-experiment, which orchestrates them) over the enabled run (from /proc,
+sampled every 0.5 s from the enable until 2 s before the task's end or the run's end: each process
+between its first and its last sample, so that a run a fault ended early is measured too);
 from the bag, the motors' state period (p50, p99, max, stamps not increasing), the mocap frame period
 and the driver's own cycle statistics (its last /diagnostics: period p50/p99/max, p99 error, deadline
 misses; the state-to-command latency through the graph, p50/p99/max of its last 1000 answers and the
@@ -168,7 +168,7 @@ def one_run(task: str, sets: list, duration: float) -> dict:
                     raise RuntimeError("the experiment ended before the motors were enabled:\n"
                                        + open(log, encoding="utf-8").read())
                 time.sleep(0.1)
-            nodes = _nodes(proc.pid)
+            nodes = {"soft-arm-experiment": proc.pid, **_nodes(proc.pid)}    # the orchestrator too
             samples = _sample_cpu(proc, nodes, time.monotonic() + max(duration - 2.0, 1.0))
             status = proc.wait(timeout=duration + 120)
         finally:

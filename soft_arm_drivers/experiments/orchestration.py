@@ -47,19 +47,21 @@ def _wait_for_graph(node, children, flowing: tuple = (), settle: float = 0.0,
     done), a recorder, messages arriving on the ``flowing``
     topics (names of ``TOPICS``: e.g. the controller answering the motors' state), and, with
     ``settle`` [s], no endpoint appearing or going for that long (discovery over). The probe
-    subscriptions stay (they go with ``node``). RuntimeError when a node exits or after ``timeout``
-    [s]."""
+    subscriptions then leave the graph, and it settles again: kept, they would cost this process
+    a callback per message for the whole run (tendon/command at the inner loop's rate and the mocap
+    frames: a quarter of a core on a 2-core lab PC, bench_emulated_rig.py). RuntimeError when a
+    node exits or after ``timeout`` [s]."""
     import rclpy
 
     from soft_arm_ros.contract import QOS, TOPICS, TYPES, message_class
     topics = ["/" + TOPICS[k] for k in published]
-    counts = {}
+    counts, probes = {}, []
     for key in flowing:
         topic = TOPICS[key]
         counts[topic] = 0
-        node.create_subscription(message_class(TYPES[topic]), topic,
-                                 lambda msg, topic=topic: counts.__setitem__(topic, counts[topic] + 1),
-                                 QOS[topic])
+        probes.append(node.create_subscription(
+            message_class(TYPES[topic]), topic,
+            lambda msg, topic=topic: counts.__setitem__(topic, counts[topic] + 1), QOS[topic]))
     deadline = time.monotonic() + timeout
     graph, since = None, time.monotonic()
     while not STOP.is_set():
@@ -72,7 +74,12 @@ def _wait_for_graph(node, children, flowing: tuple = (), settle: float = 0.0,
         if now != graph:
             graph, since = now, time.monotonic()
         if not missing and time.monotonic() - since >= settle:
-            return
+            if not probes:
+                return
+            for probe in probes:
+                node.destroy_subscription(probe)
+            probes = []
+            graph, since = _endpoints(node), time.monotonic()
         if time.monotonic() > deadline:
             raise RuntimeError(f"the graph is not up after {timeout:g} s: "
                                + (f"nothing on {missing}" if missing else "its endpoints keep changing"))

@@ -7,8 +7,9 @@ any other as ``name:pkg/msg/Type``. Output directory: the node parameter ``outpu
 ``runs/bag-<UTC time>``).
 
 Subscriptions adapt to the publishers, as rosbag2's do (:mod:`.adaptive_qos`): every
-``graph.recorder.discovery_period`` the publishers of each topic are looked up
-(``get_publishers_info_by_topic``); a topic is subscribed once one appears, reliable / transient
+``graph.recorder.discovery_period`` the publishers of each topic are counted, and looked up
+(``get_publishers_info_by_topic``) when their number changed (a publisher that replaced another
+within a period is taken for it); a topic is subscribed once one appears, reliable / transient
 local only when every publisher offers it (so a best-effort publisher is recorded whatever the
 graph's table says, and a latched goal published before the recorder started is recorded), and
 subscribed again, to a weaker profile, when a publisher appears that the subscription does not
@@ -20,7 +21,7 @@ Time stamps, as rosbag2's: the receive time (the middleware's ``received_timesta
 when ``use_sim_time`` is set, so that the bag runs on the simulator's time) is the MCAP log time, and
 the publisher's ``source_timestamp`` (system time) the publish time. Messages are stored as received
 (raw CDR). Messages the recorder did not receive (gaps in a publisher's sequence numbers) are counted
-per topic, logged as they are found, stored in ``metadata.yaml``'s ``custom_data``
+per topic, logged as they are found (at most once a second), stored in ``metadata.yaml``'s ``custom_data``
 (``soft_arm.lost_messages``) and reported when the bag is closed.
 
 A chunk is flushed every ``graph.recorder.flush_period`` seconds and whenever
@@ -31,8 +32,10 @@ from __future__ import annotations
 
 import datetime
 import json
+import math
 import os
 import sys
+import time
 
 from rclpy.clock import Clock, ClockType
 from rclpy.executors import SingleThreadedExecutor
@@ -65,6 +68,9 @@ def to_rclpy(profile: QosProfile) -> QoSProfile:
     return QoSProfile(depth=profile.depth, history=HistoryPolicy.KEEP_LAST,
                       reliability=ReliabilityPolicy[profile.reliability.name],
                       durability=DurabilityPolicy[profile.durability.name])
+
+
+LOSS_WARNING_PERIOD = 1.0    # s, at most one warning of lost messages per period
 
 
 class _Topic:
@@ -104,6 +110,7 @@ class RecorderNode(Node):
         self.output = output
         self.count = 0
         self.losses = LossCounter()
+        self._loss_warned = -math.inf             # monotonic time [s] of the last loss warning
         self._sim_time = self.get_parameter("use_sim_time").value
         self.discover()
         # on the wall clock: under use_sim_time the simulator's clock starts only once it is recorded
@@ -116,6 +123,8 @@ class RecorderNode(Node):
         """Subscribe to the topics whose publishers appeared, again where a new one's offer does
         not match the subscription (:func:`~.adaptive_qos.resubscription`)."""
         for topic in self.topics.values():
+            if self.count_publishers(topic.resolved) == topic.publishers:
+                continue     # the same publishers as at the last look-up (the look-up costs more)
             offered = [to_profile(info.qos_profile)
                        for info in self.get_publishers_info_by_topic(topic.resolved)]
             topic.publishers = len(offered)
@@ -144,10 +153,12 @@ class RecorderNode(Node):
             self.count += 1
             lost = self.losses.received(topic.resolved, info.get("publication_sequence_number"),
                                         topic.publishers)
-            if lost:
+            if lost and time.monotonic() - self._loss_warned >= LOSS_WARNING_PERIOD:
+                # throttled here: rclpy's own throttle inspects the caller's frame on every call,
+                # which costs a recorder that is already losing messages more of them
+                self._loss_warned = time.monotonic()
                 self.get_logger().warning(f"{topic.resolved}: {lost} messages not received (publisher "
-                                          f"sequence gap; {self.losses.total} lost in all)",
-                                          throttle_duration_sec=1.0)
+                                          f"sequence gap; {self.losses.total} lost in all)")
         return write
 
     def _store_losses(self):

@@ -153,3 +153,55 @@ def test_messages_the_recorder_could_not_keep_up_with_are_counted(context, tmp_p
     assert stored == {"/arm/configuration_reference": lost}
     values = [deserialize_message(m.data, ConfigurationReference).q_d[0] for _, m in read(bag)]
     assert values == sorted(values) and values[-1] == 2999.0
+
+
+def test_publishers_are_looked_up_only_when_their_number_changes(context, tmp_path, monkeypatch):
+    """The discovery timer counts each topic's publishers and looks up their offers (the costly
+    call) only when the count changed: none while nobody publishes, one when a publisher appears
+    (and the topic is subscribed), none after that."""
+    node = recorder(context, tmp_path / "bag", ["task/goal"])
+    lookups = []
+    lookup = node.get_publishers_info_by_topic
+    monkeypatch.setattr(node, "get_publishers_info_by_topic",
+                        lambda name: lookups.append(name) or lookup(name))
+    publisher_node = rclpy.create_node("goal_publisher", context=context)
+    try:
+        for _ in range(5):
+            node.discover()
+        assert lookups == [] and node.topics["/task/goal"].subscription is None
+        publisher_node.create_publisher(TaskGoal, "task/goal", LATCHED)
+        deadline = time.monotonic() + 10.0
+        while node.count_publishers("/task/goal") == 0 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        for _ in range(5):
+            node.discover()
+        assert lookups == ["/task/goal"] and node.topics["/task/goal"].subscription is not None
+        assert node.topics["/task/goal"].publishers == 1
+    finally:
+        node.close()
+        node.destroy_node()
+        publisher_node.destroy_node()
+
+
+def test_lost_messages_are_warned_of_at_most_once_a_second(context, tmp_path, monkeypatch):
+    """Every second message missing from a publisher's sequence (100 gaps in a burst): every gap
+    is counted, but one warning is logged, not one per gap (rclpy's own throttle inspects the
+    caller's frame on every call)."""
+    node = recorder(context, tmp_path / "bag", ["arm/configuration_reference"])
+    warnings = []
+    monkeypatch.setattr(node.get_logger(), "warning", lambda text, **_: warnings.append(text))
+    topic = node.topics["/arm/configuration_reference"]
+    topic.publishers = 1
+    write = node._writer_for(topic)
+    try:
+        start = time.monotonic()
+        for k in range(1, 201, 2):
+            write(b"\0\1\0\0", {"received_timestamp": time.time_ns(), "publication_sequence_number": k})
+        elapsed = time.monotonic() - start
+    finally:
+        node.close()
+        node.destroy_node()
+    assert node.losses.lost == {"/arm/configuration_reference": 99}
+    gaps = [text for text in warnings if "sequence gap" in text]
+    assert 1 <= len(gaps) <= 1 + int(elapsed / 1.0)
+    assert "99 messages were not received" in warnings[-1]         # and the sum when the bag closes
