@@ -20,7 +20,8 @@ import time
 import numpy as np
 
 from soft_arm_control.clik import equilibrium_seeds
-from soft_arm_drivers.experiments.harness import TwoLevelController, load_setup, run_experiment
+from soft_arm_control.two_level import TwoLevelController
+from soft_arm_drivers.experiments.harness import load_setup, run_experiment
 from soft_arm_drivers.experiments.metrics import format_table, to_json
 from soft_arm_model import build_model, solve_equilibrium
 

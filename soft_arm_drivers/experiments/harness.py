@@ -19,14 +19,13 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from soft_arm_control.actuation_map import ActuationMap, actuation_map_for
-from soft_arm_control.clik import ClikPoint, TargetError
-from soft_arm_control.collocated import full_tensions
+from soft_arm_control.actuation_map import ActuationMap
+from soft_arm_control.clik import TargetError
 from soft_arm_control.config import (IDENTIFICATION, ControlConfig, TaskConfig, load_control_config,
                                      load_task_config)
-from soft_arm_control.inner_loop import tendon_controller_for
 from soft_arm_control.outer_loop import OuterLoop, outer_loop_for
 from soft_arm_control.strike_planner import strike_move_for
+from soft_arm_control.two_level import TwoLevelController
 from soft_arm_control.target_margin import target_point
 from soft_arm_drivers.mocap.bridge_config import calibration_overrides
 from soft_arm_drivers.sim.plant_config import PlantConfig, load_plant_config, with_bridge_calibration
@@ -101,40 +100,6 @@ def setup_overrides(args) -> list:
     """The ``--set`` overrides of :func:`add_setup_arguments`, with ``--plant-file`` as a
     ``plant.plant_file`` override (absolute, so that every process of a run reads the same file)."""
     return args.sets + ([f"plant.plant_file={os.path.abspath(args.plant_file)}"] if args.plant_file else [])
-
-
-class TwoLevelController:
-    """The paper's controller for one task, as the nodes run it: the outer loop (CLIK, its
-    precomputed/online/replay protocol) and the inner loop (P-satI-D+ on the task's tendons).
-
-    Setting ``reference`` (a ClikPoint) hands the inner loop its shortenings and feedforward, with
-    the outer loop's reference rate;
-    ``inner`` computes tensions for all tendons from measured shortenings.
-    """
-
-    def __init__(self, model, control: ControlConfig, task: TaskConfig,
-                 actuation_map: ActuationMap | None = None):
-        self.model, self.control, self.task = model, control, task
-        self.outer = outer_loop_for(model, control, task)
-        self.clik = self.outer.clik
-        self.actuation_map = actuation_map or actuation_map_for(model, control)
-        self.tendons = tendon_controller_for(model.n_tendons, control, task.tendons,
-                                             self.actuation_map)
-        self._reference = None
-
-    @property
-    def reference(self) -> ClikPoint | None:
-        return self._reference
-
-    @reference.setter
-    def reference(self, ref: ClikPoint):
-        self._reference = ref
-        self.tendons.set_reference(ref.shortening, full_tensions(self.clik.cm, ref.u_ff),
-                                   self.outer.reference_rate)
-
-    def inner(self, t: float, s, s_dot) -> np.ndarray:
-        """Tensions [N] of all tendons at time t [s] from measured shortenings [m] and rates [m/s]."""
-        return self.tendons.update(t, s, s_dot)
 
 
 @dataclass

@@ -32,10 +32,9 @@ import scipy.interpolate
 
 from soft_arm_control.actuation_map import actuation_map_for
 from soft_arm_control.clik import ClikPoint
-from soft_arm_control.collocated import full_tensions
-from soft_arm_control.inner_loop import tendon_controller_for
 from soft_arm_control.outer_loop import outer_loop_for
 from soft_arm_control.strike_planner import StrikeProfile
+from soft_arm_control.two_level import TwoLevelController
 from soft_arm_drivers.sim.pendulum import Pendulum, closest_capsule
 from soft_arm_drivers.sim.simulated_rig import Plant, StrikeRecord
 from soft_arm_model import build_model
@@ -80,13 +79,8 @@ def rehearse(model, control, task, actuation_map, goal: ClikPoint, duration: flo
     pendulum = task.pendulum
     plant = Plant(model, timestep, control.rotor_mass)
     plant.settle(np.full(model.n_tendons, control.tension_min))
-    outer = outer_loop_for(model, control, task)
-    tendons = tendon_controller_for(model.n_tendons, control, task.tendons, actuation_map)
-    cm = outer.clik.cm
-
-    def hand(ref):
-        tendons.set_reference(ref.shortening, full_tensions(cm, ref.u_ff), outer.reference_rate)
-    hand(outer.goal(0.0, goal.x, "precomputed", goal, move=move))
+    ctrl = TwoLevelController(model, control, task, actuation_map)
+    ctrl.reference = ctrl.outer.goal(0.0, goal.x, "precomputed", goal, move=move)
     inner_every = max(1, int(round(1.0 / (control.inner_rate * timestep))))
     clik_every = max(1, int(round(1.0 / (control.clik_rate * timestep))))
     u, smallest = np.full(model.n_tendons, control.tension_min), np.inf
@@ -98,12 +92,12 @@ def rehearse(model, control, task, actuation_map, goal: ClikPoint, duration: flo
         if gap <= 0.0:
             return t, smallest
         if k % clik_every == 0 and k:
-            ref = outer.frame(t, goal.x)
+            ref = ctrl.outer.frame(t, goal.x)
             if ref is not None:
-                hand(ref)
+                ctrl.reference = ref
         if k % inner_every == 0:
             s, sd = plant.tendons()
-            u = tendons.update(t, s, sd)
+            u = ctrl.inner(t, s, sd)
         plant.step(u)
     return float("nan"), smallest
 
