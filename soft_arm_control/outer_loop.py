@@ -146,8 +146,8 @@ class OuterLoop:
                  rate_modes=("track",), track_dynamics: bool = False, rotor_mass: float = 0.0):
         self.clik = clik
         self.start = start
-        self.reference = self.command = start
-        self.reference_rate = np.zeros_like(start.shortening)
+        self.reference = start
+        self._hand(start)
         self.switch_delay, self.period = float(switch_delay), 1.0 / float(rate)
         self.jacobian_every = max(1, int(jacobian_every))
         self.seed_levels, self.tolerance = tuple(seed_levels), float(tolerance)
@@ -244,12 +244,10 @@ class OuterLoop:
         self._next_step = self._online_from
         if ref is not None:
             self.reference = ref
-        self.reference_rate = np.zeros_like(self.reference_rate)
-        self.command = self.reference
+        self._hand(self.reference)
         if trajectory is not None and self.track_dynamics:      # the path starts moving now
-            self.command = self.clik.dynamic_reference(self.reference.q, trajectory.at(x_d, 0.0)[1],
-                                                       trajectory.acceleration(x_d.size, 0.0),
-                                                       self.rotor_mass)
+            self._hand(self.clik.dynamic_reference(self.reference.q, trajectory.at(x_d, 0.0)[1],
+                                                   trajectory.acceleration(x_d.size, 0.0), self.rotor_mass))
         if move is not None:
             self._follow_plan(t)
         return self.command
@@ -261,13 +259,17 @@ class OuterLoop:
         tau = t - self._planned_from
         if tau >= self._planned.duration - 1e-9:
             self._planned = None
-            self.reference_rate = np.zeros_like(self.reference_rate)
-            self.command = self.reference
-            return self.command
+            return self._hand(self.reference)
         s, s_dot, u = self._planned.reference(tau + 0.5 * self.period)
-        self.command = ClikPoint(self.reference.q, s, u[list(self.clik.cm.active)], self.reference.x)
-        self.reference_rate = s_dot
-        return self.command
+        command = ClikPoint(self.reference.q, s, u[list(self.clik.cm.active)], self.reference.x)
+        return self._hand(command, s_dot)
+
+    def _hand(self, command: ClikPoint, rate=None) -> ClikPoint:
+        """Make ``command`` the one handed to the inner loop, with its rate of shortening [m/s] (all
+        tendons; None: zero, a held or stepped reference); returns it."""
+        self.command = command
+        self.reference_rate = np.zeros_like(command.shortening) if rate is None else rate
+        return command
 
     def target_at(self, t: float) -> tuple:
         """(x_d [m], its velocity [m/s] or None) of the current goal at time t [s]: a track goal's
@@ -296,8 +298,7 @@ class OuterLoop:
             fraction = self._move.fraction(t)
             if fraction != self._fraction:
                 self._fraction = fraction
-                self.reference = self.command = moved = self._move.at(t)
-                self.reference_rate = np.zeros_like(self.reference_rate)
+                self.reference = moved = self._hand(self._move.at(t))
             if fraction >= 1.0:
                 self._move = None
         if t < self._next_step - 1e-9:
@@ -319,10 +320,10 @@ class OuterLoop:
                                               self.rotor_mass, refresh=False)
             if self.clik.feasibility_error(ref.u_ff) is not None:
                 self.reports[-1].saturated_steps += 1
+        rate = None
         if self._mode in self.rate_modes:
-            self.reference_rate = (ref.shortening - self.command.shortening) / self.period
-        self.command = ref
-        return ref
+            rate = (ref.shortening - self.command.shortening) / self.period
+        return self._hand(ref, rate)
 
     def finish(self):
         """Store the reference of the last clik goal and close its report (end of an experiment)."""
