@@ -8,8 +8,9 @@ Runs ``soft-arm-experiment <task> --emulated-hardware`` (each node its own proce
 in is not: its failure), the task metrics (steady RMS, transitions in the mm band, best mm- and
 cm-band task velocities), whether real-time scheduling was granted; the CPU share of each node
 process (and of soft-arm-experiment, which orchestrates them) over the enabled run (from /proc,
-sampled every 0.5 s from the enable until 2 s before the task's end or the run's end: each process
-between its first and its last sample, so that a run a fault ended early is measured too);
+sampled every 0.5 s from the enable until 2 s before the task's end or the driver's deactivation:
+each process between its first and its last sample, so that a run a fault ended early is measured
+too);
 from the bag, the motors' state period (p50, p99, max, stamps not increasing), the mocap frame period
 and the driver's own cycle statistics (its last /diagnostics: period p50/p99/max, p99 error, deadline
 misses; the state-to-command latency through the graph, p50/p99/max of its last 1000 answers and the
@@ -50,12 +51,14 @@ def _cpu_ticks(pid: int) -> int | None:
 
 
 CPU_SAMPLE_PERIOD = 0.5      # s
+DEACTIVATED = "[motor_driver]: deactivated"
 
 
-def _sample_cpu(proc, nodes: dict, until: float) -> dict:
+def _sample_cpu(proc, nodes: dict, until: float, log: str) -> dict:
     """CPU time of every node process (name -> pid), sampled every :data:`CPU_SAMPLE_PERIOD` until
-    the monotonic time ``until`` or the experiment's end: name -> [(time [s], ticks) of the first
-    sample, of the last sample taken while the process lived]."""
+    the monotonic time ``until``, the motor driver's deactivation (in the experiment's ``log``: the
+    run's end, or its fault; the teardown is not counted) or the experiment's end: name ->
+    [(time [s], ticks) of the first sample, of the last sample taken while the process lived]."""
     samples = {}
     while True:
         now = time.monotonic()
@@ -63,7 +66,7 @@ def _sample_cpu(proc, nodes: dict, until: float) -> dict:
             ticks = _cpu_ticks(pid)
             if ticks is not None:
                 samples.setdefault(name, [(now, ticks)] * 2)[1] = (now, ticks)
-        if now >= until or proc.poll() is not None:
+        if now >= until or proc.poll() is not None or DEACTIVATED in open(log, encoding="utf-8").read():
             return samples
         time.sleep(min(CPU_SAMPLE_PERIOD, max(until - now, 0.0)))
 
@@ -169,7 +172,7 @@ def one_run(task: str, sets: list, duration: float) -> dict:
                                        + open(log, encoding="utf-8").read())
                 time.sleep(0.1)
             nodes = {"soft-arm-experiment": proc.pid, **_nodes(proc.pid)}    # the orchestrator too
-            samples = _sample_cpu(proc, nodes, time.monotonic() + max(duration - 2.0, 1.0))
+            samples = _sample_cpu(proc, nodes, time.monotonic() + max(duration - 2.0, 1.0), log)
             status = proc.wait(timeout=duration + 120)
         finally:
             if proc.poll() is None:

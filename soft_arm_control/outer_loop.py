@@ -244,10 +244,11 @@ class OuterLoop:
         self._next_step = self._online_from
         if ref is not None:
             self.reference = ref
-        self._hand(self.reference)
+        command = self.reference
         if trajectory is not None and self.track_dynamics:      # the path starts moving now
-            self._hand(self.clik.dynamic_reference(self.reference.q, trajectory.at(x_d, 0.0)[1],
-                                                   trajectory.acceleration(x_d.size, 0.0), self.rotor_mass))
+            command = self.clik.dynamic_reference(self.reference.q, trajectory.at(x_d, 0.0)[1],
+                                                  trajectory.acceleration(x_d.size, 0.0), self.rotor_mass)
+        self._hand(command)
         if move is not None:
             self._follow_plan(t)
         return self.command

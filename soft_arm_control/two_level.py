@@ -16,7 +16,7 @@ from .outer_loop import outer_loop_for
 
 class TwoLevelController:
     """The paper's controller for one task, as the nodes run it: the outer loop (CLIK, its
-    precomputed/online/replay protocol) and the inner loop (P-satI-D+ on the task's tendons).
+    precomputed/online/replay/track protocol) and the inner loop (P-satI-D+ on the task's tendons).
 
     Setting ``reference`` (a ClikPoint) hands the inner loop its shortenings and feedforward, with
     the outer loop's reference rate;

@@ -74,16 +74,17 @@ def _wait_for_graph(node, children, flowing: tuple = (), settle: float = 0.0,
         if now != graph:
             graph, since = now, time.monotonic()
         if not missing and time.monotonic() - since >= settle:
-            if not probes:
-                return
-            for probe in probes:
-                node.destroy_subscription(probe)
-            probes = []
-            graph, since = _endpoints(node), time.monotonic()
+            break
         if time.monotonic() > deadline:
             raise RuntimeError(f"the graph is not up after {timeout:g} s: "
                                + (f"nothing on {missing}" if missing else "its endpoints keep changing"))
         rclpy.spin_once(node, timeout_sec=0.05)
+    else:
+        return
+    if probes:
+        for probe in probes:
+            node.destroy_subscription(probe)
+        _wait_for_graph(node, children, settle=settle, timeout=settle + 30.0, published=published)
 
 
 def _endpoints(node) -> tuple:

@@ -25,7 +25,7 @@ can measure, and what the graph's task runner reports).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import scipy.interpolate
@@ -47,8 +47,7 @@ class StrikePlan:
     rehearsed time [s] from the step to the first touch of a ball at the lowest point (nan if the
     rehearsal never touches it) and the rehearsal's smallest gap to it [m]; the ball's time [s]
     from the release to the lowest point; the timing rule; the planned move (timing ``planned``;
-    None otherwise); the arm's time [s] from the step to the instant that is put at the ball's
-    lowest point (``arm_time``, or the planned move's duration; nan if the step never touches)."""
+    None otherwise)."""
     send_delay: float
     release_delay: float
     arm_time: float
@@ -56,10 +55,16 @@ class StrikePlan:
     ball_time: float
     timing: str
     move: StrikeProfile | None = None
-    intercept_time: float = float("nan")
+
+    @property
+    def intercept_time(self) -> float:
+        """The arm's time [s] from the step to the instant the timing puts at the ball's lowest
+        point: the planned move's duration (its task point at the target), else ``arm_time``."""
+        return self.arm_time if self.move is None else self.move.duration
 
     def as_dict(self) -> dict:
-        out = {k: None if isinstance(v, float) and not np.isfinite(v) else v for k, v in vars(self).items()}
+        out = {k: None if isinstance(v, float) and not np.isfinite(v) else v
+               for k, v in {**vars(self), "intercept_time": self.intercept_time}.items()}
         out["move"] = None if self.move is None else self.move.as_dict()
         return out
 
@@ -130,12 +135,11 @@ def plan_strike(task, arm_time: float, rehearsed_gap: float, period: float,
     the planned ``move``'s duration, and the task's timing rule; the delays are whole multiples of
     ``period`` [s] (the inner loop's, so that the move starts at an inner-loop update, as in the
     rehearsal)."""
-    ball_time = task.pendulum.time_to_lowest()
-    intercept = arm_time if move is None else move.duration
-    timed = task.strike_timing in ("rehearsed", "planned") and np.isfinite(intercept)
-    lead = round((ball_time - intercept if timed else 0.0) / period) * period
-    return StrikePlan(max(lead, 0.0), max(-lead, 0.0), arm_time, rehearsed_gap, ball_time,
-                      task.strike_timing, move, intercept)
+    plan = StrikePlan(0.0, 0.0, arm_time, rehearsed_gap, task.pendulum.time_to_lowest(),
+                      task.strike_timing, move)
+    timed = task.strike_timing in ("rehearsed", "planned") and np.isfinite(plan.intercept_time)
+    lead = round((plan.ball_time - plan.intercept_time if timed else 0.0) / period) * period
+    return replace(plan, send_delay=max(lead, 0.0), release_delay=max(-lead, 0.0))
 
 
 def strike_metrics(record: StrikeRecord, timestep: float) -> dict:

@@ -8,10 +8,11 @@ any other as ``name:pkg/msg/Type``. Output directory: the node parameter ``outpu
 
 Subscriptions adapt to the publishers, as rosbag2's do (:mod:`.adaptive_qos`): every
 ``graph.recorder.discovery_period`` the publishers of each topic are counted, and looked up
-(``get_publishers_info_by_topic``) when their number changed (a publisher that replaced another
-within a period is taken for it); a topic is subscribed once one appears, reliable / transient
-local only when every publisher offers it (so a best-effort publisher is recorded whatever the
-graph's table says, and a latched goal published before the recorder started is recorded), and
+(``get_publishers_info_by_topic``) when their number changed or the middleware reported an
+offer the subscription does not match (a publisher that replaced another within a period); a
+topic is subscribed once one appears, reliable / transient local only when every publisher offers
+it (so a best-effort publisher is recorded whatever the graph's table says, and a latched goal
+published before the recorder started is recorded), and
 subscribed again, to a weaker profile, when a publisher appears that the subscription does not
 match. The bag's topic metadata (what ``ros2 bag play`` offers again) holds the graph's QoS of each
 topic (:data:`~soft_arm_ros.contract.QOS`): its channels are written before any publisher is seen,
@@ -38,6 +39,7 @@ import sys
 import time
 
 from rclpy.clock import Clock, ClockType
+from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -139,7 +141,16 @@ class RecorderNode(Node):
                     f"match: subscribing again {profile.reliability.value}, {profile.durability.value}")
             topic.profile = profile
             topic.subscription = self.create_subscription(
-                topic.message_type, topic.name, self._writer_for(topic), to_rclpy(profile), raw=True)
+                topic.message_type, topic.name, self._writer_for(topic), to_rclpy(profile), raw=True,
+                event_callbacks=SubscriptionEventCallbacks(
+                    incompatible_qos=lambda _, topic=topic: self._look_again(topic)))
+
+    @staticmethod
+    def _look_again(topic: _Topic):
+        """A publisher whose offer the subscription does not match appeared (the middleware's
+        event): look the publishers up at the next discovery, even if their number is unchanged (a
+        publisher that replaced another within a period)."""
+        topic.publishers = -1
 
     def unsubscribed(self, published) -> list:
         """The recorded topics among ``published`` (resolved names) not subscribed yet."""
@@ -153,10 +164,11 @@ class RecorderNode(Node):
             self.count += 1
             lost = self.losses.received(topic.resolved, info.get("publication_sequence_number"),
                                         topic.publishers)
-            if lost and time.monotonic() - self._loss_warned >= LOSS_WARNING_PERIOD:
+            now = time.monotonic()
+            if lost and now - self._loss_warned >= LOSS_WARNING_PERIOD:
                 # throttled here: rclpy's own throttle inspects the caller's frame on every call,
                 # which costs a recorder that is already losing messages more of them
-                self._loss_warned = time.monotonic()
+                self._loss_warned = now
                 self.get_logger().warning(f"{topic.resolved}: {lost} messages not received (publisher "
                                           f"sequence gap; {self.losses.total} lost in all)")
         return write

@@ -164,9 +164,8 @@ def test_the_strike_hits_the_ball_near_its_speed_peak_within_the_tension_limits(
         assert setup.control.tension_min - 1e-12 <= plan["move"]["tension_range"][0]
         assert plan["move"]["tension_range"][1] <= setup.control.tension_max + 1e-12
         assert plan["arm_time"] < plan["move"]["duration"]       # touched before the centre arrives
-        assert plan["intercept_time"] == plan["move"]["duration"]
     else:
-        assert plan["arm_time"] > 0.3 and plan["intercept_time"] == plan["arm_time"]
+        assert plan["arm_time"] > 0.3
     assert plan["send_delay"] == 0.0 or plan["release_delay"] == 0.0
     # the delays are whole inner-loop periods, so that the move starts at an inner update
     half = 0.5 / setup.control.inner_rate
@@ -176,7 +175,7 @@ def test_the_strike_hits_the_ball_near_its_speed_peak_within_the_tension_limits(
         assert delay * setup.control.inner_rate == pytest.approx(round(delay * setup.control.inner_rate))
     assert strike["struck"]
     assert plan["ball_time"] - 0.03 < strike["impact_time"] <= plan["ball_time"] + 0.005
-    assert strike["ball_speed_after"] < strike["ball_speed_before"]
+    assert strike["ball_speed_after"] < 0.95 * strike["ball_speed_before"]     # not a glancing blow
     assert strike["ball_velocity_change"][1] > 0.05             # pushed along +y, where the arm came from
     tensions = np.array(result.record.tension)
     assert tensions.min() >= setup.control.tension_min - 1e-12

@@ -205,3 +205,35 @@ def test_lost_messages_are_warned_of_at_most_once_a_second(context, tmp_path, mo
     gaps = [text for text in warnings if "sequence gap" in text]
     assert 1 <= len(gaps) <= 1 + int(elapsed / 1.0)
     assert "99 messages were not received" in warnings[-1]         # and the sum when the bag closes
+
+
+def test_a_publisher_replaced_by_an_unmatched_one_is_looked_up_again(context, tmp_path):
+    """A latched publisher replaced by a best-effort one, the number of publishers the same at
+    every discovery: the middleware's incompatible-QoS event makes the next discovery look the
+    offers up again, and the recorder subscribes again, best effort (the discovery timer is held
+    off: discovery runs when the test calls it)."""
+    node = RecorderNode(context=context, parameter_overrides=[
+        Parameter("output", value=str(tmp_path / "bag")),
+        Parameter("graph.recorder.topics", value=["task/goal"]),
+        Parameter("graph.recorder.discovery_period", value=10.0)])
+    publisher_node = rclpy.create_node("goal_publisher", context=context)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    topic = node.topics["/task/goal"]
+    try:
+        latched = publisher_node.create_publisher(TaskGoal, "task/goal", LATCHED)
+        spin_until(executor, lambda: node.count_publishers("/task/goal") == 1)
+        node.discover()
+        assert topic.profile.reliability.value == "reliable" and topic.publishers == 1
+        streaming = publisher_node.create_publisher(TaskGoal, "task/goal", BEST_EFFORT)
+        publisher_node.destroy_publisher(latched)
+        spin_until(executor, lambda: topic.publishers == -1)         # the middleware's event
+        spin_until(executor, lambda: node.count_publishers("/task/goal") == 1)
+        node.discover()
+        assert topic.profile.reliability.value == "best_effort" and topic.publishers == 1
+        spin_until(executor, lambda: streaming.get_subscription_count() > 0)
+    finally:
+        executor.shutdown()
+        node.close()
+        node.destroy_node()
+        publisher_node.destroy_node()
