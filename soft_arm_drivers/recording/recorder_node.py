@@ -12,11 +12,11 @@ Subscriptions adapt to the publishers, as rosbag2's do (:mod:`.adaptive_qos`): e
 offer the subscription does not match (a publisher that replaced another within a period); a
 topic is subscribed once one appears, reliable / transient local only when every publisher offers
 it (so a best-effort publisher is recorded whatever the graph's table says, and a latched goal
-published before the recorder started is recorded), and
-subscribed again, to a weaker profile, when a publisher appears that the subscription does not
-match. The bag's topic metadata (what ``ros2 bag play`` offers again) holds the graph's QoS of each
-topic (:data:`~soft_arm_ros.contract.QOS`): its channels are written before any publisher is seen,
-and readers match the two.
+published before the recorder started is recorded), and subscribed again, to a weaker profile,
+when a publisher appears that the subscription does not match. The bag's topic metadata (what
+``ros2 bag play`` offers again) holds the graph's QoS of each topic
+(:data:`~soft_arm_ros.contract.QOS`): its channels are written before any publisher is seen, and
+readers match the two.
 
 Time stamps, as rosbag2's: the receive time (the middleware's ``received_timestamp``; the node clock
 when ``use_sim_time`` is set, so that the bag runs on the simulator's time) is the MCAP log time, and
@@ -77,11 +77,13 @@ LOSS_WARNING_PERIOD = 1.0    # s, at most one warning of lost messages per perio
 
 class _Topic:
     """One recorded topic: its name as given and resolved, message class, the subscription and its
-    profile (None until a publisher appears), how many publish on it."""
+    profile (None until a publisher appears), how many publish on it, whether the middleware
+    reported an offer the subscription does not match since the last look-up."""
 
     def __init__(self, name: str, resolved: str, message_type):
         self.name, self.resolved, self.message_type = name, resolved, message_type
         self.subscription, self.profile, self.publishers = None, None, 0
+        self.unmatched = False
 
 
 class RecorderNode(Node):
@@ -125,8 +127,9 @@ class RecorderNode(Node):
         """Subscribe to the topics whose publishers appeared, again where a new one's offer does
         not match the subscription (:func:`~.adaptive_qos.resubscription`)."""
         for topic in self.topics.values():
-            if self.count_publishers(topic.resolved) == topic.publishers:
+            if not topic.unmatched and self.count_publishers(topic.resolved) == topic.publishers:
                 continue     # the same publishers as at the last look-up (the look-up costs more)
+            topic.unmatched = False
             offered = [to_profile(info.qos_profile)
                        for info in self.get_publishers_info_by_topic(topic.resolved)]
             topic.publishers = len(offered)
@@ -142,15 +145,10 @@ class RecorderNode(Node):
             topic.profile = profile
             topic.subscription = self.create_subscription(
                 topic.message_type, topic.name, self._writer_for(topic), to_rclpy(profile), raw=True,
+                # a publisher the subscription does not match: looked up at the next discovery,
+                # even if the number is unchanged (it replaced another within a period)
                 event_callbacks=SubscriptionEventCallbacks(
-                    incompatible_qos=lambda _, topic=topic: self._look_again(topic)))
-
-    @staticmethod
-    def _look_again(topic: _Topic):
-        """A publisher whose offer the subscription does not match appeared (the middleware's
-        event): look the publishers up at the next discovery, even if their number is unchanged (a
-        publisher that replaced another within a period)."""
-        topic.publishers = -1
+                    incompatible_qos=lambda _, topic=topic: setattr(topic, "unmatched", True)))
 
     def unsubscribed(self, published) -> list:
         """The recorded topics among ``published`` (resolved names) not subscribed yet."""
@@ -164,11 +162,10 @@ class RecorderNode(Node):
             self.count += 1
             lost = self.losses.received(topic.resolved, info.get("publication_sequence_number"),
                                         topic.publishers)
-            now = time.monotonic()
-            if lost and now - self._loss_warned >= LOSS_WARNING_PERIOD:
+            if lost and time.monotonic() - self._loss_warned >= LOSS_WARNING_PERIOD:
                 # throttled here: rclpy's own throttle inspects the caller's frame on every call,
                 # which costs a recorder that is already losing messages more of them
-                self._loss_warned = now
+                self._loss_warned = time.monotonic()
                 self.get_logger().warning(f"{topic.resolved}: {lost} messages not received (publisher "
                                           f"sequence gap; {self.losses.total} lost in all)")
         return write

@@ -227,7 +227,7 @@ def test_a_publisher_replaced_by_an_unmatched_one_is_looked_up_again(context, tm
         assert topic.profile.reliability.value == "reliable" and topic.publishers == 1
         streaming = publisher_node.create_publisher(TaskGoal, "task/goal", BEST_EFFORT)
         publisher_node.destroy_publisher(latched)
-        spin_until(executor, lambda: topic.publishers == -1)         # the middleware's event
+        spin_until(executor, lambda: topic.unmatched)                 # the middleware's event
         spin_until(executor, lambda: node.count_publishers("/task/goal") == 1)
         node.discover()
         assert topic.profile.reliability.value == "best_effort" and topic.publishers == 1
