@@ -120,6 +120,9 @@ def bench_node(rate: float, plant, seconds: float) -> dict:
                 Parameter(f"rig.motors.{k}", value=v) for k, v in
                 {"interface": "virtual", "channel": cfg.channel, "rate": rate,
                  "watchdog_timeout": 1.0}.items()])
+            node.trigger_configure()                # opens the bus, finds the motors: the driver exists
+            if node.driver is None:
+                raise RuntimeError("the motor_driver node did not configure (see its log)")
             original = node.driver.cycle
 
             def timed_cycle(now):
@@ -130,7 +133,7 @@ def bench_node(rate: float, plant, seconds: float) -> dict:
                 complete.append(result.state.complete)
                 return result
             node.driver.cycle = timed_cycle
-            node.driver.enable(time.monotonic())
+            node.trigger_activate()                 # motor mode, as the operator's activate
             executor = make_executor(context=context)
             executor.add_node(node)
             end = time.monotonic() + seconds

@@ -88,10 +88,16 @@ class LoopbackBus(can.BusABC):
             raise can.CanOperationError(f"{INTERFACE}: send failed: {exc.strerror}") from None
 
     def _recv_internal(self, timeout: float | None):
-        ready, _, _ = select.select([self._sock], [], [], timeout)
-        if not ready:
-            return None, False
-        frame = self._sock.recv(64)
+        if timeout is not None and timeout <= 0.0:      # a poll: one non-blocking read, no select
+            try:
+                frame = self._sock.recv(64, socket.MSG_DONTWAIT)
+            except BlockingIOError:
+                return None, False
+        else:
+            ready, _, _ = select.select([self._sock], [], [], timeout)
+            if not ready:
+                return None, False
+            frame = self._sock.recv(64)
         if len(frame) != _WIRE.size:
             raise can.CanOperationError(f"{INTERFACE}: a datagram of {len(frame)} bytes is not a frame")
         session, seq, stamp, arbitration_id, dlc, flags, data = _WIRE.unpack(frame)

@@ -39,6 +39,7 @@ Sources: bgkatz/motorcontrol ``Core/Src/can.c`` (``pack_reply``, ``unpack_cmd``)
 ``Core/Src/math_ops.c`` (``float_to_uint``, ``uint_to_float``); CubeMars "AK Series Actuator Driver
 Manual V1.0.8", section 5.3, pp. 48-50 (special frames, frame layouts, range table).
 """
+import functools
 import math
 from dataclasses import dataclass, fields
 from numbers import Real
@@ -48,7 +49,7 @@ __all__ = [
     "COMMAND_LENGTH", "ENTER_MOTOR_MODE", "EXIT_MOTOR_MODE", "MOTOR_ERRORS", "MOTOR_PRESETS",
     "MotorCommand", "MotorLimits", "MotorReply", "REPLY_LENGTHS", "SET_ZERO_POSITION",
     "SPECIAL_FRAMES", "decode_command", "decode_reply", "encode_command", "encode_reply",
-    "float_to_uint", "is_special_frame", "torque_command", "uint_to_float",
+    "float_to_uint", "is_special_frame", "torque_command", "torque_frame", "uint_to_float",
 ]
 
 COMMAND_LENGTH = 8
@@ -236,6 +237,22 @@ def encode_command(limits: MotorLimits, position: float, velocity: float, kp: fl
 def torque_command(limits: MotorLimits, torque: float) -> bytes:
     """Pure feed-forward torque command (N*m): kp and kd at their minimum, zero for every preset."""
     return encode_command(limits, 0.0, 0.0, limits.kp_min, limits.kd_min, torque)
+
+
+@functools.lru_cache(maxsize=64)
+def _torque_fields(limits: MotorLimits) -> int:
+    """The command word of a pure torque command (0 rad, 0 rad/s, the minimum gains) with its torque
+    field zero (the minimum torque's)."""
+    return int.from_bytes(torque_command(limits, limits.t_min), "big")
+
+
+def torque_frame(limits: MotorLimits, raw_torque: int) -> bytes:
+    """The pure torque command (that of :func:`torque_command`) whose 12-bit torque field is
+    ``raw_torque`` (0..4095), packed without the float conversions: the frame a driver's cycle sends
+    to each motor. ValueError if ``raw_torque`` does not fit."""
+    if not 0 <= raw_torque <= (1 << _FIELD_BITS) - 1:
+        raise ValueError(f"raw torque {raw_torque!r} does not fit in {_FIELD_BITS} bits")
+    return (_torque_fields(limits) | raw_torque).to_bytes(COMMAND_LENGTH, "big")
 
 
 def decode_command(limits: MotorLimits, data: bytes) -> MotorCommand:

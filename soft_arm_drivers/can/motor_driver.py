@@ -48,7 +48,7 @@ import numpy as np
 
 from .driver_config import DriverConfig, Motor, open_bus
 from .mit_protocol import (ENTER_MOTOR_MODE, EXIT_MOTOR_MODE, MOTOR_ERRORS, REPLY_LENGTHS, SET_ZERO_POSITION,
-                           decode_reply, torque_command)
+                           decode_reply, torque_frame)
 
 __all__ = ["Cycle", "Diagnostics", "DriverState", "HOST_ID", "MotorDiagnostics", "MotorDriver",
            "tension_frame"]
@@ -68,8 +68,7 @@ def tension_frame(motor: Motor, pulley_radius: float, tension: float) -> bytes:
               _TORQUE_TOP)
     if motor.direction * (raw * span / _TORQUE_TOP + lim.t_min) < 0:
         raw += motor.direction
-    # a quarter step above the level, so that the codec's truncation lands on ``raw`` exactly
-    return torque_command(lim, lim.t_min + (raw + 0.25) * span / _TORQUE_TOP)
+    return torque_frame(lim, raw)
 
 
 @dataclass(frozen=True)

@@ -5,6 +5,7 @@ Only the simulated rig reads this file: the controller never sees the plant it i
 """
 from __future__ import annotations
 
+import functools
 import math
 import os
 from dataclasses import dataclass, replace
@@ -125,11 +126,17 @@ class PlantConfig:
     def as_mocap_reports(self, points) -> np.ndarray:
         """Points (..., 3) [m] in arm_base as the miscalibrated mocap reports them: R p + t of
         ``mocap_frame_error``, then the ``bridge_correction`` (noise not included)."""
+        A, b = self._mocap_report_transform
+        return np.asarray(points, dtype=float) @ A.T + b
+
+    @functools.cached_property
+    def _mocap_report_transform(self) -> tuple:
+        """(A (3, 3), b [m] (3,)): ``mocap_frame_error`` then ``bridge_correction`` as one affine map
+        p -> A p + b, composed once (every simulated mocap frame applies it)."""
         rotvec, translation = self.mocap_frame_error
         R = Rotation.from_rotvec(rotvec).as_matrix()
-        reported = np.asarray(points, dtype=float) @ R.T + np.asarray(translation)
-        rotation, shift = self.bridge_correction
-        return reported @ np.asarray(rotation).T + np.asarray(shift)
+        rotation, shift = (np.asarray(a, dtype=float) for a in self.bridge_correction)
+        return rotation @ R, rotation @ np.asarray(translation, dtype=float) + shift
 
     @property
     def rotor_mass(self) -> float:

@@ -3,6 +3,7 @@ frames whole, in order, with their time stamps, between two processes; losses co
 channels refused; opened through python-can's plugin registry like any interface."""
 import subprocess
 import sys
+import threading
 import time
 
 import can
@@ -37,6 +38,39 @@ def test_frames_cross_whole_both_ways_with_their_stamps():
         assert right.recv(timeout=0.05) is None
         with pytest.raises(can.CanOperationError, match="at most 8"):
             left.send(can.Message(arbitration_id=1, is_fd=True, data=bytes(12)))
+    finally:
+        left.shutdown()
+        right.shutdown()
+
+
+def _poll(bus):
+    """``bus.recv(timeout=0.0)`` on a thread, failing (not hanging) the test if it blocks."""
+    result = []
+    thread = threading.Thread(target=lambda: result.append(bus.recv(timeout=0.0)), daemon=True)
+    thread.start()
+    thread.join(1.0)
+    assert not thread.is_alive(), "recv(timeout=0) blocked"
+    return result[0]
+
+
+def test_a_poll_takes_what_is_waiting_and_never_blocks():
+    """recv(timeout=0), the driver's read each cycle: the frames already there, in order, then None
+    at once."""
+    a, b = free_udp_ports()
+    left, right = LoopbackBus(f"{a}:{b}"), LoopbackBus(f"{b}:{a}")
+    try:
+        assert _poll(right) is None
+        for i in range(3):
+            left.send(can.Message(arbitration_id=0x10 + i, is_extended_id=False, data=[i]))
+        deadline = time.monotonic() + 1.0
+        got = []
+        while len(got) < 3 and time.monotonic() < deadline:
+            msg = _poll(right)
+            if msg is not None:
+                got.append(msg.arbitration_id)
+        assert got == [0x10, 0x11, 0x12]
+        assert _poll(right) is None
+        assert right.lost == 0
     finally:
         left.shutdown()
         right.shutdown()

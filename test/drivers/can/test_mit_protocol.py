@@ -7,7 +7,8 @@ from hypothesis import given, settings, strategies as st
 from soft_arm_drivers.can.mit_protocol import (ENTER_MOTOR_MODE, EXIT_MOTOR_MODE, MOTOR_PRESETS,
                                                SET_ZERO_POSITION, MotorLimits, MotorReply, decode_command,
                                                decode_reply, encode_command, encode_reply, float_to_uint,
-                                               is_special_frame, torque_command, uint_to_float)
+                                               is_special_frame, torque_command, torque_frame,
+                                               uint_to_float)
 
 AK80_9 = MotorLimits.preset("AK80-9")
 
@@ -232,6 +233,18 @@ def test_torque_command_has_zero_gains():
     command = decode_command(AK80_9, torque_command(AK80_9, 2.5))
     assert command.kp == 0.0 and command.kd == 0.0
     assert 0.0 <= 2.5 - command.torque < lsb(AK80_9.t_min, AK80_9.t_max, 12)
+
+
+@pytest.mark.parametrize("model", sorted(MOTOR_PRESETS))
+def test_torque_frame_is_the_torque_command_of_its_level(model):
+    limits = MotorLimits.preset(model)
+    step = lsb(limits.t_min, limits.t_max, 12)
+    for raw in range(4096):
+        torque = limits.t_min + (raw + 0.25) * step     # quantises to ``raw`` (the field truncates)
+        assert torque_frame(limits, raw) == torque_command(limits, torque), raw
+    for bad in (-1, 4096):
+        with pytest.raises(ValueError, match="12 bits"):
+            torque_frame(limits, bad)
 
 
 def test_decode_reply_with_temperature_and_error():
