@@ -168,14 +168,16 @@ class _Children:
                 pass
 
     def go_realtime(self):
-        """Once the nodes are set up: every thread of the real-time nodes off the emulated
-        hardware's CPU, and the emulated hardware (emulated_rig's child process) at
-        HARDWARE_PRIORITY on that CPU (:mod:`.realtime` says why)."""
+        """Once the nodes are set up: every thread of the real-time nodes of the motors' loop off
+        the emulated hardware's CPU, the emulated hardware (emulated_rig's child process) at
+        HARDWARE_PRIORITY on that CPU, and the nodes of :data:`realtime.BESIDE_HARDWARE` (the mocap
+        bridge) on it too (:mod:`.realtime` says why)."""
         off = realtime.hardware_cpu()
         nodes = None if off is None else os.sched_getaffinity(0) - {off}
         for name, priority in self.realtime.items():
             pid = self.procs[name].pid
-            realtime.schedule(pid, priority, nodes)
+            beside = name in realtime.BESIDE_HARDWARE and off is not None
+            realtime.schedule(pid, priority, {off} if beside else nodes)
             if name == "emulated_rig":
                 for hardware in realtime.child_processes(pid):
                     realtime.schedule(hardware, realtime.HARDWARE_PRIORITY, None if off is None else {off})

@@ -13,7 +13,13 @@ now and then, and the motor driver's watchdog rightly trips. Two limits of the k
 - equal FIFO priorities do not preempt: the emulated hardware runs below every node
   (:data:`HARDWARE_PRIORITY`), not at the driver's priority, where a plant thread catching up held
   a core the driver waited for. Under the normal policy instead (tried: niceness -10) a lab PC's
-  other work delayed it past the driver's reply timeout.
+  other work delayed it past the driver's reply timeout;
+- the motors' loop (the driver and the inner loop, which its watchdog watches) keeps its CPU to
+  itself: the mocap bridge, whose frames feed the outer loop at the camera's rate, runs on the
+  emulated hardware's CPU (:data:`BESIDE_HARDWARE`), as the Motive server it reads is there. With
+  the three on one CPU, on a computer half as fast, their real-time load came near the 950 ms
+  budget and the watchdog saw the 50 ms waits (``bench_emulated_rig.py``: 0 valid runs in 3, each
+  ended by a 50-81 ms gap in the commands; with the bridge beside the hardware, 3 valid in 3).
 
 Every thread of a process is set (a thread inherits its creator's policy and CPUs from then on).
 """
@@ -22,6 +28,7 @@ from __future__ import annotations
 import os
 
 HARDWARE_PRIORITY = 10     # SCHED_FIFO priority of the emulated hardware: below every node's
+BESIDE_HARDWARE = frozenset({"mocap_bridge"})   # real-time nodes on the emulated hardware's CPU
 
 
 def permitted(priority: int) -> bool:

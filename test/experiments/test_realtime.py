@@ -1,6 +1,6 @@
-"""Real-time scheduling of a run's processes once they are set up: every thread of a node under
-SCHED_FIFO off the emulated hardware's CPU, the hardware (the node's child process) below every
-node on that CPU."""
+"""Real-time scheduling of a run's processes once they are set up: every thread of a node of the
+motors' loop under SCHED_FIFO off the emulated hardware's CPU, the hardware (the node's child
+process) below every node on that CPU, and the mocap bridge beside it."""
 import os
 import subprocess
 import sys
@@ -32,10 +32,13 @@ def _policies(pid):
 
 def test_go_realtime_sets_every_thread_of_a_node_and_its_hardware_apart():
     proc = subprocess.Popen([sys.executable, "-c", NODE], stdout=subprocess.PIPE, text=True)
+    bridge = subprocess.Popen([sys.executable, "-c", NODE], stdout=subprocess.PIPE, text=True)
     try:
         assert proc.stdout.readline().strip() == "up"
-        children = _Children([], {}, {"emulated_rig": 30})
+        assert bridge.stdout.readline().strip() == "up"
+        children = _Children([], {}, {"emulated_rig": 30, "mocap_bridge": 20})
         children.procs["emulated_rig"] = proc
+        children.procs["mocap_bridge"] = bridge
         hardware = realtime.child_processes(proc.pid)          # the child (and spawn's resource tracker)
         assert hardware
         assert len(realtime.threads(proc.pid)) >= 2
@@ -49,7 +52,14 @@ def test_go_realtime_sets_every_thread_of_a_node_and_its_hardware_apart():
                 assert (policy, priority) == (os.SCHED_FIFO, realtime.HARDWARE_PRIORITY)
                 assert affinity == (cpus if off is None else {off})
         assert realtime.HARDWARE_PRIORITY < min(_REALTIME.values())
+        # the mocap bridge beside the hardware, the motors' loop keeping its CPU to itself
+        assert "mocap_bridge" in realtime.BESIDE_HARDWARE and "mocap_bridge" in _REALTIME
+        assert not realtime.BESIDE_HARDWARE & {"emulated_rig", "inner_loop"}
+        for policy, priority, affinity in _policies(bridge.pid).values():
+            assert (policy, priority) == (os.SCHED_FIFO, 20)
+            assert affinity == (cpus if off is None else {off})
     finally:
-        proc.kill()
-        proc.wait()
+        for p in (proc, bridge):
+            p.kill()
+            p.wait()
         time.sleep(0.1)
