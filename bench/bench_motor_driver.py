@@ -4,7 +4,9 @@
         [--output bench/results/motor_driver.json]
 
 The driver core (``MotorDriver.cycle``, all four motors of config/rig.yaml, enabled, a new command
-every cycle) runs from a timed loop at 500 Hz and at 1 kHz on a python-can ``virtual`` bus; the
+every cycle) runs from a timed loop at 500 Hz and at 1 kHz on a bus of two kinds: python-can's
+``virtual`` (in-process; it deep-copies every frame) and the project's ``soft_arm_loopback`` (UDP on
+127.0.0.1, the emulated rig's bus); the
 emulator answers from a thread of the same process (real time, 0.2 ms reply delay), either with the
 arm behind it (``soft_arm_control.rig.Plant`` stepped every 1 ms: it competes for the GIL) or with
 static tendons (the bus alone). Two ways of waiting for the next period: ``sleep`` (``time.sleep``
@@ -22,6 +24,7 @@ from __future__ import annotations
 import argparse
 import itertools
 import os
+import socket
 import time
 
 import numpy as np
@@ -69,20 +72,36 @@ def _stats(starts, deadlines, durations, complete, period) -> dict:
             "complete_share": float(np.mean(complete)) if len(complete) else None}
 
 
-def _rig(rate: float, plant):
-    name = f"bench_motor_driver_{os.getpid()}_{next(_CHANNELS)}"
-    cfg = load_driver_config(overrides={"interface": "virtual", "channel": name, "rate": rate})
-    bus = can.Bus(interface="virtual", channel=name, preserve_timestamps=True)
+def _free_ports() -> tuple:
+    """Two UDP ports of 127.0.0.1 free a moment ago."""
+    socks = [socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(2)]
+    for s in socks:
+        s.bind(("127.0.0.1", 0))
+    ports = tuple(s.getsockname()[1] for s in socks)
+    for s in socks:
+        s.close()
+    return ports
+
+
+def _rig(rate: float, plant, interface: str = "virtual"):
+    """The driver's configuration on a new channel of ``interface`` and the emulator on its other end."""
+    if interface == "virtual":
+        channel = emulator_channel = f"bench_motor_driver_{os.getpid()}_{next(_CHANNELS)}"
+    else:
+        driver_port, emulator_port = _free_ports()
+        channel, emulator_channel = f"{driver_port}:{emulator_port}", f"{emulator_port}:{driver_port}"
+    cfg = load_driver_config(overrides={"interface": interface, "channel": channel, "rate": rate})
+    bus = can.Bus(interface=interface, channel=emulator_channel, preserve_timestamps=True)
     emulator = CanMotorEmulator.for_config(cfg, bus, plant, reply_delay=2e-4, start_time=time.time())
     return cfg, bus, emulator
 
 
-def bench_core(rate: float, plant, strategy: str, seconds: float) -> dict:
-    cfg, bus, emulator = _rig(rate, plant)
+def bench_core(rate: float, plant, strategy: str, seconds: float, interface: str) -> dict:
+    cfg, bus, emulator = _rig(rate, plant, interface)
     period = 1.0 / rate
     starts, deadlines, durations, complete = [], [], [], []
     with EmulatorThread(emulator):
-        with MotorDriver(cfg, can.Bus(interface="virtual", channel=cfg.channel)) as driver:
+        with MotorDriver(cfg) as driver:
             t0 = time.monotonic() + 0.05
             driver.enable(t0)
             for k in range(int(seconds * rate)):
@@ -96,7 +115,6 @@ def bench_core(rate: float, plant, strategy: str, seconds: float) -> dict:
                 deadlines.append(deadline)
                 complete.append(state.complete)
             fault = diagnostics.fault
-            driver.bus.shutdown()
     bus.shutdown()
     return {**_stats(starts, deadlines, durations, complete, period), "fault": fault}
 
@@ -160,17 +178,20 @@ def main():
     plant = arm_plant()
     runs = []
     for rate in (500.0, 1000.0):
-        for emulator, p in (("arm", plant), ("bus only", None)):
-            for strategy in ("sleep", "sleep+spin"):
-                runs.append({"rate_hz": rate, "loop": f"core, {strategy}", "emulator": emulator,
-                             **bench_core(rate, p, strategy, args.seconds)})
-        runs.append({"rate_hz": rate, "loop": "node, rclpy timer", "emulator": "arm",
+        for interface in ("virtual", "soft_arm_loopback"):
+            for emulator, p in (("arm", plant), ("bus only", None)):
+                for strategy in ("sleep", "sleep+spin"):
+                    result = bench_core(rate, p, strategy, args.seconds, interface)
+                    runs.append({"rate_hz": rate, "loop": f"core, {strategy}", "bus": interface,
+                                 "emulator": emulator, **result})
+        runs.append({"rate_hz": rate, "loop": "node, rclpy timer", "bus": "virtual", "emulator": "arm",
                      **bench_node(rate, plant, args.seconds)})
-    header = (f"{'rate':>6} {'loop':<18} {'emulator':<9} {'jitter p50':>10} {'p99':>8} {'max':>8} "
-              f"{'late p99':>9} {'cycle p50':>9} {'p99':>7} {'complete':>8}  fault")
+    header = (f"{'rate':>6} {'loop':<18} {'bus':<17} {'emulator':<9} {'jitter p50':>10} {'p99':>8} "
+              f"{'max':>8} {'late p99':>9} {'cycle p50':>9} {'p99':>7} {'complete':>8}  fault")
     print(header + "\n" + "-" * len(header))
     for r in runs:
-        print(f"{r['rate_hz']:6.0f} {r['loop']:<18} {r['emulator']:<9} {r['jitter_p50_us']:8.0f}us "
+        print(f"{r['rate_hz']:6.0f} {r['loop']:<18} {r['bus']:<17} {r['emulator']:<9} "
+              f"{r['jitter_p50_us']:8.0f}us "
               f"{r['jitter_p99_us']:6.0f}us {r['jitter_max_us']:6.0f}us {r['late_p99_us']:7.0f}us "
               f"{r['cycle_p50_us']:7.0f}us {r['cycle_p99_us']:5.0f}us {r['complete_share']:8.1%}  "
               f"{r['fault'] or '-'}")

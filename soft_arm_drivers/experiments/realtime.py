@@ -17,9 +17,9 @@ now and then, and the motor driver's watchdog rightly trips. Two limits of the k
 - the motors' loop (the driver and the inner loop, which its watchdog watches) keeps its CPU to
   itself: the mocap bridge, whose frames feed the outer loop at the camera's rate, runs on the
   emulated hardware's CPU (:data:`BESIDE_HARDWARE`), as the Motive server it reads is there. With
-  the three on one CPU, on a computer half as fast, their real-time load came near the 950 ms
-  budget and the watchdog saw the 50 ms waits (``bench_emulated_rig.py``: 0 valid runs in 3, each
-  ended by a 50-81 ms gap in the commands; with the bridge beside the hardware, 3 valid in 3).
+  the three on one CPU, on a computer half as fast, they needed 68-91 % of it and bursts held the
+  inner loop past the watchdog (``bench_emulated_rig.py``: 0 valid runs in 3, each ended by a
+  50-81 ms gap in the commands; with the bridge beside the hardware, 3 valid in 3).
 
 Every thread of a process is set (a thread inherits its creator's policy and CPUs from then on).
 """
