@@ -24,7 +24,6 @@ from __future__ import annotations
 import argparse
 import itertools
 import os
-import socket
 import time
 
 import numpy as np
@@ -34,6 +33,7 @@ os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
 import can  # noqa: E402
 
 from soft_arm_drivers.can.driver_config import load_driver_config  # noqa: E402
+from soft_arm_drivers.can.loopback_bus import free_udp_ports  # noqa: E402
 from soft_arm_drivers.can.motor_driver import MotorDriver  # noqa: E402
 from soft_arm_drivers.sim.can_emulator import CanMotorEmulator, EmulatorThread, arm_plant  # noqa: E402
 
@@ -72,23 +72,12 @@ def _stats(starts, deadlines, durations, complete, period) -> dict:
             "complete_share": float(np.mean(complete)) if len(complete) else None}
 
 
-def _free_ports() -> tuple:
-    """Two UDP ports of 127.0.0.1 free a moment ago."""
-    socks = [socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(2)]
-    for s in socks:
-        s.bind(("127.0.0.1", 0))
-    ports = tuple(s.getsockname()[1] for s in socks)
-    for s in socks:
-        s.close()
-    return ports
-
-
 def _rig(rate: float, plant, interface: str = "virtual"):
     """The driver's configuration on a new channel of ``interface`` and the emulator on its other end."""
     if interface == "virtual":
         channel = emulator_channel = f"bench_motor_driver_{os.getpid()}_{next(_CHANNELS)}"
     else:
-        driver_port, emulator_port = _free_ports()
+        driver_port, emulator_port = free_udp_ports(2)
         channel, emulator_channel = f"{driver_port}:{emulator_port}", f"{emulator_port}:{driver_port}"
     cfg = load_driver_config(overrides={"interface": interface, "channel": channel, "rate": rate})
     bus = can.Bus(interface=interface, channel=emulator_channel, preserve_timestamps=True)

@@ -1,7 +1,6 @@
 """Shared fixtures. Every rclpy process in the suite stays on loopback with its own domain id."""
 import os
 import signal
-import socket
 import subprocess
 import time
 from contextlib import contextmanager
@@ -92,17 +91,6 @@ def stop(proc, sig=signal.SIGINT, timeout: float = 60.0) -> str:
         out, _ = proc.communicate()
         raise AssertionError(f"the process did not exit on {signal.Signals(sig).name}:\n{out}") from None
     return out or ""
-
-
-def free_udp_ports(n: int = 2) -> list:
-    """``n`` UDP ports of 127.0.0.1 free a moment ago (bound to port 0 together, then released)."""
-    socks = [socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(n)]
-    for s in socks:
-        s.bind(("127.0.0.1", 0))
-    ports = [s.getsockname()[1] for s in socks]
-    for s in socks:
-        s.close()
-    return ports
 
 
 @pytest.fixture

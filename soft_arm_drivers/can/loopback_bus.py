@@ -36,6 +36,19 @@ _EXTENDED, _REMOTE, _ERROR = 1, 2, 4
 RECEIVE_BUFFER = 1 << 20
 
 
+def free_udp_ports(n: int = 2) -> list:
+    """``n`` UDP ports of 127.0.0.1 free a moment ago (bound to port 0 together, then released): a
+    channel's two ends, an emulated server's port."""
+    socks = [socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(n)]
+    try:
+        for sock in socks:
+            sock.bind((HOST, 0))
+        return [sock.getsockname()[1] for sock in socks]
+    finally:
+        for sock in socks:
+            sock.close()
+
+
 def parse_channel(channel) -> tuple[int, int]:
     """(local, peer) UDP ports of a ``"LOCAL:PEER"`` channel; CanInitializationError otherwise."""
     try:

@@ -12,13 +12,13 @@ import importlib.metadata
 import math
 import os
 import signal
-import socket
 import subprocess
 import sys
 import threading
 import time
 
 from soft_arm_control.config import IDENTIFICATION
+from soft_arm_drivers.can.loopback_bus import free_udp_ports
 from soft_arm_model.parameters import ConfigError, default_config_dir
 
 from . import realtime
@@ -31,13 +31,6 @@ def request_stop(signum, frame):
     if STOP.is_set():
         raise KeyboardInterrupt
     STOP.set()
-
-
-def _free_udp_port() -> int:
-    """A UDP port of 127.0.0.1 free right now (for the emulated Motive server)."""
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
 
 
 def _wait_for_graph(node, children, flowing: tuple = (), settle: float = 0.0,
@@ -296,7 +289,7 @@ def run_emulated_hardware(ros_args: list, out: dict, duration: float,
     d = config_dir or default_config_dir()
     files = [a for name in ("rig.yaml", "mocap.yaml", "emulator.yaml")
              for a in ("--params-file", os.path.join(d, name))]
-    port = _free_udp_port()
+    port, = free_udp_ports(1)                     # the emulated Motive server's
     fifo = realtime.permitted(max(_REALTIME.values()))
     if not fifo:
         print("soft-arm-experiment: real-time scheduling is not permitted here (it needs root, "

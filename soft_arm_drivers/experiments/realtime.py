@@ -2,7 +2,8 @@
 
 The processes the loop closes through run under SCHED_FIFO: under the normal policy a busy
 two-core computer holds one of them, or a DDS thread it waits on while it publishes, for 0.1-0.3 s
-now and then, and the motor driver's watchdog rightly trips. Two limits of the kernel shape how:
+now and then, and the motor driver's watchdog rightly trips. Two limits of the kernel, and what
+the nodes need of a CPU, shape how:
 
 - when the real-time tasks of one CPU use more than ``sched_rt_runtime_us`` (950 ms) of a second,
   every real-time task on that CPU waits 50 ms (measured: a FIFO 50 task beside a FIFO 10 busy

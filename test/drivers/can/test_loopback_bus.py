@@ -10,9 +10,7 @@ import can
 import pytest
 
 from soft_arm_drivers.can.driver_config import load_driver_config
-from soft_arm_drivers.can.loopback_bus import INTERFACE, LoopbackBus
-
-from conftest import free_udp_ports
+from soft_arm_drivers.can.loopback_bus import INTERFACE, LoopbackBus, free_udp_ports
 
 
 def test_frames_cross_whole_both_ways_with_their_stamps():

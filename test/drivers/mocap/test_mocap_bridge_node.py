@@ -19,7 +19,8 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.lifecycle import TransitionCallbackReturn
 from rclpy.parameter import Parameter
 
-from conftest import change_state, free_udp_ports, killed_on_exit, spin_until, stop
+from conftest import change_state, killed_on_exit, spin_until, stop
+from soft_arm_drivers.can.loopback_bus import free_udp_ports
 from soft_arm_drivers.mocap.bridge_config import load_mocap_config
 from soft_arm_drivers.mocap.mocap_bridge_node import DIAGNOSTICS_TOPIC, MocapBridgeNode, main
 from soft_arm_drivers.sim.natnet_emulator import NatNetEmulator, plant_markers

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from soft_arm_drivers.can.driver_config import load_driver_config
-from soft_arm_drivers.can.loopback_bus import INTERFACE, LoopbackBus
+from soft_arm_drivers.can.loopback_bus import INTERFACE, LoopbackBus, free_udp_ports
 from soft_arm_drivers.can.motor_driver import MotorDriver
 from soft_arm_drivers.mocap.bridge_config import load_mocap_config
 from soft_arm_drivers.sim.emulated_hardware import HardwareProcess, HardwareSpec
@@ -17,8 +17,6 @@ from soft_arm_drivers.sim.emulated_rig import load_emulator_config, read_emulate
 from soft_arm_drivers.sim.plant_config import load_plant_config
 from soft_arm_model import load_arm_config
 from soft_arm_model.parameters import ConfigError
-
-from conftest import free_udp_ports
 
 
 def _spec(command_port=None) -> HardwareSpec:
