@@ -10,7 +10,7 @@ cm-band task velocities), whether real-time scheduling was granted; the CPU shar
 process (and of soft-arm-experiment, which orchestrates them) over the enabled run (from /proc,
 sampled every 0.5 s from the enable until 2 s before the task's end or the driver's deactivation:
 each process between its first and its last sample, so that a run a fault ended early is measured
-too);
+too) and its major page faults over the same span;
 from the bag, the motors' state period (p50, p99, max, stamps not increasing), the mocap frame period
 and the driver's own cycle statistics (its last /diagnostics: period p50/p99/max, p99 error, deadline
 misses; the state-to-command latency through the graph, p50/p99/max of its last 1000 answers and the
@@ -18,6 +18,11 @@ worst p99 it reported during the run; the time from its activation to the first 
 recorder's messages, their rate and its lost-message count; then over the runs: the valid ones, the
 worst RMS and mm band, the cm-band velocity spread. ``--load N`` runs N other CPU-bound processes
 beside the runs (a lab PC's other work: single-threaded 200x200 matrix products, normal policy).
+``--probe`` runs a stall probe on each CPU (SCHED_FIFO 99, pinned, waking every 1 ms, like
+cyclictest) and reports, per run and CPU, the wake-ups later than :data:`STALL_MS` from the enable
+to the run's end, each with the time the host's hypervisor took from that CPU around it (``steal``
+in /proc/stat): a stall with no steal is the guest's own (real-time throttling, a kernel path), one
+with steal is the virtual CPU not running at all.
 """
 from __future__ import annotations
 
@@ -40,14 +45,15 @@ from timing import results_path, write_results
 TICKS = os.sysconf("SC_CLK_TCK")
 
 
-def _cpu_ticks(pid: int) -> int | None:
-    """utime + stime [clock ticks] of process ``pid``; None once it has exited."""
+def _cpu_ticks(pid: int) -> tuple | None:
+    """(utime + stime [clock ticks], major page faults) of process ``pid``; None once it has
+    exited."""
     try:
         with open(f"/proc/{pid}/stat", encoding="utf-8") as fh:
             fields = fh.read().rsplit(")", 1)[1].split()
     except OSError:
         return None
-    return int(fields[11]) + int(fields[12])
+    return int(fields[11]) + int(fields[12]), int(fields[9])
 
 
 CPU_SAMPLE_PERIOD = 0.5      # s
@@ -58,14 +64,15 @@ def _sample_cpu(proc, nodes: dict, until: float, log: str) -> dict:
     """CPU time of every node process (name -> pid), sampled every :data:`CPU_SAMPLE_PERIOD` until
     the monotonic time ``until``, the motor driver's deactivation (in the experiment's ``log``: the
     run's end, or its fault; the teardown is not counted) or the experiment's end: name ->
-    [(time [s], ticks) of the first sample, of the last sample taken while the process lived]."""
+    [(time [s], ticks, major page faults) of the first sample, of the last sample taken while the
+    process lived]."""
     samples = {}
     while True:
         now = time.monotonic()
         for name, pid in nodes.items():
             ticks = _cpu_ticks(pid)
             if ticks is not None:
-                samples.setdefault(name, [(now, ticks)] * 2)[1] = (now, ticks)
+                samples.setdefault(name, [(now, *ticks)] * 2)[1] = (now, *ticks)
         if now >= until or proc.poll() is not None or DEACTIVATED in open(log, encoding="utf-8").read():
             return samples
         time.sleep(min(CPU_SAMPLE_PERIOD, max(until - now, 0.0)))
@@ -75,6 +82,12 @@ def _shares(samples: dict) -> dict:
     """Each node's CPU share [cores] between its first and last sample; a node sampled once (it
     exited within a sample period) is left out."""
     return {n: (b[1] - a[1]) / TICKS / (b[0] - a[0]) for n, (a, b) in sorted(samples.items()) if b[0] > a[0]}
+
+
+def _major_faults(samples: dict) -> dict:
+    """Each node's major page faults (a page read back from disk, the thread waiting) between its
+    first and last sample."""
+    return {n: b[2] - a[2] for n, (a, b) in sorted(samples.items()) if b[0] > a[0]}
 
 
 def _children(parent: int) -> list:
@@ -146,17 +159,85 @@ def _burn():
         a = np.tanh(a @ a)
 
 
-def start_load(n: int) -> list:
-    """``n`` processes of other work beside the runs, single-threaded each."""
+STALL_MS = 5.0       # a probe's wake-up later than this is a stall [ms]
+
+
+def _steal_ticks(cpu: int) -> int:
+    """Time [clock ticks] the hypervisor has taken from ``cpu`` since boot (/proc/stat)."""
+    with open("/proc/stat", encoding="utf-8") as fh:
+        for line in fh:
+            if line.startswith(f"cpu{cpu} "):
+                return int(line.split()[8])
+    raise ValueError(f"no cpu{cpu} in /proc/stat")
+
+
+def _probe(cpu: int, path: str):
+    """A stall probe on ``cpu`` (until killed): SCHED_FIFO 99 (OSError if not permitted), waking
+    every 1 ms; appends ``[monotonic time [s], lateness [ms], steal since the previous read [ms]]``
+    to ``path`` for each wake-up later than :data:`STALL_MS` (steal is read every 0.1 s and after a
+    stall)."""
+    os.sched_setaffinity(0, {cpu})
+    os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(99))
+    with open(path, "w", encoding="utf-8") as out:             # the file says the probe is on
+        last = read = time.monotonic()
+        steal = _steal_ticks(cpu)
+        while True:
+            time.sleep(0.001)
+            now = time.monotonic()
+            late_ms = (now - last) * 1e3 - 1.0
+            if late_ms > STALL_MS or now - read > 0.1:
+                ticks = _steal_ticks(cpu)
+                if late_ms > STALL_MS:
+                    out.write(json.dumps([now, late_ms, (ticks - steal) * 1e3 / TICKS]) + "\n")
+                    out.flush()
+                steal, read = ticks, now
+            last = now
+
+
+def start_probes(folder: str) -> dict:
+    """A stall probe per CPU of this process, once all are on: cpu -> (process, its output file)."""
+    out = {}
+    for cpu in sorted(os.sched_getaffinity(0)):
+        path = os.path.join(folder, f"stalls_cpu{cpu}.jsonl")
+        out[cpu] = (_spawn(f"_probe({cpu}, {path!r})"), path)
+    while not all(os.path.exists(path) for _, path in out.values()):
+        if any(p.poll() is not None for p, _ in out.values()):
+            raise RuntimeError("a stall probe ended as it started (SCHED_FIFO 99 needs root, "
+                               "CAP_SYS_NICE or an rtprio limit)")
+        time.sleep(0.1)
+    return out
+
+
+def _stalls(probes: dict, start: float, end: float) -> dict:
+    """Per CPU, the probe's stalls between the monotonic times ``start`` and ``end``: their count,
+    and each as (time after ``start`` [s], lateness [ms], steal [ms]), longest first."""
+    out = {}
+    for cpu, (_, path) in probes.items():
+        with open(path, encoding="utf-8") as fh:
+            rows = [json.loads(line) for line in fh if line.endswith("\n")]    # whole lines
+        rows = sorted(([t - start, late, steal] for t, late, steal in rows if start <= t <= end),
+                      key=lambda r: -r[1])
+        out[f"cpu{cpu}"] = {"count": len(rows), "longest": rows[:5]}
+    return out
+
+
+def _spawn(call: str) -> subprocess.Popen:
+    """A process running ``bench_emulated_rig.<call>``, its numerical libraries single-threaded."""
     env = dict(os.environ, OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
     code = f"import sys; sys.path.insert(0, {os.path.dirname(os.path.abspath(__file__))!r}); " \
-           "import bench_emulated_rig; bench_emulated_rig._burn()"
-    return [subprocess.Popen([sys.executable, "-c", code], env=env) for _ in range(n)]
+           f"import bench_emulated_rig; bench_emulated_rig.{call}"
+    return subprocess.Popen([sys.executable, "-c", code], env=env)
 
 
-def one_run(task: str, sets: list, duration: float) -> dict:
+def start_load(n: int) -> list:
+    """``n`` processes of other work beside the runs, single-threaded each."""
+    return [_spawn("_burn()") for _ in range(n)]
+
+
+def one_run(task: str, sets: list, duration: float, probes=None) -> dict:
     """One ``soft-arm-experiment <task> --emulated-hardware`` run: its metrics (``valid`` false when
-    the driver faulted), CPU share per node, the state and mocap periods and the driver's timing."""
+    the driver faulted), CPU share per node, the state and mocap periods, the driver's timing and,
+    with ``probes`` (:func:`start_probes`), the stalls of each CPU from the enable to the end."""
     env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYTHONUNBUFFERED="1")
     with tempfile.TemporaryDirectory() as tmp:
         run, log = os.path.join(tmp, "run"), os.path.join(tmp, "log")
@@ -171,9 +252,11 @@ def one_run(task: str, sets: list, duration: float) -> dict:
                     raise RuntimeError("the experiment ended before the motors were enabled:\n"
                                        + open(log, encoding="utf-8").read())
                 time.sleep(0.1)
+            enabled = time.monotonic()
             nodes = {"soft-arm-experiment": proc.pid, **_nodes(proc.pid)}    # the orchestrator too
             samples = _sample_cpu(proc, nodes, time.monotonic() + max(duration - 2.0, 1.0), log)
             status = proc.wait(timeout=duration + 120)
+            ended = time.monotonic()
         finally:
             if proc.poll() is None:
                 proc.kill()
@@ -187,10 +270,11 @@ def one_run(task: str, sets: list, duration: float) -> dict:
         recording = _recording(os.path.join(run, "bag"))
     return {"status": status, "valid": metrics.get("valid", False), "failure": metrics.get("failure"),
             "summary": metrics.get("summary"), "run": metrics["run"],
-            "cpu_share": _shares(samples),
+            "cpu_share": _shares(samples), "major_faults": _major_faults(samples),
             "state_period": _periods([t for t, _ in series["tendon/state"]]),
             "mocap_period": _periods([t for t, _ in series["mocap/markers"]]),
-            "driver_timing": _driver_timing(series), "recording": recording}
+            "driver_timing": _driver_timing(series), "recording": recording,
+            "stalls": _stalls(probes, enabled, ended) if probes else None}
 
 
 def _speed(v) -> str:
@@ -215,18 +299,21 @@ def main():
     parser.add_argument("--runs", type=int, default=1, help="consecutive runs (the spread needs >= 2)")
     parser.add_argument("--load", type=int, default=0,
                         help="CPU-bound processes of other work beside the runs")
+    parser.add_argument("--probe", action="store_true", help="a stall probe on each CPU (see above)")
     parser.add_argument("--set", dest="sets", action="append", default=[], metavar="NS.KEY=VALUE")
     parser.add_argument("--output", default=results_path("emulated_rig.json"))
     args = parser.parse_args()
     setup = load_setup(args.task, overrides=[s for s in args.sets if not s.startswith("graph.")])
     duration = sum(ph.window * len(ph.sequence) for ph in setup.task.phases)
     runs, load = [], start_load(args.load)
-    try:
-        for k in range(args.runs):
-            runs.append(_report(k, one_run(args.task, args.sets, duration)))
-    finally:
-        for p in load:
-            p.kill()
+    with tempfile.TemporaryDirectory() as tmp:
+        probes = start_probes(tmp) if args.probe else {}
+        try:
+            for k in range(args.runs):
+                runs.append(_report(k, one_run(args.task, args.sets, duration, probes)))
+        finally:
+            for p in load + [p for p, _ in probes.values()]:
+                p.kill()
     total = spread(runs)
     line = f"{args.task} over {total['runs']} runs with {args.load} other CPU-bound processes: " \
            f"{total['valid_runs']} valid"
@@ -253,6 +340,7 @@ def _report(k: int, r: dict) -> dict:
     if cpu:
         print("  CPU per node: " + ", ".join(f"{n} {c:.0%}" for n, c in cpu.items())
               + f" (total {sum(cpu.values()):.0%} of {os.cpu_count()} cores)")
+        print("  major page faults per node: " + ", ".join(f"{n} {k}" for n, k in r["major_faults"].items()))
     else:
         print("  CPU per node: not measured (the run ended within a sample period of the enable)")
     for name, key in (("tendon/state", "state_period"), ("mocap/markers", "mocap_period")):
@@ -269,6 +357,9 @@ def _report(k: int, r: dict) -> dict:
               f"reported in the run {d['state_to_command_p99_worst_ms']:.2f} ms; "
               f"{d['unmatched_commands']:.0f} commands matched no state")
         print(f"  activate to the first motor command: {d['activate_to_first_command_ms']:.1f} ms")
+    for cpu, st in (r["stalls"] or {}).items():
+        print(f"  {cpu} stalls > {STALL_MS:.0f} ms: {st['count']}" + "".join(
+            f"; {late:.1f} ms at {t:.2f} s (steal {steal:.0f} ms)" for t, late, steal in st["longest"][:3]))
     rec = r["recording"]
     print(f"  recorder: {rec['messages']} messages, {rec['rate_per_s']:.0f} messages/s, {rec['lost']} lost"
           + (f" ({rec['lost_by_topic']})" if rec["lost"] else ""))

@@ -13,14 +13,17 @@ the nodes need of a CPU, shape how:
   real-time nodes took 127 s to start once;
 - equal FIFO priorities do not preempt: the emulated hardware runs below every node
   (:data:`HARDWARE_PRIORITY`), not at the driver's priority, where a plant thread catching up held
-  a core the driver waited for. Under the normal policy instead (tried: niceness -10) a lab PC's
-  other work delayed it past the driver's reply timeout;
+  a core the driver waited for. Under the normal policy instead (tried: niceness -10, and -20 on
+  a CPU of its own) a lab PC's other work delayed it past the driver's reply timeout;
 - the motors' loop (the driver and the inner loop, which its watchdog watches) keeps its CPU to
   itself: the mocap bridge, whose frames feed the outer loop at the camera's rate, runs on the
   emulated hardware's CPU (:data:`BESIDE_HARDWARE`), as the Motive server it reads is there. With
   the three on one CPU, on a computer half as fast, they needed 68-91 % of it and bursts held the
   inner loop past the watchdog (``bench_emulated_rig.py``: 0 valid runs in 3, each ended by a
-  50-81 ms gap in the commands; with the bridge beside the hardware, 3 valid in 3).
+  50-81 ms gap in the commands; with the bridge beside the hardware, 3 valid in 3). The bridge
+  stays under SCHED_FIFO there: under the normal policy (niceness -20) some of its frames were
+  stamped no later than the frame before (2-46 in each of 7 runs of 23; in none of 16 under
+  SCHED_FIFO).
 
 Every thread of a process is set (a thread inherits its creator's policy and CPUs from then on).
 """
