@@ -125,6 +125,24 @@ def test_the_mocap_calibration_of_an_arm_file_is_the_one_the_markers_come_throug
     assert np.allclose(bare.plant.as_mocap_reports(points), plain.plant.as_mocap_reports(points))
 
 
+def test_the_frame_error_then_the_bridge_correction_make_the_reports(tmp_path):
+    """as_mocap_reports (one affine map, composed once) is the frame error applied first and the
+    bridge's correction after it, for a correction that does not undo the error (the order shows)."""
+    from scipy.spatial.transform import Rotation
+    from soft_arm_model.identification import Registration
+    points = np.array([[0.01, -0.02, -0.3], [0.05, 0.1, -0.2], [0.0, 0.0, 0.0]])
+    correction = Registration(Rotation.from_rotvec([0.3, -0.2, 0.1]).as_matrix(),
+                              np.array([0.01, 0.02, -0.03]))
+    arm_file = _identified_arm_file(tmp_path / "a.yaml", load_arm_config(), correction)
+    plant = load_setup("coiling", overrides=FRAME_ERROR, arm_file=arm_file).plant
+    rotvec, translation = plant.mocap_frame_error
+    rotation, shift = (np.asarray(a, dtype=float) for a in plant.bridge_correction)
+    assert not np.allclose(rotation, np.eye(3))
+    reported = points @ Rotation.from_rotvec(rotvec).as_matrix().T + np.asarray(translation)
+    assert np.allclose(plant.as_mocap_reports(points), reported @ rotation.T + shift, atol=1e-12)
+    assert np.allclose(plant.as_mocap_reports(points[0]), plant.as_mocap_reports(points)[0])
+
+
 def test_the_plant_stays_the_same_arm_whatever_arm_file_the_controller_is_given(tmp_path):
     """plant.yaml's differences apply to arm.yaml, not to the controller's arm file: an identified
     arm changes what the controller believes, not the arm it controls."""
