@@ -104,12 +104,13 @@ def context():
     rclpy.try_shutdown(context=ctx)
 
 
-def spin_until(executor, predicate, timeout: float = 10.0):
-    """Spin ``executor`` until ``predicate()`` holds; AssertionError after ``timeout`` [s]."""
+def spin_until(executor, predicate, timeout: float = 10.0, unless_ended=None):
+    """Spin ``executor`` until ``predicate()`` holds, or until the process ``unless_ended`` (if
+    given) has ended; AssertionError after ``timeout`` [s]."""
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         executor.spin_once(timeout_sec=0.005)
-        if predicate():
+        if predicate() or (unless_ended is not None and unless_ended.poll() is not None):
             return
     raise AssertionError(f"timed out after {timeout} s")
 

@@ -257,13 +257,14 @@ def test_a_driver_deactivated_from_elsewhere_ends_the_run_as_no_result(tmp_path,
         try:
             time.sleep(1.0)
             client = operator.create_client(ChangeState, "/motor_driver/change_state")
-            spin_until(executor, client.service_is_ready)
-            future = client.call_async(ChangeState.Request(transition=Transition(label="deactivate")))
-            # unanswered when a fault ended the run first (a loaded machine): the driver is gone
-            deadline = time.monotonic() + 10.0
-            while not future.done() and proc.poll() is None and time.monotonic() < deadline:
-                executor.spin_once(timeout_sec=0.005)
-            deactivated = future.done() and future.result().success
+            # not found, or unanswered, when a fault ended the run first (a loaded machine): the
+            # driver is gone
+            spin_until(executor, client.service_is_ready, 30.0, unless_ended=proc)
+            deactivated = False
+            if client.service_is_ready():
+                future = client.call_async(ChangeState.Request(transition=Transition(label="deactivate")))
+                spin_until(executor, future.done, 60.0, unless_ended=proc)
+                deactivated = future.done() and future.result().success
         finally:
             executor.shutdown()
             operator.destroy_node()
