@@ -101,16 +101,20 @@ def _children(parent: int) -> list:
 
 
 def _nodes(parent: int) -> dict:
-    """The experiment's node processes: module name -> pid, and a node's own worker process (the
-    emulated hardware of emulated_rig) as ``<node>/hardware``."""
+    """The experiment's node processes: module name -> pid, a node's own worker process (the
+    emulated hardware of emulated_rig) as ``<node>/hardware`` and the worker's Motive server as
+    ``<node>/motive``."""
     out = {}
     for pid, args in _children(parent):
         if "-m" in args:
             name = args[args.index("-m") + 1].rsplit(".", 1)[-1]
             out[name] = pid
             for child, child_args in _children(pid):
-                if any("multiprocessing" in a for a in child_args):
+                if any("spawn_main" in a for a in child_args):
                     out[f"{name}/hardware"] = child
+                    for motive, motive_args in _children(child):
+                        if "soft_arm_drivers.sim.emulated_motive" in motive_args:
+                            out[f"{name}/motive"] = motive
     return out
 
 

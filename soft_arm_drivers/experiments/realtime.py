@@ -10,7 +10,11 @@ the nodes need of a CPU, shape how:
   loop on its CPU waits 50 ms each second). So the emulated hardware, which stands for a machine
   that takes no CPU on the rig, runs on a CPU of its own (:func:`hardware_cpu`) that the nodes keep
   off, from when their set-up (seconds of computing) is done: set up on one CPU, the three
-  real-time nodes took 127 s to start once;
+  real-time nodes took 127 s to start once. Its Motive server is a process of its own
+  (:mod:`soft_arm_drivers.sim.emulated_motive`), not scheduled here: under the normal policy it
+  takes nothing from that CPU's budget. As a thread of the hardware's process it did (the hardware
+  took 50-60 % of its CPU, then 36-40 %), and every fault of a batch under load came with the
+  budget's 40-58 ms stall of that CPU (``bench_emulated_rig.py --probe``); without it none did;
 - equal FIFO priorities do not preempt: the emulated hardware runs below every node
   (:data:`HARDWARE_PRIORITY`), not at the driver's priority, where a plant thread catching up held
   a core the driver waited for. Under the normal policy instead (tried: niceness -10, and -20 on

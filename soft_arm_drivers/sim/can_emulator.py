@@ -25,7 +25,6 @@ an error code, or reports a temperature.
 """
 from __future__ import annotations
 
-import bisect
 import os
 import threading
 import time
@@ -42,6 +41,7 @@ from soft_arm_drivers.can.mit_protocol import (COMMAND_LENGTH, ENTER_MOTOR_MODE,
 from soft_arm_drivers.can.motor_driver import HOST_ID
 from soft_arm_model import load_arm_config
 
+from .configuration_history import ConfigurationHistory
 from .plant_config import load_plant_config
 from .simulated_rig import Plant
 
@@ -84,7 +84,8 @@ class CanMotorEmulator:
                  timestep: Optional[float] = None, reply_delay: float = 0.0,
                  encoder_resolution: float = 0.0, encoder_noise: float = 0.0,
                  extended_replies: bool = True, temperature: int = 30, zero_spread: float = 1.0,
-                 seed: int = 0, start_time: float = 0.0, host_id: int = HOST_ID):
+                 seed: int = 0, start_time: float = 0.0, host_id: int = HOST_ID,
+                 history: Optional[ConfigurationHistory] = None):
         if plant is not None and timestep is not None and abs(timestep - plant.stepper.dt) > _EPS:
             raise ValueError(f"timestep {timestep} s differs from the plant's {plant.stepper.dt} s")
         dt = plant.stepper.dt if plant is not None else (1e-3 if timestep is None else timestep)
@@ -106,12 +107,17 @@ class CanMotorEmulator:
         self._base, self._k, self._now = float(start_time), 0, float(start_time)
         self._replies: deque = deque()              # (due time [s], motor index), due times ascending
         self._last_arrival = float(start_time)
-        self._history: deque = deque(maxlen=HISTORY)  # (time [s], q) after each plant step
+        n = None if plant is None else len(plant.q)
+        if history is not None and (history.n != n or abs(history.dt - dt) > _EPS):
+            raise ValueError(f"the history holds {history.n} coordinates every {history.dt} s, the "
+                             f"plant has {n} every {dt} s")
+        self.history = None if plant is None else history or ConfigurationHistory(n, HISTORY, dt)
         self.tensions = np.zeros(len(motors))       # applied to the plant in the latest step [N]
         self.replies_sent = 0
         if plant is not None:
             plant.sense()
             self._s, self._sd = plant.tendons()
+            self.history.append(self._now, plant.q)
         else:
             self._s, self._sd = np.zeros(len(motors)), np.zeros(len(motors))
 
@@ -223,19 +229,16 @@ class CanMotorEmulator:
             self._s, self._sd = self.plant.tendons()
         self._k += 1
         if self.plant is not None:
-            self._history.append((self._base + self._k * self.dt, self.plant.q))
+            self.history.append(self._base + self._k * self.dt, self.plant.q)
 
     def configuration_at(self, t: float) -> np.ndarray:
         """The plant's configuration q at time ``t`` [s, the emulator's clock]: the latest of the
-        last ``HISTORY`` steps at or before ``t`` (the oldest kept if ``t`` is older). For another
-        thread sampling the plant at its own times (a camera exposure)."""
+        start and the last steps kept in :attr:`history` at or before ``t`` (the oldest kept if
+        ``t`` is older). For another thread sampling the plant at its own times (a camera
+        exposure); another process reads the same from a shared :attr:`history`."""
         if self.plant is None:
             raise RuntimeError("an emulator without a plant has no configuration")
-        history = list(self._history)              # a snapshot: the stepping thread appends
-        if not history:
-            return self.plant.q
-        k = bisect.bisect_right(history, t + _EPS, key=lambda h: h[0]) - 1
-        return history[max(k, 0)][1]
+        return self.history.at(t)
 
     # -- frames ----------------------------------------------------------------------------------
     def _drain(self, arrival: float):

@@ -1,11 +1,14 @@
 """The emulated hardware of the rig: the CAN motors with the simulated arm behind them and the Motive
-(NatNet) server streaming the same arm, in the driver's process or in a process of its own.
+(NatNet) server streaming the same arm, in the driver's process or in processes of their own.
 
 :func:`start_hardware` starts both on a given bus (threads of the calling process); the
 :class:`HardwareProcess` runs them in a child process on the project's cross-process CAN bus
 (:mod:`soft_arm_drivers.can.loopback_bus`), as on the rig, where the arm is not in the driver's
-process and the driver's cycle does not compete for its interpreter lock with the plant it drives.
-The child ends when the parent closes it or dies (it watches a pipe to the parent).
+process and the driver's cycle does not compete for its interpreter lock with the plant it drives;
+there the Motive server is a process of the child's own (:class:`~.emulated_motive.MotiveProcess`),
+as Motive runs on a computer of its own, reading the arm from a shared history of its
+configurations. The child ends when the parent closes it or dies (it watches a pipe to the
+parent), and the Motive server with it.
 """
 from __future__ import annotations
 
@@ -19,11 +22,12 @@ import numpy as np
 
 from soft_arm_drivers.can.driver_config import DriverConfig
 from soft_arm_drivers.can.loopback_bus import LoopbackBus, parse_channel
-from soft_arm_model import ArmConfig, ArmData, marker_positions
+from soft_arm_model import ArmConfig
 from soft_arm_model.parameters import ConfigError
 
-from .can_emulator import CanMotorEmulator, EmulatorThread
-from .natnet_emulator import NatNetEmulator
+from .can_emulator import HISTORY, CanMotorEmulator, EmulatorThread
+from .configuration_history import ConfigurationHistory
+from .emulated_motive import MotiveProcess, start_motive
 from .plant_config import PlantConfig
 from .simulated_rig import Plant
 
@@ -41,67 +45,61 @@ class HardwareSpec:
 
 
 class Hardware:
-    """The running emulators: the motors' thread and the NatNet server; :meth:`close` stops both
-    (and raises what stopped the motors' thread, if anything did)."""
+    """The running emulators: the motors' thread and the Motive server (a NatNet server thread or a
+    :class:`~.emulated_motive.MotiveProcess`); :meth:`close` stops both (and raises what stopped the
+    motors' thread, if anything did)."""
 
-    def __init__(self, motors: EmulatorThread, natnet: NatNetEmulator):
-        self.motors, self.natnet = motors, natnet
+    def __init__(self, motors: EmulatorThread, motive):
+        self.motors, self.motive = motors, motive
 
     @property
     def error(self):
-        return self.motors.error
+        """What stopped the motors' thread or the Motive server's process (None while both run)."""
+        return self.motors.error or getattr(self.motive, "error", None)
 
     def close(self):
         try:
             self.motors.stop()
         finally:
-            self.natnet.close()
+            self.motive.close()
 
 
-def start_hardware(spec: HardwareSpec, bus: can.BusABC) -> Hardware:
+def start_hardware(spec: HardwareSpec, bus: can.BusABC, motive_process: bool = False) -> Hardware:
     """The motor emulator on ``bus`` (motors out of motor mode with arbitrary zeros, the arm hanging
-    with slack tendons) and the NatNet server emulator of the same plant. ConfigError when the
-    Motive server's address cannot be bound."""
-    c, emulator, mocap, p = spec.driver, spec.emulator, spec.mocap, spec.plant
+    with slack tendons) and the NatNet server emulator of the same plant: a thread of this process,
+    or with ``motive_process`` a process of its own reading a shared history of the plant.
+    ConfigError when the Motive server's address cannot be bound."""
+    c, emulator, p = spec.driver, spec.emulator, spec.plant
     plant = Plant.of(spec.arm, p)
     plant.settle(np.zeros(plant.model.n_tendons))
-    data = ArmData(plant.model)
-    _compile_kernels(plant, data)
-    motors = CanMotorEmulator.for_config(
-        c, bus, plant, reply_delay=emulator["reply_delay"], encoder_resolution=p.encoder_resolution,
-        zero_spread=emulator["zero_spread"], seed=emulator["seed"], start_time=time.time())
-    thread = EmulatorThread(motors).start()
-    rng = np.random.default_rng(p.mocap_seed)
-
-    def markers(t: float) -> np.ndarray:
-        """On the NatNet thread: the plant at the exposure time ``t`` [s, system time]."""
-        true = marker_positions(plant.model, motors.configuration_at(t), data)
-        return p.as_mocap_reports(true) + rng.normal(0.0, p.mocap_noise, true.shape)
-
-    ids = {"rigid_body_ids" if mocap.source == "rigid_bodies" else "labeled_marker_ids": mocap.ids}
+    _compile_kernels(plant)
+    history = ConfigurationHistory.shared(plant.model.n, HISTORY, p.timestep) if motive_process else None
     try:
-        natnet = NatNetEmulator(
-            markers, version=emulator["natnet_version"], rate=p.mocap_rate, layout="both",
-            calibration=mocap.calibration, address=mocap.server_address,
-            command_port=mocap.command_port, latency=p.mocap_latency, **ids).start()
-    except OSError as exc:
-        thread.stop()
-        raise ConfigError(f"rig.mocap.command_port = {mocap.command_port}: the emulated Motive "
-                          f"server cannot bind {mocap.server_address}:{mocap.command_port}: "
-                          f"{exc.strerror}") from None
-    return Hardware(thread, natnet)
+        motors = CanMotorEmulator.for_config(
+            c, bus, plant, reply_delay=emulator["reply_delay"], encoder_resolution=p.encoder_resolution,
+            zero_spread=emulator["zero_spread"], seed=emulator["seed"], start_time=time.time(),
+            history=history)
+        thread = EmulatorThread(motors).start()
+        try:
+            motive = MotiveProcess(spec, history) if motive_process else \
+                start_motive(spec, plant.model, motors.configuration_at)
+        except BaseException:
+            thread.stop()
+            raise
+    finally:
+        if history is not None:
+            history.unlink()                # mapped by both processes now, or by none
+    return Hardware(thread, motive)
 
 
-def _compile_kernels(plant: Plant, data: ArmData):
-    """Run every kernel the motors' and the NatNet threads call once, the plant's state kept: on a
-    cold numba cache (a fresh install) they compile here, before the hardware reports ready, not
-    in the first cycles after the driver enables the motors, where a stalled reply trips its
-    watchdog."""
+def _compile_kernels(plant: Plant):
+    """Run every kernel the motors' thread calls once, the plant's state kept: on a cold numba
+    cache (a fresh install) they compile here, before the hardware reports ready, not in the first
+    cycles after the driver enables the motors, where a stalled reply trips its watchdog."""
     q, qd = plant.q.copy(), plant.qd.copy()
     plant.sense(markers=True)
     plant.step(np.zeros(plant.model.n_tendons))
     plant.q, plant.qd = q, qd
-    marker_positions(plant.model, q, data)
 
 
 def peer_channel(channel: str) -> str:
@@ -111,22 +109,23 @@ def peer_channel(channel: str) -> str:
 
 
 def _serve(spec: HardwareSpec, conn):
-    """The child: the hardware on the bus's other end until the parent closes the pipe or dies.
+    """The child: the hardware on the bus's other end (the Motive server in a process of its own)
+    until the parent closes the pipe or dies, or the motors' thread or the Motive server stops.
     Reports ``("ready", natnet command port, objects frozen out of the garbage collector)`` or
     ``("error", message)`` on the pipe.
 
     What the set-up allocated (the model, compiled kernels, scipy: some 1.5e5 objects) is collected
     once and frozen out of the garbage collector, as every node's process does
     (:func:`soft_arm_ros.runtime.run_node`): a full collection walking them holds the interpreter
-    lock, and with it the motors' and the NatNet threads, for 50-300 ms (measured, *ad hoc*), past
+    lock, and with it the motors' thread, for 50-300 ms (measured, *ad hoc*), past
     the driver's reply timeout: the motors fall silent and the driver faults."""
     bus = hardware = None
     try:
         bus = LoopbackBus(peer_channel(spec.driver.channel), preserve_timestamps=True)
-        hardware = start_hardware(spec, bus)
+        hardware = start_hardware(spec, bus, motive_process=True)
         gc.collect()
         gc.freeze()
-        conn.send(("ready", hardware.natnet.command_port, gc.get_freeze_count()))
+        conn.send(("ready", hardware.motive.command_port, gc.get_freeze_count()))
         while hardware.error is None:
             if conn.poll(0.2):               # the parent said stop, or its end closed (it died)
                 try:

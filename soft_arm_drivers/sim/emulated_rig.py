@@ -12,7 +12,8 @@ Motive server, so that the rig's graph runs without the rig.
 
 With ``rig.motors.interface`` ``soft_arm_loopback`` (the default) the motors and the arm run in a
 process of their own, as on the rig (:class:`.emulated_hardware.HardwareProcess`), on the project's
-cross-process bus (channel ``"LOCAL:PEER"``: the driver's UDP port and the motors'); with
+cross-process bus (channel ``"LOCAL:PEER"``: the driver's UDP port and the motors'), and the Motive
+server in another, under the normal scheduling policy (:mod:`.emulated_motive`); with
 ``virtual`` they run on threads of this process (python-can's in-process bus), where the driver's
 cycle competes with the plant for the interpreter lock. A hardware process that dies is hardware
 gone: the driver faults on the motors' silence.
@@ -130,7 +131,7 @@ class EmulatedRigNode(MotorDriverNode):
         else:
             self._bus = can.Bus(interface="virtual", channel=c.channel, preserve_timestamps=True)
             self._hardware = start_hardware(spec, self._bus)
-            where, port = f"virtual bus {c.channel!r}", self._hardware.natnet.command_port
+            where, port = f"virtual bus {c.channel!r}", self._hardware.motive.command_port
         self.get_logger().info(
             f"emulated rig: motors ({where}) with the plant of plant.yaml, NatNet server on "
             f"{self.mocap_config.server_address}:{port} at {self.plant_config.mocap_rate:g} Hz")

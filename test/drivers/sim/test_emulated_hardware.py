@@ -1,8 +1,11 @@
 """The emulated motors and arm in a process of their own, on the project's cross-process CAN bus:
 the motor driver drives them like the in-process emulation, and when their process is killed the
-driver latches a fault on the silence and sends nothing but zero torque from then on."""
+driver latches a fault on the silence and sends nothing but zero torque from then on. Their Motive
+server runs in another process, under the normal policy, and ends with them."""
 import os
 import signal
+import subprocess
+import sys
 import time
 
 import numpy as np
@@ -11,6 +14,7 @@ import pytest
 from soft_arm_drivers.can.driver_config import load_driver_config
 from soft_arm_drivers.can.loopback_bus import INTERFACE, LoopbackBus, free_udp_ports
 from soft_arm_drivers.can.motor_driver import MotorDriver
+from soft_arm_drivers.experiments import realtime
 from soft_arm_drivers.mocap.bridge_config import load_mocap_config
 from soft_arm_drivers.sim.emulated_hardware import HardwareProcess, HardwareSpec
 from soft_arm_drivers.sim.emulated_rig import load_emulator_config, read_emulated_motors
@@ -94,3 +98,72 @@ def test_a_hardware_process_that_cannot_start_says_why():
             HardwareProcess(second).start()
     finally:
         hardware.stop()
+
+
+# the emulated hardware started by a process under SCHED_FIFO, as the emulated_rig node is
+UNDER_FIFO = f"""
+import sys
+sys.path.insert(0, {os.path.dirname(__file__)!r})
+from test_emulated_hardware import _spec
+from soft_arm_drivers.sim.emulated_hardware import HardwareProcess
+hardware = HardwareProcess(_spec()).start()
+print(hardware.pid, hardware.command_port, flush=True)
+sys.stdin.read()
+hardware.stop()
+"""
+
+
+def _ended(pid):
+    """Whether process ``pid`` is gone or a zombie (its parent killed, nobody may reap it here)."""
+    try:
+        with open(f"/proc/{pid}/stat", encoding="utf-8") as fh:
+            return fh.read().rsplit(")", 1)[1].split()[0] == "Z"
+    except FileNotFoundError:
+        return True
+
+
+@pytest.mark.skipif(not realtime.permitted(realtime.HARDWARE_PRIORITY),
+                    reason="SCHED_FIFO is not permitted here")
+def test_the_motive_server_runs_apart_under_the_normal_policy_and_ends_with_the_hardware():
+    def under_fifo():
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(realtime.HARDWARE_PRIORITY))
+
+    proc = subprocess.Popen([sys.executable, "-c", UNDER_FIFO], stdin=subprocess.PIPE,
+                            stdout=subprocess.PIPE, text=True, preexec_fn=under_fifo)
+    try:
+        hardware, command_port = (int(v) for v in proc.stdout.readline().split())
+        motive = [pid for pid in realtime.child_processes(hardware)
+                  if b"soft_arm_drivers.sim.emulated_motive" in open(f"/proc/{pid}/cmdline", "rb").read()]
+        assert len(motive) == 1, motive
+        motive = motive[0]
+        # the hardware inherits its creator's policy; its Motive server, a process of its own, not
+        assert os.sched_getscheduler(hardware) == os.SCHED_FIFO
+        assert {os.sched_getscheduler(tid) for tid in realtime.threads(motive)} == {os.SCHED_OTHER}
+        assert len(realtime.threads(motive)) >= 2             # its main thread and the NatNet server's
+        assert not any(t.startswith(b"natnet") for t in _thread_names(hardware))
+        # the server answers a NatNet client on the reported port
+        assert _answers(command_port)
+        os.kill(hardware, signal.SIGKILL)
+        deadline = time.monotonic() + 10.0
+        while not _ended(motive) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert _ended(motive)
+    finally:
+        proc.kill()
+        proc.wait()
+
+
+def _thread_names(pid):
+    return [open(f"/proc/{pid}/task/{tid}/comm", "rb").read().strip() for tid in realtime.threads(pid)]
+
+
+def _answers(command_port) -> bool:
+    """Whether a NatNet connect request to 127.0.0.1:command_port gets the server's info."""
+    import socket
+
+    from soft_arm_drivers.mocap.natnet import MessageId, build_connect_request, parse_packet
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        sock.settimeout(5.0)
+        sock.sendto(build_connect_request(), ("127.0.0.1", command_port))
+        message_id, _ = parse_packet(sock.recv(65536))
+    return message_id == MessageId.NAT_SERVERINFO
