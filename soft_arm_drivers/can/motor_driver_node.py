@@ -48,6 +48,7 @@ import time
 import can
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 import numpy as np
+from rclpy.clock import Clock, ClockType
 from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 
@@ -84,6 +85,7 @@ class MotorDriverNode(ManagedHardwareNode):
         self.check_config(c)
         self.driver: MotorDriver | None = None
         self._timer = None
+        self._steady = Clock(clock_type=ClockType.STEADY_TIME)     # the cycle's: no steps, no sim time
         self.incomplete_cycles = self.malformed_commands = 0
         self.latency = CommandLatency()
         self.activated_at = self.first_command_after = None    # monotonic [s]; activate -> command [s]
@@ -120,7 +122,7 @@ class MotorDriverNode(ManagedHardwareNode):
             driver.close()
             return self.refuse("configure", driver.fault)
         self.driver = driver
-        self._timer = self.create_timer(1.0 / c.rate, self.tick)
+        self._timer = self.create_timer(1.0 / c.rate, self.tick, clock=self._steady)
         self.get_logger().info(f"motor driver configured: {len(c.motors)} motors answer on "
                                f"{c.interface} {c.channel}, out of motor mode (activate to drive them)")
         return SUCCESS

@@ -146,6 +146,34 @@ def rig(context):
         bus.shutdown()
 
 
+def test_the_cycle_keeps_the_steady_clock_when_the_graph_runs_on_simulated_time(context):
+    """With ``use_sim_time`` and no /clock (a bag replayed, a simulator stopped), ROS time stands
+    still: a cycle timed by it would never run and the motors would go unwatched. The driver's
+    cycle follows the steady clock."""
+    name = channel()
+    cfg = load_driver_config(overrides={"interface": "virtual", "channel": name})
+    bus = can.Bus(interface="virtual", channel=name, preserve_timestamps=True)
+    server = EmulatorThread(CanMotorEmulator.for_config(cfg, bus, SpringTendons(), start_time=time.time()))
+    server.start()
+    node = MotorDriverNode(context=context, parameter_overrides=rig_parameters(name) + [
+        Parameter("use_sim_time", value=True)])
+    harness = Harness(context)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    executor.add_node(harness.node)
+    try:
+        assert node.get_clock().ros_time_is_active
+        assert change(executor, harness, "configure")
+        spin_until(executor, lambda: len(harness.states) >= 50, timeout=5.0)
+    finally:
+        executor.shutdown()
+        node.close()
+        node.destroy_node()
+        harness.node.destroy_node()
+        server.stop()
+        bus.shutdown()
+
+
 def test_node_drives_the_emulated_rig_through_its_lifecycle_topics_and_services(rig):
     executor, node, harness, emulator = rig
     # unconfigured: no bus, no state; what needs a configured driver is refused
