@@ -7,14 +7,16 @@ Runs ``soft-arm-experiment <task> --emulated-hardware`` (each node its own proce
 ``--runs`` times in a row and reports, per run: whether it is valid (a run the motor driver faulted
 in is not: its failure), the task metrics (steady RMS, transitions in the mm band, best mm- and
 cm-band task velocities), whether real-time scheduling was granted; the CPU share of each node
-process (and of soft-arm-experiment, which orchestrates them) over the enabled run (from /proc,
+process (and of soft-arm-experiment, which orchestrates them; the emulated hardware and its Motive
+server as ``emulated_rig/hardware`` and ``emulated_rig/motive``) over the enabled run (from /proc,
 sampled every 0.5 s from the enable until 2 s before the task's end or the driver's deactivation:
 each process between its first and its last sample, so that a run a fault ended early is measured
 too) and its major page faults over the same span;
 from the bag, the motors' state period (p50, p99, max, stamps not increasing), the mocap frame period
 and the driver's own cycle statistics (its last /diagnostics: period p50/p99/max, p99 error, deadline
-misses; the state-to-command latency through the graph, p50/p99/max of its last 1000 answers and the
-worst p99 it reported during the run; the time from its activation to the first command), the
+misses; its longest period reported during the run; the state-to-command latency through the
+graph, p50/p99/max of its last 1000 answers and the worst p99 it reported during the run; the time
+from its activation to the first command), the
 recorder's messages, their rate and its lost-message count; then over the runs: the valid ones, the
 worst RMS and mm band, the cm-band velocity spread. ``--load N`` runs N other CPU-bound processes
 beside the runs (a lab PC's other work: single-threaded 200x200 matrix products, normal policy).
