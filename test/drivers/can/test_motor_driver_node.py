@@ -124,13 +124,18 @@ class SpringTendons:
 @pytest.fixture
 def rig(context):
     """Emulator with spring tendons, served in real time; the node and the harness on one executor."""
+    yield from _rig(context)
+
+
+def _rig(context, *parameters):
+    """The ``rig`` fixture's (executor, node, harness, emulator), the node with more ``parameters``."""
     name = channel()
     cfg = load_driver_config(overrides={"interface": "virtual", "channel": name})
     bus = can.Bus(interface="virtual", channel=name, preserve_timestamps=True)
     emulator = CanMotorEmulator.for_config(cfg, bus, SpringTendons(), reply_delay=2e-4,
                                            start_time=time.time())
     server = EmulatorThread(emulator).start()
-    node = MotorDriverNode(context=context, parameter_overrides=rig_parameters(name))
+    node = MotorDriverNode(context=context, parameter_overrides=rig_parameters(name) + list(parameters))
     harness = Harness(context)
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(node)
@@ -150,28 +155,14 @@ def test_the_cycle_keeps_the_steady_clock_when_the_graph_runs_on_simulated_time(
     """With ``use_sim_time`` and no /clock (a bag replayed, a simulator stopped), ROS time stands
     still: a cycle timed by it would never run and the motors would go unwatched. The driver's
     cycle follows the steady clock."""
-    name = channel()
-    cfg = load_driver_config(overrides={"interface": "virtual", "channel": name})
-    bus = can.Bus(interface="virtual", channel=name, preserve_timestamps=True)
-    server = EmulatorThread(CanMotorEmulator.for_config(cfg, bus, SpringTendons(), start_time=time.time()))
-    server.start()
-    node = MotorDriverNode(context=context, parameter_overrides=rig_parameters(name) + [
-        Parameter("use_sim_time", value=True)])
-    harness = Harness(context)
-    executor = SingleThreadedExecutor(context=context)
-    executor.add_node(node)
-    executor.add_node(harness.node)
+    rig = _rig(context, Parameter("use_sim_time", value=True))
+    executor, node, harness, _ = next(rig)
     try:
         assert node.get_clock().ros_time_is_active
         assert change(executor, harness, "configure")
         spin_until(executor, lambda: len(harness.states) >= 50, timeout=5.0)
     finally:
-        executor.shutdown()
-        node.close()
-        node.destroy_node()
-        harness.node.destroy_node()
-        server.stop()
-        bus.shutdown()
+        rig.close()
 
 
 def test_node_drives_the_emulated_rig_through_its_lifecycle_topics_and_services(rig):
