@@ -68,8 +68,9 @@ class MotiveProcess:
     ConfigError with the process's reason otherwise, or after ``timeout`` [s]."""
 
     def __init__(self, spec, history: ConfigurationHistory, timeout: float = 60.0):
+        # unbuffered: a line read must not pull the next into a buffer that select() cannot see
         self._process = subprocess.Popen([sys.executable, "-m", __name__], stdin=subprocess.PIPE,
-                                         stdout=subprocess.PIPE)
+                                         stdout=subprocess.PIPE, bufsize=0)
         try:
             pickle.dump((spec, history.path, history.n, history.rows, history.dt), self._process.stdin)
             self._process.stdin.flush()
