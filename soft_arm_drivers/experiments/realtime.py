@@ -13,7 +13,7 @@ the nodes need of a CPU, shape how:
   real-time nodes took 127 s to start once. Its Motive server is a process of its own
   (:mod:`soft_arm_drivers.sim.emulated_motive`), not scheduled here: under the normal policy it
   takes nothing from that CPU's budget. As a thread of the hardware's process it did (the hardware
-  took 50-60 % of its CPU, since 33-41 %), and every fault of a batch under load came with the
+  took a median 50 % of its CPU, since 37 %), and every fault of a batch under load came with the
   budget's 40-58 ms stall of that CPU (``bench_emulated_rig.py --probe``); in 15 runs since, none;
 - equal FIFO priorities do not preempt: the emulated hardware runs below every node
   (:data:`HARDWARE_PRIORITY`), not at the driver's priority, where a plant thread catching up held
