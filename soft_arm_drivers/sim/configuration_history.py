@@ -50,13 +50,14 @@ class ConfigurationHistory:
 
     @classmethod
     def open(cls, path: str, n: int, rows: int, dt: float) -> "ConfigurationHistory":
-        """The shared history at ``path`` (made by :meth:`shared` with the same n, rows, dt)."""
+        """The shared history at ``path`` (made by :meth:`shared` with the same n, rows, dt), mapped
+        read-only: the writer is the process that made it."""
         expected = (rows + 1) * (n + 1) * 8
         size = os.path.getsize(path)
         if size != expected:
             raise ValueError(f"{path} holds {size} bytes, not the {expected} of a history of "
                              f"{rows} rows of {n} coordinates")
-        return cls(n, rows, dt, np.memmap(path, dtype=np.float64, mode="r+", shape=(rows + 1, n + 1)),
+        return cls(n, rows, dt, np.memmap(path, dtype=np.float64, mode="r", shape=(rows + 1, n + 1)),
                    path)
 
     def unlink(self):

@@ -47,7 +47,7 @@ def test_the_ring_keeps_all_but_the_row_the_writer_reuses_next():
     np.testing.assert_array_equal(q, [29, -29, 58])
 
 
-def test_another_process_reads_the_shared_history_as_it_grows(tmp_path):
+def test_another_process_reads_the_shared_history_as_it_grows():
     history = ConfigurationHistory.shared(3, 16, DT)
     try:
         assert os.path.exists(history.path)
@@ -81,6 +81,8 @@ for line in sys.stdin:
 def test_a_history_file_of_another_shape_is_refused():
     history = ConfigurationHistory.shared(3, 16, DT)
     try:
+        with pytest.raises(ValueError, match="read-only"):      # a reader cannot write
+            ConfigurationHistory.open(history.path, 3, 16, DT).append(0.0, [0, 0, 0])
         with pytest.raises(ValueError, match="not the"):
             ConfigurationHistory.open(history.path, 4, 16, DT)
     finally:

@@ -4,6 +4,7 @@ driver latches a fault on the silence and sends nothing but zero torque from the
 server runs in another process, under the normal policy, and ends with them."""
 import os
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -16,6 +17,7 @@ from soft_arm_drivers.can.loopback_bus import INTERFACE, LoopbackBus, free_udp_p
 from soft_arm_drivers.can.motor_driver import MotorDriver
 from soft_arm_drivers.experiments import realtime
 from soft_arm_drivers.mocap.bridge_config import load_mocap_config
+from soft_arm_drivers.mocap.natnet import MessageId, build_connect_request, parse_packet
 from soft_arm_drivers.sim.emulated_hardware import HardwareProcess, HardwareSpec
 from soft_arm_drivers.sim.emulated_rig import load_emulator_config, read_emulated_motors
 from soft_arm_drivers.sim.plant_config import load_plant_config
@@ -161,9 +163,6 @@ def _thread_names(pid):
 
 def _answers(command_port) -> bool:
     """Whether a NatNet connect request to 127.0.0.1:command_port gets the server's info."""
-    import socket
-
-    from soft_arm_drivers.mocap.natnet import MessageId, build_connect_request, parse_packet
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
         sock.settimeout(5.0)
         sock.sendto(build_connect_request(), ("127.0.0.1", command_port))
