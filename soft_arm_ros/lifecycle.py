@@ -9,7 +9,12 @@ shutdown go back. ros2_control's hardware components use the same states.
   warning that names the state and its transitions; rclpy's own service raises out of the
   executor and would end the driver's process;
 - :func:`transition` makes a callback that raises log its reason (rclpy turns it into ``ERROR``
-  and says nothing); :meth:`~ManagedHardwareNode.refuse` logs why a transition fails;
+  and says nothing), and runs it holding the node's
+  :attr:`~ManagedHardwareNode.hardware_lock`; :meth:`~ManagedHardwareNode.refuse` logs why a
+  transition fails;
+- a transition asked for through the change_state service holds that lock from start to end, so
+  that a thread of the node's own (a driver's cycle) that triggers one, holding it, never runs
+  beside another;
 - :attr:`~ManagedHardwareNode.lifecycle_state`, the current state's label;
 - cleanup, shutdown and error processing all call the node's :meth:`~ManagedHardwareNode.release`
   (close the hardware), which its ``close()`` on the way out calls too.
@@ -17,6 +22,7 @@ shutdown go back. ros2_control's hardware components use the same states.
 from __future__ import annotations
 
 import functools
+import threading
 import traceback
 
 from rclpy.lifecycle import LifecycleNode, TransitionCallbackReturn
@@ -27,29 +33,38 @@ __all__ = ["FAILURE", "ManagedHardwareNode", "SUCCESS", "transition"]
 
 
 def transition(callback):
-    """Decorate a node's ``on_<transition>`` so that an exception in it is logged (then re-raised
-    for rclpy, which enters error processing)."""
+    """Decorate a node's ``on_<transition>`` so that it runs holding the node's ``hardware_lock``
+    and an exception in it is logged (then re-raised for rclpy, which enters error processing)."""
     @functools.wraps(callback)
     def logged(node, state):
-        try:
-            return callback(node, state)
-        except Exception:
-            node.get_logger().error(f"{callback.__name__[3:]} failed:\n{traceback.format_exc()}")
-            raise
+        with node.hardware_lock:
+            try:
+                return callback(node, state)
+            except Exception:
+                node.get_logger().error(f"{callback.__name__[3:]} failed:\n{traceback.format_exc()}")
+                raise
     return logged
 
 
 class ManagedHardwareNode(LifecycleNode):
     """A ``LifecycleNode`` whose change_state service refuses a transition the current state does
-    not have (with a warning) instead of raising out of the executor."""
+    not have (with a warning) instead of raising out of the executor.
+
+    :attr:`hardware_lock` (re-entrant) is held by every transition callback and by whatever
+    touches the hardware from a thread other than the executor's."""
 
     def __init__(self, node_name: str, **kwargs):
+        self.hardware_lock = threading.RLock()
         super().__init__(node_name, **kwargs)
         service = self._service_change_state
         change_state = service.callback
 
         def guarded(request, response):
             """rclpy's change_state, for the transitions the current state has."""
+            with self.hardware_lock:
+                return checked(request, response)
+
+        def checked(request, response):
             wanted = request.transition
             available = {(t[0], t[1]) for t in self._state_machine.available_transitions}
             if not any(label == wanted.label if wanted.label else i == wanted.id for i, label in available):

@@ -1,7 +1,8 @@
 """``motor_driver`` node: the rig's CAN motors (MIT protocol, torque mode) in the simulator's place.
 
-A thin shell around :class:`~soft_arm_drivers.can.motor_driver.MotorDriver`; a timer at ``rig.motors.rate``
-runs one driver cycle, on a monotonic clock, and
+A thin shell around :class:`~soft_arm_drivers.can.motor_driver.MotorDriver`; a thread of its own
+(:class:`~.periodic_thread.PeriodicThread`, apart from the executor, as a ros2_control hardware loop
+is) runs one driver cycle at ``rig.motors.rate`` on the monotonic clock, and
 
 - publishes ``tendon/state`` (sensor_msgs/JointState over ``arm.tendons.names``: position =
   shortening [m] from the straight arm, ``rig.motors.zero_shortening`` at the zeroing pose;
@@ -44,11 +45,11 @@ from __future__ import annotations
 import os
 import sys
 import time
+import traceback
 
 import can
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 import numpy as np
-from rclpy.clock import Clock, ClockType
 from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 
@@ -62,6 +63,7 @@ from soft_arm_ros.runtime import run_node
 from .command_latency import CommandLatency
 from .driver_config import NAMESPACE, SCHEMA, bus_load, parse_driver_config
 from .motor_driver import Diagnostics, MotorDriver
+from .periodic_thread import PeriodicThread
 
 DIAGNOSTICS_PERIOD = 0.5        # s between /diagnostics messages when nothing changes
 CONFIGURE_TIMEOUT = 1.0         # s configure waits for every motor's first answer
@@ -84,8 +86,9 @@ class MotorDriverNode(ManagedHardwareNode):
             raise ConfigError(f"{os.path.join(params.config_dir, 'rig.yaml')}: {exc}") from None
         self.check_config(c)
         self.driver: MotorDriver | None = None
-        self._timer = None
-        self._steady = Clock(clock_type=ClockType.STEADY_TIME)     # the cycle's: no steps, no sim time
+        self._cycle: PeriodicThread | None = None
+        self.failure: BaseException | None = None     # what ended the cycle thread, if anything did
+        self.done = False                             # run_node ends the spin when set
         self.incomplete_cycles = self.malformed_commands = 0
         self.latency = CommandLatency()
         self.activated_at = self.first_command_after = None    # monotonic [s]; activate -> command [s]
@@ -122,7 +125,8 @@ class MotorDriverNode(ManagedHardwareNode):
             driver.close()
             return self.refuse("configure", driver.fault)
         self.driver = driver
-        self._timer = self.create_timer(1.0 / c.rate, self.tick, clock=self._steady)
+        self._cycle = PeriodicThread(1.0 / c.rate, self.tick, lock=self.hardware_lock,
+                                     on_error=self._cycle_failed, name="motor_driver cycle").start()
         self.get_logger().info(f"motor driver configured: {len(c.motors)} motors answer on "
                                f"{c.interface} {c.channel}, out of motor mode (activate to drive them)")
         return SUCCESS
@@ -160,15 +164,31 @@ class MotorDriverNode(ManagedHardwareNode):
 
     def release(self):
         """Stop cycling; zero torque and exit motor mode on every motor; close the bus."""
-        if self._timer is not None:
-            self.destroy_timer(self._timer)
-            self._timer = None
-        driver, self.driver = self.driver, None
-        if driver is not None:
-            driver.close()
+        with self.hardware_lock:            # the cycle thread is between two cycles from here on
+            cycle, self._cycle = self._cycle, None
+            driver, self.driver = self.driver, None
+            try:
+                if cycle is not None:
+                    cycle.stop()
+            finally:
+                if driver is not None:
+                    driver.close()
+
+    def _cycle_failed(self, exc: BaseException):
+        """The cycle thread raised: zero torque, out of motor mode, the node's process ends (status 1)."""
+        self.failure, self.done = exc, True
+        self.get_logger().fatal("the driver's cycle failed, motors at zero torque, the node ends: "
+                                + "".join(traceback.format_exception(exc)))
+        with self.hardware_lock:
+            if self.driver is not None:
+                self.driver.estop()
 
     def on_command(self, msg: JointState):
         received = time.monotonic()
+        with self.hardware_lock:
+            self._on_command(msg, received)
+
+    def _on_command(self, msg: JointState, received: float):
         if self.driver is None:
             return
         self.latency.answered(stamp_to_seconds(msg.header.stamp), received)
@@ -185,8 +205,9 @@ class MotorDriverNode(ManagedHardwareNode):
         except ValueError as exc:
             self.get_logger().warning(f"command rejected: {exc}", throttle_duration_sec=1.0)
 
-    def tick(self):
-        state, diagnostics = self.driver.cycle(time.monotonic())
+    def tick(self, now: float):
+        """One driver cycle at ``now`` [s, monotonic], from the cycle thread, holding the hardware lock."""
+        state, diagnostics = self.driver.cycle(now)
         if state.complete:
             self.state_pub.publish(joint_state(self.names, state.stamp, position=state.shortening,
                                                velocity=state.rate, effort=state.tension))
@@ -246,6 +267,10 @@ class MotorDriverNode(ManagedHardwareNode):
         return out
 
     def on_estop(self, request, response):
+        with self.hardware_lock:
+            return self._estop(response)
+
+    def _estop(self, response):
         response.success = True
         if self.driver is None:
             response.message = f"e-stop: nothing to stop, the node is {self.lifecycle_state} (no bus open)"
@@ -262,6 +287,10 @@ class MotorDriverNode(ManagedHardwareNode):
         return response
 
     def on_zero(self, request, response):
+        with self.hardware_lock:
+            return self._zero(response)
+
+    def _zero(self, response):
         state = self.lifecycle_state
         if state != "inactive":
             response.success = False

@@ -165,6 +165,22 @@ def test_the_cycle_keeps_the_steady_clock_when_the_graph_runs_on_simulated_time(
         rig.close()
 
 
+def test_the_cycle_runs_apart_from_the_executor(rig):
+    """The cycle is a thread of the driver's own: the motors are polled, and the watchdog watches,
+    while no executor spins the node (a callback that blocks, an executor that posts a timer late)."""
+    _, node, _, _ = rig
+    assert node.trigger_configure() == TransitionCallbackReturn.SUCCESS
+    before = node.driver.cycles
+    time.sleep(0.3)                                                        # 150 periods at 500 Hz
+    assert node.driver.cycles - before > 50
+    assert node.trigger_activate() == TransitionCallbackReturn.SUCCESS
+    deadline = time.monotonic() + 5.0
+    while node.lifecycle_state == "active":                                # nobody commands
+        assert time.monotonic() < deadline, "the watchdog did not trip without an executor"
+        time.sleep(0.01)
+    assert node.driver.fault.startswith("stale command") and node.lifecycle_state == "inactive"
+
+
 def test_node_drives_the_emulated_rig_through_its_lifecycle_topics_and_services(rig):
     executor, node, harness, emulator = rig
     # unconfigured: no bus, no state; what needs a configured driver is refused
@@ -358,7 +374,7 @@ def test_a_bad_parameter_exits_with_status_2():
                  "-p", "rig.motors.interface:=virtual", "-p", "rig.motors.directions:=[1, 2, 1, 1]"]) == 2
 
 
-SIGTERM_SCRIPT = """
+DRIVER_SCRIPT = """
 import sys, threading, time
 import can
 from soft_arm_drivers.sim.can_emulator import CanMotorEmulator, EmulatorThread
@@ -370,6 +386,7 @@ cfg = load_driver_config(overrides={"interface": "virtual", "channel": name})
 bus = can.Bus(interface="virtual", channel=name, preserve_timestamps=True)
 emulator = CanMotorEmulator.for_config(cfg, bus, start_time=time.time())
 done = threading.Event()
+exec(sys.argv[2])
 
 def watch():
     seen = None
@@ -385,7 +402,7 @@ with EmulatorThread(emulator):
     watcher.start()
     try:
         # a node name of its own: the services of an earlier test's driver may linger in discovery
-        status = main(["motor_driver", "--ros-args", "-r", "__node:=sigterm_driver",
+        status = main(["motor_driver", "--ros-args", "-r", "__node:=" + sys.argv[3],
                        "-p", "rig.motors.interface:=virtual",
                        "-p", "rig.motors.channel:=" + name, "-p", "rig.motors.watchdog_timeout:=1.0"])
     finally:                            # what the motors were left with, however main ended
@@ -398,12 +415,16 @@ sys.exit(status)
 """
 
 
-def test_sigterm_takes_the_motors_out_of_motor_mode(context):
+def _activated_driver_process(context, node_name: str, inject: str = "") -> subprocess.Popen:
+    """A motor_driver (``node_name``) in a process of its own with emulated motors in it, after
+    ``inject`` (Python run before the node starts), configured and activated through its
+    change_state service; the process prints the motors' modes as they change and their torques
+    at its end."""
     env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYTHONUNBUFFERED="1")
-    proc = subprocess.Popen([sys.executable, "-c", SIGTERM_SCRIPT, channel()], env=env, text=True,
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
-    with killed_on_exit(proc):
-        harness = Harness(context, "sigterm_driver")
+    proc = subprocess.Popen([sys.executable, "-c", DRIVER_SCRIPT, channel(), inject, node_name], env=env,
+                            text=True, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+    try:
+        harness = Harness(context, node_name)
         executor = SingleThreadedExecutor(context=context)
         executor.add_node(harness.node)
         # rclpy's change_state would raise out of the node's executor on a transition the state
@@ -412,16 +433,55 @@ def test_sigterm_takes_the_motors_out_of_motor_mode(context):
         assert change(executor, harness, "configure") and change(executor, harness, "activate")
         executor.shutdown()
         harness.node.destroy_node()
+    except BaseException:
+        proc.kill()
+        proc.communicate()
+        raise
+    return proc
+
+
+def _motors_were_left_safe(out: str):
+    modes = [line for line in out.splitlines() if line.startswith("motor modes")]
+    assert modes[-2:] == ["motor modes [True, True, True, True]",
+                          "motor modes [False, False, False, False]"], out
+    assert "torques [0.0, 0.0, 0.0, 0.0]" in out
+
+
+def test_sigterm_takes_the_motors_out_of_motor_mode(context):
+    proc = _activated_driver_process(context, "sigterm_driver")
+    with killed_on_exit(proc):
         time.sleep(0.1)
         out = stop(proc, signal.SIGTERM, 20)
     # Known race in the shared run_node (soft_arm_ros/runtime.py): a signal landing between
     # its rclpy.ok() check and the executor's wait set lets rclpy's RCLError out (status 1) after the
     # node was closed. The motors must be safe either way; the status is 0 otherwise.
     assert proc.returncode == 0 or "the given context is not valid" in out, out
-    modes = [line for line in out.splitlines() if line.startswith("motor modes")]
-    assert modes[-2:] == ["motor modes [True, True, True, True]",
-                          "motor modes [False, False, False, False]"], out
-    assert "torques [0.0, 0.0, 0.0, 0.0]" in out
+    _motors_were_left_safe(out)
+
+
+FAILING_CYCLE = """
+from soft_arm_drivers.can.motor_driver import MotorDriver
+cycle, enabled_at = MotorDriver.cycle, []
+
+def failing(self, now):
+    if self.mode == "enabled":
+        enabled_at.append(now)
+        if now - enabled_at[0] > 0.2:
+            raise RuntimeError("injected: the bus vanished")
+    return cycle(self, now)
+MotorDriver.cycle = failing
+"""
+
+
+def test_a_cycle_that_raises_stops_the_motors_and_ends_the_process_with_status_1(context):
+    """An exception in the cycle thread is not lost in the thread: the motors go to zero torque and
+    out of motor mode, the reason is logged, and the node's process ends with status 1."""
+    proc = _activated_driver_process(context, "failing_driver", FAILING_CYCLE)
+    with killed_on_exit(proc):
+        out, _ = proc.communicate(timeout=20)
+    assert proc.returncode == 1, out
+    assert "the driver's cycle failed" in out and "injected: the bus vanished" in out
+    _motors_were_left_safe(out)
 
 
 def test_parameters_are_declared_read_only_with_their_ranges(rig):
