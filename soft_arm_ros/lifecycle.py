@@ -60,11 +60,12 @@ class ManagedHardwareNode(LifecycleNode):
         change_state = service.callback
 
         def guarded(request, response):
-            """rclpy's change_state, for the transitions the current state has."""
+            """:func:`checked`, holding the hardware lock from start to end."""
             with self.hardware_lock:
                 return checked(request, response)
 
         def checked(request, response):
+            """rclpy's change_state, for the transitions the current state has."""
             wanted = request.transition
             available = {(t[0], t[1]) for t in self._state_machine.available_transitions}
             if not any(label == wanted.label if wanted.label else i == wanted.id for i, label in available):
