@@ -164,7 +164,8 @@ class _Children:
         """Once the nodes are set up: every thread of the real-time nodes of the motors' loop off
         the emulated hardware's CPU, the emulated hardware (emulated_rig's child process) at
         HARDWARE_PRIORITY on that CPU, and the nodes of :data:`realtime.BESIDE_HARDWARE` (the mocap
-        bridge) on it too (:mod:`.realtime` says why)."""
+        bridge) on it too, and the middleware threads of every other node, and of this process,
+        just above the normal policy (:mod:`.realtime` says why)."""
         off = realtime.hardware_cpu()
         nodes = None if off is None else os.sched_getaffinity(0) - {off}
         for name, priority in self.realtime.items():
@@ -174,6 +175,10 @@ class _Children:
             if name == "emulated_rig":
                 for hardware in realtime.child_processes(pid):
                     realtime.schedule(hardware, realtime.HARDWARE_PRIORITY, None if off is None else {off})
+        for name, proc in self.procs.items():
+            if name not in self.realtime:
+                realtime.schedule_middleware(proc.pid)
+        realtime.schedule_middleware(os.getpid())
 
     def check(self, may_end=()):
         """RuntimeError if a node exited (those in ``may_end`` with status 0 may)."""

@@ -63,3 +63,35 @@ def test_go_realtime_sets_every_thread_of_a_node_and_its_hardware_apart():
             p.kill()
             p.wait()
         time.sleep(0.1)
+
+
+# a node stand-in whose second thread is named like a Fast DDS thread
+MIDDLEWARE_NODE = """
+import threading, time
+def middleware():
+    with open(f"/proc/self/task/{threading.get_native_id()}/comm", "w") as fh:
+        fh.write("dds.test")
+    print("up", flush=True)
+    time.sleep(60)
+threading.Thread(target=middleware, daemon=True).start()
+time.sleep(60)
+"""
+
+
+def test_go_realtime_puts_the_other_nodes_middleware_threads_just_above_the_normal_policy():
+    """A node outside the loop (the recorder) keeps the normal policy, but its Fast DDS threads
+    run under SCHED_FIFO MIDDLEWARE_PRIORITY, below the emulated hardware and every loop node."""
+    proc = subprocess.Popen([sys.executable, "-c", MIDDLEWARE_NODE], stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout.readline().strip() == "up"
+        children = _Children([], {}, {})
+        children.procs["recorder"] = proc
+        children.go_realtime()
+        policies = {realtime.thread_name(proc.pid, tid): (policy, priority)
+                    for tid, (policy, priority, _) in _policies(proc.pid).items()}
+        assert policies["dds.test"] == (os.SCHED_FIFO, realtime.MIDDLEWARE_PRIORITY)
+        assert [p for name, p in policies.items() if name != "dds.test"] == [(os.SCHED_OTHER, 0)]
+        assert realtime.MIDDLEWARE_PRIORITY < realtime.HARDWARE_PRIORITY
+    finally:
+        proc.kill()
+        proc.wait()
