@@ -175,6 +175,8 @@ class _Children:
             if name == "emulated_rig":
                 for hardware in realtime.child_processes(pid):
                     realtime.schedule(hardware, realtime.HARDWARE_PRIORITY, None if off is None else {off})
+        if not self.realtime:
+            return                  # real time not permitted: the middleware's threads too stay put
         for name, proc in self.procs.items():
             if name not in self.realtime:
                 realtime.schedule_middleware(proc.pid)

@@ -78,20 +78,33 @@ time.sleep(60)
 """
 
 
+def tid_of(pid, name):
+    return next(tid for tid in realtime.threads(pid) if realtime.thread_name(pid, tid) == name)
+
+
 def test_go_realtime_puts_the_other_nodes_middleware_threads_just_above_the_normal_policy():
     """A node outside the loop (the recorder) keeps the normal policy, but its Fast DDS threads
     run under SCHED_FIFO MIDDLEWARE_PRIORITY, below the emulated hardware and every loop node."""
     proc = subprocess.Popen([sys.executable, "-c", MIDDLEWARE_NODE], stdout=subprocess.PIPE, text=True)
+    loop = subprocess.Popen([sys.executable, "-c", MIDDLEWARE_NODE], stdout=subprocess.PIPE, text=True)
     try:
-        assert proc.stdout.readline().strip() == "up"
-        children = _Children([], {}, {})
-        children.procs["recorder"] = proc
+        assert proc.stdout.readline().strip() == "up" and loop.stdout.readline().strip() == "up"
+        children = _Children([], {}, {"inner_loop": 20})
+        children.procs.update(recorder=proc, inner_loop=loop)
         children.go_realtime()
         policies = {realtime.thread_name(proc.pid, tid): (policy, priority)
                     for tid, (policy, priority, _) in _policies(proc.pid).items()}
         assert policies["dds.test"] == (os.SCHED_FIFO, realtime.MIDDLEWARE_PRIORITY)
         assert [p for name, p in policies.items() if name != "dds.test"] == [(os.SCHED_OTHER, 0)]
         assert realtime.MIDDLEWARE_PRIORITY < realtime.HARDWARE_PRIORITY
+        # a run without real time (not permitted: no real-time nodes) leaves them alone: setting
+        # them would raise where the permission is missing
+        os.sched_setscheduler(tid_of(proc.pid, "dds.test"), os.SCHED_OTHER, os.sched_param(0))
+        unscheduled = _Children([], {}, None)
+        unscheduled.procs["recorder"] = proc
+        unscheduled.go_realtime()
+        assert os.sched_getscheduler(tid_of(proc.pid, "dds.test")) == os.SCHED_OTHER
     finally:
-        proc.kill()
-        proc.wait()
+        for p in (proc, loop):
+            p.kill()
+            p.wait()
