@@ -38,8 +38,9 @@ SCHED_FIFO :data:`MIDDLEWARE_PRIORITY`, below everything else real-time
 a reader with a local reliable writer, opens that reader's shared-memory port and polls the port's
 listeners, sleeping until they show alive, all the while holding its participant's send lock. The
 driver's state publish waited behind it for 43-293 ms when the listeners were those of a starved
-process (README, issue 17, stop 33; a batch with this in place: no such stall in 5 runs; before
-it, 10 of 27 instrumented runs were ended by one).
+process (README, issue 17, stop 33; two batches with this in place: no such stall in 10 runs;
+before it, 10 of 27 instrumented runs were ended by one). Open: the second batch's steady accuracy
+failed in three runs (RMS up to 52 mm): this may cost the outer loop's processes under load.
 """
 from __future__ import annotations
 
