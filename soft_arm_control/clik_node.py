@@ -10,12 +10,17 @@ answers, the goal's target now and the model's task coordinates at q_d [m]). A b
 frame, coordinates not the task's), an infeasible or a fragile one (one too near a fold of
 the model's equilibria to be held, ``control.clik.min_frequency``) is rejected with a logged
 reason; the last good reference stays. Time is the mocap's (frame stamps), so it works on sim time and on
-the rig alike.
+the rig alike. A frame the executor queued behind the last one is dropped (a CLIK step that
+outlasts the frame period on a loaded computer would otherwise queue the frames, and the goals and
+timers behind them, for seconds: :mod:`soft_arm_ros.backlog`); the count is on ``/diagnostics``
+(``frames_dropped``) and in a warning.
 """
 from __future__ import annotations
 
 import json
+import math
 import sys
+import time
 
 from geometry_msgs.msg import PoseArray
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
@@ -24,6 +29,7 @@ from sensor_msgs.msg import JointState
 from soft_arm_interfaces.msg import ConfigurationReference, TaskGoal
 
 from soft_arm_model import build_model
+from soft_arm_ros.backlog import BacklogGuard
 from soft_arm_ros.contract import QOS, TOPICS
 from soft_arm_ros.conversions import (configuration_reference, goal_of, joint_state, markers_of,
                                       seconds_to_stamp, stamp_to_seconds)
@@ -69,7 +75,9 @@ class ClikNode(Node):
         self.q_pub = self.create_publisher(ConfigurationReference, TOPICS["configuration"],
                                            QOS["arm/configuration_reference"])
         self.create_subscription(TaskGoal, TOPICS["goal"], self.on_goal, QOS["task/goal"])
-        self.create_subscription(PoseArray, TOPICS["markers"], self.on_markers, QOS["mocap/markers"])
+        self.frames = BacklogGuard()
+        self._drop_warned, self._drop_warned_at = 0, -math.inf   # frames dropped, monotonic time [s]
+        self.create_subscription(PoseArray, TOPICS["markers"], self.on_frame, QOS["mocap/markers"])
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self._reported = None                 # (goal index, status) last published
         self.create_timer(1.0, self.publish_diagnostics)
@@ -109,6 +117,21 @@ class ClikNode(Node):
         if len(self.outer.reports) > 1:
             self.publish_diagnostics(len(self.outer.reports) - 2)     # the closed one, final
 
+    def on_frame(self, msg: PoseArray):
+        """A mocap frame: processed (:meth:`on_markers`) unless the executor queued it behind the
+        last one (module docstring); its time is taken either way."""
+        if self.frames.admit(time.monotonic_ns()):
+            self.on_markers(msg)
+        else:
+            self.now = stamp_to_seconds(msg.header.stamp)
+        self.frames.done(time.monotonic_ns())
+        if self.frames.dropped > self._drop_warned and time.monotonic() >= self._drop_warned_at + 5.0:
+            # throttled here: rclpy's throttle inspects the caller's frame on every call
+            self._drop_warned, self._drop_warned_at = self.frames.dropped, time.monotonic()
+            self.get_logger().warning(
+                f"the CLIK falls behind the mocap frames: {self.frames.dropped} of "
+                f"{self.frames.dropped + self.frames.processed} dropped so far")
+
     def on_markers(self, msg: PoseArray):
         self.now = stamp_to_seconds(msg.header.stamp)
         markers = markers_of(msg)
@@ -137,7 +160,7 @@ class ClikNode(Node):
         report = self.outer.reports[index]
         level, message = LEVELS[report.status], MESSAGES[report.status]
         status = DiagnosticStatus(level=level, name="clik", hardware_id="soft_arm", message=message)
-        d = {"goal": index, **report.as_dict()}
+        d = {"goal": index, **report.as_dict(), "frames_dropped": self.frames.dropped}
         status.values = [KeyValue(key=k, value=v if k == "status" else json.dumps(v)) for k, v in d.items()]
         msg = DiagnosticArray(status=[status])
         seconds_to_stamp(msg.header.stamp, self.now)

@@ -203,6 +203,81 @@ def test_clik_node_rejects_bad_goals_and_keeps_the_last_reference():
         rclpy.try_shutdown()
 
 
+def test_a_slow_clik_takes_a_goal_at_once_and_drops_the_frames_it_cannot_keep_up_with():
+    """A CLIK step of 12.5 ms against 240 Hz frames (a loaded computer), on the events executor the
+    node runs on: it queued an event per frame, so a goal sent 1.5 s in waited seconds (stop 34: 6 s,
+    and a goal lost). Now the frames queued behind a step are dropped: the goal is taken within
+    0.25 s, the drops are counted and reported, and a step is taken per step's worth of time."""
+    import threading
+
+    import rclpy
+    from rclpy.node import Node
+    from rclpy.parameter import Parameter
+    from geometry_msgs.msg import PoseArray
+    from soft_arm_interfaces.msg import TaskGoal
+
+    from soft_arm_control.clik_node import ClikNode
+    from soft_arm_ros.contract import QOS, TOPICS
+    from soft_arm_ros.conversions import pose_array
+    from soft_arm_ros.runtime import make_executor
+    rclpy.init()
+    try:
+        node = ClikNode(parameter_overrides=[Parameter("graph.task", value="coiling")])
+        taken, steps, reports = [], [], []
+
+        def slow_step(t, x):
+            time.sleep(0.0125)
+            steps.append(t)
+
+        def goal(t, x_d, mode, **kwargs):
+            taken.append(time.monotonic())
+            raise ValueError("taken")                     # rejected: no reference to compute
+
+        node.outer.frame, node.outer.goal = slow_step, goal
+        node.diagnostics_pub.publish = reports.append
+        source = Node("frames")
+        frames = source.create_publisher(PoseArray, TOPICS["markers"], QOS["mocap/markers"])
+        goals = source.create_publisher(TaskGoal, TOPICS["goal"], QOS["task/goal"])
+        executor = make_executor()
+        executor.add_node(node)
+        deadline = time.monotonic() + 20.0
+        while min(frames.get_subscription_count(), goals.get_subscription_count()) < 1:
+            assert time.monotonic() < deadline, "the clik node's subscriptions were not matched"
+            executor.spin_once(timeout_sec=0.05)
+        markers = [[0.0, 0.0, -0.1 * k] for k in range(1, node.model.marker_X.size + 1)]
+        sent = []
+
+        def publish():
+            start = time.monotonic()
+            for k in range(720):                          # 3 s at 240 Hz
+                frames.publish(pose_array(markers, k / 240.0))
+                if k == 360:
+                    sent.append(time.monotonic())
+                    goals.publish(_goal([-0.349, -0.009], "replay"))
+                time.sleep(max(0.0, start + (k + 1) / 240.0 - time.monotonic()))
+
+        thread = threading.Thread(target=publish)
+        thread.start()
+        end = time.monotonic() + 3.5
+        while time.monotonic() < end:
+            executor.spin_once(timeout_sec=0.05)
+        thread.join()
+        assert taken, "the goal was not taken within 2 s of being sent"
+        assert taken[0] - sent[0] < 0.25 and node.rejected_goals == 1
+        assert node.frames.dropped > 100 and node.frames.processed == len(steps)
+        assert 120 < len(steps) < 240                     # one per 12.5-16.7 ms in 3 s
+        from soft_arm_control.outer_loop import GoalReport
+        node.outer.reports.append(GoalReport([0.0, 0.0], "clik"))
+        node.publish_diagnostics()
+        values = {kv.key: kv.value for kv in reports[-1].status[0].values}
+        assert int(values["frames_dropped"]) == node.frames.dropped
+        executor.shutdown()
+        source.destroy_node()
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown()
+
+
 def test_inner_loop_node_takes_a_reference_s_rate_from_its_velocity_field():
     """tendon/reference's velocity: the reference's shortening rates (by name, any order); an empty
     field is a fixed reference; a field of the wrong length is refused, the last reference kept."""
