@@ -16,7 +16,9 @@ from the bag, the motors' state period (p50, p99, max, stamps not increasing), t
 and the driver's own cycle statistics (its last /diagnostics: period p50/p99/max, p99 error, deadline
 misses; its longest period reported during the run; the state-to-command latency through the
 graph, p50/p99/max of its last 1000 answers and the worst p99 it reported during the run; the time
-from its activation to the first command), the
+from its activation to the first command), how the clik node took the goals (the time from each
+``task/goal`` to the reference answering it, p50 and max, the goals answered, the mocap frames it
+dropped), the
 recorder's messages, their rate and its lost-message count; then over the runs: the valid ones, the
 worst RMS and mm band, the cm-band velocity spread. ``--load N`` runs N other CPU-bound processes
 beside the runs (a lab PC's other work: single-threaded 200x200 matrix products, normal policy).
@@ -35,9 +37,12 @@ import subprocess
 import sys
 import tempfile
 import time
+from pathlib import Path
 
 import numpy as np
 import yaml
+from rosbags.highlevel import AnyReader
+from rosbags.typesys import Stores, get_typestore
 
 from soft_arm_drivers.experiments.figures import read_series
 from soft_arm_drivers.experiments.harness import load_setup
@@ -148,6 +153,39 @@ def _driver_timing(series) -> dict:
     longest = [float(r["period_max_ms"]) for r in reports if r.get("period_max_ms", "nan") != "nan"]
     out["period_max_worst_ms"] = max(longest) if longest else float("nan")
     return out
+
+
+def _goal_latency(bag_dir: str) -> dict:
+    """How the clik node took the task runner's goals, from the recorder's receive times: per goal,
+    the time from ``task/goal`` to the first ``arm/configuration_reference`` of a new goal index
+    with the goal's target (a goal never answered was rejected or never taken), p50 and max [ms],
+    the goals answered of those sent, and the mocap frames the node dropped (its last report)."""
+    typestore = get_typestore(Stores.ROS2_JAZZY)
+    pending, latency, seen, dropped, sent = [], [], set(), 0, 0
+    with AnyReader([Path(bag_dir)], default_typestore=typestore) as reader:
+        topics = ("/task/goal", "/arm/configuration_reference", "/diagnostics")
+        connections = [c for c in reader.connections if c.topic in topics]
+        for conn, t, raw in reader.messages(connections=connections):
+            msg = reader.deserialize(raw, conn.msgtype)
+            if conn.topic == "/task/goal":
+                pending.append((t, np.array(msg.target)))
+                sent += 1
+            elif conn.topic == "/arm/configuration_reference":
+                if msg.goal in seen:
+                    continue
+                seen.add(msg.goal)
+                match = [k for k, (_, x) in enumerate(pending)
+                         if x.shape == (len(msg.target),) and np.allclose(x, msg.target, atol=1e-6)]
+                if match:
+                    latency.append(1e-6 * (t - pending.pop(match[-1])[0]))
+            else:
+                for status in msg.status:
+                    if status.name == "clik":
+                        values = {kv.key: kv.value for kv in status.values}
+                        dropped = int(values.get("frames_dropped", dropped))
+    return {"goals": sent, "answered": len(latency),
+            "p50_ms": float(np.median(latency)) if latency else float("nan"),
+            "max_ms": max(latency) if latency else float("nan"), "frames_dropped": dropped}
 
 
 def _recording(bag_dir: str) -> dict:
@@ -277,12 +315,13 @@ def one_run(task: str, sets: list, duration: float, probes=None) -> dict:
             metrics = json.load(fh)
         series = read_series(os.path.join(run, "bag"))
         recording = _recording(os.path.join(run, "bag"))
+        goals = _goal_latency(os.path.join(run, "bag"))
     return {"status": status, "valid": metrics.get("valid", False), "failure": metrics.get("failure"),
             "summary": metrics.get("summary"), "run": metrics["run"],
             "cpu_share": _shares(samples), "major_faults": _major_faults(samples),
             "state_period": _periods([t for t, _ in series["tendon/state"]]),
             "mocap_period": _periods([t for t, _ in series["mocap/markers"]]),
-            "driver_timing": _driver_timing(series), "recording": recording,
+            "driver_timing": _driver_timing(series), "goal_latency": goals, "recording": recording,
             "stalls": _stalls(probes, enabled, ended) if probes else None}
 
 
@@ -370,6 +409,9 @@ def _report(k: int, r: dict) -> dict:
     for cpu, st in (r["stalls"] or {}).items():
         print(f"  {cpu} stalls > {STALL_MS:.0f} ms: {st['count']}" + "".join(
             f"; {late:.1f} ms at {t:.2f} s (steal {steal:.0f} ms)" for t, late, steal in st["longest"][:3]))
+    g = r["goal_latency"]
+    print(f"  clik: {g['answered']}/{g['goals']} goals answered, goal to reference p50 {g['p50_ms']:.1f} ms, "
+          f"max {g['max_ms']:.1f} ms; {g['frames_dropped']} mocap frames dropped")
     rec = r["recording"]
     print(f"  recorder: {rec['messages']} messages, {rec['rate_per_s']:.0f} messages/s, {rec['lost']} lost"
           + (f" ({rec['lost_by_topic']})" if rec["lost"] else ""))
