@@ -9,9 +9,8 @@ tendons; effort: feedforward tensions [N], the pretension on the tendons the tas
 answers, the goal's target now and the model's task coordinates at q_d [m]). A bad goal (another
 frame, coordinates not the task's), an infeasible or a fragile one (one too near a fold of
 the model's equilibria to be held, ``control.clik.min_frequency``) is rejected with a logged
-reason; the last good reference stays. The task's targets are precomputed (and judged) at start-up,
-so that a goal of the task is answered at once. Time is the mocap's (frame stamps), so it works on
-sim time and on the rig alike. A frame the executor queued behind the last one is dropped (a CLIK step that
+reason; the last good reference stays. Time is the mocap's (frame stamps), so it works on sim time and on
+the rig alike. A frame the executor queued behind the last one is dropped (a CLIK step that
 outlasts the frame period on a loaded computer would otherwise queue the frames, and the goals and
 timers behind them, for seconds: :mod:`soft_arm_ros.backlog`); the count is on ``/diagnostics``
 (``frames_dropped``) and in a warning.
@@ -23,7 +22,6 @@ import math
 import sys
 import time
 
-import numpy as np
 from geometry_msgs.msg import PoseArray
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.node import Node
@@ -73,11 +71,6 @@ class ClikNode(Node):
         self.labels = self.task.space.labels()
         self.now = 0.0
         self.rejected_goals = 0
-        # the task's targets precomputed now: a goal is answered at once (one took 0.7 s here, and
-        # 6 s on a loaded computer, while the arm waited)
-        stepped = {self.task.targets[k] for ph in self.task.phases if ph.mode in ("clik", "precomputed")
-                   for k in ph.sequence}
-        self.prepared = {tuple(map(float, x)): self.prepare(np.asarray(x, dtype=float)) for x in stepped}
         self.ref_pub = self.create_publisher(JointState, TOPICS["reference"], QOS["tendon/reference"])
         self.q_pub = self.create_publisher(ConfigurationReference, TOPICS["configuration"],
                                            QOS["arm/configuration_reference"])
@@ -90,18 +83,6 @@ class ClikNode(Node):
         self.create_timer(1.0, self.publish_diagnostics)
         self.get_logger().info(f"clik ready for task {self.task.name} "
                                f"({', '.join(self.labels)})")
-
-    def prepare(self, x_d):
-        """The precomputed reference of target ``x_d`` [m], or the TargetError that rejects it
-        (infeasible, or fragile: :func:`~.target_margin.fragility_error`)."""
-        try:
-            point = self.outer.precompute(x_d)
-        except TargetError as exc:
-            return exc
-        reason = fragility_error(self.outer, self.control, self.task, point)
-        if reason is not None:
-            return TargetError(f"target {np.round(x_d, 4).tolist()} m is fragile: {reason}")
-        return point
 
     def publish(self, ref):
         self.ref_pub.publish(joint_state(self.names, self.now, position=ref.shortening,
@@ -123,11 +104,10 @@ class ClikNode(Node):
                                      f"trajectory ({', '.join(sorted(self.trajectories))}), got {phase!r}")
             point = None
             if mode in ("clik", "precomputed") and x_d.shape == (self.task.space.m,):
-                point = self.prepared.get(tuple(x_d.tolist()))
-                if point is None:
-                    point = self.prepare(x_d)
-                if isinstance(point, TargetError):
-                    raise point
+                point = self.outer.precompute(x_d)
+                reason = fragility_error(self.outer, self.control, self.task, point)
+                if reason is not None:
+                    raise TargetError(f"target {x_d.round(4).tolist()} m is fragile: {reason}")
             ref = self.outer.goal(self.now, x_d, mode, point=point, trajectory=trajectory)
         except (TargetError, ValueError) as exc:
             self.rejected_goals += 1

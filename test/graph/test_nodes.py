@@ -335,32 +335,6 @@ def test_clik_node_rejects_a_fragile_goal():
         rclpy.try_shutdown()
 
 
-def test_clik_node_answers_a_goal_of_its_task_without_computing_it():
-    """The task's targets are precomputed at start-up: a goal of the task is answered from them
-    (the computation was 0.7 s for the triangle's third vertex, 6 s on a loaded computer); another
-    target is computed when it comes."""
-    import rclpy
-    from rclpy.parameter import Parameter
-
-    from soft_arm_control.clik_node import ClikNode
-    rclpy.init()
-    try:
-        node = ClikNode(parameter_overrides=[Parameter("graph.task", value="triangle")])
-        assert len(node.prepared) == 3
-        sent, computed = [], []
-        node.ref_pub.publish = sent.append
-        node.q_pub.publish = lambda msg: None
-        precompute = node.outer.precompute
-        node.outer.precompute = lambda x_d: computed.append(x_d) or precompute(x_d)
-        node.on_goal(_goal([0.048, 0.123, -0.282, 0.043]))
-        assert len(sent) == 1 and computed == [] and node.rejected_goals == 0
-        node.on_goal(_goal([0.048, 0.123, -0.281, 0.043]))          # not the task's: computed now
-        assert len(computed) == 1 and len(sent) == 2
-        node.destroy_node()
-    finally:
-        rclpy.try_shutdown()
-
-
 def test_task_runner_waits_for_start_and_stays_up_after_the_last_window(tmp_path):
     """wait_for_start: frames before ~/start are ignored; the schedule starts with the first frame
     after it; the metrics are written whole at the end and the node stays up (done is False)."""
