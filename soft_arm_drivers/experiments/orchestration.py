@@ -177,10 +177,9 @@ class _Children:
                     realtime.schedule(hardware, realtime.HARDWARE_PRIORITY, None if off is None else {off})
         if not self.realtime:
             return                  # real time not permitted: the middleware's threads too stay put
-        for name, proc in self.procs.items():
-            if name not in self.realtime:
-                realtime.schedule_middleware(proc.pid)
-        realtime.schedule_middleware(os.getpid())
+        others = [proc.pid for name, proc in self.procs.items() if name not in self.realtime]
+        for pid in others + [os.getpid()]:
+            realtime.schedule(pid, realtime.MIDDLEWARE_PRIORITY, named=realtime.MIDDLEWARE_THREADS)
 
     def check(self, may_end=()):
         """RuntimeError if a node exited (those in ``may_end`` with status 0 may)."""

@@ -33,10 +33,10 @@ Every thread of a process is set (a thread inherits its creator's policy and CPU
 
 The other processes of the graph (the recorder, the outer loop, the task runner, the orchestrator)
 stay under the normal policy, but their middleware threads (Fast DDS's, named ``dds.*``) run under
-SCHED_FIFO :data:`MIDDLEWARE_PRIORITY`, below everything else real-time
-(:func:`schedule_middleware`). The loop's writers wait on them: Fast DDS's discovery thread, pairing
-a reader with a local reliable writer, opens that reader's shared-memory port and polls the port's
-listeners, sleeping until they show alive, all the while holding its participant's send lock. The
+SCHED_FIFO :data:`MIDDLEWARE_PRIORITY`, below everything else real-time (:func:`schedule` with
+``named=MIDDLEWARE_THREADS``). The loop's writers wait on them: Fast DDS's discovery thread,
+pairing a reader with a local reliable writer, opens that reader's shared-memory port and polls the
+port's listeners, sleeping until they show alive, all the while holding its participant's send lock. The
 driver's state publish waited behind it for 43-293 ms when the listeners were those of a starved
 process (README, issue 17, stop 33; two batches with this in place: no such stall in 10 runs;
 before it, 10 of 27 instrumented runs were ended by one; in alternating batches, 10 of 10 runs
@@ -104,22 +104,13 @@ def thread_name(pid: int, tid: int) -> str:
         return ""
 
 
-def schedule_middleware(pid: int, priority: int = MIDDLEWARE_PRIORITY):
-    """The middleware threads of process ``pid`` (named :data:`MIDDLEWARE_THREADS`...) under
-    SCHED_FIFO ``priority``, on the CPUs they have; its other threads untouched. OSError if not
-    permitted; threads that end meanwhile are skipped."""
+def schedule(pid: int, priority: int, cpus=None, named: str = ""):
+    """The threads of process ``pid`` whose names start with ``named`` (every thread by default)
+    under SCHED_FIFO ``priority``, on ``cpus`` (a set) if given; its other threads untouched.
+    OSError if not permitted; threads that end meanwhile are skipped."""
     for tid in threads(pid):
-        if thread_name(pid, tid).startswith(MIDDLEWARE_THREADS):
-            try:
-                os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(priority))
-            except ProcessLookupError:
-                continue
-
-
-def schedule(pid: int, priority: int, cpus=None):
-    """Every thread of process ``pid`` under SCHED_FIFO ``priority``, on ``cpus`` (a set) if
-    given. OSError if not permitted; threads that end meanwhile are skipped."""
-    for tid in threads(pid):
+        if named and not thread_name(pid, tid).startswith(named):
+            continue
         try:
             os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(priority))
             if cpus is not None:
