@@ -9,8 +9,10 @@ tendons; effort: feedforward tensions [N], the pretension on the tendons the tas
 answers, the goal's target now and the model's task coordinates at q_d [m]). A bad goal (another
 frame, coordinates not the task's), an infeasible or a fragile one (one too near a fold of
 the model's equilibria to be held, ``control.clik.min_frequency``) is rejected with a logged
-reason; the last good reference stays. Time is the mocap's (frame stamps), so it works on sim time and on
-the rig alike. A frame the executor queued behind the last one is dropped (a CLIK step that
+reason; the last good reference stays. A target the precomputation does not reach from the
+hanging arm starts from the seed equilibria (``control.clik.seed_levels``), solved at start-up so
+that such a goal is answered in milliseconds too. Time is the mocap's (frame stamps), so it works
+on sim time and on the rig alike. A frame the executor queued behind the last one is dropped (a CLIK step that
 outlasts the frame period on a loaded computer would otherwise queue the frames, and the goals and
 timers behind them, for seconds: :mod:`soft_arm_ros.backlog`); the count is on ``/diagnostics``
 (``frames_dropped``) and in a warning.
@@ -67,6 +69,8 @@ class ClikNode(Node):
         self.trajectories = {ph.name: ph.trajectory for ph in self.task.phases if ph.trajectory is not None}
         self.model = build_model(params.arm)
         self.outer = outer_loop_for(self.model, self.control, self.task)
+        if self.control.seed_levels:
+            self.outer.seeds()          # now, not at the goal that needs them (0.7 s, seconds under load)
         self.names = self.model.tendon_names
         self.labels = self.task.space.labels()
         self.now = 0.0

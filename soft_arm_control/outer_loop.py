@@ -186,9 +186,15 @@ class OuterLoop:
         except TargetError:
             if not self.seed_levels:
                 raise
-            if self._seeds is None:
-                self._seeds = equilibrium_seeds(self.clik, self.seed_levels)
-            return self.clik.precompute(x_d, self.start.q, self._seeds, tol=self.tolerance)
+            return self.clik.precompute(x_d, self.start.q, self.seeds(), tol=self.tolerance)
+
+    def seeds(self) -> list:
+        """The seed equilibria at ``seed_levels`` (:func:`~soft_arm_control.clik.equilibrium_seeds`),
+        solved at the first call and kept: ``levels ** actuated tendons`` equilibria (the triangle's
+        81 take 0.7 s), so a node that answers goals calls it before the first comes."""
+        if self._seeds is None:
+            self._seeds = equilibrium_seeds(self.clik, self.seed_levels)
+        return self._seeds
 
     def goal(self, t: float, x_d, mode: str, point: ClikPoint | None = None,
              trajectory: Trajectory | None = None, move: StrikeProfile | None = None) -> ClikPoint:

@@ -335,6 +335,36 @@ def test_clik_node_rejects_a_fragile_goal():
         rclpy.try_shutdown()
 
 
+def test_clik_node_solves_its_seed_equilibria_before_the_first_goal(monkeypatch):
+    """The triangle's third vertex is not reached from the hanging arm: its reference starts from
+    the seed equilibria. The node solves them at start-up, not at that goal (0.7 s idle, 2.4-4.9 s
+    under load at stop 34, the arm holding the last vertex meanwhile): at the goal none is solved."""
+    import rclpy
+    from rclpy.parameter import Parameter
+
+    from soft_arm_control import outer_loop
+    from soft_arm_control.clik import TargetError
+    from soft_arm_control.clik_node import ClikNode
+    rclpy.init()
+    try:
+        node = ClikNode(parameter_overrides=[Parameter("graph.task", value="triangle")])
+        third = np.array([0.048, 0.123, -0.282, 0.043])
+        outer = node.outer
+        with pytest.raises(TargetError):                        # it needs the seeds
+            outer.clik.precompute(third, outer.start.q, tol=outer.tolerance, search=False)
+        monkeypatch.setattr(outer_loop, "equilibrium_seeds", lambda *a: pytest.fail("solved after start-up"))
+        solved = outer.seeds()
+        assert len(solved) == len(node.control.seed_levels) ** len(node.task.tendons)
+        sent = []
+        node.ref_pub.publish = sent.append
+        node.q_pub.publish = lambda msg: None
+        node.on_goal(_goal(third))
+        assert node.rejected_goals == 0 and len(sent) == 1 and outer.seeds() is solved
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown()
+
+
 def test_task_runner_waits_for_start_and_stays_up_after_the_last_window(tmp_path):
     """wait_for_start: frames before ~/start are ignored; the schedule starts with the first frame
     after it; the metrics are written whole at the end and the node stays up (done is False)."""
