@@ -175,7 +175,7 @@ def test_the_cycle_runs_apart_from_the_executor(rig):
     assert node.driver.cycles - before > 50
     assert node.trigger_activate() == TransitionCallbackReturn.SUCCESS
     deadline = time.monotonic() + 5.0
-    while node.lifecycle_state == "active":                                # nobody commands
+    while node.lifecycle_state in ("active", "deactivating"):              # nobody commands
         assert time.monotonic() < deadline, "the watchdog did not trip without an executor"
         time.sleep(0.01)
     assert node.driver.fault.startswith("stale command") and node.lifecycle_state == "inactive"
@@ -220,6 +220,9 @@ def test_node_drives_the_emulated_rig_through_its_lifecycle_topics_and_services(
     latency = values(harness)
     assert 0.0 < float(latency["state_to_command_p50_ms"]) <= float(latency["state_to_command_p99_ms"]) \
         <= float(latency["state_to_command_max_ms"]) < 200.0
+    assert int(latency["answered_states_run"]) >= int(latency["answered_states"])         # since the start
+    assert float(latency["state_to_command_p50_ms"]) <= float(latency["state_to_command_run_p99_ms"]) \
+        <= float(latency["state_to_command_run_max_ms"]) < 200.0
     assert 0.0 < float(latency["activate_to_first_command_ms"]) < 1000.0
     assert emulator.tensions[0] == pytest.approx(2.5, abs=0.45)             # one torque step: 0.88 N
     assert harness.latest("effort")[0] == pytest.approx(2.5, abs=0.9)
