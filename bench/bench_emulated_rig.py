@@ -15,7 +15,8 @@ too) and its major page faults over the same span;
 from the bag, the motors' state period (p50, p99, max, stamps not increasing), the mocap frame period
 and the driver's own cycle statistics (its last /diagnostics: period p50/p99/max, p99 error, deadline
 misses; its longest period reported during the run; the state-to-command latency through the
-graph, p50/p99/max of its last 1000 answers and the worst p99 it reported during the run; the time
+graph, p50/p99/max of its last 1000 answers, the worst p99 it reported during the run and the
+p99 and max over the whole run; the time
 from its activation to the first command), how the clik node took the goals (the time from each
 ``task/goal`` to the reference answering it, p50 and max, the goals answered, the mocap frames it
 dropped), the
@@ -134,7 +135,8 @@ def _periods(stamps) -> dict:
 
 DRIVER_TIMING = ("period_p50_ms", "period_p99_ms", "period_max_ms", "period_error_p99_ms", "deadline_misses",
                  "state_to_command_p50_ms", "state_to_command_p99_ms", "state_to_command_max_ms",
-                 "unmatched_commands", "activate_to_first_command_ms")
+                 "unmatched_commands", "activate_to_first_command_ms", "state_to_command_run_p99_ms",
+                 "state_to_command_run_max_ms")
 
 
 def _driver_timing(series) -> dict:
@@ -405,6 +407,8 @@ def _report(k: int, r: dict) -> dict:
               f"{d['state_to_command_p99_ms']:.2f} ms, max {d['state_to_command_max_ms']:.1f} ms; worst p99 "
               f"reported in the run {d['state_to_command_p99_worst_ms']:.2f} ms; "
               f"{d['unmatched_commands']:.0f} commands matched no state")
+        print(f"  state to command (the whole run): p99 {d['state_to_command_run_p99_ms']:.2f} ms, max "
+              f"{d['state_to_command_run_max_ms']:.1f} ms")
         print(f"  activate to the first motor command: {d['activate_to_first_command_ms']:.1f} ms")
     for cpu, st in (r["stalls"] or {}).items():
         print(f"  {cpu} stalls > {STALL_MS:.0f} ms: {st['count']}" + "".join(

@@ -5,7 +5,8 @@ command stamped like the state it was computed from. The latency of an answer is
 driver's monotonic clock from publishing the state to receiving the command: the whole path
 through the middleware, the controller and back, which the watchdog bounds from above. Commands
 whose stamp matches no recently published state (another controller, a replayed bag) are counted,
-not timed.
+not timed. The statistics cover the last :data:`WINDOW` answers, and every answer since the start
+(counted in :data:`RUN_BIN` bins: the whole run's 99th percentile without keeping its samples).
 """
 from __future__ import annotations
 
@@ -18,18 +19,25 @@ import numpy as np
 WINDOW = 1000           # answers the statistics look back over (2 s at 500 Hz)
 REMEMBERED = 64         # published states an answer is matched against (128 ms at 500 Hz)
 STAMP_TOLERANCE = 1e-6  # s: a command's stamp matches a state's within this (stamps are rounded to ns)
+RUN_BIN = 1e-5          # s: the width of the bins the whole run's latencies are counted in
+RUN_RANGE = 0.1         # s: latencies from here on share the last bin
 
 
 @dataclass(frozen=True)
 class LatencyStatistics:
     """The latency [s] of the last ``answers`` matched commands (at most :data:`WINDOW`): median, 99th
     percentile and maximum (nan before the first), and the commands that matched no published state
-    since the start."""
+    since the start; over all ``run_answers`` matched since the start: the 99th percentile (an
+    upper bound, at most :data:`RUN_BIN` above it below :data:`RUN_RANGE`, and never above the
+    maximum) and the maximum."""
     answers: int
     p50: float
     p99: float
     max: float
     unmatched: int
+    run_answers: int = 0
+    run_p99: float = math.nan
+    run_max: float = math.nan
 
 
 class CommandLatency:
@@ -38,6 +46,8 @@ class CommandLatency:
     def __init__(self, window: int = WINDOW, remembered: int = REMEMBERED):
         self._published: deque = deque(maxlen=remembered)    # (stamp [s], published at [s])
         self._latencies = np.zeros(window)
+        self._run_counts = np.zeros(int(round(RUN_RANGE / RUN_BIN)) + 1, dtype=np.int64)
+        self._run_max = -math.inf
         self.answers = self.unmatched = 0
 
     def published(self, stamp: float, now: float):
@@ -53,6 +63,8 @@ class CommandLatency:
                 del self._published[k]
                 latency = now - sent
                 self._latencies[self.answers % self._latencies.size] = latency
+                self._run_counts[min(max(int(latency / RUN_BIN), 0), self._run_counts.size - 1)] += 1
+                self._run_max = max(self._run_max, latency)
                 self.answers += 1
                 return latency
         self.unmatched += 1
@@ -64,5 +76,8 @@ class CommandLatency:
         if recent.size == 0:
             return LatencyStatistics(0, math.nan, math.nan, math.nan, self.unmatched)
         p50, p99 = np.percentile(recent, [50, 99])
+        below = np.cumsum(self._run_counts)            # answers in this bin or a shorter one
+        k = int(np.searchsorted(below, math.ceil(0.99 * self.answers)))
+        run_p99 = self._run_max if k == below.size - 1 else min((k + 1) * RUN_BIN, self._run_max)
         return LatencyStatistics(int(recent.size), float(p50), float(p99), float(recent.max()),
-                                 self.unmatched)
+                                 self.unmatched, self.answers, float(run_p99), float(self._run_max))

@@ -12,7 +12,8 @@ is) runs one driver cycle at ``rig.motors.rate`` on the monotonic clock, and
   fault reason, command counters, its cycle timing over the last 1000 cycles: period p50/p99/max
   and p99 error from 1/rate [ms], deadline misses (cycles later than 1.5 periods), and the
   state-to-command latency over the last 1000 answers (:mod:`.command_latency`: from publishing a
-  state to receiving the command stamped like it, p50/p99/max [ms]); one per motor with
+  state to receiving the command stamped like it, p50/p99/max [ms]) and over every answer since the
+  node started (``state_to_command_run_p99_ms``, ``_run_max_ms``); one per motor with
   temperature, error code and reply age) every 0.5 s and at once when the mode or the fault changes.
 
 Subscribes ``tendon/command`` (effort = tensions [N]; a command missing a tendon or with NaN or
@@ -251,7 +252,10 @@ class MotorDriverNode(ManagedHardwareNode):
         driver.values += _values(state_to_command_p50_ms=latency.p50 * 1e3,
                                  state_to_command_p99_ms=latency.p99 * 1e3,
                                  state_to_command_max_ms=latency.max * 1e3, answered_states=latency.answers,
-                                 unmatched_commands=latency.unmatched)
+                                 unmatched_commands=latency.unmatched,
+                                 state_to_command_run_p99_ms=latency.run_p99 * 1e3,
+                                 state_to_command_run_max_ms=latency.run_max * 1e3,
+                                 answered_states_run=latency.run_answers)
         out.status.append(driver)
         for name, m in zip(self.names, diag.motors):
             s = DiagnosticStatus(name=f"motor_driver: {name}", hardware_id=f"{bus}:{m.can_id}")
