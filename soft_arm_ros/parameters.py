@@ -42,6 +42,7 @@ GRAPH_SCHEMA = {
     "recorder.chunk_size": ("int", lambda v: 1024 <= v <= 1 << 30, "a size in [1 KiB, 1 GiB] bytes"),
     "recorder.flush_period": ("float", lambda v: 0 < v <= 3600, "a period in (0, 3600] s"),
     "recorder.discovery_period": ("float", lambda v: 0 < v <= 10, "a period in (0, 10] s"),
+    "recorder.take_period": ("float", lambda v: 0 < v <= 0.5, "a period in (0, 0.5] s"),
 }
 
 

@@ -377,6 +377,11 @@ class RosbagWriter:
         self._pending, self._pending_bytes = _Counts(), 0
         self._write_metadata()
 
+    @property
+    def closed(self) -> bool:
+        """Whether :meth:`close` ran (or a failed write closed the writer)."""
+        return self._closed
+
     def close(self):
         """Write the open chunk, the MCAP summary and footer and the final ``metadata.yaml``.
 
