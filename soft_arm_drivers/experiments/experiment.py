@@ -147,6 +147,7 @@ def run_composed(ros_args: list, out: dict, progress=None, config_dir: str | Non
                 reported = int(sim.rig.t)
                 progress(sim.rig.t, runner.core.duration)
             if time.monotonic() - last_flush > 1.0:
+                recorder.take()                   # what the waves delivered to it, written
                 recorder.writer.flush()
                 last_flush = time.monotonic()
         return {"simulated_s": sim.rig.t, "wall_s": time.monotonic() - start, "waves": executor.waves,

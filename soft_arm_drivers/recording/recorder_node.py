@@ -24,15 +24,17 @@ Messages are not handed to the recorder one callback at a time (an executor's wa
 stream) and every ``graph.recorder.take_period`` the node takes all of them (:class:`PolledGroup`
 keeps the executor off the subscriptions; their QoS events still run) and writes them in the order
 they were received, holding back those received since the previous take so that a message that
-was still on its way into a history is not written after a later one.
+was still on its way into a history is not written after a later one. (The composed graph's wave
+executor, which delivers to each subscription itself, calls their callbacks, and :meth:`take` to
+write.)
 
 Time stamps, as rosbag2's: the receive time (the middleware's ``received_timestamp``; under
-``use_sim_time`` the node clock at the take less the wall time the message waited, so that the bag
-runs on the simulator's time) is the MCAP log time, and the publisher's ``source_timestamp`` (system
-time) the publish time. Messages are stored as received (raw CDR). Messages the recorder did not
-receive (gaps in a publisher's sequence numbers) are counted per topic, logged as they are found (at
-most once a second), stored in ``metadata.yaml``'s ``custom_data`` (``soft_arm.lost_messages``) and
-reported when the bag is closed.
+``use_sim_time`` the node clock at the take less the wall time the message waited, or at the
+callback, so that the bag runs on the simulator's time) is the MCAP log time, and the publisher's
+``source_timestamp`` (system time) the publish time. Messages are stored as received (raw CDR).
+Messages the recorder did not receive (gaps in a publisher's sequence numbers) are counted per
+topic, logged as they are found (at most once a second), stored in ``metadata.yaml``'s
+``custom_data`` (``soft_arm.lost_messages``) and reported when the bag is closed.
 
 A chunk is flushed every ``graph.recorder.flush_period`` seconds and whenever
 ``graph.recorder.chunk_size`` bytes wait: SIGINT and SIGTERM close the bag cleanly (everything
@@ -140,7 +142,7 @@ class RecorderNode(Node):
         except (OSError, ValueError, LookupError) as exc:
             raise ConfigError(f"output = {output!r} is not valid: {exc}") from None
         self.output = output
-        self.count = 0
+        self.count = 0                            # messages received (written, or held until the next take)
         self.losses = LossCounter()
         self._loss_warned = -math.inf             # monotonic time [s] of the last loss warning
         self._sim_time = self.get_parameter("use_sim_time").value
@@ -178,7 +180,7 @@ class RecorderNode(Node):
                     f"match: subscribing again {profile.reliability.value}, {profile.durability.value}")
             topic.profile = profile
             topic.subscription = self.create_subscription(
-                topic.message_type, topic.name, _never_called, to_rclpy(profile), raw=True,
+                topic.message_type, topic.name, self._receiver(topic), to_rclpy(profile), raw=True,
                 callback_group=self._polled,
                 # a publisher the subscription does not match: looked up at the next discovery,
                 # even if the number is unchanged (it replaced another within a period)
@@ -202,12 +204,11 @@ class RecorderNode(Node):
         for _, log_time, name, data, published in self._held[:ready]:
             self.writer.write(name, log_time, data, publish_time_ns=published)
         del self._held[:ready]
-        self.count += ready
         self._last_take = began
 
     def _take_waiting(self, topic: _Topic):
-        """Move the messages waiting in ``topic``'s subscription to the held ones, with their log
-        time (module docstring), counting the losses (sequence gaps) as it goes."""
+        """Hold the messages waiting in ``topic``'s subscription, each with its log time (under
+        ``use_sim_time``: the node clock now less the wall time it waited)."""
         subscription = topic.subscription
         if subscription is None:
             return
@@ -215,10 +216,24 @@ class RecorderNode(Node):
         with subscription.handle:
             while (taken := subscription.handle.take_message(topic.message_type, True)) is not None:
                 data, info = taken
-                received = info["received_timestamp"]
-                self._held.append((received, received + offset, topic.resolved, data,
-                                   info.get("source_timestamp") or received))
-                self._count_losses(topic, info.get("publication_sequence_number"))
+                self._hold(topic, data, info, max(info["received_timestamp"] + offset, 0))
+
+    def _receiver(self, topic: _Topic):
+        """The subscription's callback, for an executor that delivers to it directly (the composed
+        graph's :class:`~soft_arm_drivers.experiments.lockstep.WaveExecutor`, whose time is the
+        simulator's): hold the message, logged at the node clock's time."""
+        def receive(data: bytes, info: dict):
+            log_time = self.get_clock().now().nanoseconds if self._sim_time else info["received_timestamp"]
+            self._hold(topic, data, info, log_time)
+        return receive
+
+    def _hold(self, topic: _Topic, data: bytes, info: dict, log_time: int):
+        """Keep a received message until a take writes it, counting it and its losses (sequence gaps)."""
+        received = info["received_timestamp"]
+        published = info.get("source_timestamp") or received
+        self._held.append((received, log_time, topic.resolved, data, published))
+        self.count += 1
+        self._count_losses(topic, info.get("publication_sequence_number"))
 
     def _count_losses(self, topic: _Topic, sequence):
         lost = self.losses.received(topic.resolved, sequence, topic.publishers)
@@ -247,11 +262,6 @@ class RecorderNode(Node):
                                       + ", ".join(f"{t} {n}" for t, n in sorted(self.losses.lost.items())))
         self._store_losses()
         self.writer.close()
-
-
-def _never_called(message):
-    """The callback of a polled subscription (:class:`PolledGroup`): no executor calls it."""
-    raise AssertionError("a polled subscription's callback was called")
 
 
 def main(args=None) -> int:
