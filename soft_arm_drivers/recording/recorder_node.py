@@ -8,8 +8,9 @@ any other as ``name:pkg/msg/Type``. Output directory: the node parameter ``outpu
 
 Subscriptions adapt to the publishers, as rosbag2's do (:mod:`.adaptive_qos`): every
 ``graph.recorder.discovery_period`` the publishers of each topic are counted, and looked up
-(``get_publishers_info_by_topic``) when their number changed or the middleware reported an
-offer the subscription does not match (a publisher that replaced another within a period); a
+(``get_publishers_info_by_topic``) when their number changed or when the subscription, given
+:data:`MATCH_TIME` to match them, matches fewer (a publisher whose offer it does not match
+replaced another within a period); a
 topic is subscribed once one appears, reliable / transient local only when every publisher offers
 it (so a best-effort publisher is recorded whatever the graph's table says, and a latched goal
 published before the recorder started is recorded), and subscribed again, to a weaker profile,
@@ -22,7 +23,7 @@ Messages are not handed to the recorder one callback at a time (an executor's wa
 0.25 ms of CPU per message in rclpy, held the recorder at 40 % of a core for the emulated rig's
 1600 messages a second): they wait in each subscription's history (1000 deep, 2 s of a 500 Hz
 stream) and every ``graph.recorder.take_period`` the node takes all of them (:class:`PolledGroup`
-keeps the executor off the subscriptions; their QoS events still run) and writes them in the order
+keeps the executor off the subscriptions) and writes them in the order
 they were received, holding back those received since the previous take so that a message that
 was still on its way into a history is not written after a later one. (The composed graph's wave
 executor, which delivers to each subscription itself, calls their callbacks, and :meth:`take` to
@@ -57,7 +58,6 @@ from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-from rclpy.subscription import Subscription
 
 from soft_arm_model.parameters import ConfigError
 from soft_arm_ros.contract import QOS, TYPES, message_class
@@ -88,18 +88,21 @@ def to_rclpy(profile: QosProfile) -> QoSProfile:
 
 
 LOSS_WARNING_PERIOD = 1.0    # s, at most one warning of lost messages per period
+MATCH_TIME = 0.5             # s a new subscription has to match the publishers it was made for
 
 
 class PolledGroup(CallbackGroup):
-    """A callback group whose subscriptions no executor waits on or takes from (their messages stay
-    in the subscription's history for the node to take); every other entity in it (a
-    subscription's QoS event handlers, a timer) runs whenever it is ready, as in a reentrant group."""
+    """A callback group no executor waits on or runs anything of: its subscriptions' messages stay in
+    their histories for the node to take. Give them no QoS event handlers
+    (``SubscriptionEventCallbacks(use_default_callbacks=False)``): with rmw_fastrtps every message
+    wakes a wait set holding a subscription's events, and rclpy's executor, finding nothing of
+    its own ready, builds its wait set again (some 14 times per timer callback, measured)."""
 
     def can_execute(self, entity) -> bool:
-        return not isinstance(entity, Subscription)
+        return False
 
     def beginning_execution(self, entity) -> bool:
-        return self.can_execute(entity)
+        return False
 
     def ending_execution(self, entity) -> None:
         pass
@@ -107,13 +110,22 @@ class PolledGroup(CallbackGroup):
 
 class _Topic:
     """One recorded topic: its name as given and resolved, message class, the subscription and its
-    profile (None until a publisher appears), how many publish on it, whether the middleware
-    reported an offer the subscription does not match since the last look-up."""
+    profile (None until a publisher appears) and when it was made [s, monotonic], how many publish
+    on it, whether the last look-up found an offer no subscription matches (not looked up again
+    until the number of publishers changes)."""
 
     def __init__(self, name: str, resolved: str, message_type):
         self.name, self.resolved, self.message_type = name, resolved, message_type
         self.subscription, self.profile, self.publishers = None, None, 0
-        self.unmatched = False
+        self.subscribed_at = -math.inf
+        self.unmatchable = False
+
+    def misses_a_publisher(self, publishers: int, now: float) -> bool:
+        """Whether the subscription, made at least MATCH_TIME before ``now``, matches fewer than
+        ``publishers`` (one it does not match, unless the last look-up found it unmatchable)."""
+        return (self.subscription is not None and not self.unmatchable
+                and now - self.subscribed_at >= MATCH_TIME
+                and self.subscription.get_publisher_count() < publishers)
 
 
 class RecorderNode(Node):
@@ -161,14 +173,17 @@ class RecorderNode(Node):
     def discover(self):
         """Subscribe to the topics whose publishers appeared, again where a new one's offer does
         not match the subscription (:func:`~.adaptive_qos.resubscription`)."""
+        now = time.monotonic()
         for topic in self.topics.values():
-            if not topic.unmatched and self.count_publishers(topic.resolved) == topic.publishers:
+            publishers = self.count_publishers(topic.resolved)
+            changed = publishers != topic.publishers
+            if not changed and not topic.misses_a_publisher(publishers, now):
                 continue     # the same publishers as at the last look-up (the look-up costs more)
-            topic.unmatched = False
             offered = [to_profile(info.qos_profile)
                        for info in self.get_publishers_info_by_topic(topic.resolved)]
             topic.publishers = len(offered)
             profile = resubscription(topic.profile, offered)
+            topic.unmatchable = profile is None and not changed     # a shortfall no profile mends
             if profile is None:
                 continue
             if topic.subscription is not None:
@@ -178,14 +193,11 @@ class RecorderNode(Node):
                     f"{topic.resolved}: a publisher offers {offered} which the subscription "
                     f"({topic.profile.reliability.value}, {topic.profile.durability.value}) does not "
                     f"match: subscribing again {profile.reliability.value}, {profile.durability.value}")
-            topic.profile = profile
+            topic.profile, topic.subscribed_at = profile, now
             topic.subscription = self.create_subscription(
                 topic.message_type, topic.name, self._receiver(topic), to_rclpy(profile), raw=True,
                 callback_group=self._polled,
-                # a publisher the subscription does not match: looked up at the next discovery,
-                # even if the number is unchanged (it replaced another within a period)
-                event_callbacks=SubscriptionEventCallbacks(
-                    incompatible_qos=lambda _, topic=topic: setattr(topic, "unmatched", True)))
+                event_callbacks=SubscriptionEventCallbacks(use_default_callbacks=False))
 
     def unsubscribed(self, published) -> list:
         """The recorded topics among ``published`` (resolved names) not subscribed yet."""

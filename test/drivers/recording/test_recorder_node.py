@@ -19,7 +19,7 @@ from soft_arm_interfaces.msg import ConfigurationReference, TaskGoal
 
 from conftest import spin_until
 from soft_arm_drivers.recording.adaptive_qos import LossCounter, adapt_to_offers, matches, resubscription
-from soft_arm_drivers.recording.recorder_node import RecorderNode
+from soft_arm_drivers.recording.recorder_node import MATCH_TIME, RecorderNode
 from soft_arm_drivers.recording.rosbag_writer import QosProfile
 
 BEST_EFFORT = QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT)
@@ -274,9 +274,9 @@ def test_lost_messages_are_warned_of_at_most_once_a_second(context, tmp_path, mo
 
 def test_a_publisher_replaced_by_an_unmatched_one_is_looked_up_again(context, tmp_path):
     """A latched publisher replaced by a best-effort one, the number of publishers the same at
-    every discovery: the middleware's incompatible-QoS event makes the next discovery look the
-    offers up again, and the recorder subscribes again, best effort (the discovery timer is held
-    off: discovery runs when the test calls it)."""
+    every discovery: the subscription matches none of them, so the next discovery (MATCH_TIME after
+    the subscription was made) looks the offers up again, and the recorder subscribes again, best
+    effort (the discovery timer is held off: discovery runs when the test calls it)."""
     node = RecorderNode(context=context, parameter_overrides=[
         Parameter("output", value=str(tmp_path / "bag")),
         Parameter("graph.recorder.topics", value=["task/goal"]),
@@ -292,8 +292,9 @@ def test_a_publisher_replaced_by_an_unmatched_one_is_looked_up_again(context, tm
         assert topic.profile.reliability.value == "reliable" and topic.publishers == 1
         streaming = publisher_node.create_publisher(TaskGoal, "task/goal", BEST_EFFORT)
         publisher_node.destroy_publisher(latched)
-        spin_until(executor, lambda: topic.unmatched)                 # the middleware's event
-        spin_until(executor, lambda: node.count_publishers("/task/goal") == 1)
+        spin_until(executor, lambda: node.count_publishers("/task/goal") == 1
+                   and topic.subscription.get_publisher_count() == 0)     # unmatched
+        time.sleep(max(0.0, topic.subscribed_at + MATCH_TIME - time.monotonic()))
         node.discover()
         assert topic.profile.reliability.value == "best_effort" and topic.publishers == 1
         spin_until(executor, lambda: streaming.get_subscription_count() > 0)
