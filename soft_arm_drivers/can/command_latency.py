@@ -28,8 +28,9 @@ class LatencyStatistics:
     """The latency [s] of the last ``answers`` matched commands (at most :data:`WINDOW`): median, 99th
     percentile and maximum (nan before the first), and the commands that matched no published state
     since the start; over all ``run_answers`` matched since the start: the 99th percentile (an
-    upper bound, at most :data:`RUN_BIN` above it below :data:`RUN_RANGE`, and never above the
-    maximum) and the maximum."""
+    upper bound of the interpolated one ``p99`` gives over a window, at most :data:`RUN_BIN` above
+    the sample it interpolates towards below :data:`RUN_RANGE`, and never above the maximum) and
+    the maximum."""
     answers: int
     p50: float
     p99: float
@@ -77,7 +78,8 @@ class CommandLatency:
             return LatencyStatistics(0, math.nan, math.nan, math.nan, self.unmatched)
         p50, p99 = np.percentile(recent, [50, 99])
         below = np.cumsum(self._run_counts)            # answers in this bin or a shorter one
-        k = int(np.searchsorted(below, math.ceil(0.99 * self.answers)))
-        run_p99 = self._run_max if k == below.size - 1 else min((k + 1) * RUN_BIN, self._run_max)
+        # the bin of the sample np.percentile's interpolated p99 reaches up to (0-based rank)
+        k = int(np.searchsorted(below, math.ceil(0.99 * (self.answers - 1)) + 1))
+        run_p99 = self._run_max if k >= below.size - 1 else min((k + 1) * RUN_BIN, self._run_max)
         return LatencyStatistics(int(recent.size), float(p50), float(p99), float(recent.max()),
                                  self.unmatched, self.answers, float(run_p99), float(self._run_max))

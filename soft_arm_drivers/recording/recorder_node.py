@@ -93,10 +93,11 @@ MATCH_TIME = 0.5             # s a new subscription has to match the publishers 
 
 class PolledGroup(CallbackGroup):
     """A callback group no executor waits on or runs anything of: its subscriptions' messages stay in
-    their histories for the node to take. Give them no QoS event handlers
-    (``SubscriptionEventCallbacks(use_default_callbacks=False)``): with rmw_fastrtps every message
-    wakes a wait set holding a subscription's events, and rclpy's executor, finding nothing of
-    its own ready, builds its wait set again (some 14 times per timer callback, measured)."""
+    their histories for the node to take. A subscription's QoS event handlers join its group, so
+    give them none (``SubscriptionEventCallbacks(use_default_callbacks=False)``) rather than
+    handlers that never run. (Handlers in a wait set cost the recorder most of its CPU: with
+    rmw_fastrtps every message wakes a wait set holding a subscription's events, and rclpy's
+    executor, finding nothing ready, builds its wait set again, some 14 times per timer callback.)"""
 
     def can_execute(self, entity) -> bool:
         return False
@@ -111,20 +112,18 @@ class PolledGroup(CallbackGroup):
 class _Topic:
     """One recorded topic: its name as given and resolved, message class, the subscription and its
     profile (None until a publisher appears) and when it was made [s, monotonic], how many publish
-    on it, whether the last look-up found an offer no subscription matches (not looked up again
-    until the number of publishers changes)."""
+    on it, whether a look-up found a publisher no profile of the recorder's matches (warned of once)."""
 
     def __init__(self, name: str, resolved: str, message_type):
         self.name, self.resolved, self.message_type = name, resolved, message_type
         self.subscription, self.profile, self.publishers = None, None, 0
         self.subscribed_at = -math.inf
-        self.unmatchable = False
+        self.unmatchable_warned = False
 
     def misses_a_publisher(self, publishers: int, now: float) -> bool:
         """Whether the subscription, made at least MATCH_TIME before ``now``, matches fewer than
-        ``publishers`` (one it does not match, unless the last look-up found it unmatchable)."""
-        return (self.subscription is not None and not self.unmatchable
-                and now - self.subscribed_at >= MATCH_TIME
+        ``publishers``."""
+        return (self.subscription is not None and now - self.subscribed_at >= MATCH_TIME
                 and self.subscription.get_publisher_count() < publishers)
 
 
@@ -161,7 +160,8 @@ class RecorderNode(Node):
         self._polled = PolledGroup()
         # taken, not written yet: (received [ns, wall], log time [ns], topic, data, publish time [ns])
         self._held: list = []
-        self._last_take = None                    # wall time [ns] the previous take began
+        self._last_take = time.time_ns()          # wall time [ns] the previous take began
+        self._last_log_time = 0                   # [ns] of the message written last
         self.discover()
         # on the wall clock: under use_sim_time the simulator's clock starts only once it is recorded
         wall = Clock(clock_type=ClockType.STEADY_TIME)
@@ -176,18 +176,23 @@ class RecorderNode(Node):
         now = time.monotonic()
         for topic in self.topics.values():
             publishers = self.count_publishers(topic.resolved)
-            changed = publishers != topic.publishers
-            if not changed and not topic.misses_a_publisher(publishers, now):
+            short = topic.misses_a_publisher(publishers, now)
+            if publishers == topic.publishers and not short:
                 continue     # the same publishers as at the last look-up (the look-up costs more)
+            self._take_waiting(topic)                # counted against the publishers they came from
             offered = [to_profile(info.qos_profile)
                        for info in self.get_publishers_info_by_topic(topic.resolved)]
             topic.publishers = len(offered)
             profile = resubscription(topic.profile, offered)
-            topic.unmatchable = profile is None and not changed     # a shortfall no profile mends
             if profile is None:
+                if short and not topic.unmatchable_warned:
+                    topic.unmatchable_warned = True
+                    self.get_logger().warning(
+                        f"{topic.resolved}: {publishers - topic.subscription.get_publisher_count()} of "
+                        f"{publishers} publishers do not match the subscription, whose QoS matches "
+                        f"every offer {offered} (another type?): they are not recorded")
                 continue
             if topic.subscription is not None:
-                self._take_waiting(topic)            # what it holds, before it goes
                 self.destroy_subscription(topic.subscription)
                 self.get_logger().warning(
                     f"{topic.resolved}: a publisher offers {offered} which the subscription "
@@ -206,25 +211,38 @@ class RecorderNode(Node):
     def take(self, everything: bool = False):
         """Take every message waiting in the subscriptions' histories and write, in the order they
         were received, those received before the previous take began (``everything``: all, at the
-        end); the rest wait for the next take."""
+        end); the rest wait for the next take. Log times never decrease in the bag: one earlier
+        than the last written (a simulator's clock slower than the wall's) is written as that."""
         began = time.time_ns()
+        offset = self._sim_offset()
         for topic in self.topics.values():
-            self._take_waiting(topic)
+            self._take_waiting(topic, offset)
         self._held.sort(key=lambda m: m[0])
-        ready = len(self._held) if everything or self._last_take is None else \
+        ready = len(self._held) if everything else \
             bisect.bisect_left(self._held, self._last_take, key=lambda m: m[0])
-        for _, log_time, name, data, published in self._held[:ready]:
-            self.writer.write(name, log_time, data, publish_time_ns=published)
-        del self._held[:ready]
+        written = 0
+        try:
+            for _, log_time, name, data, published in self._held[:ready]:
+                self._last_log_time = max(log_time, self._last_log_time)
+                self.writer.write(name, self._last_log_time, data, publish_time_ns=published)
+                written += 1
+        finally:
+            del self._held[:written]
         self._last_take = began
 
-    def _take_waiting(self, topic: _Topic):
+    def _sim_offset(self) -> int:
+        """The node clock less the wall clock [ns] under ``use_sim_time``, else 0."""
+        return self.get_clock().now().nanoseconds - time.time_ns() if self._sim_time else 0
+
+    def _take_waiting(self, topic: _Topic, offset: int | None = None):
         """Hold the messages waiting in ``topic``'s subscription, each with its log time (under
-        ``use_sim_time``: the node clock now less the wall time it waited)."""
+        ``use_sim_time``: the node clock now less the wall time it waited; ``offset``
+        [ns]: :meth:`_sim_offset`, taken now if None)."""
         subscription = topic.subscription
         if subscription is None:
             return
-        offset = self.get_clock().now().nanoseconds - time.time_ns() if self._sim_time else 0
+        if offset is None:
+            offset = self._sim_offset()
         with subscription.handle:
             while (taken := subscription.handle.take_message(topic.message_type, True)) is not None:
                 data, info = taken
@@ -267,18 +285,20 @@ class RecorderNode(Node):
     def close(self):
         """Write every message received until now and close the bag (idempotent): summary, footer
         and final metadata.yaml; report the losses."""
-        if not self.writer.closed:
-            self.take(everything=True)
-        if self.losses.total:
-            self.get_logger().warning(f"{self.losses.total} messages were not received: "
-                                      + ", ".join(f"{t} {n}" for t, n in sorted(self.losses.lost.items())))
-        self._store_losses()
-        self.writer.close()
+        try:
+            if not self.writer.closed:
+                self.take(everything=True)
+        finally:
+            if self.losses.total:
+                self.get_logger().warning(f"{self.losses.total} messages were not received: " + ", ".join(
+                    f"{t} {n}" for t, n in sorted(self.losses.lost.items())))
+            self._store_losses()
+            self.writer.close()
 
 
 def main(args=None) -> int:
-    # the executor runs only the timers and the QoS events (the messages are taken by the node);
-    # whether rclpy's EventsExecutor keeps off a callback group's subscriptions is not documented
+    # the executor runs only the timers (the messages are taken by the node); whether rclpy's
+    # EventsExecutor keeps off a callback group's subscriptions is not documented
     return run_node(RecorderNode, "recorder", args, executor_factory=SingleThreadedExecutor)
 
 

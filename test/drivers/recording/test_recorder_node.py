@@ -14,7 +14,7 @@ from mcap.reader import make_reader
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-from rclpy.serialization import deserialize_message
+from rclpy.serialization import deserialize_message, serialize_message
 from soft_arm_interfaces.msg import ConfigurationReference, TaskGoal
 
 from conftest import spin_until
@@ -219,6 +219,56 @@ def test_messages_waiting_when_the_bag_closes_are_written(context, tmp_path):
         publisher_node.destroy_node()
     values = [deserialize_message(m.data, ConfigurationReference).goal for _, m in read(bag)]
     assert values == list(range(50)) and node.count == 50
+
+
+def test_log_times_never_decrease_and_a_failed_take_still_closes_the_bag(context, tmp_path, monkeypatch):
+    """Held messages are written in the order received; a log time earlier than the last written
+    (a simulator's clock slower than the wall's between takes) is written as the last. A take that
+    fails at close still leaves a closed, readable bag."""
+    bag = tmp_path / "bag"
+    node = recorder(context, bag, ["arm/configuration_reference"])
+    topic = node.topics["/arm/configuration_reference"]
+    data = bytes(serialize_message(reference(1)))
+    for received, log_time in ((100, 5000), (200, 4000), (300, 6000)):
+        node._hold(topic, data, {"received_timestamp": received}, log_time)
+    node.take(everything=True)
+    node.writer.flush()                                   # readable as it is written
+    with open(bag / "bag_0.mcap", "rb") as fh:
+        in_file_order = [m.log_time for _, _, m in make_reader(fh).iter_messages(log_time_order=False)]
+    assert in_file_order == [5000, 5000, 6000]
+    node._hold(topic, data, {"received_timestamp": 400}, 7000)
+    monkeypatch.setattr(node, "take", lambda everything=False: 1 / 0)
+    with pytest.raises(ZeroDivisionError):
+        node.close()
+    assert node.writer.closed and len(read(bag)) == 3
+    node.destroy_node()
+
+
+def test_a_publisher_the_recorder_cannot_match_is_warned_of_once(context, tmp_path, monkeypatch):
+    """A subscription that matches fewer publishers than there are, whose QoS already matches every
+    offer (another type, say): looked up again at each discovery, warned of once, not resubscribed."""
+    node = recorder(context, tmp_path / "bag", ["task/goal"])
+    publisher_node = rclpy.create_node("goal_publisher", context=context)
+    topic = node.topics["/task/goal"]
+    warnings = []
+    try:
+        publisher_node.create_publisher(TaskGoal, "task/goal", BEST_EFFORT)
+        deadline = time.monotonic() + 10.0
+        while topic.subscription is None and time.monotonic() < deadline:
+            node.discover()
+            time.sleep(0.01)
+        subscription = topic.subscription
+        monkeypatch.setattr(subscription, "get_publisher_count", lambda: 0)
+        monkeypatch.setattr(node.get_logger(), "warning", lambda text, **_: warnings.append(text))
+        time.sleep(MATCH_TIME)
+        for _ in range(3):
+            node.discover()
+        assert topic.subscription is subscription
+        assert len(warnings) == 1 and "1 of 1 publishers do not match" in warnings[0]
+    finally:
+        node.close()
+        node.destroy_node()
+        publisher_node.destroy_node()
 
 
 def test_publishers_are_looked_up_only_when_their_number_changes(context, tmp_path, monkeypatch):
