@@ -75,6 +75,18 @@ def read(bag):
         return [(channel.topic, message) for _, channel, message in reader.iter_messages()]
 
 
+def stream_and_recorder(context, bag):
+    """A best-effort arm/configuration_reference publisher (its node and publisher) and a recorder of
+    that topic into ``bag`` with an executor spinning only the recorder."""
+    publisher_node = rclpy.create_node("stream_publisher", context=context)
+    stream = publisher_node.create_publisher(ConfigurationReference, "arm/configuration_reference",
+                                             BEST_EFFORT)
+    node = recorder(context, bag, ["arm/configuration_reference"])
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    return publisher_node, stream, node, executor
+
+
 def metadata(bag):
     return yaml.safe_load((pathlib.Path(bag) / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
 
@@ -125,13 +137,8 @@ def test_messages_the_recorder_could_not_keep_up_with_are_counted(context, tmp_p
     """3000 best-effort messages published while the recorder does not spin: its history (1000)
     overflows; what it missed is counted from the publisher's sequence numbers, so that recorded +
     lost covers every message, and the count is in the bag's metadata."""
-    publisher_node = rclpy.create_node("stream_publisher", context=context)
-    stream = publisher_node.create_publisher(ConfigurationReference, "arm/configuration_reference",
-                                             BEST_EFFORT)
     bag = tmp_path / "bag"
-    node = recorder(context, bag, ["arm/configuration_reference"])
-    executor = SingleThreadedExecutor(context=context)
-    executor.add_node(node)
+    publisher_node, stream, node, executor = stream_and_recorder(context, bag)
     try:
         spin_until(executor, lambda: stream.get_subscription_count() > 0)
         stream.publish(reference(0))
@@ -200,13 +207,8 @@ def test_messages_are_taken_in_batches_and_written_in_the_order_they_were_receiv
 def test_messages_waiting_when_the_bag_closes_are_written(context, tmp_path):
     """Messages received but not taken yet (nothing spun since) are written when the bag closes,
     as a SIGINT or SIGTERM closes it."""
-    publisher_node = rclpy.create_node("stream_publisher", context=context)
-    stream = publisher_node.create_publisher(ConfigurationReference, "arm/configuration_reference",
-                                             BEST_EFFORT)
     bag = tmp_path / "bag"
-    node = recorder(context, bag, ["arm/configuration_reference"])
-    executor = SingleThreadedExecutor(context=context)
-    executor.add_node(node)
+    publisher_node, stream, node, executor = stream_and_recorder(context, bag)
     try:
         spin_until(executor, lambda: stream.get_subscription_count() > 0)
         for k in range(50):
