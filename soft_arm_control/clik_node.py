@@ -69,8 +69,7 @@ class ClikNode(Node):
         self.trajectories = {ph.name: ph.trajectory for ph in self.task.phases if ph.trajectory is not None}
         self.model = build_model(params.arm)
         self.outer = outer_loop_for(self.model, self.control, self.task)
-        if self.control.seed_levels:
-            self.outer.seeds()          # now, not at the goal that needs them (0.7 s, seconds under load)
+        self.outer.seeds()              # now, not at the goal that needs them (0.7 s, seconds under load)
         self.names = self.model.tendon_names
         self.labels = self.task.space.labels()
         self.now = 0.0

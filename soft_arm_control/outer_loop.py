@@ -191,7 +191,8 @@ class OuterLoop:
     def seeds(self) -> list:
         """The seed equilibria at ``seed_levels`` (:func:`~soft_arm_control.clik.equilibrium_seeds`),
         solved at the first call and kept: ``levels ** actuated tendons`` equilibria (the triangle's
-        81 take 0.7 s), so a node that answers goals calls it before the first comes."""
+        81 take 0.7 s; none without levels), so a node that answers goals calls it before the first
+        comes."""
         if self._seeds is None:
             self._seeds = equilibrium_seeds(self.clik, self.seed_levels)
         return self._seeds
