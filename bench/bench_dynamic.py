@@ -3,7 +3,7 @@ triangle against the paper's, and the tracking error against path speed, on the 
 Prints three tables and writes JSON.
 
     python bench/bench_dynamic.py [--runs 10] [--planned-runs 3] [--speeds 0.0125 0.025 0.05 0.1 0.2]
-                                  [--jobs 2] [--output bench/results/dynamic.json]
+                                  [--sizes 0.01 0.015] [--jobs 2] [--output bench/results/dynamic.json]
 
 Every figure is one ``soft-arm-harness TASK --json`` run (one process per run, ``--jobs`` at a
 time):
@@ -15,9 +15,11 @@ time):
   ``--planned-runs`` times;
 - coiling and triangle: the peak tip speed against the paper's (3.63 and 2.52 m/s; the pendulum's
   4.37 m/s beside its runs), with the Table 1 figures;
-- tracking: the coiling plane's circle (``tasks.tracking``, its size) at each path speed of
-  ``--speeds`` [m/s] (period = 2 pi size / speed), a window of whole periods at least the task's
-  ``steady_time`` + 4 s long: tracking RMS and maximum error after ``steady_time``.
+- tracking: a circle in the coiling plane (``tasks.tracking``'s, of each radius of ``--sizes``
+  [m]) at each path speed of ``--speeds`` [m/s] (period = 2 pi size / speed), a window of whole
+  periods at least the task's ``steady_time`` + 8 s long, with the path learned
+  (``control.clik.track_learning``, :mod:`soft_arm_control.track_learning`) and without: tracking
+  RMS and maximum error after ``steady_time``, and the RMS of the window's last period.
 The same strike on randomly drawn plants is ``bench_robustness.py --tasks pendulum``.
 """
 from __future__ import annotations
@@ -73,17 +75,23 @@ def speed_run(task: str) -> dict:
             "mm_band": s["reached_mm"], "transitions": s["transitions"]}
 
 
-def tracking_run(speed: float, size: float, steady: float) -> dict:
+def tracking_run(speed: float, size: float, steady: float, learned: bool) -> dict:
     period = 2 * math.pi * size / speed
-    window = period * math.ceil((steady + 4.0) / period)
-    out = harness("tracking", ['tasks.tracking.phases=["approach","circle_fast"]',
-                               f"tasks.tracking.phase.circle_fast.trajectory.period={period!r}",
-                               f"tasks.tracking.phase.circle_fast.window={window!r}"])
+    window = period * math.ceil((steady + 8.0) / period)
+    sets = ['tasks.tracking.phases=["approach","circle_fast"]',
+            f"tasks.tracking.phase.circle_fast.trajectory.size={size!r}",
+            f"tasks.tracking.phase.circle_fast.trajectory.period={period!r}",
+            f"tasks.tracking.phase.circle_fast.window={window!r}"]
+    out = harness("tracking", sets + ([] if learned else ["control.clik.track_learning.gain=0"]))
+    head = {"size": size, "speed": speed, "learned": learned, "period": period}
     if "error" in out:
-        return {"speed": speed, "period": period, **out}
+        return {**head, **out}
     t = out["tracking"][0]
-    return {"speed": t["path_speed"], "period": period, "window": window,
-            "rms_mm": t["rms_error"] * 1e3, "max_mm": t["max_error"] * 1e3}
+    goal = next(g for g in out["targets"] if g["mode"] == "track")
+    return {**head, "speed": t["path_speed"], "window": window, "rms_mm": t["rms_error"] * 1e3,
+            "max_mm": t["max_error"] * 1e3, "last_period_rms_mm": t["last_period_rms_error"] * 1e3,
+            "status": goal["status"], "learned_periods": goal["learned_periods"],
+            "backed_off_periods": goal["backed_off_periods"], "frozen_periods": goal["frozen_periods"]}
 
 
 def strike_table(title: str, strikes: list) -> dict:
@@ -130,16 +138,19 @@ def main(argv=None) -> int:
     parser.add_argument("--runs", type=int, default=10)
     parser.add_argument("--planned-runs", type=int, default=3)
     parser.add_argument("--speeds", type=float, nargs="+", default=[0.0125, 0.025, 0.05, 0.1, 0.2])
+    parser.add_argument("--sizes", type=float, nargs="+", default=None,
+                        help="circle radii [m] (default: the tracking task's, and 0.015)")
     parser.add_argument("--jobs", type=int, default=os.cpu_count() or 2)
     parser.add_argument("--output", default=results_path("dynamic.json"))
     args = parser.parse_args(argv)
     from soft_arm_drivers.experiments.harness import load_setup
     track = load_setup("tracking").task
-    size = next(ph.trajectory.size for ph in track.phases if ph.name == "circle_fast")
+    sizes = args.sizes or [next(ph.trajectory.size for ph in track.phases if ph.name == "circle_fast"), 0.015]
     jobs = ([("pendulum", (k,)) for k in range(args.runs)]
             + [("pendulum", (k, "planned")) for k in range(args.planned_runs)]
             + [("speed", (t,)) for t in ("coiling", "triangle")]
-            + [("tracking", (v, size, track.steady_time)) for v in args.speeds])
+            + [("tracking", (v, a, track.steady_time, learned)) for a in sizes for v in args.speeds
+               for learned in (False, True)])
     with ProcessPoolExecutor(args.jobs) as pool:
         results = list(pool.map(_run, jobs))
     strikes = results[:args.runs]
@@ -163,18 +174,27 @@ def main(argv=None) -> int:
     if ok:
         peak, paper = float(np.median([r["peak_speed"] for r in ok])), ok[0]["paper_peak_speed"]
         print(f"{'pendulum':9s} {peak:8.2f} {paper:6.2f} {peak / paper:6.2f} | (median of the runs)")
-    print(f"\ntracking a circle of {size * 1e3:.0f} mm in the coiling plane against path speed")
-    print(f"{'speed m/s':>9s} {'period s':>8s} {'RMS mm':>7s} {'max mm':>7s}")
-    for r in tracking:
-        if "error" in r:
-            print(f"{r['speed']:9.4f} {r['period']:8.2f} failed: {' '.join(r['error'])}")
-            continue
-        print(f"{r['speed']:9.4f} {r['period']:8.2f} {r['rms_mm']:7.2f} {r['max_mm']:7.2f}")
+    print("\ntracking a circle in the coiling plane against path speed: RMS, max and the last "
+          "period's RMS [mm], the path unlearned | learned (periods learned/backed off/frozen, status)")
+    print(f"{'radius mm':>9s} {'speed m/s':>9s} {'period s':>8s} | {'RMS':>6s} {'max':>6s} {'last':>6s} | "
+          f"{'RMS':>6s} {'max':>6s} {'last':>6s}")
+    for plain, learned in zip(tracking[::2], tracking[1::2]):
+        cells = []
+        for r in (plain, learned):
+            cells.append("failed: " + " ".join(r["error"]) if "error" in r else
+                         f"{r['rms_mm']:6.2f} {r['max_mm']:6.2f} {r['last_period_rms_mm']:6.2f}")
+        extra = "" if "error" in learned else (
+            f" ({learned['learned_periods']}/{learned['backed_off_periods']}/{learned['frozen_periods']}, "
+            f"{learned['status']})")
+        print(f"{plain['size'] * 1e3:9.1f} {plain['speed']:9.4f} {plain['period']:8.2f} | {cells[0]} | "
+              f"{cells[1]}{extra}")
     summary = {
         **rehearsed_summary, "planned": planned_summary,
         "peak_speed_ratio": {r["task"]: r["peak_speed"] / r["paper_peak_speed"]
                              for r in speeds if "error" not in r},
-        "tracking_rms_mm": {f"{r['speed']:.4f}": r.get("rms_mm") for r in tracking},
+        "tracking_rms_mm": {f"{r['size'] * 1e3:.0f} mm, {r['speed']:.4f} m/s, "
+                            f"{'learned' if r['learned'] else 'unlearned'}": r.get("rms_mm")
+                            for r in tracking},
     }
     write_results(args.output, {"summary": summary, "strikes": strikes, "planned_strikes": planned,
                                 "speeds": speeds, "tracking": tracking})

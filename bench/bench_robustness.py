@@ -106,6 +106,9 @@ def run_one(task: str, plant: dict, sets=()) -> dict:
                                  for g in goals),
             "tracking_rms_mm": [r["rms_error"] * 1e3 for r in out.get("tracking", [])],
             "tracking_max_mm": [r["max_error"] * 1e3 for r in out.get("tracking", [])],
+            "tracking_last_period_rms_mm": [None if r["last_period_rms_error"] is None
+                                            else r["last_period_rms_error"] * 1e3
+                                            for r in out.get("tracking", [])],
             "strike": out.get("strike"), **holds}
 
 
@@ -137,6 +140,11 @@ def _distribution(drawn: list) -> dict:
         tracking = {"tracking_rms_mm_worst_window_median": float(np.median(worst)),
                     "tracking_rms_mm_worst": float(worst.max()),
                     "tracking_max_mm_worst": float(max(max(r["tracking_max_mm"]) for r in ok))}
+        last = [max((v for v in r["tracking_last_period_rms_mm"] if v is not None), default=np.nan)
+                for r in ok]
+        if not np.all(np.isnan(last)):
+            tracking["tracking_last_period_rms_mm_worst_window_median"] = float(np.nanmedian(last))
+            tracking["tracking_last_period_rms_mm_worst"] = float(np.nanmax(last))
     return {**tracking, "runs": len(ok), "failed": failed, "rms_mm_median": float(np.median(rms)),
             "rms_mm_worst": float(rms.max()), "mm_band_median": float(np.median(band)),
             "mm_band_worst": int(band.min()), "transitions": ok[0]["transitions"],
@@ -176,7 +184,8 @@ def main(argv=None) -> int:
         print(f"{head} {r['rms_mm']:7.2f} {r['mm_band']:4d}/{r['transitions']:<3d} "
               f"{r['velocity_mm_band'] or 0:8.3f} {r['velocity_cm_band'] or 0:8.3f} "
               f"{r['infeasible_steps']:7d}  {' '.join(r['statuses'])}"
-              + (f"  tracking RMS {' '.join(f'{v:.2f}' for v in r['tracking_rms_mm'])} mm"
+              + (f"  tracking RMS {' '.join(f'{v:.2f}' for v in r['tracking_rms_mm'])} mm (last period "
+                 f"{' '.join('-' if v is None else f'{v:.2f}' for v in r['tracking_last_period_rms_mm'])})"
                  if r["tracking_rms_mm"] else "") + _strike(r["strike"]))
     summary = {}
     for task in args.tasks:
@@ -196,6 +205,9 @@ def main(argv=None) -> int:
                   + (f"; tracking RMS of the worst window: median "
                      f"{s['tracking_rms_mm_worst_window_median']:.2f} mm, worst "
                      f"{s['tracking_rms_mm_worst']:.2f} mm (max error {s['tracking_max_mm_worst']:.2f} mm)"
+                     + (f"; last period: median {s['tracking_last_period_rms_mm_worst_window_median']:.2f}, "
+                        f"worst {s['tracking_last_period_rms_mm_worst']:.2f} mm"
+                        if "tracking_last_period_rms_mm_worst" in s else "")
                      if "tracking_rms_mm_worst" in s else "")
                   + (f"; struck on {s['strikes']} of {s['runs']}" if "strikes" in s else ""))
     write_results(args.output, {"tolerances": TOLERANCES, "seed": args.seed, "summary": summary,

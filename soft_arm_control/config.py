@@ -68,6 +68,10 @@ CONTROL_SCHEMA = {
                             "a tension margin in [0, 100] N, less than half of the tension range"),
     "clik.track_feedforward": ("bool", None, "true or false"),
     "clik.track_dynamics": ("bool", None, "true or false"),
+    "clik.track_learning.gain": ("float", lambda v: 0 <= v <= 1,
+                                 "a learning gain in [0, 1] (0: no learning)"),
+    "clik.track_learning.harmonics": ("int", lambda v: 1 <= v <= 10, "a number of harmonics in [1, 10]"),
+    "clik.track_learning.settle_time": ("float", lambda v: 0 <= v <= 3600, "a time in [0, 3600] s"),
     "clik.rate_modes": ("strs", lambda v: set(v) <= set(RATE_MODES),
                         f"none or more of {list(RATE_MODES)}"),
     "clik.min_frequency": ("float", lambda v: 0 <= v <= 100,
@@ -160,6 +164,9 @@ class ControlConfig:
     min_frequency: float
     rate_modes: tuple
     track_dynamics: bool
+    track_learning: float
+    track_harmonics: int
+    track_settle_time: float
 
 
 def parse_control(v: dict, arm: ArmConfig) -> ControlConfig:
@@ -190,7 +197,8 @@ def parse_control(v: dict, arm: ArmConfig) -> ControlConfig:
         v["clik.seed_levels"], v["clik.reach_tolerance"], v["clik.stall_time"],
         v["clik.closest_margin"], v["clik.shaping.shaper"], v["clik.shaping.level"],
         tuple(v["clik.shaping.modes"]), v["clik.track_feedforward"], v["clik.min_frequency"],
-        tuple(v["clik.rate_modes"]), v["clik.track_dynamics"])
+        tuple(v["clik.rate_modes"]), v["clik.track_dynamics"], v["clik.track_learning.gain"],
+        v["clik.track_learning.harmonics"], v["clik.track_learning.settle_time"])
 
 
 def load_control_config(arm: ArmConfig, path: str | None = None, overrides=None) -> ControlConfig:

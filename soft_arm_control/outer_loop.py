@@ -15,7 +15,9 @@ A goal is a target in task coordinates with a mode:
   from the target, x_d(t) with its velocity as feedforward, from the goal's time on; with
   ``track_dynamics`` the inner loop gets the dynamic reference of the CLIK's
   (:meth:`~soft_arm_control.clik.Clik.dynamic_reference`: the path's inertial and damping forces
-  balanced), while the CLIK integrates the quasi-static one.
+  balanced), while the CLIK integrates the quasi-static one. With a ``track_learning`` gain the
+  path itself is corrected period by period from the measured error
+  (:class:`~soft_arm_control.track_learning.HarmonicLearner`): the CLIK tracks x_d + c(t).
 
 The reference step of a goal whose mode is among ``shaped_modes`` is given in fractions by a
 :class:`~soft_arm_control.input_shaping.StepShaper` (zero-vibration input shaping for the arm's
@@ -44,6 +46,7 @@ from .clik import Clik, ClikGains, ClikPoint, ClikStep, TargetError, equilibrium
 from .collocated import build_collocated
 from .input_shaping import ShapedStep, StepShaper
 from .strike_planner import StrikeProfile
+from .track_learning import HarmonicLearner
 from .trajectories import Trajectory
 
 MODES = ("clik", "replay", "precomputed", "online", "track")
@@ -65,7 +68,11 @@ class GoalReport:
     the experiment ended) with its last error above the tolerance and nothing else to report is
     *unreached*. ``saturated_steps``: online steps of a track goal whose dynamic reference needed
     feedforward tensions outside the limits (the path asks more force than the tendons give: the
-    inner loop clips it, and the arm falls behind)."""
+    inner loop clips it, and the arm falls behind). ``learned_periods``, ``backed_off_periods`` and
+    ``frozen_periods``: the periods of a track goal's path its learner learned from, those after
+    which it backed off (the CLIK could not follow, or the error grew) and those it did not learn
+    from because the dynamic reference was clipped
+    (:class:`~soft_arm_control.track_learning.HarmonicLearner`)."""
     target: list
     mode: str
     reach_tolerance: float = 1e-3
@@ -79,6 +86,9 @@ class GoalReport:
     saturated_steps: int = 0
     closed: bool = False
     shaped_mode: tuple | None = None
+    learned_periods: int = 0
+    backed_off_periods: int = 0
+    frozen_periods: int = 0
     _progress_level: float = np.inf
 
     def add(self, step: ClikStep):
@@ -120,7 +130,8 @@ class GoalReport:
 
     def as_dict(self) -> dict:
         keys = ("target", "mode", "online_steps", "infeasible_steps", "held_steps", "closest_error",
-                "error", "stalled_steps", "saturated_steps", "closed", "shaped_mode")
+                "error", "stalled_steps", "saturated_steps", "closed", "shaped_mode", "learned_periods",
+                "backed_off_periods", "frozen_periods")
         return {**{k: getattr(self, k) for k in keys}, "reached": self.reached, "status": self.status}
 
 
@@ -143,7 +154,8 @@ class OuterLoop:
                  jacobian_every: int = 1, seed_levels=(), tolerance: float = 1e-6,
                  reach_tolerance: float = 1e-3, stall_time: float = 2.0,
                  shaper: StepShaper | None = None, shaped_modes=(), track_feedforward: bool = True,
-                 rate_modes=("track",), track_dynamics: bool = False, rotor_mass: float = 0.0):
+                 rate_modes=("track",), track_dynamics: bool = False, rotor_mass: float = 0.0,
+                 track_learning: float = 0.0, track_harmonics: int = 3, track_settle_time: float = 0.0):
         self.clik = clik
         self.start = start
         self.reference = start
@@ -160,6 +172,9 @@ class OuterLoop:
         self.track_feedforward = bool(track_feedforward)
         self.rate_modes = tuple(rate_modes)
         self.track_dynamics, self.rotor_mass = bool(track_dynamics), float(rotor_mass)
+        self.track_learning, self.track_harmonics = float(track_learning), int(track_harmonics)
+        self.track_settle_time = float(track_settle_time)
+        self.learner: HarmonicLearner | None = None
         self._move: ShapedStep | None = None
         self._fraction = 1.0
         self._planned: StrikeProfile | None = None
@@ -235,6 +250,10 @@ class OuterLoop:
             ref = self.stored[self.key(x_d)]
         self._x_d, self._mode = x_d, mode
         self._trajectory, self._t0 = trajectory, t
+        self.learner = None
+        if trajectory is not None and self.track_learning > 0:
+            self.learner = HarmonicLearner(trajectory.period, space.m, self.track_harmonics,
+                                           self.track_learning, self.track_settle_time)
         report = GoalReport([float(v) for v in x_d], mode, self.reach_tolerance, self.stall_steps)
         self.reports.append(report)
         settled = t
@@ -253,8 +272,8 @@ class OuterLoop:
             self.reference = ref
         command = self.reference
         if trajectory is not None and self.track_dynamics:      # the path starts moving now
-            command = self.clik.dynamic_reference(self.reference.q, trajectory.at(x_d, 0.0)[1],
-                                                  trajectory.acceleration(x_d.size, 0.0), self.rotor_mass)
+            _, velocity, acceleration = self.path_at(t)
+            command = self.clik.dynamic_reference(self.reference.q, velocity, acceleration, self.rotor_mass)
         self._hand(command)
         if move is not None:
             self._follow_plan(t)
@@ -279,12 +298,23 @@ class OuterLoop:
         self.reference_rate = np.zeros_like(command.shortening) if rate is None else rate
         return command
 
+    def path_at(self, t: float) -> tuple:
+        """The reference path of the current track goal at time t [s]: (coordinates [m], velocity
+        [m/s], acceleration [m/s^2]), its trajectory plus the learned correction."""
+        tau = t - self._t0
+        x, velocity = self._trajectory.at(self._x_d, tau)
+        acceleration = self._trajectory.acceleration(self._x_d.size, tau)
+        if self.learner is None:
+            return x, velocity, acceleration
+        c = self.learner.correction(tau)
+        return x + c[0], velocity + c[1], acceleration + c[2]
+
     def target_at(self, t: float) -> tuple:
         """(x_d [m], its velocity [m/s] or None) of the current goal at time t [s]: a track goal's
-        trajectory, the fixed target otherwise."""
+        reference path (:meth:`path_at`), the fixed target otherwise."""
         if self._trajectory is None:
             return self._x_d, None
-        x_d, velocity = self._trajectory.at(self._x_d, t - self._t0)
+        x_d, velocity, _ = self.path_at(t)
         return x_d, velocity if self.track_feedforward else None
 
     def _close_goal(self):
@@ -319,19 +349,32 @@ class OuterLoop:
         self.reports[-1].add(step)
         self.last_step = step
         if ref is None:
+            if self.learner is not None:
+                self._learn(t, x_d, x_measured, followed=False)
             return moved
         self.reference = ref
+        saturated = False
         if self._trajectory is not None and self.track_dynamics:
-            tau = t - self._t0
-            ref = self.clik.dynamic_reference(ref.q, self._trajectory.at(self._x_d, tau)[1],
-                                              self._trajectory.acceleration(self._x_d.size, tau),
-                                              self.rotor_mass, refresh=False)
-            if self.clik.feasibility_error(ref.u_ff) is not None:
-                self.reports[-1].saturated_steps += 1
+            _, velocity, acceleration = self.path_at(t)
+            ref = self.clik.dynamic_reference(ref.q, velocity, acceleration, self.rotor_mass, refresh=False)
+            saturated = self.clik.feasibility_error(ref.u_ff) is not None
+            self.reports[-1].saturated_steps += saturated
+        if self.learner is not None:
+            self._learn(t, x_d, x_measured, not step.constrained, saturated)
         rate = None
         if self._mode in self.rate_modes:
             rate = (ref.shortening - self.command.shortening) / self.period
         return self._hand(ref, rate)
+
+    def _learn(self, t: float, x_r, x_measured, followed: bool, clipped: bool = False):
+        """Hand the track goal's learner the frame at t [s] (the reference path x_r, the measured
+        coordinates [m]; ``followed``: the CLIK step was neither constrained nor held; ``clipped``:
+        the dynamic reference was), and count its periods in the goal's report."""
+        tau = t - self._t0
+        self.learner.add(tau, self._trajectory.at(self._x_d, tau)[0], x_r, x_measured, followed, clipped)
+        report = self.reports[-1]
+        report.learned_periods, report.backed_off_periods = self.learner.updates, self.learner.backed_off
+        report.frozen_periods = self.learner.frozen
 
     def finish(self):
         """Store the reference of the last clik goal and close its report (end of an experiment)."""
@@ -359,4 +402,5 @@ def outer_loop_for(model, control, task) -> OuterLoop:
                      int(round(control.clik_rate / control.jacobian_rate)), control.seed_levels,
                      control.tolerance, control.reach_tolerance, control.stall_time, shaper,
                      control.shaped_modes, control.track_feedforward, control.rate_modes,
-                     control.track_dynamics, control.rotor_mass)
+                     control.track_dynamics, control.rotor_mass, control.track_learning,
+                     control.track_harmonics, control.track_settle_time)

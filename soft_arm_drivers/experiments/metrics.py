@@ -165,7 +165,9 @@ def format_table(rows: list[TransitionMetrics], summary: Summary,
 class TrackingMetrics:
     """One track window: phase, target (1-based, the path's start), the trajectory's shape, size
     [m] and period [s], its mean path speed [m/s], and the RMS and maximum of the task error norm
-    [m] from ``settle`` [s] after the window's start to its end."""
+    [m] from ``settle`` [s] after the window's start to its end; ``last_period_rms_error`` [m]: the
+    RMS over the window's last period (what a learned path has come to; None when the window is
+    not a period longer than ``settle``)."""
     phase: str
     target: int
     shape: str
@@ -175,28 +177,34 @@ class TrackingMetrics:
     settle: float
     rms_error: float
     max_error: float
+    last_period_rms_error: float | None = None
 
 
 def tracking_metrics(phase: str, target: int, trajectory, t, errors, settle: float) -> TrackingMetrics:
     """Tracking figures of one window: mocap times t [s] from the window's start and the task
     errors (N, m) [m] against the moving target."""
     t = np.asarray(t, dtype=float)
-    norm = np.linalg.norm(np.asarray(errors, dtype=float), axis=1)[t >= settle]
-    if norm.size == 0:
+    counted = t >= settle
+    norm = np.linalg.norm(np.asarray(errors, dtype=float), axis=1)
+    if not np.any(counted):
         raise ValueError(f"no frame after the settling time ({settle} s) of the {phase} window")
+    last = None
+    if t[-1] - trajectory.period >= settle:
+        last = float(np.sqrt(np.mean(norm[t > t[-1] - trajectory.period] ** 2)))
     return TrackingMetrics(phase, target, trajectory.shape, trajectory.size, trajectory.period,
-                           trajectory.path_speed(), settle, float(np.sqrt(np.mean(norm ** 2))),
-                           float(norm.max()))
+                           trajectory.path_speed(), settle, float(np.sqrt(np.mean(norm[counted] ** 2))),
+                           float(norm[counted].max()), last)
 
 
 def format_tracking(rows: list[TrackingMetrics]) -> str:
     """The track windows as a table: error against path speed."""
     lines = ["Tracking (online CLIK with the trajectory's velocity as feedforward)",
              f"{'phase':<12} {'shape':<8} {'size[mm]':>8} {'period[s]':>9} {'speed[m/s]':>10} "
-             f"{'rms[mm]':>7} {'max[mm]':>7}"]
+             f"{'rms[mm]':>7} {'max[mm]':>7} {'last period rms[mm]':>19}"]
     for r in rows:
+        last = "-" if r.last_period_rms_error is None else f"{r.last_period_rms_error * 1e3:.2f}"
         lines.append(f"{r.phase:<12} {r.shape:<8} {r.size * 1e3:>8.1f} {r.period:>9.1f} "
-                     f"{r.path_speed:>10.4f} {r.rms_error * 1e3:>7.2f} {r.max_error * 1e3:>7.2f}")
+                     f"{r.path_speed:>10.4f} {r.rms_error * 1e3:>7.2f} {r.max_error * 1e3:>7.2f} {last:>19}")
     return "\n".join(lines)
 
 

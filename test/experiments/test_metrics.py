@@ -2,8 +2,10 @@
 import numpy as np
 import pytest
 
-from soft_arm_drivers.experiments.metrics import (format_table, measured_speed, settling_time, summarise,
-                                                  to_json, transition_metrics)
+from soft_arm_control.trajectories import Trajectory
+from soft_arm_drivers.experiments.metrics import (format_table, format_tracking, measured_speed,
+                                                  settling_time, summarise, to_json, tracking_metrics,
+                                                  transition_metrics)
 
 
 def _decay(t, amplitude, rate):
@@ -73,3 +75,18 @@ def test_measured_speed_is_exact_on_uniform_motion_and_ignores_uneven_frame_spac
     assert np.abs(measured_speed(t, noisy)[3:] - 0.5).max() < 0.12        # 4-5 sigma of one sample
     with pytest.raises(ValueError, match="baseline"):
         measured_speed(t, exact, baseline=0.0)
+
+
+def test_tracking_figures_count_from_the_settling_time_and_give_the_last_period_apart():
+    """A window of 10 s at 100 Hz whose error is 3 mm until 8 s and 1 mm after (a period of 2 s):
+    the RMS from the settling time (2 s) mixes both, the last period's is the 1 mm; a window not a
+    period longer than the settling time has no last period."""
+    t = np.arange(0.0, 10.0, 0.01)
+    errors = np.where(t[:, None] < 8.0, [0.003, 0.0], [0.0, 0.001])
+    row = tracking_metrics("circle", 1, Trajectory("circle", 0.01, 2.0), t, errors, settle=2.0)
+    assert row.rms_error == pytest.approx(np.sqrt((6 * 0.003 ** 2 + 2 * 0.001 ** 2) / 8), rel=1e-2)
+    assert row.max_error == pytest.approx(0.003)
+    assert row.last_period_rms_error == pytest.approx(0.001, rel=1e-2)
+    short = tracking_metrics("circle", 1, Trajectory("circle", 0.01, 2.0), t[t < 3.5], errors[t < 3.5], 2.0)
+    assert short.last_period_rms_error is None
+    assert "1.00" in format_tracking([row]) and format_tracking([short]).rstrip().endswith("-")

@@ -1,0 +1,144 @@
+"""The harmonic learner of a periodic path (soft_arm_control/track_learning.py): its correction's
+derivatives, its convergence on a plant it does not know, and its backing off where the plant does
+not follow."""
+import numpy as np
+import pytest
+
+from soft_arm_control.track_learning import BACK_OFF, HarmonicLearner
+from soft_arm_control.trajectories import Trajectory
+
+PERIOD = 0.5        # s: a 2 Hz path
+FRAMES = 120        # per period
+START = np.array([0.02, -0.30])          # m
+
+
+def desired_at(tau, shape="circle"):
+    return Trajectory(shape, 0.01, PERIOD).at(START, tau)[0]
+
+
+class Oscillator:
+    """A plant above whose modes the path runs: per coordinate x'' + 2 zeta w (x') + w^2 (x - r -
+    offset) = 0 (w: 1.2 and 1.5 Hz, zeta 0.3), from rest at the start; at 2 Hz it answers with
+    0.5 and 0.9 of the amplitude, 150 and 130 degrees late, and ``offset`` [m] away (a model
+    error)."""
+
+    def __init__(self, offset=(0.0, 0.002)):
+        self.w = 2 * np.pi * np.array([1.2, 1.5])
+        self.offset = np.array(offset)
+        self.x, self.v = START.copy(), np.zeros(2)
+
+    def __call__(self, reference, dt=PERIOD / FRAMES, substeps=20):
+        h = dt / substeps
+        for _ in range(substeps):       # semi-implicit Euler
+            a = -2 * 0.3 * self.w * self.v - self.w ** 2 * (self.x - reference - self.offset)
+            self.v = self.v + h * a
+            self.x = self.x + h * self.v
+        return self.x.copy()
+
+
+def run(learner, plant, periods, shape="circle", followed=lambda j: True, clipped=lambda j: False):
+    """Drive the learner (None: the path unlearned) and ``plant(reference, desired, correction)``
+    for ``periods`` periods; the RMS error of each period [m]."""
+    errors = []
+    for j in range(periods):
+        e = []
+        for n in range(FRAMES):
+            tau = (j + n / FRAMES) * PERIOD
+            desired = desired_at(tau, shape)
+            c = np.zeros(2) if learner is None else learner.correction(tau)[0]
+            measured = plant(desired + c, desired, c)
+            e.append(np.linalg.norm(desired - measured))
+            if learner is not None:
+                learner.add(tau, desired, desired + c, measured, followed(j), clipped(j))
+        errors.append(float(np.sqrt(np.mean(np.square(e)))))
+    return errors
+
+
+def linear(oscillator):
+    return lambda reference, desired, c: oscillator(reference)
+
+
+def test_the_correction_s_velocity_and_acceleration_are_its_derivatives_while_it_blends():
+    learner = HarmonicLearner(PERIOD, 2, harmonics=2, gain=0.5)
+    learner.current = np.array([[0.001, -0.002], [0.003 + 0.002j, -0.001j], [0.0005, 0.001 + 0.001j]])
+    learner.blend_from = 1.0
+    h = 1e-5
+    for tau in (1.05, 1.2, 1.37, 1.49, 1.6):
+        c, dc, ddc = learner.correction(tau)
+        plus, minus = learner.correction(tau + h), learner.correction(tau - h)
+        assert np.allclose(dc, (plus[0] - minus[0]) / (2 * h), rtol=1e-5, atol=1e-9)
+        assert np.allclose(ddc, (plus[1] - minus[1]) / (2 * h), rtol=1e-4, atol=1e-7)
+    # the blend starts from the old coefficients (zero here), value and rate, and ends on the new
+    assert np.allclose(learner.correction(1.0)[:2], 0.0)
+    settled = HarmonicLearner(PERIOD, 2, harmonics=2)
+    settled.current = learner.current
+    assert np.allclose(learner.correction(1.5)[:2], settled.correction(1.5)[:2])
+
+
+def test_a_plant_above_its_modes_and_off_by_an_offset_is_learned_to_a_twentieth_of_its_error():
+    unlearned = run(None, linear(Oscillator()), 20)
+    learner = HarmonicLearner(PERIOD, 2, harmonics=3, gain=0.5)
+    learned = run(learner, linear(Oscillator()), 20)
+    assert unlearned[-1] > 0.008                       # half the circle's amplitude, late, offset
+    assert learned[-1] < unlearned[-1] / 20
+    assert learner.updates == 19 and learner.backed_off == 0
+    # the learned gains are the plant's: about half the amplitude, well behind
+    g = learner.gains[1]
+    assert np.abs(g) == pytest.approx([0.49, 0.91], abs=0.05)
+    assert np.degrees(np.angle(g)) == pytest.approx([-149, -132], abs=5)
+
+
+def test_the_figure_eight_s_second_harmonic_is_learned_too():
+    unlearned = run(None, linear(Oscillator()), 24, "figure8")
+    learner = HarmonicLearner(PERIOD, 2, harmonics=3, gain=0.5)
+    learned = run(learner, linear(Oscillator()), 24, "figure8")
+    assert learned[-1] < unlearned[-1] / 10
+    assert np.any(np.abs(learner.current[2]) > 1e-4)      # the second harmonic holds a correction
+    assert np.allclose(learner.current[3], 0.0)           # the third, absent from the path, does not
+
+
+def test_a_period_the_clik_could_not_follow_halves_the_correction_instead_of_learning():
+    learner = HarmonicLearner(PERIOD, 2, harmonics=1, gain=0.5)
+    run(learner, linear(Oscillator()), 6, followed=lambda j: j != 5)     # the last period blocked
+    before = learner.current.copy()
+    assert learner.updates == 5
+    learner.add(6 * PERIOD, desired_at(0.0), desired_at(0.0), desired_at(0.0))   # closes it
+    assert learner.backed_off == 1 and learner.updates == 5
+    assert np.allclose(learner.current, BACK_OFF * before)
+
+
+def test_a_period_whose_dynamic_reference_was_clipped_keeps_the_correction_without_learning():
+    learner = HarmonicLearner(PERIOD, 2, harmonics=1, gain=0.5)
+    run(learner, linear(Oscillator()), 6, clipped=lambda j: j == 5)      # the last period clipped
+    before = learner.current.copy()
+    learner.add(6 * PERIOD, desired_at(0.0), desired_at(0.0), desired_at(0.0))   # closes it
+    assert learner.frozen == 1 and learner.updates == 5 and learner.backed_off == 0
+    assert np.array_equal(learner.current, before)
+
+
+def test_a_plant_that_answers_the_correction_backwards_is_not_made_worse_than_unlearned():
+    """A plant the learner's estimate gets wrong: it follows the path like the oscillator but
+    moves against whatever is added to it. The learner's error grows, it goes back to its best
+    correction (none), which does no better than none: it gives up, and the path is tracked as
+    if unlearned. The wrong step cost the two periods that tried it and undid it."""
+    def backwards(oscillator):
+        return lambda reference, desired, c: oscillator(desired - 3 * c)
+    unlearned = run(None, backwards(Oscillator()), 30)
+    learner = HarmonicLearner(PERIOD, 2, harmonics=1, gain=0.5)
+    learned = run(learner, backwards(Oscillator()), 30)
+    assert learner.stopped and learner.backed_off >= 1 and np.allclose(learner.current, 0.0)
+    assert max(learned) < 2.5 * max(unlearned)
+    assert sum(e > 1.1 * u for e, u in zip(learned, unlearned)) <= 3
+    assert np.mean(learned[-10:]) == pytest.approx(np.mean(unlearned[-10:]), rel=0.02)
+
+
+def test_the_periods_within_the_settling_time_are_watched_not_learned_from():
+    learner = HarmonicLearner(PERIOD, 2, harmonics=1, gain=0.5, settle=1.2)
+    run(learner, linear(Oscillator()), 5)   # periods 0-2 start before 1.2 s; 3 closes when 4 starts
+    assert learner.updates == 1 and len(learner.errors) == 1
+
+
+def test_a_learner_refuses_what_it_cannot_do():
+    for args in ((0.0, 2), (1.0, 2, 0), (1.0, 2, 3, 0.0), (1.0, 2, 3, 1.5)):
+        with pytest.raises(ValueError, match="harmonic learner needs"):
+            HarmonicLearner(*args)
