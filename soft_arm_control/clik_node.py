@@ -44,6 +44,7 @@ from .config import control_of, task_of
 from .outer_loop import outer_loop_for
 from .target_margin import fragility_error
 
+REPORT_PERIOD = 1.0     # s: the current goal's report on /diagnostics at least this often
 
 # A goal report's status (soft_arm_control.outer_loop.STATUSES) on /diagnostics: level and message
 LEVELS = {"ok": DiagnosticStatus.OK, "constrained": DiagnosticStatus.WARN,
@@ -83,7 +84,9 @@ class ClikNode(Node):
         self.create_subscription(PoseArray, TOPICS["markers"], self.on_frame, QOS["mocap/markers"])
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self._reported = None                 # (goal index, status) last published
-        self.create_timer(1.0, self.publish_diagnostics)
+        self._reported_stamp = -math.inf      # frame time [s] of the current goal's last report
+        self._reported_wall = -math.inf       # monotonic time [s] of it
+        self.create_timer(REPORT_PERIOD, self._heartbeat)
         self.get_logger().info(f"clik ready for task {self.task.name} "
                                f"({', '.join(self.labels)})")
 
@@ -145,12 +148,21 @@ class ClikNode(Node):
         ref = self.outer.frame(self.now, self.task.space.from_markers(markers))
         if ref is not None:
             self.publish(ref)
-        if self.outer.reports and (len(self.outer.reports), self.outer.reports[-1].status) != self._reported:
-            self.publish_diagnostics()        # at once when a goal turns infeasible
+        if self.outer.reports and ((len(self.outer.reports), self.outer.reports[-1].status) != self._reported
+                                   or self.now >= self._reported_stamp + REPORT_PERIOD):
+            self.publish_diagnostics()        # at once when a goal turns infeasible; once a second
+
+    def _heartbeat(self):
+        """The current goal's report when the frames have not given one for a second of wall time
+        (no mocap: a report, unchanged, that says the node is alive)."""
+        if time.monotonic() >= self._reported_wall + REPORT_PERIOD:
+            self.publish_diagnostics()
 
     def publish_diagnostics(self, index: int | None = None):
-        """A goal's feasibility on ``/diagnostics`` (the current one once a second and on every
-        change; ``index``: another, e.g. the one a new goal closed, with its final counts):
+        """A goal's feasibility on ``/diagnostics`` (the current one on every change and once a
+        second of frame time, or of wall time without frames, so that a simulation in lockstep,
+        whose timers do not run, reports the goal as it goes too; ``index``: another, e.g. the one
+        a new goal closed, with its final counts):
         OK; WARN while its online steps are projected onto the tension limits (the target is
         infeasible for the model: the reference moves to the closest feasible point), while a
         track goal's path needs tensions outside the limits (saturated) and while it is stalled
@@ -170,6 +182,7 @@ class ClikNode(Node):
         self.diagnostics_pub.publish(msg)
         if index == len(self.outer.reports) - 1:
             self._reported = (len(self.outer.reports), report.status)
+            self._reported_stamp, self._reported_wall = self.now, time.monotonic()
 
 
 def main(args=None) -> int:

@@ -194,3 +194,24 @@ def test_tracking_on_the_graph_matches_the_harness(tmp_path):
     assert graph["phase"] == "circle_fast" and graph["rms_error"] < 2e-3
     assert graph["rms_error"] == pytest.approx(harness.rms_error, abs=3e-4)
     assert (out / "figures" / "tracking.png").exists()
+
+
+def test_the_clik_node_learns_a_fast_path_and_reports_it(tmp_path):
+    """A 1.5 cm circle at 0.2 m/s on the graph: the clik node's learner corrects the path from the
+    mocap frames it gets (control.clik.track_learning), the error of the window's last period is
+    a few millimetres (unlearned: about 11), and the node's report of the goal counts the periods
+    it learned from."""
+    from soft_arm_drivers.experiments.experiment import main
+    period = 2 * 3.141592653589793 * 0.015 / 0.2
+    sets = ["tasks.tracking.phases=[approach, circle_fast]", "tasks.tracking.phase.approach.window=4.0",
+            "tasks.tracking.phase.circle_fast.trajectory.size=0.015",
+            f"tasks.tracking.phase.circle_fast.trajectory.period={period!r}",
+            f"tasks.tracking.phase.circle_fast.window={17 * period!r}"]
+    out = tmp_path / "learned"
+    assert main(["tracking", "--quiet", "--output", str(out)] + [a for s in sets for a in ("--set", s)]) == 0
+    with open(out / "metrics.json", encoding="utf-8") as fh:
+        metrics = json.load(fh)
+    window, = metrics["tracking"]
+    assert window["path_speed"] == pytest.approx(0.2) and window["last_period_rms_error"] < 3e-3
+    clik = metrics["goals"][-1]["clik"]
+    assert clik["mode"] == "track" and clik["learned_periods"] >= 5, json.dumps(metrics["goals"])
