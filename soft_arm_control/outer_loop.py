@@ -311,10 +311,11 @@ class OuterLoop:
 
     def target_at(self, t: float) -> tuple:
         """(x_d [m], its velocity [m/s] or None) of the current goal at time t [s]: a track goal's
-        reference path (:meth:`path_at`), the fixed target otherwise."""
+        trajectory (as asked: the learned correction is the CLIK's, :meth:`path_at`), the fixed
+        target otherwise."""
         if self._trajectory is None:
             return self._x_d, None
-        x_d, velocity, _ = self.path_at(t)
+        x_d, velocity = self._trajectory.at(self._x_d, t - self._t0)
         return x_d, velocity if self.track_feedforward else None
 
     def _close_goal(self):
@@ -344,7 +345,9 @@ class OuterLoop:
         self._next_step = max(self._next_step + self.period, t + 0.5 * self.period)
         refresh = self._steps % self.jacobian_every == 0
         self._steps += 1
-        x_d, xd_dot = self.target_at(t)
+        path = None if self._trajectory is None else self.path_at(t)     # x_d + c, its rates
+        x_d = self._x_d if path is None else path[0]
+        xd_dot = path[1] if path is not None and self.track_feedforward else None
         ref, step = self.clik.step(self.reference.q, x_d, self.period, x_measured, refresh, xd_dot)
         self.reports[-1].add(step)
         self.last_step = step
@@ -354,9 +357,8 @@ class OuterLoop:
             return moved
         self.reference = ref
         saturated = False
-        if self._trajectory is not None and self.track_dynamics:
-            _, velocity, acceleration = self.path_at(t)
-            ref = self.clik.dynamic_reference(ref.q, velocity, acceleration, self.rotor_mass, refresh=False)
+        if path is not None and self.track_dynamics:
+            ref = self.clik.dynamic_reference(ref.q, path[1], path[2], self.rotor_mass, refresh=False)
             saturated = self.clik.feasibility_error(ref.u_ff) is not None
             self.reports[-1].saturated_steps += saturated
         if self.learner is not None:

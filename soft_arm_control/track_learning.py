@@ -63,6 +63,13 @@ HALVINGS = 4           # the learner stops when its gain has halved this many ti
 COVERAGE = 100.0       # a period whose least-squares fit is worse conditioned than this is not used
 
 
+def smootherstep(u: float) -> tuple[float, float, float]:
+    """The quintic 10 u^3 - 15 u^4 + 6 u^5 on [0, 1] and its first two derivatives in u (all three
+    continuous: 0 at u = 0, and 1, 0, 0 at u = 1)."""
+    return (u ** 3 * (10 - 15 * u + 6 * u * u), 30 * u * u * (1 - u) ** 2,
+            60 * u * (1 - u) * (1 - 2 * u))
+
+
 class HarmonicLearner:
     """The learned correction of one track goal's path: ``period`` [s], ``m`` task coordinates,
     the mean and the first ``harmonics`` harmonics, learning ``gain`` (0 < gain <= 1); the periods
@@ -111,10 +118,8 @@ class HarmonicLearner:
         if u >= 1.0:
             return new
         old = self._harmonics(self.previous, tau)
-        u = max(u, 0.0)
-        s = u ** 3 * (10 - 15 * u + 6 * u * u)
-        ds = 30 * u * u * (1 - u) ** 2 / T
-        dds = 60 * u * (1 - u) * (1 - 2 * u) / T ** 2
+        s, ds, dds = smootherstep(max(u, 0.0))
+        ds, dds = ds / T, dds / T ** 2
         d = new - old
         return np.stack([old[0] + s * d[0], old[1] + s * d[1] + ds * d[0],
                          old[2] + s * d[2] + 2 * ds * d[1] + dds * d[0]])
@@ -234,7 +239,6 @@ class HarmonicLearner:
         u = (tau - self.blend_from) / self.period
         start = self.current
         if u < 1.0:
-            u = max(u, 0.0)
-            start = self.previous + u ** 3 * (10 - 15 * u + 6 * u * u) * (self.current - self.previous)
+            start = self.previous + smootherstep(max(u, 0.0))[0] * (self.current - self.previous)
         self.previous, self.current = start, coefficients
         self.blend_from = tau
