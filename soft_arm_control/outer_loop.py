@@ -36,7 +36,7 @@ Times are the caller's [s] (simulated or wall). An unreachable or infeasible goa
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -68,11 +68,10 @@ class GoalReport:
     the experiment ended) with its last error above the tolerance and nothing else to report is
     *unreached*. ``saturated_steps``: online steps of a track goal whose dynamic reference needed
     feedforward tensions outside the limits (the path asks more force than the tendons give: the
-    inner loop clips it, and the arm falls behind). ``learned_periods``, ``backed_off_periods`` and
-    ``frozen_periods``: the periods of a track goal's path its learner learned from, those after
-    which it backed off (the CLIK could not follow, or the error grew) and those it did not learn
-    from because the dynamic reference was clipped
-    (:class:`~soft_arm_control.track_learning.HarmonicLearner`)."""
+    inner loop clips it, and the arm falls behind). ``learner``: a track goal's
+    :class:`~soft_arm_control.track_learning.HarmonicLearner` (None: not learned), whose counts the
+    report gives: ``learned_periods``, ``backed_off_periods`` (the CLIK could not follow, or the
+    error grew) and ``frozen_periods`` (the dynamic reference was clipped)."""
     target: list
     mode: str
     reach_tolerance: float = 1e-3
@@ -86,9 +85,7 @@ class GoalReport:
     saturated_steps: int = 0
     closed: bool = False
     shaped_mode: tuple | None = None
-    learned_periods: int = 0
-    backed_off_periods: int = 0
-    frozen_periods: int = 0
+    learner: HarmonicLearner | None = field(default=None, repr=False, compare=False)
     _progress_level: float = np.inf
 
     def add(self, step: ClikStep):
@@ -103,6 +100,18 @@ class GoalReport:
             self.stalled_steps = 0
         else:
             self.stalled_steps += 1
+
+    @property
+    def learned_periods(self) -> int:
+        return 0 if self.learner is None else self.learner.updates
+
+    @property
+    def backed_off_periods(self) -> int:
+        return 0 if self.learner is None else self.learner.backed_off
+
+    @property
+    def frozen_periods(self) -> int:
+        return 0 if self.learner is None else self.learner.frozen
 
     @property
     def reached(self) -> bool | None:
@@ -254,7 +263,8 @@ class OuterLoop:
         if trajectory is not None and self.track_learning > 0:
             self.learner = HarmonicLearner(trajectory.period, space.m, self.track_harmonics,
                                            self.track_learning, self.track_settle_time)
-        report = GoalReport([float(v) for v in x_d], mode, self.reach_tolerance, self.stall_steps)
+        report = GoalReport([float(v) for v in x_d], mode, self.reach_tolerance, self.stall_steps,
+                            learner=self.learner)
         self.reports.append(report)
         settled = t
         self._planned, self._planned_from = move, t
@@ -371,12 +381,9 @@ class OuterLoop:
     def _learn(self, t: float, x_r, x_measured, followed: bool, clipped: bool = False):
         """Hand the track goal's learner the frame at t [s] (the reference path x_r, the measured
         coordinates [m]; ``followed``: the CLIK step was neither constrained nor held; ``clipped``:
-        the dynamic reference was), and count its periods in the goal's report."""
+        the dynamic reference was)."""
         tau = t - self._t0
         self.learner.add(tau, self._trajectory.at(self._x_d, tau)[0], x_r, x_measured, followed, clipped)
-        report = self.reports[-1]
-        report.learned_periods, report.backed_off_periods = self.learner.updates, self.learner.backed_off
-        report.frozen_periods = self.learner.frozen
 
     def finish(self):
         """Store the reference of the last clik goal and close its report (end of an experiment)."""

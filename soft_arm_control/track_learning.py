@@ -106,8 +106,8 @@ class HarmonicLearner:
     def _harmonics(self, C: np.ndarray, tau: float) -> np.ndarray:
         """(value, first and second derivative) of Re sum_k C_k exp(i k omega tau): (3, m)."""
         w = self.k * self.omega
-        e = np.exp(1j * w * tau)[:, None] * C
-        return np.real(np.stack([e.sum(0), (1j * w[:, None] * e).sum(0), (-(w ** 2)[:, None] * e).sum(0)]))
+        e = np.exp(1j * w * tau)
+        return np.real(np.array([e, 1j * w * e, -w * w * e]) @ C)
 
     def correction(self, tau: float) -> np.ndarray:
         """c, its velocity and acceleration at tau [s] from the goal's start: (3, m) [m, m/s, m/s^2];

@@ -242,15 +242,22 @@ def test_a_slow_circle_is_tracked_within_2_mm_and_the_feedforward_keeps_a_fast_o
     assert without.rms_error > 1.5 * with_ff.rms_error
 
 
+def fast_circle(size: float, speed: float, periods: int) -> list:
+    """The tracking task's overrides for a 6 s approach and a circle of radius ``size`` [m] at path
+    speed ``speed`` [m/s] over a window of ``periods`` periods."""
+    period = 2 * 3.141592653589793 * size / speed
+    return ["tasks.tracking.phases=[approach, circle_fast]", "tasks.tracking.phase.approach.window=6.0",
+            f"tasks.tracking.phase.circle_fast.trajectory.size={size!r}",
+            f"tasks.tracking.phase.circle_fast.trajectory.period={period!r}",
+            f"tasks.tracking.phase.circle_fast.window={periods * period!r}"]
+
+
 def test_a_circle_at_5_cm_s_is_tracked_within_2_mm_with_the_damping_and_the_dynamics_of_the_path():
     """The issue's goal at 0.05 m/s: a 1 cm circle (1.26 s, just below the held arm's lowest mode)
     within 2 mm RMS on the declared plant; without the dynamic reference the arm swings off the
     path, and with the paper's derivative term, -G_D thetadot, it drags behind it as well (the
     path not learned: learning would make up for both)."""
-    period = 2 * 3.141592653589793 * 0.01 / 0.05
-    base = ["tasks.tracking.phases=[approach, circle_fast]", "tasks.tracking.phase.approach.window=6.0",
-            f"tasks.tracking.phase.circle_fast.trajectory.period={period!r}",
-            f"tasks.tracking.phase.circle_fast.window={5 * period!r}", "control.clik.track_learning.gain=0"]
+    base = fast_circle(0.01, 0.05, 5) + ["control.clik.track_learning.gain=0"]
     errors = []
     for extra in ([], ["control.clik.track_dynamics=false"],
                   ["control.clik.track_dynamics=false", "control.clik.rate_modes=[]"]):
@@ -266,11 +273,7 @@ def test_a_circle_at_20_cm_s_is_learned_to_within_5_mm_where_the_unlearned_path_
     mode, where the dynamic reference is wrong) on the declared plant. Unlearned the arm misses it
     by a centimetre; the learned path (control.clik.track_learning) comes to a few millimetres
     within the window, and the goal's report counts the periods learned from."""
-    period = 2 * 3.141592653589793 * 0.015 / 0.2
-    base = ["tasks.tracking.phases=[approach, circle_fast]", "tasks.tracking.phase.approach.window=6.0",
-            "tasks.tracking.phase.circle_fast.trajectory.size=0.015",
-            f"tasks.tracking.phase.circle_fast.trajectory.period={period!r}",
-            f"tasks.tracking.phase.circle_fast.window={22 * period!r}"]
+    base = fast_circle(0.015, 0.2, 22)
     learned_run = run_experiment(load_setup("tracking", overrides=base))
     learned, = learned_run.tracking
     plain = base + ["control.clik.track_learning.gain=0"]
