@@ -7,6 +7,8 @@ Measures, on one core, with the default configuration (config/*.yaml):
 - one online CLIK step of the 4D triangle task, with the Jacobian Z recomputed and with Z reused;
 - one online CLIK step projected onto the tension limits (the bounded least-squares step), on the
   coiling task at the edge of its workspace, heading for a target no tension within limits reaches;
+- the path learner's work per CLIK step of a track goal (its correction, then the frame it is
+  handed; :mod:`soft_arm_control.track_learning`);
 - precomputing each triangle target from the start-up pose (without and with the seed equilibria);
 - the paper's Table 1 on the harness: the full triangle protocol (25 s windows with CLIK, then the
   stored configurations three times round with 5 s and with 1 s windows) under the declared plant
@@ -20,6 +22,7 @@ import time
 import numpy as np
 
 from soft_arm_control.clik import equilibrium_seeds
+from soft_arm_control.track_learning import HarmonicLearner
 from soft_arm_control.two_level import TwoLevelController
 from soft_arm_drivers.experiments.harness import load_setup, run_experiment
 from soft_arm_drivers.experiments.metrics import format_table, to_json
@@ -46,6 +49,13 @@ def bench_steps():
     ctrl.clik.step(ref.q, x_d, 1 / 240, x_meas)
     full = best_of(lambda: ctrl.clik.step(ref.q, x_d, 1 / 240, x_meas, True), inner=100)
     chord = best_of(lambda: ctrl.clik.step(ref.q, x_d, 1 / 240, x_meas, False), inner=200)
+    learner = HarmonicLearner(0.5, x_d.size)          # a track goal's, per CLIK step: correction, frame
+    tau = iter(np.arange(0, 1e6, 1 / 240))
+
+    def learn():
+        t = next(tau)
+        learner.add(t, x_d, x_d + learner.correction(t)[0], x_meas)
+    learning = best_of(learn, inner=2000)
     pre = {}
     for k, target in enumerate(setup.task.targets):
         t0 = time.perf_counter()
@@ -62,7 +72,7 @@ def bench_steps():
         ctrl.clik.precompute(np.array(target), rest, seeds)
         pre[k + 1]["with_seeds_s"] = time.perf_counter() - t0
     return {"inner_loop_step_us": 1e6 * inner, "clik_online_step_ms": 1e3 * full,
-            "clik_online_step_reused_jacobian_ms": 1e3 * chord,
+            "clik_online_step_reused_jacobian_ms": 1e3 * chord, "track_learning_frame_us": 1e6 * learning,
             "clik_online_step_projected_ms": 1e3 * bench_projected_step(), "precompute": pre,
             "seed_equilibria": len(seeds), "seed_equilibria_s": seed_time,
             "actuation_map": {"rms_error_m": ctrl.actuation_map.rms_error,
@@ -109,6 +119,7 @@ def main():
     print(f"online CLIK step, Z reused                  {reused:8.3f} ms")
     projected = steps["clik_online_step_projected_ms"]
     print(f"online CLIK step projected onto the limits  {projected:8.3f} ms   (Z recomputed)")
+    print(f"path learner per CLIK step (track goals)    {steps['track_learning_frame_us']:8.1f} us")
     for k, v in steps["precompute"].items():
         rest = "unreachable within limits" if v["from_rest_s"] is None else f"{v['from_rest_s']:.3f} s"
         print(f"precompute target {k}: from rest {rest}, with seeds {v['with_seeds_s']:.3f} s"
