@@ -8,6 +8,9 @@ asset) in the mocap frame, with the package's calibration:
 
 - frames parsed per second, per stream version: the codec alone (``parse_frame_of_data``) and the
   bridge's whole packet path (parse, frame filter, selection, calibration, stamp);
+- the bridge's whole packet path on the worst frames of 64 KiB a sender can make (the most items
+  NatNetTypes.h allows of every kind, the largest rigid-body and labelled-marker sets, and frames
+  beyond those limits, which are refused) against a normal frame of the arm;
 - end-to-end latency at 240 Hz with no emulated server latency: from the emulated mid-exposure to
   the bridge's output (``MocapBridge.poll`` returning the frame, same process, the emulator on a
   thread), and the error of the mapped mid-exposure stamp; then from the emulated mid-exposure to
@@ -29,7 +32,9 @@ os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
 
 from soft_arm_drivers.mocap.bridge_config import load_mocap_config  # noqa: E402
 from soft_arm_drivers.mocap.mocap_bridge import MocapBridge  # noqa: E402
-from soft_arm_drivers.mocap.natnet import (ServerInfo, Version, build_connect_request,  # noqa: E402
+from soft_arm_drivers.mocap.natnet import (ITEM_LIMITS, AnalogData, FrameOfData,  # noqa: E402
+                                           LabeledMarker, MarkerSet, RigidBody, ServerInfo, Skeleton,
+                                           Version, build_connect_request, build_frame_of_data,
                                            build_server_info, parse_frame_of_data)
 from soft_arm_drivers.sim.natnet_emulator import NatNetEmulator  # noqa: E402
 from soft_arm_ros.contract import QOS  # noqa: E402
@@ -90,6 +95,73 @@ def bench_parse(count: int = 2000, repeats: int = 5) -> dict:
                 assert bridge.counters["delivered"] == count, bridge.counters
         out[name] = {"datagram_bytes": len(packets[0]), "codec_frames_per_s": count / best_codec,
                      "bridge_frames_per_s": count / best_bridge}
+    return out
+
+
+FREQUENCY = 10_000_000          # ticks/s of the server clock in the worst-frame bench
+
+
+def _worst_frames() -> dict:
+    """Frames of nearly 64 KiB, by name: what a sender can pack into one datagram."""
+    body = RigidBody(1, (0.0, 1.0, 0.0), (0.0, 0.0, 0.0, 1.0))
+    marker = LabeledMarker(70000, (0.0, 0.0, 0.0))
+    empty_analog = AnalogData(1, ((),) * ITEM_LIMITS["analog channel"])
+    items = FrameOfData(
+        frame_number=1, marker_sets=(MarkerSet(""),) * ITEM_LIMITS["marker set"],
+        skeletons=(Skeleton(1),) * ITEM_LIMITS["skeleton"],
+        force_plates=(empty_analog,) * ITEM_LIMITS["force plate"],
+        devices=(empty_analog,) * ITEM_LIMITS["device"],
+        labeled_markers=(marker,) * ITEM_LIMITS["labelled marker"],
+        rigid_bodies=(body,) * 690)
+    return {
+        "every kind at its limit": items,
+        "1000 rigid bodies + 1000 labelled markers": FrameOfData(
+            frame_number=1, rigid_bodies=(body,) * 1000, labeled_markers=(marker,) * 1000),
+        "16,000 empty channels of one device (refused)": FrameOfData(
+            frame_number=1, devices=(AnalogData(1, ((),) * 16000),)),
+        "one marker set of 5,400 markers (refused)": FrameOfData(
+            frame_number=1, marker_sets=(MarkerSet("a", ((0.0, 0.0, 0.0),) * 5400),)),
+    }
+
+
+def _numbered(frame: FrameOfData, version: Version, count: int) -> list:
+    """``count`` datagrams of ``frame`` numbered 1..count, stamped 1/240 s apart."""
+    period = FREQUENCY // 240
+    return [build_frame_of_data(version, replace(frame, frame_number=k, camera_mid_exposure=k * period,
+                                                 transmit_timestamp=k * period + 100))
+            for k in range(1, count + 1)]
+
+
+def bench_worst_frames(count: int = 300, repeats: int = 5) -> dict:
+    """Time [s] of the bridge's packet path per datagram: a normal frame of the arm against the
+    frames of :func:`_worst_frames`, on NatNet 3.1 (walked item by item) and 4.1 (sized)."""
+    config = replace(load_mocap_config(), data_port=0, natnet_version="")
+    normal = FrameOfData(frame_number=1, rigid_bodies=tuple(
+        RigidBody(k, tuple(float(v) for v in config.calibration.to_mocap(MARKERS[k - 1:k])[0]),
+                  (0.0, 0.0, 0.0, 1.0)) for k in (1, 2, 3, 4)))
+    out = {}
+    for name in ("3.1", "4.1"):
+        version = Version(*map(int, name.split(".")))
+        rows = {}
+        for label, frame in {"normal frame (4 markers)": normal, **_worst_frames()}.items():
+            packets = _numbered(frame, version, count)
+            best = np.inf
+            for _ in range(repeats):
+                with MocapBridge(config) as bridge:
+                    bridge.handle_packet(build_server_info(ServerInfo(
+                        "bench", Version(3, 1), version, clock_frequency=FREQUENCY, data_port=0,
+                        multicast=False, multicast_group="0.0.0.0")), 0.0)
+                    t0 = time.perf_counter()
+                    for k, packet in enumerate(packets, 1):
+                        bridge.handle_packet(packet, 1000.0 + k / 240.0 + 1e-3)
+                    best = min(best, (time.perf_counter() - t0) / count)
+                    counters = bridge.counters
+            rows[label] = {"bytes": len(packets[0]), "seconds_per_frame": best,
+                           "delivered": counters["delivered"], "malformed": counters["malformed"]}
+        base = rows["normal frame (4 markers)"]["seconds_per_frame"]
+        for row in rows.values():
+            row["normal_frames"] = row["seconds_per_frame"] / base
+        out[name] = rows
     return out
 
 
@@ -171,6 +243,12 @@ def main():
     for name, row in parse.items():
         print(f"{name:8} {row['datagram_bytes']:6d} {row['codec_frames_per_s']:15.0f} "
               f"{row['bridge_frames_per_s']:16.0f}")
+    worst = bench_worst_frames()
+    print(f"\n{'bridge packet path':48} {'version':7} {'bytes':>6} {'us/frame':>9} {'x normal':>9}")
+    for name, rows in worst.items():
+        for label, row in rows.items():
+            print(f"{label:48} {name:7} {row['bytes']:6d} {row['seconds_per_frame'] * 1e6:9.1f} "
+                  f"{row['normal_frames']:9.1f}")
     core = bench_core_latency()
     ros = bench_ros_latency()
     print(f"\nlatency at {RATE:.0f} Hz, no emulated server latency        p50      p99      max")
@@ -178,7 +256,7 @@ def main():
                        ("mid-exposure stamp error (late if > 0)", core["stamp_error"]),
                        ("mid-exposure -> mocap/markers received", ros["to_mocap_markers"])):
         print(f"{label:46} {row['p50_ms']:7.3f}  {row['p99_ms']:7.3f}  {row['max_ms']:7.3f} ms")
-    write_results(args.output, {"parse": parse, "core": core, "ros": ros})
+    write_results(args.output, {"parse": parse, "worst_frames": worst, "core": core, "ros": ros})
 
 
 if __name__ == "__main__":

@@ -92,13 +92,13 @@ def bench_core(rate: float, plant, strategy: str, seconds: float, interface: str
     with EmulatorThread(emulator):
         with MotorDriver(cfg) as driver:
             t0 = time.monotonic() + 0.05
-            driver.enable(t0)
+            driver.enable()
             for k in range(int(seconds * rate)):
                 deadline = t0 + k * period
                 _wait(deadline, strategy)
                 start = time.monotonic()
-                driver.command([1.0 + 0.5 * np.sin(2 * np.pi * start), 0.5, 0.5, 0.5], start)
-                state, diagnostics = driver.cycle(start)
+                driver.command([1.0 + 0.5 * np.sin(2 * np.pi * start), 0.5, 0.5, 0.5])
+                state, diagnostics = driver.cycle()
                 durations.append(time.monotonic() - start)
                 starts.append(start)
                 deadlines.append(deadline)
@@ -132,10 +132,11 @@ def bench_node(rate: float, plant, seconds: float) -> dict:
                 raise RuntimeError("the motor_driver node did not configure (see its log)")
             original = node.driver.cycle
 
-            def timed_cycle(now):
+            def timed_cycle():
+                now = time.monotonic()
                 starts.append(now)
-                result = original(now)
-                node.driver.command([1.0, 0.5, 0.5, 0.5], time.monotonic())   # a controller's answer
+                result = original()
+                node.driver.command([1.0, 0.5, 0.5, 0.5])   # a controller's answer
                 durations.append(time.monotonic() - now)
                 complete.append(result.state.complete)
                 return result

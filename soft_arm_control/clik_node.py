@@ -12,7 +12,12 @@ the model's equilibria to be held, ``control.clik.min_frequency``) is rejected w
 reason; the last good reference stays. A target the precomputation does not reach from the
 hanging arm starts from the seed equilibria (``control.clik.seed_levels``), solved at start-up so
 that such a goal is answered in milliseconds too. Time is the mocap's (frame stamps), so it works
-on sim time and on the rig alike. A frame the executor queued behind the last one is dropped (a CLIK step that
+on sim time and on the rig alike; the stamps are checked as they enter
+(:class:`~soft_arm_control.loop_clock.LoopClock`): a frame whose stamp is no number is dropped, and
+a clock step (a stamp more than ``control.clik.max_time_step`` ahead, or one that goes back)
+advances the CLIK's time by one frame period, counted (``clock_steps`` on ``/diagnostics``) and
+logged, so that no stamp can hold the CLIK's steps off. Messages are stamped with the latest frame's
+own stamp. A frame the executor queued behind the last one is dropped (a CLIK step that
 outlasts the frame period on a loaded computer would otherwise queue the frames, and the goals and
 timers behind them, for seconds: :mod:`soft_arm_ros.backlog`); the count is on ``/diagnostics``
 (``frames_dropped``) and in a warning.
@@ -41,6 +46,7 @@ from soft_arm_ros.runtime import run_node
 from .clik import TargetError
 from .collocated import full_tensions
 from .config import control_of, task_of
+from .loop_clock import LoopClock
 from .outer_loop import outer_loop_for
 from .target_margin import fragility_error
 
@@ -73,8 +79,10 @@ class ClikNode(Node):
         self.outer.seeds()              # now, not at the goal that needs them (0.7 s, seconds under load)
         self.names = self.model.tendon_names
         self.labels = self.task.space.labels()
-        self.now = 0.0
-        self.rejected_goals = 0
+        self.now = 0.0                  # the CLIK's time [s]: the frames' stamps, clock steps taken out
+        self.stamp = 0.0                # the latest frame's stamp [s]: what this node's messages carry
+        self.frame_clock = LoopClock(self.control.clik_max_time_step)
+        self.rejected_goals = self.rejected_frames = 0
         self.ref_pub = self.create_publisher(JointState, TOPICS["reference"], QOS["tendon/reference"])
         self.q_pub = self.create_publisher(ConfigurationReference, TOPICS["configuration"],
                                            QOS["arm/configuration_reference"])
@@ -91,12 +99,12 @@ class ClikNode(Node):
                                f"({', '.join(self.labels)})")
 
     def publish(self, ref):
-        self.ref_pub.publish(joint_state(self.names, self.now, position=ref.shortening,
+        self.ref_pub.publish(joint_state(self.names, self.stamp, position=ref.shortening,
                                          velocity=self.outer.reference_rate,
                                          effort=full_tensions(self.outer.clik.cm, ref.u_ff)))
         x_d, _ = self.outer.target_at(self.now)
         goal = self.outer.reports[-1]
-        self.q_pub.publish(configuration_reference(self.now, len(self.outer.reports) - 1, goal.mode, ref.q,
+        self.q_pub.publish(configuration_reference(self.stamp, len(self.outer.reports) - 1, goal.mode, ref.q,
                                                    self.labels, x_d, ref.x))
 
     def on_goal(self, msg: TaskGoal):
@@ -129,7 +137,7 @@ class ClikNode(Node):
         if self.frames.admit(time.monotonic_ns()):
             self.on_markers(msg)
         else:
-            self.now = stamp_to_seconds(msg.header.stamp)
+            self._take_time(msg)
         self.frames.done(time.monotonic_ns())
         if self.frames.dropped > self._drop_warned and time.monotonic() >= self._drop_warned_at + 5.0:
             # throttled here: rclpy's throttle inspects the caller's frame on every call
@@ -138,8 +146,25 @@ class ClikNode(Node):
                 f"the CLIK falls behind the mocap frames: {self.frames.dropped} of "
                 f"{self.frames.dropped + self.frames.processed} dropped so far")
 
+    def _take_time(self, msg: PoseArray) -> bool:
+        """The frame's stamp into the CLIK's time (:attr:`now`); False, the frame dropped, when the
+        stamp is no number."""
+        stamp, steps = stamp_to_seconds(msg.header.stamp), self.frame_clock.steps
+        try:
+            self.now = self.frame_clock.advance(stamp)
+        except ValueError as exc:
+            self.rejected_frames += 1
+            self.get_logger().warning(f"mocap frame dropped: {exc}", throttle_duration_sec=1.0)
+            return False
+        self.stamp = stamp
+        if self.frame_clock.steps != steps:
+            self.get_logger().warning(f"the mocap frames' clock stepped, the CLIK goes on: "
+                                      f"{self.frame_clock.describe()}")
+        return True
+
     def on_markers(self, msg: PoseArray):
-        self.now = stamp_to_seconds(msg.header.stamp)
+        if not self._take_time(msg):
+            return
         markers = markers_of(msg)
         if markers.shape[0] != self.model.marker_X.size:
             self.get_logger().warning(f"mocap frame with {markers.shape[0]} markers, expected "
@@ -175,10 +200,11 @@ class ClikNode(Node):
         report = self.outer.reports[index]
         level, message = LEVELS[report.status], MESSAGES[report.status]
         status = DiagnosticStatus(level=level, name="clik", hardware_id="soft_arm", message=message)
-        d = {"goal": index, **report.as_dict(), "frames_dropped": self.frames.dropped}
+        d = {"goal": index, **report.as_dict(), "frames_dropped": self.frames.dropped,
+             "frames_rejected": self.rejected_frames, "clock_steps": self.frame_clock.steps}
         status.values = [KeyValue(key=k, value=v if k == "status" else json.dumps(v)) for k, v in d.items()]
         msg = DiagnosticArray(status=[status])
-        seconds_to_stamp(msg.header.stamp, self.now)
+        seconds_to_stamp(msg.header.stamp, self.stamp)
         self.diagnostics_pub.publish(msg)
         if index == len(self.outer.reports) - 1:
             self._reported = (len(self.outer.reports), report.status)

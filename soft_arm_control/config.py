@@ -51,6 +51,10 @@ CONTROL_SCHEMA = {
     "inner_loop.tension_rate_limit": ("float", lambda v: 0 <= v <= 1e6,
                                       "a rate in [0, 1e6] N/s (0 disables the limit)"),
     "inner_loop.feedforward": ("bool", None, "true or false"),
+    "inner_loop.max_time_step": ("float", lambda v: 0 < v <= 10,
+                                 "a time in (0, 10] s: a state stamped more than this after the last "
+                                 "one, or before it, is a clock step (counted, integrated over as one "
+                                 "period)"),
     "clik.task_gain": ("float", lambda v: 0 < v <= 1000, "a gain in (0, 1000] 1/s"),
     "clik.equilibrium_gain": ("float", lambda v: 0 < v <= 1000, "a gain in (0, 1000] 1/s"),
     "clik.singular_threshold": ("float", lambda v: 0 < v < 1, "a relative singular value in (0, 1)"),
@@ -61,6 +65,10 @@ CONTROL_SCHEMA = {
                           "a delay in [0, 3600] s from a target change to online refinement"),
     "clik.tolerance": ("float", lambda v: 0 < v <= 0.01, "a task tolerance in (0, 0.01] m"),
     "clik.reach_tolerance": ("float", lambda v: 0 < v <= 0.1, "a task error norm in (0, 0.1] m"),
+    "clik.max_time_step": ("float", lambda v: 0 < v <= 60,
+                           "a time in (0, 60] s: a mocap frame stamped more than this after the last "
+                           "one, or before it, is a clock step (counted; the CLIK's time advances one "
+                           "frame period)"),
     "clik.stall_time": ("float", lambda v: 0 < v <= 3600, "a time in (0, 3600] s"),
     "clik.seed_levels": ("floats", lambda v: all(0 <= a <= 100 for a in v),
                          "tensions in [0, 100] N (may be empty)"),
@@ -167,6 +175,8 @@ class ControlConfig:
     track_learning: float
     track_harmonics: int
     track_settle_time: float
+    inner_loop_max_time_step: float = 0.1
+    clik_max_time_step: float = 1.0
 
 
 def parse_control(v: dict, arm: ArmConfig) -> ControlConfig:
@@ -198,7 +208,8 @@ def parse_control(v: dict, arm: ArmConfig) -> ControlConfig:
         v["clik.closest_margin"], v["clik.shaping.shaper"], v["clik.shaping.level"],
         tuple(v["clik.shaping.modes"]), v["clik.track_feedforward"], v["clik.min_frequency"],
         tuple(v["clik.rate_modes"]), v["clik.track_dynamics"], v["clik.track_learning.gain"],
-        v["clik.track_learning.harmonics"], v["clik.track_learning.settle_time"])
+        v["clik.track_learning.harmonics"], v["clik.track_learning.settle_time"],
+        v["inner_loop.max_time_step"], v["clik.max_time_step"])
 
 
 def load_control_config(arm: ArmConfig, path: str | None = None, overrides=None) -> ControlConfig:
@@ -245,6 +256,11 @@ class TaskConfig:
     paper_peak_speed: float | None = None
 
 
+# A marker at arc length s is at most about s from the base (the backbone barely stretches): a target
+# further than REACH * s is beyond every shape of the arm.
+REACH = 1.1
+
+
 def parse_task(name: str, v: dict, arm: ArmConfig) -> TaskConfig:
     """Cross-checks of one task's values against the arm and themselves."""
     def get(key):
@@ -273,6 +289,14 @@ def parse_task(name: str, v: dict, arm: ArmConfig) -> TaskConfig:
     if len(flat) % m:
         raise bad("targets", f"groups of {m} coordinates ({', '.join(space.labels())}) per target")
     targets = tuple(tuple(flat[i:i + m]) for i in range(0, len(flat), m))
+    for k, target in enumerate(targets):
+        for marker in set(space.markers):
+            reach = REACH * arm.marker_positions[marker]
+            distance = math.hypot(*(x for x, j in zip(target, space.markers) if j == marker))
+            if distance > reach:
+                raise bad("targets", f"targets within {REACH:g} times their marker's arc length of the "
+                                     f"base (target {k + 1}: marker{marker + 1} {distance:.4g} m away, "
+                                     f"its reach {reach:.4g} m; a target in mm, or in another frame?)")
     phases = []
     for pname in get("phases"):
         seq = get(f"phase.{pname}.sequence")

@@ -16,7 +16,10 @@ reference instead of dragging against the motion asked for.
 Tensions are clipped to [u_min, u_max] (pull only, u_min a small pretension) after an optional rate
 limit; the integral is frozen while the clipped output saturates in the direction it would push it
 (conditional integration, anti-windup). The core takes explicit time stamps [s] and never reads a
-clock. Tendons that the task does not use hold u_min.
+clock; its time is a :class:`~.loop_clock.LoopClock` of those stamps, so that a stamp that is no
+number is refused before anything changes and a clock step (a stamp far ahead, or one that goes
+back) is counted and integrated over as one period: the loop goes on. Tendons that the task does
+not use hold u_min.
 """
 from __future__ import annotations
 
@@ -26,6 +29,9 @@ import numpy as np
 from numba import njit
 
 from .actuation_map import SCALE, ActuationMap, _feature_jacobian, _features
+from .loop_clock import LoopClock
+
+MAX_TIME_STEP = 0.1     # s: the longest gap between two states integrated over (50 periods at 500 Hz)
 
 
 @dataclass(frozen=True)
@@ -61,18 +67,21 @@ class PSatID:
     """P-satI-D+ regulator for the tendons ``active`` (0-based) of an arm with ``n_tendons`` tendons.
 
     ``update`` takes and returns arrays over all tendons; the inactive ones get u_min. The integral
-    state ``xi`` [m s] is public for inspection and is kept across reference changes.
+    state ``xi`` [m s] is public for inspection and is kept across reference changes. ``clock``: the
+    loop's time from the update stamps, ``max_time_step`` [s] the longest gap integrated over.
     """
 
-    def __init__(self, gains: InnerLoopGains, actuation_map: ActuationMap, active, n_tendons: int):
+    def __init__(self, gains: InnerLoopGains, actuation_map: ActuationMap, active, n_tendons: int,
+                 max_time_step: float = MAX_TIME_STEP):
         self.gains = gains
+        self.max_time_step = float(max_time_step)
+        self.clock = LoopClock(self.max_time_step)
         self.active = np.array(active, dtype=int)
         if self.active.size != gains.proportional.size:
             raise ValueError(f"{self.active.size} active tendons but {gains.proportional.size} gains")
         self.n_tendons = n_tendons
         self.xi = np.zeros(self.active.size)
         self.u = np.full(n_tendons, gains.tension_min)
-        self.t = None
         identity = actuation_map.coef is None
         self._exponents = np.zeros((0, n_tendons), dtype=np.int64) if identity else actuation_map.exponents
         self._coef = np.zeros((0, 0)) if identity else np.ascontiguousarray(actuation_map.coef)
@@ -85,11 +94,16 @@ class PSatID:
                    gains.integral_saturation, gains.tension_min, gains.tension_max, 0.0, -1.0,
                    np.zeros(self.active.size), self.u, np.empty(n_tendons))
 
+    @property
+    def t(self):
+        """The last time stamp taken [s] (None before the first)."""
+        return self.clock.stamp
+
     def reset(self):
-        """Forget the integral, the last output and the last time stamp."""
+        """Forget the integral, the last output and the time stamps."""
         self.xi[:] = 0.0
         self.u[:] = self.gains.tension_min
-        self.t = None
+        self.clock = LoopClock(self.max_time_step)
 
     def update(self, t: float, s, s_dot, s_ref, u_ff, s_ref_dot=None) -> np.ndarray:
         """Tensions [N] of all tendons at time t [s].
@@ -97,23 +111,25 @@ class PSatID:
         s, s_dot: measured shortenings [m] and rates [m/s] of all tendons; s_ref: reference
         shortenings [m] of all tendons (from q_d); u_ff: feedforward tensions [N] of the active
         tendons; s_ref_dot: the reference's shortening rates [m/s] of all tendons (None: a fixed
-        reference). Non-finite inputs or a time stamp earlier than the last raise ValueError and
-        leave the state unchanged. One compiled kernel (:func:`_p_sat_i_d`), some 10 us.
+        reference). A non-finite input or time stamp raises ValueError and leaves the state
+        unchanged; a clock step is integrated over as one period (module docstring). One compiled
+        kernel (:func:`_p_sat_i_d`), some 10 us.
         """
+        advance = self.clock.check(t)
         s_ref_dot = self._fixed if s_ref_dot is None else s_ref_dot
         s, s_dot, s_ref, u_ff, s_ref_dot = (np.ascontiguousarray(v, dtype=float)
                                             for v in (s, s_dot, s_ref, u_ff, s_ref_dot))
-        if self.t is not None and t < self.t:
-            raise ValueError(f"time stamp {t} s is earlier than the last one ({self.t} s)")
-        dt = 0.0 if self.t is None else t - self.t
+        dt = advance.dt
         g = self.gains
-        rate_step = g.tension_rate_limit * dt if g.tension_rate_limit > 0 and self.t is not None else -1.0
+        first = self.clock.stamp is None
+        rate_step = g.tension_rate_limit * dt if g.tension_rate_limit > 0 and not first else -1.0
         xi, u = self.xi.copy(), np.empty(self.n_tendons)
         if not _p_sat_i_d(s, s_dot, s_ref, s_ref_dot, u_ff, self.active, self._exponents, self._coef,
                           g.proportional, g.derivative, g.integral, g.integral_saturation,
                           g.tension_min, g.tension_max, dt, rate_step, xi, self.u, u):
             raise ValueError("non-finite measurement, reference or feedforward")
-        self.xi, self.u, self.t = xi, u, float(t)
+        self.xi, self.u = xi, u
+        self.clock.commit(t, advance)
         return u.copy()
 
 
@@ -123,8 +139,9 @@ def _p_sat_i_d(s, s_dot, s_ref, s_ref_dot, u_ff, active, exponents, coef, kp, kd
     """One P-satI-D+ update (the module docstring's law) into ``u_out`` [N] (all tendons) and ``xi``
     [m s] (active tendons), from the previous output ``u_prev`` [N]. The actuation map is the
     polynomial ``coef`` (n_t, F) in the monomials ``exponents`` (F, n_t) of s / SCALE, or the
-    identity when ``coef`` has no rows; ``rate_step`` [N]: the rate limit's step this update (<= 0:
-    none). False, and nothing written, when an input is not finite."""
+    identity when ``coef`` has no rows; ``rate_step`` [N]: the rate limit's step this update (< 0:
+    none; 0, a repeated stamp: the output holds). False, and nothing written, when an input is not
+    finite."""
     n = s.shape[0]
     for k in range(n):
         if not (np.isfinite(s[k]) and np.isfinite(s_dot[k]) and np.isfinite(s_ref[k])
@@ -175,7 +192,7 @@ def _p_sat_i_d(s, s_dot, s_ref, s_ref_dot, u_ff, active, exponents, coef, kp, kd
         if (u_raw > u_max and x > xi[i]) or (u_raw < u_min and x < xi[i]):
             x = xi[i]
         u_a = u_pd + ki[i] * x
-        if rate_step > 0:
+        if rate_step >= 0:
             u_a = min(max(u_a, u_prev[k] - rate_step), u_prev[k] + rate_step)
         xi[i] = x
         u_out[k] = min(max(u_a, u_min), u_max)
@@ -191,17 +208,17 @@ class TendonController:
     are not actuated matter too: thetabar_a is a function of all of them). Before any reference
     every tendon holds ``tension_min``. Without ``feedforward`` the regulated tendons get no
     feedforward tension (the integral has to find it). The reference's rate counts for
-    ``rate_hold`` seconds of the inner loop's own time from the first update after it arrived, then
-    as zero: a reference that stops coming (the outer loop stalled, its frames lost) is a fixed one,
-    not one that keeps moving.
+    ``rate_hold`` seconds of the inner loop's own time (:attr:`clock`) from the first update after it
+    arrived, then as zero: a reference that stops coming (the outer loop stalled, its frames lost) is
+    a fixed one, not one that keeps moving.
     """
 
     def __init__(self, n_tendons: int, gains: InnerLoopGains, actuation_map: ActuationMap, active,
-                 feedforward: bool = True, rate_hold: float = 0.0):
+                 feedforward: bool = True, rate_hold: float = 0.0, max_time_step: float = MAX_TIME_STEP):
         self.n, self.gains, self.feedforward = n_tendons, gains, feedforward
         self.rate_hold = float(rate_hold)
         self.active = [int(k) for k in active]
-        self.pid = PSatID(self._active_gains(gains), actuation_map, self.active, n_tendons)
+        self.pid = PSatID(self._active_gains(gains), actuation_map, self.active, n_tendons, max_time_step)
         self.s_ref = None
         self.s_ref_dot = np.zeros(n_tendons)
         self._rate_since = None              # inner-loop time the current rate was first used [s]
@@ -230,15 +247,23 @@ class TendonController:
         self.s_ref, self.u_ff = s_ref, u_ff
         self.s_ref_dot, self._rate_since = rate, None
 
+    @property
+    def clock(self) -> LoopClock:
+        """The loop's time and its clock steps (the regulator's)."""
+        return self.pid.clock
+
     def update(self, t: float, s, s_dot) -> np.ndarray:
-        """Tensions [N] of all tendons at time t [s] from measured shortenings [m] and rates [m/s]."""
+        """Tensions [N] of all tendons at time t [s] from measured shortenings [m] and rates [m/s].
+        A stamp that is no number raises ValueError and changes nothing."""
+        advance = self.clock.check(t)
         u = np.clip(self.u_ff, self.gains.tension_min, self.gains.tension_max)
         if self.s_ref is None:
             return u
         u_ff = self.u_ff[self.active] if self.feedforward else np.zeros(len(self.active))
+        now = float(t) if self.clock.time is None else self.clock.time + advance.dt
         if self._rate_since is None:
-            self._rate_since = t
-        rate = self.s_ref_dot if t - self._rate_since <= self.rate_hold else None
+            self._rate_since = now
+        rate = self.s_ref_dot if now - self._rate_since <= self.rate_hold else None
         out = self.pid.update(t, s, s_dot, self.s_ref, u_ff, rate)
         u[self.active] = out[self.active]
         return u
@@ -252,7 +277,7 @@ def tendon_controller_for(n_tendons: int, control, active, actuation_map: Actuat
                            np.array(control.integral), control.integral_saturation,
                            control.tension_min, control.tension_max, control.tension_rate_limit)
     return TendonController(n_tendons, gains, actuation_map, active, control.feedforward,
-                            reference_rate_hold(control))
+                            reference_rate_hold(control), control.inner_loop_max_time_step)
 
 
 def reference_rate_hold(control) -> float:

@@ -6,19 +6,28 @@ Without a reference it holds the pretension. Parameters: ``control.*`` (gains, l
 thetabar_a fit), ``arm.*``, ``graph.task``; the gains and the tension limits of the inner loop
 (:data:`LIVE`) may be set while it runs (``ros2 param set``) and apply from the next state on, the
 integral kept; every other value is read-only.
+
+Time is the states' stamps (the motors' receive times on the rig, ``/clock`` in simulation),
+checked as they enter (:class:`~soft_arm_control.loop_clock.LoopClock`): a state whose stamp is no
+number is refused; a stamp more than ``control.inner_loop.max_time_step`` ahead, or one that goes
+back (the PC's clock stepped by NTP), is a clock step: the state is answered, the integral advances
+one period, and ``/diagnostics`` (status ``inner_loop``, WARN) names the step at once. Every second
+``/diagnostics`` reports the clock steps and the refused states and references.
 """
 from __future__ import annotations
 
 import sys
+import time
 from dataclasses import replace
 
 import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 
 from soft_arm_model import build_model
 from soft_arm_ros.contract import QOS, TOPICS
-from soft_arm_ros.conversions import joint_state, ordered, stamp_to_seconds
+from soft_arm_ros.conversions import joint_state, ordered, seconds_to_stamp, stamp_to_seconds
 from soft_arm_ros.parameters import NodeParameters
 from soft_arm_ros.runtime import run_node
 
@@ -46,8 +55,10 @@ class InnerLoopNode(Node):
         self.names = model.tendon_names
         self.core = tendon_controller_for(model.n_tendons, ctl, task.tendons, actuation_map)
         self.rejected = 0
+        self._reported_steps, self._reported_at = 0, -float("inf")     # clock steps, monotonic [s]
         params.on_change(self.apply_gains)
         self.pub = self.create_publisher(JointState, TOPICS["command"], QOS["tendon/command"])
+        self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.create_subscription(JointState, TOPICS["reference"], self.on_reference,
                                  QOS["tendon/reference"])
         self.create_subscription(JointState, TOPICS["state"], self.on_state, QOS["tendon/state"])
@@ -80,6 +91,30 @@ class InnerLoopNode(Node):
             self.get_logger().warning(f"state rejected: {exc}", throttle_duration_sec=1.0)
             return
         self.pub.publish(joint_state(self.names, t, effort=u))
+        clock = self.core.clock
+        if clock.steps != self._reported_steps:
+            self.get_logger().warning(f"the states' clock stepped, the loop goes on: {clock.describe()}")
+            self.publish_diagnostics(t)
+        elif time.monotonic() >= self._reported_at + 1.0:
+            self.publish_diagnostics(t)
+
+    def publish_diagnostics(self, stamp: float):
+        """The loop's time keeping on ``/diagnostics``, stamped ``stamp`` [s]: WARN when a clock step
+        is new since the last report, OK otherwise."""
+        clock = self.core.clock
+        new = clock.steps != self._reported_steps
+        status = DiagnosticStatus(name="inner_loop", hardware_id="soft_arm",
+                                  level=DiagnosticStatus.WARN if new else DiagnosticStatus.OK,
+                                  message=f"clock step: {clock.describe()}" if new else
+                                  ("regulating" if self.core.s_ref is not None else "no reference"))
+        values = {"clock_steps_forward": clock.steps_forward, "clock_steps_back": clock.steps_back,
+                  "last_clock_step_s": "" if clock.last_step is None else f"{clock.last_step[1]:.6g}",
+                  "rejected": self.rejected, "max_time_step_s": clock.max_step}
+        status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
+        msg = DiagnosticArray(status=[status])
+        seconds_to_stamp(msg.header.stamp, stamp)
+        self.diagnostics_pub.publish(msg)
+        self._reported_steps, self._reported_at = clock.steps, time.monotonic()
 
 
 def main(args=None) -> int:

@@ -129,8 +129,10 @@ ARM_SCHEMA: dict[str, tuple[str, Any, str]] = {
     "gravity": ("floats", lambda v: len(v) == 3 and math.sqrt(sum(a * a for a in v)) <= 100,
                 "three components [m/s^2] with norm <= 100"),
     "tip_mass": ("float", lambda v: 0 <= v <= 1, "a mass in [0, 1] kg"),
-    "markers.positions": ("floats", lambda v: all(b > a for a, b in zip([0.0] + list(v[:-1]), v)),
-                          "strictly increasing arc lengths > 0 m"),
+    "markers.positions": ("floats",
+                          lambda v: len(v) >= 1 and all(b > a for a, b in zip([0.0] + list(v[:-1]), v)),
+                          "one or more strictly increasing arc lengths > 0 m (the tracked markers: "
+                          "without one there is nothing to control)"),
 }
 for _mode in STRAIN_MODES:
     ARM_SCHEMA[f"discretisation.modes.{_mode}"] = ("bool", None, "true or false")

@@ -200,17 +200,43 @@ def default_config_dir() -> str:
 
 
 def read_parameters(path: str, node: str = "/**") -> dict:
-    """Return the ``ros__parameters`` mapping of ``node`` in a ROS 2 parameter file."""
+    """Return the ``ros__parameters`` mapping of ``node`` in a ROS 2 parameter file. ConfigError,
+    naming the file, for a file that cannot be read, is not UTF-8, is not YAML, or is not in the
+    ROS 2 parameter layout (``<node>: {ros__parameters: {<namespace>: ...}}``, not empty)."""
+    layout = f"expected '{node}: {{ros__parameters: ...}}' (ROS 2 parameter layout)"
     try:
         with open(path, encoding="utf-8") as fh:
             doc = parse_yaml(fh)
+    except IsADirectoryError:
+        raise ConfigError(f"cannot read config file {path}: it is a directory, not a file") from None
     except OSError as exc:
         raise ConfigError(f"cannot read config file {path}: {exc.strerror}") from None
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{path} is not UTF-8 text (byte {exc.start}: {exc.reason})") from None
     except yaml.YAMLError as exc:
         raise ConfigError(f"{path} is not valid YAML: {exc}") from None
-    if not isinstance(doc, dict) or node not in doc or "ros__parameters" not in (doc[node] or {}):
-        raise ConfigError(f"{path}: expected '{node}: {{ros__parameters: ...}}' (ROS 2 parameter layout)")
-    return doc[node]["ros__parameters"]
+    if not isinstance(doc, dict) or node not in doc:
+        raise ConfigError(f"{path}: {layout}")
+    entry = doc[node]
+    if not isinstance(entry, dict) or "ros__parameters" not in entry:
+        raise ConfigError(f"{path}: {node} holds {_kind(entry)}: {layout}")
+    params = entry["ros__parameters"]
+    if not params:
+        raise ConfigError(f"{path}: {node}.ros__parameters is empty: {layout}")
+    if not isinstance(params, dict):
+        raise ConfigError(f"{path}: {node}.ros__parameters holds {_kind(params)}, not namespaces: {layout}")
+    return params
+
+
+def _kind(value) -> str:
+    """What a YAML value is, for a message: "a number 5", "nothing", "a list"."""
+    if value is None:
+        return "nothing"
+    if isinstance(value, (list, tuple)):
+        return "a list"
+    if isinstance(value, dict):
+        return "a mapping without ros__parameters"
+    return f"{type(value).__name__} {value!r}"
 
 
 def load_section(path: str, namespace: str, schema: Mapping, overrides: Mapping[str, Any] | None = None,

@@ -148,7 +148,13 @@ class NodeParameters:
         return SetParametersResult(successful=True)
 
     def overrides(self, namespace: str) -> dict:
-        """The node's own values under ``namespace`` as dotted overrides."""
+        """The node's own values under ``namespace`` as dotted overrides; ConfigError when the node
+        was given a value where the namespace's keys belong (``-p arm:=5``)."""
+        parts = namespace.split(".")
+        for prefix in (".".join(parts[:k]) for k in range(1, len(parts) + 1)):
+            if self.node.has_parameter(prefix):
+                raise ConfigError(f"{prefix} = {self.node.get_parameter(prefix).value!r} is not valid: "
+                                  f"expected the {prefix}.* parameters, not a value")
         return parameter_overrides(self.node, namespace)
 
     def section(self, namespace: str, schema: Mapping, filename: str | None = None,

@@ -2,9 +2,12 @@
 from __future__ import annotations
 
 import gc
+import re
 import signal
+import sys
 
 import rclpy
+from rclpy._rclpy_pybind11 import RCLError
 from rclpy.executors import ExternalShutdownException
 from rclpy.signals import SignalHandlerOptions
 
@@ -46,7 +49,10 @@ def run_node(factory, name: str, args=None, executor_factory=make_executor) -> i
     previous = {sig: signal.signal(sig, request_stop) for sig in (signal.SIGINT, signal.SIGTERM)}
     node = executor = None
     try:
-        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+        try:
+            rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+        except RCLError as exc:          # a --ros-args rcl refuses (a params file it cannot parse)
+            raise ConfigError(_rcl_reason(exc)) from None
         node = factory()
         # The set-up leaves some 10^5 long-lived objects (models, compiled kernels, rclpy): a full
         # collection would walk them all, some 50 ms at a time, in the middle of a control period.
@@ -58,7 +64,10 @@ def run_node(factory, name: str, args=None, executor_factory=make_executor) -> i
         while not stop and rclpy.ok() and not getattr(node, "done", False):
             executor.spin_once(timeout_sec=0.1)
     except ConfigError as exc:
-        rclpy.logging.get_logger(name).fatal(f"bad parameter: {exc}")
+        if rclpy.ok():
+            rclpy.logging.get_logger(name).fatal(f"bad parameter: {exc}")
+        else:
+            print(f"{name}: bad parameter: {exc}", file=sys.stderr)
         return 2
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
@@ -79,3 +88,8 @@ def run_node(factory, name: str, args=None, executor_factory=make_executor) -> i
             for sig, handler in previous.items():
                 signal.signal(sig, handler)
     return 1 if getattr(node, "failure", None) is not None else 0
+
+
+def _rcl_reason(exc: Exception) -> str:
+    """rcl's message without the C source locations it appends (", at .../parse.c:841")."""
+    return re.sub(r",? at /\S+:\d+", "", str(exc)).strip().rstrip(",")

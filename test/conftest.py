@@ -123,3 +123,19 @@ def change_state(executor, client, label: str) -> bool:
     future = client.call_async(client.srv_type.Request(transition=Transition(label=label)))
     spin_until(executor, future.done)
     return future.result().success
+
+
+@pytest.fixture
+def make_rig():
+    """``make(plant=None, overrides=None, **emulator_options)``: a CAN driver core and motor emulator
+    in lockstep (test/drivers/can/can_rig.py, importable from the CAN tests' folder), closed after
+    the test."""
+    from can_rig import Rig, driver_config
+    rigs = []
+
+    def make(plant=None, overrides=None, **options):
+        rigs.append(Rig(driver_config(**(overrides or {})), plant, **options))
+        return rigs[-1]
+    yield make
+    for rig in rigs:
+        rig.close()

@@ -43,6 +43,9 @@ SCHEMA = {
     "watchdog_timeout": ("float", lambda v: 0 < v <= 1, "a time in (0, 1] s"),
     "reply_timeout": ("float", lambda v: 0 < v <= 1, "a time in (0, 1] s"),
     "max_temperature": ("float", lambda v: 0 < v <= 150, "a temperature in (0, 150] deg C"),
+    "command_publisher": ("str", lambda v: v.startswith("/") and len(v) > 1 and " " not in v,
+                          "the fully qualified name of the one node whose tendon/command may drive "
+                          "the motors (the inner loop's: /inner_loop)"),
 }
 
 
@@ -77,7 +80,8 @@ class Motor:
 class DriverConfig:
     """Validated ``rig.motors`` parameters: bus (python-can interface, channel, bit rate [bit/s]),
     cycle rate [Hz], the motors in tendon order, pulley radius [m], tension limit [N] and rate limit
-    [N/s], watchdog and reply timeouts [s], temperature limit [deg C]."""
+    [N/s], watchdog and reply timeouts [s], temperature limit [deg C], the shortenings of the
+    zeroing pose [m] and the node allowed to command the motors."""
     interface: str
     channel: str
     bitrate: int
@@ -90,6 +94,7 @@ class DriverConfig:
     reply_timeout: float
     max_temperature: float
     zero_shortening: tuple = ()
+    command_publisher: str = "/inner_loop"
 
 
 def bus_load(config: DriverConfig) -> tuple[float, float]:
@@ -127,7 +132,7 @@ def parse_driver_config(values: Mapping[str, Any], n_tendons: Optional[int] = No
     config = DriverConfig(values["interface"], values["channel"], values["bitrate"], values["rate"], motors,
                           values["pulley_radius"], values["max_tension"], values["tension_rate_limit"],
                           values["watchdog_timeout"], values["reply_timeout"], values["max_temperature"],
-                          tuple(values["zero_shortening"]))
+                          tuple(values["zero_shortening"]), values["command_publisher"])
     if bus_load(config)[0] > 1.0:
         most_rate = config.bitrate / (2 * n * FRAME_BITS)
         raise bad("rate", f"a rate in [1, {most_rate:.0f}] Hz: {n} motors exchange two frames of "

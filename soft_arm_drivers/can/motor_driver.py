@@ -14,13 +14,17 @@ Commands are never on the pushing side: tensions are clipped to [0, max_tension]
 field is rounded to the nearest step that does not push (``tension_frame``), so a zero tension is the
 smallest pulling torque the field holds (half a step, 4.4 mN m on an AK80-9).
 
-Timing. :meth:`MotorDriver.cycle` is called at a fixed rate with the time ``now`` [s] of a monotonic
-clock; the core never reads a clock, so a run with explicit times is reproducible. A cycle reads the
-replies that arrived since the previous one (the answers to its commands: on a real bus a few hundred
-microseconds after them), checks the safety conditions, then sends one frame to every motor. A reading
-thus reaches the caller up to one period after it was taken; its time stamp is the bus's receive
-stamp of the reply (socketcan: the kernel's CLOCK_REALTIME, i.e. ROS system time; a virtual bus: the
-sender's stamp when that bus preserves time stamps, as the emulator's does).
+Timing. Every safety decision is taken on the driver's own clock (``clock``, default
+:func:`time.monotonic`; tests give it a simulated one), never on a time a caller or a message
+carries: a command's age counts from its receipt on that clock, whatever stamp it bears, so that a
+command stamped on another clock, in the future or with NaN cannot hold the watchdog off, and a
+step of the wall clock (NTP) moves nothing. :meth:`MotorDriver.cycle` is called at a fixed rate. A
+cycle reads the replies that arrived since the previous one (the answers to its commands: on a real
+bus a few hundred microseconds after them), checks the safety conditions, then sends one frame to
+every motor. A reading thus reaches the caller up to one period after it was taken; its time stamp
+is the bus's receive stamp of the reply (socketcan: the kernel's CLOCK_REALTIME, i.e. ROS system
+time; a virtual bus: the sender's stamp when that bus preserves time stamps, as the emulator's
+does): it stamps the state for the graph and is never used for a safety decision.
 
 Modes: ``disabled`` (at start and after :meth:`~MotorDriver.disable`: motors out of motor mode, polled
 with zero-torque frames, which a motor in rest mode ignores but answers), ``enabled`` (the latest
@@ -30,6 +34,8 @@ command, rate limited, every cycle) and ``fault`` (latched: zero torque to every
 - the latest command is older than ``watchdog_timeout`` (enabled only);
 - a motor has not replied for ``reply_timeout``, reports a non-zero error code, or a temperature
   above ``max_temperature``;
+- a motor's reported velocity disagrees with the rate of its reported position by a factor that
+  says the preset of ``rig.motors.models`` is not its firmware's (:mod:`.velocity_scale`);
 - a frame cannot be sent or received (bus error);
 - :meth:`~MotorDriver.estop` is called (which also takes the motors out of motor mode).
 
@@ -40,8 +46,9 @@ thread-safe: one thread calls everything.
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass
-from typing import NamedTuple, Optional, Sequence
+from typing import Callable, NamedTuple, Optional, Sequence
 
 import can
 import numpy as np
@@ -49,6 +56,7 @@ import numpy as np
 from .driver_config import DriverConfig, Motor, open_bus
 from .mit_protocol import (ENTER_MOTOR_MODE, EXIT_MOTOR_MODE, MOTOR_ERRORS, REPLY_LENGTHS, SET_ZERO_POSITION,
                            decode_reply, torque_frame)
+from .velocity_scale import VelocityScaleCheck
 
 __all__ = ["Cycle", "Diagnostics", "DriverState", "HOST_ID", "MotorDiagnostics", "MotorDriver",
            "tension_frame"]
@@ -59,11 +67,20 @@ _TORQUE_TOP = (1 << 12) - 1  # the torque field of a command frame has 12 bits
 
 
 def tension_frame(motor: Motor, pulley_radius: float, tension: float) -> bytes:
-    """Torque-mode command frame pulling the tendon with ``tension`` >= 0 [N] through the pulley
-    ``pulley_radius`` [m]: torque ``direction * r * T`` rounded to the nearest step of the 12-bit
-    field, or one step further when the nearest would push (decodes with ``direction * torque >= 0``)."""
+    """Torque-mode command frame pulling the tendon with ``tension`` [N] through the pulley
+    ``pulley_radius`` [m] (> 0): the tension clipped to [0, what the motor's torque range pulls],
+    its torque ``direction * r * T`` rounded to the nearest step of the 12-bit field, or one step
+    further when the nearest would push. Whatever the tension, the frame decodes with
+    ``direction * torque >= 0``: a tendon can only be pulled. NaN or infinity raises ValueError."""
+    tension = float(tension)
+    if not math.isfinite(tension):
+        raise ValueError(f"tension must be finite, got {tension!r}")
+    if not (math.isfinite(pulley_radius) and pulley_radius > 0):
+        raise ValueError(f"pulley_radius must be a finite radius > 0 m, got {pulley_radius!r}")
     lim = motor.limits
     span = lim.t_max - lim.t_min
+    most = (lim.t_max if motor.direction > 0 else -lim.t_min) / pulley_radius
+    tension = min(max(tension, 0.0), most)
     raw = min(max(round((motor.direction * pulley_radius * tension - lim.t_min) * _TORQUE_TOP / span), 0),
               _TORQUE_TOP)
     if motor.direction * (raw * span / _TORQUE_TOP + lim.t_min) < 0:
@@ -97,20 +114,24 @@ class DriverState:
 @dataclass(frozen=True)
 class MotorDiagnostics:
     """One motor: temperature [deg C] and error code of its latest 8-byte reply (None if it sends 6
-    bytes or has not replied), the error's text, time since its latest reply [s], replies read."""
+    bytes or has not replied), the error's text, time since its latest reply [s], replies read, and
+    the rate of its position over its reported velocity in the last window it moved through
+    (:mod:`.velocity_scale`; 1 when the preset fits its firmware, NaN before it has moved)."""
     can_id: int
     temperature: Optional[int]
     error: Optional[int]
     error_text: Optional[str]
     reply_age: float
     replies: int
+    velocity_ratio: float = math.nan
 
 
 @dataclass(frozen=True)
 class Diagnostics:
-    """Mode, latched fault reason (None without), age of the latest command [s] (inf without), and
-    counters: watchdog trips, rejected commands, frames that are no reply of a motor of ours, CAN
-    error frames, cycles later than 1.5 periods, cycles; whether zero() was called; per motor."""
+    """Mode, latched fault reason (None without), age of the latest command [s] on the driver's
+    clock (inf without), and counters: watchdog trips, rejected commands, frames that are no reply of
+    a motor of ours, CAN error frames, cycles later than 1.5 periods, cycles; whether zero() was
+    called; per motor."""
     mode: str
     fault: Optional[str]
     command_age: float
@@ -151,11 +172,14 @@ class MotorDriver:
     """The motors of ``config`` on ``bus`` (default: opened from ``config``, and shut down by
     :meth:`close`). Replies are the standard frames to arbitration id ``host_id``, matched to their
     motor by the id in their first byte; any other frame is counted as foreign (filtered here, not
-    by the bus, whose software filters would end a non-blocking read early). See the module
-    docstring for modes, timing and safety."""
+    by the bus, whose software filters would end a non-blocking read early). ``clock()`` [s] is the
+    driver's time, monotonic (default :func:`time.monotonic`). See the module docstring for modes,
+    timing and safety."""
 
-    def __init__(self, config: DriverConfig, bus: Optional[can.BusABC] = None, host_id: int = HOST_ID):
+    def __init__(self, config: DriverConfig, bus: Optional[can.BusABC] = None, host_id: int = HOST_ID,
+                 clock: Callable[[], float] = time.monotonic):
         self.config = c = config
+        self.clock = clock
         self._owns_bus = bus is None
         self.bus = open_bus(c) if bus is None else bus
         self.host_id = host_id
@@ -174,6 +198,7 @@ class MotorDriver:
         self._temperature: list = [None] * n
         self._error: list = [None] * n
         self._replies = [0] * n
+        self._velocity = VelocityScaleCheck([m.model for m in c.motors], [m.limits for m in c.motors])
         self.stale_commands = self.rejected_commands = self.foreign_frames = self.error_frames = 0
         self.late_cycles = self.cycles = 0
         self._periods = np.zeros(PERIOD_WINDOW)       # ring buffer of the last periods [s]
@@ -181,10 +206,12 @@ class MotorDriver:
         self._send_all(EXIT_MOTOR_MODE)
 
     # -- commands and modes --------------------------------------------------------------------
-    def command(self, tensions: Sequence[float], now: float):
-        """Set the tensions [N] to apply from the next cycle on, received at ``now`` [s] (the watchdog
-        counts from there). Clipped to [0, max_tension]; a wrong length, NaN or infinity raises
-        ValueError and leaves the previous command (and its age) in place."""
+    def command(self, tensions: Sequence[float], stamp: Optional[float] = None):
+        """Set the tensions [N] to apply from the next cycle on. The watchdog counts the command's
+        age from now on the driver's clock; ``stamp`` [s], the time the command carries (any clock),
+        is only checked: NaN or infinity is refused. Tensions are clipped to [0, max_tension]; a
+        wrong length, a non-finite tension or stamp raises ValueError, counted in
+        ``rejected_commands``, and leaves the previous command (and its age) in place."""
         u = np.asarray(tensions, dtype=float)
         if u.shape != self._target.shape:
             self.rejected_commands += 1
@@ -192,16 +219,19 @@ class MotorDriver:
         if not np.all(np.isfinite(u)):
             self.rejected_commands += 1
             raise ValueError(f"tensions must be finite, got {u.tolist()}")
+        if stamp is not None and not math.isfinite(stamp):
+            self.rejected_commands += 1
+            raise ValueError(f"a command's time stamp must be finite, got {stamp!r}")
         self._target = np.clip(u, 0.0, self.config.max_tension)
-        self._command_time = float(now)
+        self._command_time = self.clock()
 
-    def enable(self, now: float):
+    def enable(self):
         """Clear a latched fault, enter motor mode on every motor and start from zero tension: the
-        watchdog expects a command within ``watchdog_timeout`` of ``now`` [s], every motor a reply
-        within ``reply_timeout``."""
+        watchdog expects a command within ``watchdog_timeout``, every motor a reply within
+        ``reply_timeout``, from now."""
         self.mode, self.fault = "enabled", None
         self._target, self._applied = np.zeros_like(self._target), np.zeros_like(self._applied)
-        self._command_time = self._watch_from = float(now)
+        self._command_time = self._watch_from = self.clock()
         self._send_all(ENTER_MOTOR_MODE)
 
     def disable(self):
@@ -218,6 +248,11 @@ class MotorDriver:
         self._trip("e-stop")
         self._send_zero()
         self._send_all(EXIT_MOTOR_MODE)
+
+    def trip(self, reason: str):
+        """Latch the fault ``reason`` (unless one is latched already): zero torque from the next
+        cycle until :meth:`enable`."""
+        self._trip(reason)
 
     def zero(self):
         """Set every motor's current angle as its zero: the shortenings read ``zero_shortening`` there
@@ -246,7 +281,7 @@ class MotorDriver:
     def __exit__(self, *exc):
         self.close()
 
-    def probe(self, now: float) -> np.ndarray:
+    def probe(self) -> np.ndarray:
         """Before the cycle starts: read the replies waiting, then poll every motor with zero torque
         (answered in and out of motor mode); which motors answered since the previous probe. No
         silence or watchdog check, no cycle counted: a motor's first answer may take a while
@@ -254,19 +289,20 @@ class MotorDriver:
         temperature latches its fault as in the cycle."""
         if self._closed:
             raise RuntimeError("the driver is closed")
-        fresh = self._read(float(now))
+        fresh = self._read(self.clock())
         self._send_zero()
         return fresh
 
     # -- the cycle -----------------------------------------------------------------------------
-    def cycle(self, now: float) -> Cycle:
-        """One period at ``now`` [s] (never earlier than the previous cycle's): read the replies,
-        check the safety conditions, send a frame to every motor; the state and diagnostics."""
+    def cycle(self) -> Cycle:
+        """One period, now on the driver's clock: read the replies, check the safety conditions,
+        send a frame to every motor; the state and diagnostics. A clock that runs backwards is not
+        monotonic: RuntimeError (the node's cycle thread ends on it, the motors at zero torque)."""
         if self._closed:
             raise RuntimeError("the driver is closed")
-        now = float(now)
-        if self._last_cycle is not None and now < self._last_cycle:
-            raise ValueError(f"cycle time went backwards: {now} after {self._last_cycle}")
+        now = float(self.clock())
+        if self._last_cycle is not None and not now >= self._last_cycle:
+            raise RuntimeError(f"the driver's clock is not monotonic: {now} after {self._last_cycle}")
         dt = 0.0 if self._last_cycle is None else now - self._last_cycle
         if self._last_cycle is not None:
             self._periods[(self.cycles - 1) % PERIOD_WINDOW] = dt
@@ -288,15 +324,19 @@ class MotorDriver:
         sent = self._applied.copy() if self.mode == "enabled" else np.zeros_like(self._applied)
         state = DriverState(self._shortening.copy(), self._rate.copy(), self._tension.copy(),
                             self._stamps.copy(), fresh, sent)
-        return Cycle(state, self.diagnostics(now))
+        return Cycle(state, self._diagnostics(now))
 
-    def diagnostics(self, now: float) -> Diagnostics:
-        """Mode, fault, counters and per-motor status at ``now`` [s]."""
+    def diagnostics(self) -> Diagnostics:
+        """Mode, fault, counters and per-motor status now."""
+        return self._diagnostics(self.clock())
+
+    def _diagnostics(self, now: float) -> Diagnostics:
+        ratios = self._velocity.ratios()
         motors = tuple(
             MotorDiagnostics(m.can_id, self._temperature[i], self._error[i],
                              None if self._error[i] is None else
                              MOTOR_ERRORS.get(self._error[i], f"unknown error code {self._error[i]}"),
-                             now - self._reply_time[i], self._replies[i])
+                             now - self._reply_time[i], self._replies[i], ratios[i])
             for i, m in enumerate(self.config.motors))
         age = math.inf if self._command_time is None else now - self._command_time
         return Diagnostics(self.mode, self.fault, age, self.stale_commands, self.rejected_commands,
@@ -350,6 +390,10 @@ class MotorDriver:
             if reply.temperature is not None and reply.temperature > c.max_temperature:
                 self._trip(f"motor {motor.can_id} at {reply.temperature} deg C, above max_temperature "
                            f"{c.max_temperature:g}")
+            sampled = msg.timestamp if math.isfinite(msg.timestamp) else now
+            mismatch = self._velocity.add(i, sampled, reply.position, reply.velocity)
+            if mismatch is not None:
+                self._trip(f"motor {motor.can_id}: {mismatch} (rig.motors.models)")
         return fresh
 
     def _check(self, now: float):

@@ -16,8 +16,14 @@ is) runs one driver cycle at ``rig.motors.rate`` on the monotonic clock, and
   node started (``state_to_command_run_p99_ms``, ``_run_max_ms``); one per motor with
   temperature, error code and reply age) every 0.5 s and at once when the mode or the fault changes.
 
-Subscribes ``tendon/command`` (effort = tensions [N]; a command missing a tendon or with NaN or
-infinity is counted and dropped: the previous one ages until the watchdog latches a fault).
+Subscribes ``tendon/command`` (effort = tensions [N]; a command missing a tendon, with NaN or
+infinity or a non-finite stamp is counted and dropped: the previous one ages until the watchdog
+latches a fault). The watchdog counts a command's age from its receipt on this node's monotonic
+clock, whatever its stamp says (:class:`~.motor_driver.MotorDriver`). Commands are taken from one
+publisher only, the node ``rig.motors.command_publisher`` names (:mod:`.command_source`): while
+another node publishes on ``tendon/command`` (a second computer on the domain, a stray ``ros2 topic
+pub``) every command is refused, the publishers are named on ``/diagnostics``, and with the motors
+enabled the fault ``foreign publisher`` is latched; activation is refused while one is there.
 
 A managed (lifecycle) node (:mod:`soft_arm_ros.lifecycle`), driven with ``ros2 lifecycle set
 /motor_driver <transition>`` or by ``soft-arm-experiment`` and ``rig.launch.py``:
@@ -62,6 +68,7 @@ from soft_arm_ros.parameters import NodeParameters
 from soft_arm_ros.runtime import run_node
 
 from .command_latency import CommandLatency
+from .command_source import CommandSource
 from .driver_config import NAMESPACE, SCHEMA, bus_load, parse_driver_config
 from .motor_driver import Diagnostics, MotorDriver
 from .periodic_thread import PeriodicThread
@@ -96,7 +103,9 @@ class MotorDriverNode(ManagedHardwareNode):
         self._status, self._last_diagnostics = None, -float("inf")
         self.state_pub = self.create_publisher(JointState, TOPICS["state"], QOS["tendon/state"])
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
-        self.create_subscription(JointState, TOPICS["command"], self.on_command, QOS["tendon/command"])
+        self.command_sub = self.create_subscription(JointState, TOPICS["command"], self.on_command,
+                                                    QOS["tendon/command"])
+        self.source = CommandSource(c.command_publisher, self._command_publishers)
         self.create_service(Trigger, "~/estop", self.on_estop)
         self.create_service(Trigger, "~/zero", self.on_zero)
         load, worst = bus_load(c)
@@ -139,18 +148,22 @@ class MotorDriverNode(ManagedHardwareNode):
         deadline = time.monotonic() + CONFIGURE_TIMEOUT
         answered = np.zeros(len(self.config.motors), dtype=bool)
         while not answered.all() and time.monotonic() < deadline:
-            answered |= driver.probe(time.monotonic())
+            answered |= driver.probe()
             time.sleep(period)
         return [m.can_id for m, ok in zip(self.config.motors, answered) if not ok]
 
     @transition
     def on_activate(self, state):
+        verdict = self.source.update(self.command_sub.get_publisher_count())
+        if verdict.status == "foreign":
+            return self.refuse("activate", f"{verdict.describe(self.source.expected)}: only "
+                                           f"{self.source.expected} may command the motors")
         was = self.driver.fault
-        self.driver.enable(time.monotonic())
+        self.driver.enable()
         self.activated_at, self.first_command_after = time.monotonic(), None
         self.get_logger().info("activated: motors in motor mode"
                                + (f" (cleared fault: {was})" if was else ""))
-        self._report(self.driver.diagnostics(time.monotonic()), force=True)
+        self._report(self.driver.diagnostics(), force=True)
         return SUCCESS
 
     @transition
@@ -160,7 +173,7 @@ class MotorDriverNode(ManagedHardwareNode):
         fault = self.driver.fault
         self.get_logger().info("deactivated: zero torque, motors out of motor mode"
                                + (f" (fault still latched: {fault})" if fault else ""))
-        self._report(self.driver.diagnostics(time.monotonic()), force=True)
+        self._report(self.driver.diagnostics(), force=True)
         return SUCCESS
 
     def release(self):
@@ -192,7 +205,16 @@ class MotorDriverNode(ManagedHardwareNode):
     def _on_command(self, msg: JointState, received: float):
         if self.driver is None:
             return
-        self.latency.answered(stamp_to_seconds(msg.header.stamp), received)
+        stamp = stamp_to_seconds(msg.header.stamp)
+        verdict = self.source.update(self.command_sub.get_publisher_count())
+        if not verdict.accepts:
+            self.source.refused += 1
+            if verdict.status == "foreign" and self.driver.mode == "enabled":
+                self.driver.trip(f"foreign publisher: {verdict.describe(self.source.expected)}")
+            self.get_logger().warning(f"command refused: {verdict.describe(self.source.expected)}",
+                                      throttle_duration_sec=1.0)
+            return
+        self.latency.answered(stamp, received)
         if self.activated_at is not None and self.first_command_after is None:
             self.first_command_after = received - self.activated_at
         try:
@@ -202,13 +224,19 @@ class MotorDriverNode(ManagedHardwareNode):
             self.get_logger().warning(f"command ignored: {exc}", throttle_duration_sec=1.0)
             return
         try:
-            self.driver.command(tensions, received)
+            self.driver.command(tensions, stamp)
         except ValueError as exc:
             self.get_logger().warning(f"command rejected: {exc}", throttle_duration_sec=1.0)
 
+    def _command_publishers(self) -> list:
+        """(namespace, node name) of every publisher the graph lists on ``tendon/command``."""
+        return [(info.node_namespace, info.node_name)
+                for info in self.get_publishers_info_by_topic(self.command_sub.topic_name)]
+
     def tick(self, now: float):
-        """One driver cycle at ``now`` [s, monotonic], from the cycle thread, holding the hardware lock."""
-        state, diagnostics = self.driver.cycle(now)
+        """One driver cycle, from the cycle thread at ``now`` [s, monotonic], holding the hardware
+        lock; the driver reads its own clock (the same monotonic clock)."""
+        state, diagnostics = self.driver.cycle()
         if state.complete:
             self.state_pub.publish(joint_state(self.names, state.stamp, position=state.shortening,
                                                velocity=state.rate, effort=state.tension))
@@ -241,6 +269,9 @@ class MotorDriverNode(ManagedHardwareNode):
                                 foreign_frames=diag.foreign_frames, error_frames=diag.error_frames,
                                 late_cycles=diag.late_cycles, incomplete_cycles=self.incomplete_cycles,
                                 cycles=diag.cycles, zeroed=diag.zeroed, lifecycle_state=self.lifecycle_state,
+                                command_source=self.source.verdict.status,
+                                command_publishers=" ".join(self.source.verdict.publishers),
+                                refused_commands=self.source.refused,
                                 activate_to_first_command_ms="" if self.first_command_after is None
                                 else self.first_command_after * 1e3)
         timing = self.driver.cycle_statistics()
@@ -257,7 +288,7 @@ class MotorDriverNode(ManagedHardwareNode):
                                  state_to_command_run_max_ms=latency.run_max * 1e3,
                                  answered_states_run=latency.run_answers)
         out.status.append(driver)
-        for name, m in zip(self.names, diag.motors):
+        for name, motor, m in zip(self.names, self.config.motors, diag.motors):
             s = DiagnosticStatus(name=f"motor_driver: {name}", hardware_id=f"{bus}:{m.can_id}")
             problem = m.reply_age > self.config.reply_timeout or bool(m.error) or (
                 m.temperature is not None and m.temperature > self.config.max_temperature)
@@ -266,7 +297,8 @@ class MotorDriverNode(ManagedHardwareNode):
                 f"silent for {m.reply_age:.3f} s" if m.reply_age > self.config.reply_timeout else "ok")
             s.values = _values(can_id=m.can_id, temperature="" if m.temperature is None else m.temperature,
                                error="" if m.error is None else m.error, error_text=m.error_text or "",
-                               reply_age=m.reply_age, replies=m.replies)
+                               reply_age=m.reply_age, replies=m.replies, model=motor.model,
+                               velocity_ratio=m.velocity_ratio)
             out.status.append(s)
         return out
 
@@ -285,7 +317,7 @@ class MotorDriverNode(ManagedHardwareNode):
         response.message = "e-stop: zero torque, motors out of motor mode; activate to resume" + (
             f" (already in fault: {was})" if was else "")
         self.get_logger().warning(response.message)
-        self._report(self.driver.diagnostics(time.monotonic()), force=True)
+        self._report(self.driver.diagnostics(), force=True)
         if self.lifecycle_state == "active":
             self.trigger_deactivate()
         return response

@@ -38,6 +38,7 @@ from .strike import PLANNED_ON_THE_GRAPH, format_strike
 from .harness import add_setup_arguments, check_targets, load_setup, setup_overrides
 from .excitation import Excitation
 from .orchestration import STOP, request_stop, roles, run_emulated_hardware, run_processes
+from .writable import writable_directory
 
 NAMESPACES = ("arm", "control", "plant", "tasks", "graph", "identification")
 
@@ -178,6 +179,10 @@ def _calibrate(args) -> int:
         return 2
     stamp = datetime.datetime.now(datetime.timezone.utc).strftime("%Y%m%d-%H%M%S")
     run_dir = os.path.abspath(args.output or os.path.join("runs", f"{CALIBRATE}-{stamp}"))
+    problem = writable_directory(run_dir)
+    if problem is not None:
+        print(f"soft-arm-experiment: --output {run_dir}: {problem}", file=sys.stderr)
+        return 2
     config = ["--config", args.config] if args.config else []
     sets = [a for s in args.sets for a in ("--set", s)]
     common = config + sets + (["--plant-file", args.plant_file] if args.plant_file else []) + [
@@ -210,10 +215,11 @@ def main(argv=None) -> int:
     parser.add_argument("--rerun", metavar="TASK", default="triangle",
                         help="calibrate: the task rerun with the identified arm (default: triangle)")
     parser.add_argument("--output", metavar="DIR", help="run directory (default: runs/<task>-<time>)")
-    parser.add_argument("--processes", action="store_true", help="one process per node")
-    parser.add_argument("--emulated-hardware", action="store_true",
-                        help="motor driver + CAN emulator and mocap bridge + NatNet emulator in the "
-                             "simulator's place (real time)")
+    where = parser.add_mutually_exclusive_group()
+    where.add_argument("--processes", action="store_true", help="one process per node (simulator)")
+    where.add_argument("--emulated-hardware", action="store_true",
+                       help="motor driver + CAN emulator and mocap bridge + NatNet emulator in the "
+                            "simulator's place (real time; every node a process of its own)")
     add_setup_arguments(parser)
     parser.add_argument("--json", action="store_true", help="print the metrics as JSON")
     parser.add_argument("--quiet", action="store_true", help="no progress line (composed runs print one)")
@@ -247,7 +253,10 @@ def main(argv=None) -> int:
     if os.path.exists(os.path.join(run_dir, "bag")):
         print(f"soft-arm-experiment: {run_dir} already holds a run", file=sys.stderr)
         return 2
-    os.makedirs(run_dir, exist_ok=True)
+    problem = writable_directory(run_dir)
+    if problem is not None:
+        print(f"soft-arm-experiment: --output {run_dir}: {problem}", file=sys.stderr)
+        return 2
     if args.arm_file and not setup.plant.plant_file:
         # every node's plant is the arm of plant.yaml over arm.yaml, not over the controller's arm
         plant_file = os.path.join(run_dir, "plant_arm.yaml")

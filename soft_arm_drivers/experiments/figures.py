@@ -20,10 +20,15 @@ import numpy as np  # noqa: E402
 from rosbags.highlevel import AnyReader  # noqa: E402
 from rosbags.typesys import Stores, get_typestore  # noqa: E402
 
+from soft_arm_drivers.recording.rosbag_writer import open_bag  # noqa: E402
+
 
 def read_series(bag_dir: str, topics=None) -> dict:
     """Per topic (without leading slash; ``topics``: only these): lists of (header stamp [s] or None,
-    message), bag order."""
+    message), bag order. A bag whose writer was cut off is recovered first
+    (:func:`~soft_arm_drivers.recording.rosbag_writer.open_bag`); BagError for a directory that
+    holds no bag."""
+    open_bag(bag_dir)
     out = {}
     typestore = get_typestore(Stores.ROS2_JAZZY)
     with AnyReader([Path(bag_dir)], default_typestore=typestore) as reader:

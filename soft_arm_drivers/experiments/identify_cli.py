@@ -38,7 +38,10 @@ from soft_arm_model.parameters import ConfigError, default_config_dir, split_ove
 from soft_arm_model.recording import (SETTLED_LEAD, Recording, dynamic_segments, noise_levels,
                                       plateaus, static_samples)
 
+from soft_arm_drivers.recording.rosbag_writer import BagError
+
 from .excitation import load_identification, parse_fit
+from .writable import writable_directory
 
 TOPICS = ("tendon/state", "tendon/command", "mocap/markers")
 
@@ -56,7 +59,10 @@ def read_recording(bag_dir: str, names) -> Recording:
         if played.get("valid") is False:
             raise IdentificationError(f"the run of {bag_dir} is marked invalid in {schedule} "
                                       f"({played.get('failure', 'no reason given')}): record it again")
-    series = read_series(bag_dir, TOPICS)
+    try:
+        series = read_series(bag_dir, TOPICS)
+    except BagError as exc:
+        raise IdentificationError(str(exc)) from None
     missing = [t for t in TOPICS if len(series.get(t, [])) < 2]
     if missing:
         raise IdentificationError(f"the bag lacks {', '.join(missing)} (it has "
@@ -209,6 +215,12 @@ def main(argv=None) -> int:
                              "identification.fit.rotor_mass=0.3")
     args = parser.parse_args(argv)
     d = args.config or default_config_dir()
+    for option, path in (("--output", args.output and os.path.dirname(os.path.abspath(args.output))),
+                         ("--plot", args.plot and os.path.abspath(args.plot))):
+        problem = path and writable_directory(path)
+        if problem:
+            print(f"soft-arm-identify: {option} {path}: {problem}", file=sys.stderr)
+            return 2
     try:
         groups = split_overrides(args.sets, ("arm", "identification"))
         arm = load_arm_config(args.arm_file or os.path.join(d, "arm.yaml"), groups["arm"])

@@ -125,6 +125,9 @@ MOCAP_SCHEMA = {
     "mocap.timeout": ("float", lambda v: 0 < v <= 60,
                       "a time in (0, 60] s without an answer or a frame before reconnecting"),
     "mocap.clock_window": ("float", lambda v: 0.1 <= v <= 3600, "a window in [0.1, 3600] s"),
+    "mocap.poll_budget": ("float", lambda v: 1e-4 <= v <= 1,
+                          "a time in [0.0001, 1] s: the longest one poll reads and handles datagrams "
+                          "before it hands its frames on (the rest wait for the next)"),
     "mocap.markers.source": ("str", lambda v: v in SOURCES, " or ".join(SOURCES)),
     "mocap.markers.ids": ("ints", lambda v: len(v) >= 1 and len(set(v)) == len(v)
                           and all(0 <= a <= 0x7FFFFFFF for a in v),
@@ -144,7 +147,8 @@ _FIELDS = {"server_address": "server_address", "command_port": "command_port",
            "data_port": "data_port", "local_address": "local_address",
            "multicast_group": "multicast_group", "multicast_interface": "multicast_interface",
            "natnet_version": "natnet_version", "keepalive_period": "keepalive_period",
-           "timeout": "timeout", "clock_window": "clock_window", "source": "markers.source",
+           "timeout": "timeout", "clock_window": "clock_window", "poll_budget": "poll_budget",
+           "source": "markers.source",
            "ids": "markers.ids", "translation": "calibration.translation",
            "rotation": "calibration.rotation"}
 
@@ -170,6 +174,7 @@ class BridgeConfig:
     keepalive_period: float = 1.0
     timeout: float = 2.0
     clock_window: float = 2.0
+    poll_budget: float = 0.002
     source: str = "rigid_bodies"
     ids: tuple = (1, 2, 3, 4)
     translation: tuple = (0.0, 0.0, 0.0)

@@ -1,9 +1,14 @@
 """Stamping NatNet frames on the local clock: the server's tick clock mapped by the minimum-delay
-offset over a sliding window."""
+offset over a sliding window, with outliers held until consecutive frames confirm them."""
 from __future__ import annotations
 
 from collections import deque
 from typing import Optional
+
+TOLERANCE = 1e-3        # s: a sample this far below the offset is believed at once (drift, jitter)
+MAX_DELAY = 0.5         # s: a sample this far above it is no transport delay but a clock jump
+CONFIRM = 3             # consecutive samples that confirm a jump
+AGREEMENT = 0.05        # s: the spread within which they must agree
 
 
 class ClockMap:
@@ -18,34 +23,72 @@ class ClockMap:
     offset plus the smallest transport delay, and a frame exposed at ``m`` ticks is stamped
     ``m / f + min(o)`` on the local clock.
 
+    A minimum believes its lowest sample, so one sample is not allowed to set it: a sample more than
+    ``tolerance`` below the offset, or more than ``max_delay`` above it (no transport delay is that
+    long), is an outlier (a frame with impossible ticks, or the first of a clock jump). It is held,
+    not used; when ``confirm`` consecutive samples are outliers that agree within ``agreement``, the
+    server's clock has jumped and the map re-anchors on them at once, forgetting the samples before.
+    A single outlier among good samples is dropped and counted (:attr:`outliers`).
+
     The server's own latency (exposure to transmit, Motive's processing) is measured on one clock
     and kept exactly; queueing delays of single frames do not move the stamps. What remains is a
     bias: the stamps are late by the smallest one-way delay, which one-way packets cannot separate
     from the offset (tens of microseconds on loopback and a switched LAN), and the drift of the two
-    clocks: an offset that shrinks is followed at once, one that grows (the local clock runs faster)
-    within a window, so the stamps can be late by up to the drift over one window (2 s at 50 ppm:
-    0.1 ms). A new stream (server info, frame-number restart) starts a new map.
+    clocks: an offset that shrinks is followed at once (within ``tolerance`` per sample), one that
+    grows (the local clock runs faster) within a window, so the stamps can be late by up to the
+    drift over one window (2 s at 50 ppm: 0.1 ms). A new stream (server info, frame-number restart)
+    starts a new map.
     """
 
-    def __init__(self, frequency: int, window: float):
+    def __init__(self, frequency: int, window: float, *, tolerance: float = TOLERANCE,
+                 max_delay: float = MAX_DELAY, confirm: int = CONFIRM, agreement: float = AGREEMENT):
         if not frequency or frequency <= 0:
             raise ValueError(f"clock frequency must be a positive number of ticks/s, got {frequency!r}")
         if not window > 0:
             raise ValueError(f"window must be positive [s], got {window!r}")
+        if not (tolerance >= 0 and max_delay > 0 and confirm >= 1 and agreement >= 0):
+            raise ValueError("tolerance and agreement must be >= 0, max_delay > 0 and confirm >= 1")
         self.frequency = int(frequency)
         self.window = float(window)
+        self.tolerance, self.max_delay = tolerance, max_delay
+        self.confirm, self.agreement = confirm, agreement
         self._base: Optional[int] = None
         self._samples: deque = deque()   # (local time, offset), offsets increasing
+        self._held: list = []            # consecutive outliers: (local time, offset)
+        self.outliers = 0                # samples dropped as outliers
+        self.jumps = 0                   # re-anchorings on a confirmed jump
 
     def seconds(self, ticks: int) -> float:
         """Server ticks as seconds since the first observed tick (small numbers keep precision)."""
         return (ticks - self._base) / self.frequency
 
-    def observe(self, ticks: int, local: float):
-        """One offset sample: server ``ticks`` read at ``local`` [s]."""
+    def observe(self, ticks: int, local: float) -> bool:
+        """One offset sample: server ``ticks`` read at ``local`` [s]. Whether it was believed (an
+        outlier is held until confirmed, and dropped if it is not)."""
         if self._base is None:
             self._base = ticks
         offset = local - self.seconds(ticks)
+        current = self.offset
+        if current is None or current - self.tolerance <= offset <= current + self.max_delay:
+            self.outliers += len(self._held)
+            self._held.clear()
+            self._add(local, offset)
+            return True
+        self._held.append((local, offset))
+        held = [o for _, o in self._held[-self.confirm:]]
+        if len(held) < self.confirm or max(held) - min(held) > self.agreement:
+            if len(self._held) > self.confirm:
+                self.outliers += len(self._held) - self.confirm
+                del self._held[:-self.confirm]
+            return False
+        self.jumps += 1
+        self._samples.clear()
+        for sample in self._held:
+            self._add(*sample)
+        self._held.clear()
+        return True
+
+    def _add(self, local: float, offset: float):
         samples = self._samples
         while samples and samples[-1][1] >= offset:
             samples.pop()

@@ -11,12 +11,16 @@
   reads them on its command socket (the address the connect came from), other servers send them to
   the client's data port.
 
-Each frame is parsed for the stream version the server announced (or the one it accepted after the
-version request), passed through :class:`~soft_arm_drivers.mocap.natnet.FrameFilter` (duplicates and late
-frames are dropped), and the arm's markers are selected: rigid bodies or labelled markers by id,
-ordered base to tip (``ids``). They are transformed into ``arm_base`` with the calibration
+Each frame is read for the stream version the server announced (or the one it accepted after the
+version request) by :func:`~.natnet_scan.scan_frame_of_data` (one compiled pass over the bytes: a
+frame's cost does not depend on what its sender packed into it), passed through
+:class:`~soft_arm_drivers.mocap.natnet.FrameFilter` (duplicates and late frames are dropped), and
+the arm's markers are selected: rigid bodies or labelled markers by id, ordered base to tip
+(``ids``). They are transformed into ``arm_base`` with the calibration
 ``p_arm = R p_mocap + t`` (the pose of the mocap system's frame in ``arm_base``) and stamped with
-the mid-exposure time on the local clock (see :class:`ClockMap`).
+the mid-exposure time on the local clock (see :class:`ClockMap`); a frame whose ticks are
+impossible (its server latency, or its exposure mapped onto the local clock, beyond what a
+transport delay explains) is counted ``invalid``.
 
 A frame in which a selected marker is occluded (labelled marker with the occluded bit, rigid body
 without the tracking-valid bit) or absent is skipped, never filled in, and recorded in
@@ -43,9 +47,9 @@ import numpy as np
 
 from .bridge_config import BridgeConfig
 from .clock_map import ClockMap
-from .natnet import (SUPPORTED_VERSIONS, FrameFilter, FrameOfData, MessageId, NatNetParseError, ServerInfo,
-                     Version, build_connect_request, build_packet, build_request, parse_frame_of_data,
-                     parse_packet, parse_server_info)
+from .natnet import (SUPPORTED_VERSIONS, FrameFilter, MessageId, NatNetParseError, ServerInfo, Version,
+                     build_connect_request, build_packet, build_request, parse_packet, parse_server_info)
+from .natnet_scan import FrameScan, scan_frame_of_data, warm_up
 
 __all__ = ["MarkerFrame", "MocapBridge", "PACKET_OUTCOMES", "SkippedFrame"]
 
@@ -134,6 +138,7 @@ class MocapBridge:
         self.last_skipped: Optional[SkippedFrame] = None
         self._last_heard = self._last_connect = self._last_keepalive = self._asked_at = -math.inf
         self._command = self._data = None
+        warm_up()                       # compile the frame reader now, not at the first frame
         try:
             self._command = self._open_command_socket()
             self._data = self._open_data_socket()
@@ -234,17 +239,22 @@ class MocapBridge:
             self._send(build_packet(MessageId.NAT_KEEPALIVE))
 
     def poll(self, timeout: float = 0.0) -> list:
-        """Wait up to ``timeout`` [s] for datagrams, handle every one that is queued, and return the
-        :class:`MarkerFrame` s they gave, in the order they were read. Datagrams from another host than
-        ``server_address`` are counted as ``foreign`` and dropped."""
+        """Wait up to ``timeout`` [s] for datagrams, handle those queued for at most
+        ``poll_budget`` [s] (and :data:`_MAX_BATCH` per socket; the rest wait in the socket for the
+        next poll), and return the :class:`MarkerFrame` s they gave, in the order they were read.
+        Datagrams from another host than ``server_address`` are counted as ``foreign`` and
+        dropped."""
         self._service(self._clock())
         try:
             ready, _, _ = select.select([self._command, self._data], [], [], timeout)
         except (OSError, ValueError):       # a socket closed by another thread
             return []
         frames = []
+        deadline = time.perf_counter() + self.config.poll_budget
         for sock in ready:
             for _ in range(_MAX_BATCH):
+                if time.perf_counter() > deadline:
+                    break
                 try:
                     data, (host, _) = sock.recvfrom(_RECV_SIZE)
                 except BlockingIOError:
@@ -341,7 +351,7 @@ class MocapBridge:
         if self.version is None:
             self._counts["before_handshake"] += 1
             return None
-        frame = parse_frame_of_data(data, self.version)
+        frame = scan_frame_of_data(data, self.version)
         newest, restarts = self._filter.newest, self._filter.restarts
         if not self._filter.accept(frame.frame_number):
             return None                                     # counted by the filter
@@ -352,9 +362,14 @@ class MocapBridge:
         reference = frame.transmit_timestamp or frame.camera_data_received or frame.camera_mid_exposure
         if self.state == "stale":
             self.state, self.note = "streaming", ""
-        if not 0 < frame.camera_mid_exposure <= reference:
-            return self._skip(frame.frame_number, "invalid", ())
-        self.clock_map.observe(reference, received_at)
+        clock = self.clock_map
+        if not 0 < frame.camera_mid_exposure <= reference \
+                or (reference - frame.camera_mid_exposure) / clock.frequency > clock.max_delay:
+            return self._skip(frame.frame_number, "invalid", ())      # impossible ticks
+        clock.observe(reference, received_at)
+        stamp = clock.to_local(frame.camera_mid_exposure)
+        if not received_at - 2 * clock.max_delay <= stamp <= received_at + clock.tolerance:
+            return self._skip(frame.frame_number, "invalid", ())      # exposed after, or long before, it came
         positions, problems = self._select(frame)
         if problems:
             reason = "missing" if "missing" in problems.values() else "occluded"
@@ -362,30 +377,29 @@ class MocapBridge:
         if not np.all(np.isfinite(positions)):
             return self._skip(frame.frame_number, "invalid", ())
         self._counts["delivered"] += 1
-        return MarkerFrame(self.clock_map.to_local(frame.camera_mid_exposure),
-                           self.config.calibration.to_arm(positions), frame.frame_number, received_at)
+        return MarkerFrame(stamp, self.config.calibration.to_arm(positions), frame.frame_number, received_at)
 
-    def _select(self, frame: FrameOfData):
-        """Positions (n, 3) in the mocap frame, base to tip, and {id: "occluded" | "missing"}."""
+    def _select(self, frame: FrameScan):
+        """Positions (n, 3) in the mocap frame, base to tip, and {id: "occluded" | "missing"}: the
+        first item of each wanted id (rigid bodies without the tracking-valid bit and labelled
+        markers with the occluded bit are occluded)."""
         positions = np.empty((len(self._wanted), 3))
-        found = set()
         if self.config.source == "rigid_bodies":
-            items = ((b.id, b.position, not b.tracking_valid) for b in frame.rigid_bodies)
+            items = frame.rigid_bodies
+            occluded = (items["params"] & 1) == 0
         else:
-            items = ((m.id, m.position, m.occluded) for m in frame.labeled_markers)
-        problems = {}
-        for marker_id, position, occluded in items:
-            k = self._wanted.get(marker_id)
-            if k is None or marker_id in found:
-                continue
-            found.add(marker_id)
-            positions[k] = position
-            if occluded:
-                problems[marker_id] = "occluded"
-        for marker_id in self._wanted:
-            if marker_id not in found:
+            items = frame.labeled_markers
+            occluded = (items["params"] & 1) != 0
+        ids, problems = items["id"], {}
+        for marker_id in self.config.ids:
+            hits = np.flatnonzero(ids == marker_id)
+            if hits.size == 0:
                 problems[marker_id] = "missing"
-        return positions, {i: problems[i] for i in self.config.ids if i in problems}
+                continue
+            positions[self._wanted[marker_id]] = items["position"][hits[0]]
+            if occluded[hits[0]]:
+                problems[marker_id] = "occluded"
+        return positions, problems
 
     def _skip(self, frame_number: int, reason: str, ids: tuple) -> None:
         self._counts[reason] += 1

@@ -58,7 +58,9 @@ against a live Motive 3.0 server.
 
 Robustness: every parser raises ``NatNetParseError`` (a ValueError) for malformed, truncated,
 mis-sized or unexpected packets and never anything else; counts are checked against the bytes left
-before anything is allocated. Builders raise ValueError for values that do not fit the wire format.
+before anything is allocated, and against what a NatNet server sends (:data:`ITEM_LIMITS`): a frame
+beyond those is malformed, so that what a frame costs to read is bounded by what Motive can send, not
+by what fits in 64 KiB. Builders raise ValueError for values that do not fit the wire format.
 """
 import ipaddress
 import struct
@@ -67,7 +69,7 @@ from enum import IntEnum
 from typing import Callable, NamedTuple, Optional, Sequence, Tuple, TypeVar
 
 __all__ = [
-    "AnalogData", "ConnectRequest", "FrameFilter", "FrameOfData", "LabeledMarker", "MarkerSet",
+    "ITEM_LIMITS", "AnalogData", "ConnectRequest", "FrameFilter", "FrameOfData", "LabeledMarker", "MarkerSet",
     "MessageId", "NatNetParseError", "RigidBody", "SUPPORTED_VERSIONS", "ServerInfo", "Skeleton",
     "Version", "build_connect_request", "build_frame_of_data", "build_packet", "build_request",
     "build_server_info", "parse_connect_request", "parse_frame_of_data", "parse_packet",
@@ -113,6 +115,16 @@ class Version(NamedTuple):
 
 
 SUPPORTED_VERSIONS = (Version(3, 0), Version(3, 1), Version(4, 0), Version(4, 1))
+
+#: The most items of each data set one frame holds: the model limits of the NatNet SDK's
+#: ``NatNetTypes.h`` (3.x and 4.x: MAX_MARKERSETS 1000, MAX_MARKERS 200 per marker set,
+#: MAX_UNLABELED_MARKERS 1000, MAX_RIGIDBODIES 1000, MAX_SKELETONS 100, MAX_SKELRIGIDBODIES 200,
+#: MAX_LABELED_MARKERS 1000, MAX_FORCEPLATES 8, MAX_DEVICES 32, MAX_ANALOG_CHANNELS 32 per device
+#: or force plate, MAX_ANALOG_SUBFRAMES 30 samples per channel and frame), the sizes of the SDK's
+#: own frame structure: a server does not send more.
+ITEM_LIMITS = {"marker set": 1000, "marker set marker": 200, "unlabelled marker": 1000,
+               "rigid body": 1000, "skeleton": 100, "skeleton rigid body": 200, "labelled marker": 1000,
+               "force plate": 8, "device": 32, "analog channel": 32, "analog sample": 30}
 
 Vector3 = Tuple[float, float, float]
 Quaternion = Tuple[float, float, float, float]
@@ -438,11 +450,13 @@ class _Reader:
         return values
 
     def count(self, what: str, min_item_size: int) -> int:
-        """A non-negative int32 count whose items can fit in the bytes left."""
+        """A non-negative int32 count whose items can fit in the bytes left, within
+        :data:`ITEM_LIMITS`."""
         (count,) = self.unpack(_I32, f"{what} count")
         if count < 0 or count * min_item_size > self.remaining:
             raise NatNetParseError(f"implausible {what} count {count} with {self.remaining} bytes "
                                    f"left")
+        _check_limit(what, count)
         return count
 
     def cstring(self, what: str) -> str:
@@ -467,6 +481,13 @@ def _check_version(version: Sequence[int]) -> bool:
     return key >= (4, 1)
 
 
+def _check_limit(what: str, count: int):
+    """NatNetParseError if ``count`` items of ``what`` are more than a server sends."""
+    if count > ITEM_LIMITS[what]:
+        raise NatNetParseError(f"{what} count {count} is above the {ITEM_LIMITS[what]} a NatNet server "
+                               f"sends (NatNetTypes.h)")
+
+
 def _read_section(reader: _Reader, sized: bool, what: str, min_item_size: int,
                   read_item: Callable[[_Reader], T]) -> Tuple[T, ...]:
     """A data set: count, the 4.1 byte size, then the items; the size must match what was read."""
@@ -480,6 +501,7 @@ def _read_section(reader: _Reader, sized: bool, what: str, min_item_size: int,
         available = size
     if count < 0 or count * min_item_size > available:
         raise NatNetParseError(f"implausible {what} count {count} with {available} bytes left")
+    _check_limit(what, count)
     start = reader.offset
     items = tuple(read_item(reader) for _ in range(count))
     if sized and reader.offset - start != available:

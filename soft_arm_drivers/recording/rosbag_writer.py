@@ -88,8 +88,10 @@ from typing import BinaryIO, Iterable, Mapping
 import yaml
 from mcap.data_stream import RecordBuilder
 from mcap.opcode import Opcode
-from mcap.reader import NonSeekingReader
-from mcap.records import DataEnd, Footer
+from mcap.exceptions import McapError
+from mcap.reader import NonSeekingReader, make_reader
+from mcap.records import Channel, DataEnd, Footer, Header, Schema
+from mcap.stream_reader import StreamReader
 from mcap.writer import LIBRARY_IDENTIFIER, CompressionType, Writer
 
 from .message_definitions import message_definition, type_description_hash
@@ -110,6 +112,7 @@ _RMW_INFINITE = (9223372036, 854775807)  # RMW_DURATION_INFINITE as (sec, nsec)
 _NO_MESSAGES_START = 2**63 - 1  # rosbag2's starting_time of a bag without messages
 _MAGIC = b"\x89MCAP0\r\n"
 _RECORD_PREFIX = struct.Struct("<BQ")  # opcode, record length
+_FOOTER_RECORD = _RECORD_PREFIX.size + 20  # opcode, length, summary start, offset start, crc
 _MESSAGE_RECORD_OVERHEAD = _RECORD_PREFIX.size + 2 + 4 + 8 + 8  # channel, sequence, two times
 _SEQUENCE_MODULUS = 2**32  # MCAP message sequence numbers are uint32
 
@@ -468,30 +471,136 @@ def _check_time(value: int, name: str) -> int:
     return value
 
 
+class BagError(ValueError):
+    """A directory that is not a rosbag2 bag (nor what is left of one)."""
+
+
+def open_bag(directory: str | os.PathLike) -> int:
+    """Make sure the bag in ``directory`` opens with every reader and that its ``metadata.yaml``
+    counts what it holds, recovering it (:func:`recover`) unless its writer closed it and
+    ``metadata.yaml`` counts what its summary does: an MCAP file without its footer, one ending in
+    the provisional tail (killed between flushes: metadata.yaml may count one chunk less), or no
+    ``metadata.yaml`` beside it (killed while it was created).
+    What every tool of the project does before it reads a bag; must not run while the bag's writer
+    is alive. Returns the number of messages; BagError for a directory that holds no bag."""
+    directory = Path(directory)
+    if not directory.is_dir():
+        raise BagError(f"{directory} is not a bag directory")
+    mcap = _mcap_file(directory)
+    if mcap is None:
+        raise BagError(f"{directory} holds no rosbag2 bag (no {METADATA_FILE}, no .mcap file)")
+    with open(mcap, "rb") as file:
+        counted = _summary_count(file) if _closed(file) else None
+    info = _read_metadata(directory)
+    if counted is not None and info is not None and int(info["message_count"]) == counted:
+        return counted
+    return recover(directory)
+
+
 def recover(directory: str | os.PathLike) -> int:
     """Make a bag whose writer died (SIGKILL, power loss) readable by every reader.
 
     Cuts off a partly written last record (and a partly written summary), ends the MCAP file with
     the provisional tail if it has no footer, and rewrites ``metadata.yaml`` from the messages
-    the file holds. A cleanly closed bag comes out unchanged. Returns the number of messages in
-    the bag. Never run it while the writing process is alive.
+    the file holds (its topics from the file's channels when the writer died before writing
+    ``metadata.yaml``; a file cut inside its header is rewritten as a bag without topics). A
+    cleanly closed bag comes out unchanged. Returns the number of messages in the bag. Never run
+    it while the writing process is alive.
     """
     directory = Path(directory)
-    info = yaml.safe_load((directory / METADATA_FILE).read_text(encoding="utf-8"))
-    info = info["rosbag2_bagfile_information"]
-    path = directory / info["relative_file_paths"][0]
+    info = _read_metadata(directory)
+    path = directory / info["relative_file_paths"][0] if info else _mcap_file(directory)
+    if path is None:
+        raise BagError(f"{directory} holds no rosbag2 bag (no {METADATA_FILE}, no .mcap file)")
     with open(path, "r+b") as file:
+        if not _has_header(file):
+            file.truncate(0)
+            file.seek(0)
+            file.write(_MAGIC + _header_record() + _provisional_tail())
         complete_end, has_footer = _scan_records(file)
         if not has_footer:
             file.truncate(complete_end)
             file.seek(complete_end)
             file.write(_provisional_tail())
         file.seek(0)
-        counts = _count_messages(file)
-    topics = [entry["topic_metadata"] for entry in info["topics_with_message_count"]]
-    custom_data = info["custom_data"] or {}
+        counts, channels = _count_messages(file)
+    if info:
+        topics = [entry["topic_metadata"] for entry in info["topics_with_message_count"]]
+        custom_data = info["custom_data"] or {}
+    else:
+        topics, custom_data = [_topic_of(schema, channel) for schema, channel in channels], {}
     _write_metadata_file(directory, _bag_info(topics, counts, path.name, custom_data))
     return counts.total
+
+
+def _mcap_file(directory: Path) -> Path | None:
+    """The bag's MCAP file: the one ``metadata.yaml`` names, else the only ``*.mcap`` file."""
+    info = _read_metadata(directory)
+    if info:
+        return directory / info["relative_file_paths"][0]
+    files = sorted(directory.glob("*.mcap"))
+    return files[0] if len(files) == 1 else None
+
+
+def _read_metadata(directory: Path) -> dict | None:
+    """The ``rosbag2_bagfile_information`` of ``metadata.yaml``, None if there is none (or it is
+    not one: the file is replaced atomically, so that means it was never written)."""
+    try:
+        info = yaml.safe_load((directory / METADATA_FILE).read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, yaml.YAMLError):
+        return None
+    info = info.get("rosbag2_bagfile_information") if isinstance(info, dict) else None
+    return info if isinstance(info, dict) and info.get("relative_file_paths") else None
+
+
+def _closed(file: BinaryIO) -> bool:
+    """The file is an MCAP its writer closed: it starts with the magic and ends with a Footer
+    pointing to a summary, then the magic (the provisional tail's Footer points to none)."""
+    size = file.seek(0, os.SEEK_END)
+    if size < 2 * len(_MAGIC) + _FOOTER_RECORD:
+        return False
+    file.seek(size - len(_MAGIC) - _FOOTER_RECORD)
+    tail = file.read()
+    file.seek(0)
+    if tail[0] != Opcode.FOOTER or not tail.endswith(_MAGIC) or file.read(len(_MAGIC)) != _MAGIC:
+        return False
+    (summary_start,) = struct.unpack_from("<Q", tail, _RECORD_PREFIX.size)
+    return summary_start != 0
+
+
+def _summary_count(file: BinaryIO) -> int | None:
+    """The message count of a closed MCAP file's summary statistics (None without them)."""
+    try:
+        summary = make_reader(file).get_summary()
+    except (McapError, struct.error, ValueError):
+        return None
+    finally:
+        file.seek(0)
+    return None if summary is None or summary.statistics is None else summary.statistics.message_count
+
+
+def _has_header(file: BinaryIO) -> bool:
+    """The file starts with the magic and a complete Header record."""
+    size = file.seek(0, os.SEEK_END)
+    file.seek(0)
+    if file.read(len(_MAGIC)) != _MAGIC or size < len(_MAGIC) + _RECORD_PREFIX.size:
+        return False
+    opcode, length = _RECORD_PREFIX.unpack(file.read(_RECORD_PREFIX.size))
+    return opcode == Opcode.HEADER and len(_MAGIC) + _RECORD_PREFIX.size + length <= size
+
+
+def _header_record() -> bytes:
+    builder = RecordBuilder()
+    Header(profile=MCAP_PROFILE, library=LIBRARY).write(builder)
+    return builder.end()
+
+
+def _topic_of(schema, channel) -> dict:
+    """A topic's ``metadata.yaml`` entry from its MCAP channel (as this module writes them)."""
+    qos = yaml.safe_load(channel.metadata.get("offered_qos_profiles", "")) or []
+    return {"name": channel.topic, "type": schema.name if schema is not None else "",
+            "serialization_format": channel.message_encoding, "offered_qos_profiles": qos,
+            "type_description_hash": channel.metadata.get("topic_type_hash", "")}
 
 
 def _scan_records(file: BinaryIO) -> tuple[int, bool]:
@@ -519,9 +628,16 @@ def _scan_records(file: BinaryIO) -> tuple[int, bool]:
     return (offset if data_end is None else data_end), False
 
 
-def _count_messages(file: BinaryIO) -> _Counts:
-    counts = _Counts()
+def _count_messages(file: BinaryIO) -> tuple[_Counts, list]:
+    """The messages per topic of a complete MCAP file, and its (schema, channel) pairs in order."""
+    counts, schemas, channels = _Counts(), {}, {}
+    for record in StreamReader(file, validate_crcs=True).records:
+        if isinstance(record, Schema):
+            schemas[record.id] = record
+        elif isinstance(record, Channel):
+            channels[record.id] = record
+    file.seek(0)
     reader = NonSeekingReader(file, validate_crcs=True)
     for _, channel, message in reader.iter_messages(log_time_order=False):
         counts.add(channel.topic, message.log_time)
-    return counts
+    return counts, [(schemas.get(c.schema_id), c) for c in channels.values()]

@@ -29,7 +29,7 @@ import os
 import threading
 import time
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Callable, Optional, Sequence
 
 import can
@@ -123,9 +123,13 @@ class CanMotorEmulator:
 
     @classmethod
     def for_config(cls, config: DriverConfig, bus: can.BusABC, plant: Optional[Plant] = None,
-                   **options) -> "CanMotorEmulator":
-        """The motors and pulley radius of a driver configuration (``options``: see the class)."""
-        return cls(bus, config.motors, config.pulley_radius, plant, **options)
+                   firmware: str = "", **options) -> "CanMotorEmulator":
+        """The motors and pulley radius of a driver configuration (``options``: see the class).
+        ``firmware``: the ``MOTOR_PRESETS`` scales the emulated motors are flashed with, their torque
+        ranges kept ("": those of ``rig.motors.models``, the presets the driver reads them with);
+        another firmware of the same model emulates a wrong preset in ``rig.yaml``."""
+        motors = config.motors if not firmware else tuple(replace(m, model=firmware) for m in config.motors)
+        return cls(bus, motors, config.pulley_radius, plant, **options)
 
     # -- inspection and fault injection ----------------------------------------------------------
     @property

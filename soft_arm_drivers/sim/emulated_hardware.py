@@ -76,7 +76,8 @@ def start_hardware(spec: HardwareSpec, bus: can.BusABC, motive_process: bool = F
     history = ConfigurationHistory.shared(plant.model.n, HISTORY, p.timestep) if motive_process else None
     try:
         motors = CanMotorEmulator.for_config(
-            c, bus, plant, reply_delay=emulator["reply_delay"], encoder_resolution=p.encoder_resolution,
+            c, bus, plant, firmware=emulator["firmware"], reply_delay=emulator["reply_delay"],
+            encoder_resolution=p.encoder_resolution,
             zero_spread=emulator["zero_spread"], seed=emulator["seed"], start_time=time.time(),
             history=history)
         thread = EmulatorThread(motors).start()

@@ -41,6 +41,7 @@ from soft_arm_drivers.can.loopback_bus import INTERFACE as LOOPBACK
 from soft_arm_drivers.can.loopback_bus import parse_channel
 from soft_arm_drivers.can.motor_driver_node import MotorDriverNode
 from soft_arm_drivers.mocap.mocap_bridge_node import load_node_config
+from soft_arm_drivers.can.mit_protocol import MOTOR_PRESETS
 from soft_arm_drivers.mocap.natnet import SUPPORTED_VERSIONS
 from soft_arm_model.parameters import (ConfigError, default_config_dir, flatten_tree, load_section,
                                        read_parameters)
@@ -59,6 +60,9 @@ SCHEMA = {
                     "an angle in [0, 10] rad: the motors' zeros at power-up are uniform in +-zero_spread"),
     "natnet_version": ("str", lambda v: v in _VERSIONS, f"a NatNet stream version among {_VERSIONS}"),
     "seed": ("int", lambda v: v >= 0, "an integer >= 0"),
+    "firmware": ("str", lambda v: v == "" or v in MOTOR_PRESETS,
+                 f"the motor preset the emulated motors' firmware scales are, among {sorted(MOTOR_PRESETS)}, "
+                 "or \"\" for those of rig.motors.models"),
 }
 
 

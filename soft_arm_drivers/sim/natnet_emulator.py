@@ -301,11 +301,13 @@ class NatNetEmulator:
         with self._lock:
             return self._exposures.get(frame_number)
 
-    def send_frame(self, markers=None, exposure_time: Optional[float] = None) -> int:
+    def send_frame(self, markers=None, exposure_time: Optional[float] = None,
+                   transmit_offset: float = 0.0) -> int:
         """Build the next frame and send it to every client (faults permitting); its number.
 
         ``markers`` (n, 3) [m, arm_base] default to ``markers(exposure_time)``; ``exposure_time``
-        [s, emulator clock] defaults to now minus ``latency``.
+        [s, emulator clock] defaults to now minus ``latency``; ``transmit_offset`` [s] moves the
+        frame's transmit and data-received ticks (a frame whose server stamps are wrong).
         """
         now = self._clock()
         exposure = now - self.latency if exposure_time is None else float(exposure_time)
@@ -319,7 +321,8 @@ class NatNetEmulator:
             if len(self._exposures) > _EXPOSURE_LOG:
                 self._exposures.popitem(last=False)
             self._expire_clients()
-            packet = build_frame_of_data(self.version, self._frame(number, arm, exposure, now))
+            packet = build_frame_of_data(self.version, self._frame(number, arm, exposure, now,
+                                                                   transmit_offset))
             self.counters["frames"] += 1
             for datagram in self._faulty(packet):
                 for address in self._clients:
@@ -339,8 +342,10 @@ class NatNetEmulator:
         for address in [a for a, heard in self._clients.items() if heard < deadline]:
             del self._clients[address]
 
-    def _frame(self, number: int, arm: np.ndarray, exposure: float, now: float) -> FrameOfData:
-        """The frame in the mocap system's frame, with the occlusion and absence faults."""
+    def _frame(self, number: int, arm: np.ndarray, exposure: float, now: float,
+               transmit_offset: float = 0.0) -> FrameOfData:
+        """The frame in the mocap system's frame, with the occlusion and absence faults; its
+        transmit ticks ``transmit_offset`` [s] off."""
         positions = [tuple(float(v) for v in p) for p in self.calibration.to_mocap(arm)]
         visible = [True] * self.n_markers
         present = [True] * self.n_markers
@@ -366,7 +371,7 @@ class NatNetEmulator:
         self._rng.shuffle(bodies)
         self._rng.shuffle(labelled)
         mid = self.ticks(exposure)
-        transmit = max(self.ticks(now), mid)
+        transmit = max(self.ticks(now + transmit_offset), mid)
         return FrameOfData(
             frame_number=number,
             rigid_bodies=tuple(bodies) if self.layout != "labeled_markers" else (),

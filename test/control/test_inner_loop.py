@@ -19,7 +19,7 @@ def _gains(kp=1500.0, kd=120.0, ki=3000.0, u_max=5.0, rate=0.0, n=4):
 def test_one_step_is_the_paper_law():
     g = InnerLoopGains(np.array([100.0, 200.0]), np.array([3.0, 4.0]), np.array([10.0, 20.0]), 0.01,
                        0.0, 50.0)
-    pid = PSatID(g, ActuationMap.identity(), (1, 3), 4)
+    pid = PSatID(g, ActuationMap.identity(), (1, 3), 4, max_time_step=1.0)
     s, sd, s_ref, u_ff = np.array([0, 0.01, 0, 0.02]), np.array([0, 0.1, 0, -0.2]), \
         np.array([0, 0.015, 0, 0.01]), np.array([1.0, 2.0])
     pid.update(0.0, s, sd, s_ref, u_ff)
@@ -72,7 +72,7 @@ def test_the_compiled_update_is_the_law_with_either_map(polynomial):
     g = InnerLoopGains(np.array([1500.0, 900.0, 1200.0]), np.array([120.0, 80.0, 100.0]),
                        np.array([3000.0, 1000.0, 2000.0]), 0.01, 0.05, 5.0, 40.0)
     active = (0, 2, 3)
-    pid, state = PSatID(g, amap, active, 4), (np.zeros(3), np.full(4, 0.05), None)
+    pid, state = PSatID(g, amap, active, 4, max_time_step=0.5), (np.zeros(3), np.full(4, 0.05), None)
     outputs = []
     for k in range(300):
         s, sd = 0.02 * rng.standard_normal(4), 0.1 * rng.standard_normal(4)
@@ -98,9 +98,10 @@ def test_rejects_bad_input_and_keeps_its_state():
     xi = pid.xi.copy()
     with pytest.raises(ValueError, match="non-finite"):
         pid.update(1.1, np.array([0, np.nan, 0, 0]), z, z, z)
-    with pytest.raises(ValueError, match="earlier"):
-        pid.update(0.5, z, z, z, z)
-    assert np.array_equal(pid.xi, xi) and pid.t == 1.0
+    for stamp in (np.nan, np.inf, -np.inf):
+        with pytest.raises(ValueError, match="no finite time"):
+            pid.update(stamp, z, z, z + 0.001, z)
+    assert np.array_equal(pid.xi, xi) and pid.t == 1.0 and pid.clock.steps == 0
     with pytest.raises(ValueError, match=">= 0"):
         _gains(kp=-1.0)
     with pytest.raises(ValueError, match="tension_min < tension_max"):

@@ -74,6 +74,9 @@ def test_cli_reports_bad_configuration_with_status_2(capsys):
     assert "plant.timestep = 1 is not valid" in capsys.readouterr().err
     far = "tasks.coiling.targets=[0.3, 0.3, 0.3, 0.3, 0.3, 0.3, 0.3, 0.3]"
     assert harness_main(["coiling", "--quiet", "--set", far]) == 2
+    assert "target 1: marker4 0.4243 m away, its reach 0.418 m" in capsys.readouterr().err
+    beyond_the_limits = "tasks.coiling.targets=[0.15, -0.3, 0.0192, -0.3041, -0.0337, -0.2573, 0.008, -0.245]"
+    assert harness_main(["coiling", "--quiet", "--set", beyond_the_limits]) == 2
     assert "unreachable" in capsys.readouterr().err
 
 

@@ -162,6 +162,19 @@ def test_simulator_in_realtime_holds_the_tension_and_counts_missing_commands():
         rclpy.try_shutdown()
 
 
+def _clik(task, sent, **parameters):
+    """A clik node for ``task`` with more ``parameters`` (dotted name: value), its references
+    appended to ``sent`` instead of published (rclpy initialised by the caller)."""
+    from rclpy.parameter import Parameter
+
+    from soft_arm_control.clik_node import ClikNode
+    node = ClikNode(parameter_overrides=[Parameter("graph.task", value=task)]
+                    + [Parameter(name, value=value) for name, value in parameters.items()])
+    node.ref_pub.publish = sent.append
+    node.q_pub.publish = lambda msg: None
+    return node
+
+
 def _goal(target, mode="clik", labels=None, frame="arm_base", phase=""):
     from soft_arm_interfaces.msg import TaskGoal
     msg = TaskGoal(mode=mode, phase=phase, labels=labels or [], target=[float(v) for v in target])
@@ -308,26 +321,16 @@ def test_clik_node_rejects_a_fragile_goal():
     """With 3.5 g at the tip the triangle's second vertex is near a fold of the model (0.44 Hz held
     by the inner loop, below control.clik.min_frequency): rejected; the third (0.91 Hz) is taken."""
     import rclpy
-    from rclpy.parameter import Parameter
-
-    from soft_arm_control.clik_node import ClikNode
     rclpy.init()
     try:
-        node = ClikNode(parameter_overrides=[Parameter("graph.task", value="triangle"),
-                                             Parameter("arm.tip_mass", value=0.0035)])
         sent = []
-        node.ref_pub.publish = sent.append
-        node.q_pub.publish = lambda msg: None
+        node = _clik("triangle", sent, **{"arm.tip_mass": 0.0035})
         node.on_goal(_goal([-0.03, 0.138, -0.241, 0.056]))
         assert node.rejected_goals == 1 and not sent
         node.on_goal(_goal([0.048, 0.123, -0.282, 0.043]))
         assert node.rejected_goals == 1 and len(sent) == 1
         node.destroy_node()
-        node = ClikNode(parameter_overrides=[Parameter("graph.task", value="triangle"),
-                                             Parameter("arm.tip_mass", value=0.0035),
-                                             Parameter("control.clik.min_frequency", value=0.0)])
-        node.ref_pub.publish = sent.append
-        node.q_pub.publish = lambda msg: None
+        node = _clik("triangle", sent, **{"arm.tip_mass": 0.0035, "control.clik.min_frequency": 0.0})
         node.on_goal(_goal([-0.03, 0.138, -0.241, 0.056]))       # the check off
         assert node.rejected_goals == 0 and len(sent) == 2
         node.destroy_node()
@@ -431,3 +434,91 @@ def test_ctrl_c_stops_the_experiment_and_keeps_the_bag(tmp_path):
     assert proc.returncode == 130, output
     messages = _read(out / "bag")
     assert len(messages) > 100
+
+
+def test_inner_loop_node_keeps_commanding_through_a_clock_step_and_names_it():
+    """States whose stamps step back 5 s mid-run (NTP corrected the rig PC's clock): every state is
+    answered, stamped like it, and /diagnostics names the clock step (WARN, status inner_loop)."""
+    import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+    from rclpy.executors import SingleThreadedExecutor
+    from sensor_msgs.msg import JointState
+
+    from soft_arm_control.inner_loop_node import InnerLoopNode
+    from soft_arm_ros.contract import QOS
+    from soft_arm_ros.conversions import joint_state, stamp_to_seconds
+    from conftest import spin_until
+    rclpy.init()
+    try:
+        node = InnerLoopNode()
+        names = list(node.names)
+        rig = rclpy.create_node("rig")
+        commands, diagnostics = [], []
+        rig.create_subscription(JointState, "tendon/command", commands.append, QOS["tendon/command"])
+        rig.create_subscription(DiagnosticArray, "/diagnostics", diagnostics.append, 10)
+        states = rig.create_publisher(JointState, "tendon/state", QOS["tendon/state"])
+        reference = rig.create_publisher(JointState, "tendon/reference", QOS["tendon/reference"])
+        executor = SingleThreadedExecutor()
+        for n in (node, rig):
+            executor.add_node(n)
+        spin_until(executor, lambda: states.get_subscription_count() and reference.get_subscription_count()
+                   and node.pub.get_subscription_count())
+        reference.publish(joint_state(names, 0.0, position=[0.002] * 4, effort=[1.0] * 4))
+        spin_until(executor, lambda: node.core.s_ref is not None)
+        stamps = [1000.0 + 0.002 * k for k in range(100)]
+        stamps += [stamps[-1] - 5.0 + 0.002 * k for k in range(1, 101)]
+        for t in stamps:
+            states.publish(joint_state(names, t, position=[0.001] * 4, velocity=[0.0] * 4))
+            count = len(commands)
+            spin_until(executor, lambda: len(commands) > count)
+        answered = [stamp_to_seconds(c.header.stamp) for c in commands]
+        np.testing.assert_allclose(answered, stamps, atol=1e-9)                 # every state, in order
+        assert node.rejected == 0 and node.core.clock.steps_back == 1
+        spin_until(executor, lambda: any(s.name == "inner_loop" and s.level == DiagnosticStatus.WARN
+                                         for d in diagnostics for s in d.status))
+        warning = next(s for d in diagnostics for s in d.status if s.level == DiagnosticStatus.WARN)
+        assert warning.message == "clock step: 1 clock step (0 forward, 1 back); the latest back by 4.998 s"
+        assert {v.key: v.value for v in warning.values}["clock_steps_back"] == "1"
+        xi = node.core.pid.xi
+        assert np.all(np.isfinite(xi)) and np.all(xi > 0)                     # integrating through it
+        executor.shutdown()
+        rig.destroy_node()
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown()
+
+
+@pytest.mark.parametrize("jump", [1e9, -5.0])
+def test_clik_node_keeps_stepping_through_a_clock_step_of_the_frames(jump):
+    """One mocap frame stamped 1e9 s ahead, or every frame from one on stepped back 5 s: the online
+    CLIK steps at every frame after it as before (it held its steps until the stamps caught up, for
+    good or for 5 s), the step is counted and its messages carry the frames' stamps."""
+    import rclpy
+
+    from soft_arm_ros.conversions import pose_array, stamp_to_seconds
+    from soft_arm_model import marker_positions, solve_equilibrium
+    rclpy.init()
+    try:
+        sent = []
+        node = _clik("coiling", sent, **{"control.clik.rate": 120.0})
+        hanging = marker_positions(node.model, solve_equilibrium(node.model, [0.05] * 4).q)
+        stamps = [100.0 + k / 120.0 for k in range(240)]
+        node.on_markers(pose_array(hanging, stamps[0]))
+        node.on_goal(_goal([-0.349, -0.009], "online"))
+        for t in stamps[1:120]:
+            node.on_markers(pose_array(hanging, t))
+        before = len(sent)
+        if jump > 0:
+            node.on_markers(pose_array(hanging, stamps[119] + jump))    # one frame from another clock
+            after = stamps[120:]
+        else:
+            after = [t + jump for t in stamps[120:]]                       # every frame from here on
+        for t in after:
+            node.on_markers(pose_array(hanging, t))
+        stepped = len(sent) - before
+        assert stepped >= len(after) - 2, (stepped, len(after))
+        assert node.frame_clock.steps == (2 if jump > 0 else 1)
+        assert stamp_to_seconds(sent[-1].header.stamp) == pytest.approx(after[-1], abs=1e-6)
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown()

@@ -1,9 +1,7 @@
 """CAN motor driver core against the motor emulator on an in-process python-can ``virtual`` bus, in
 lockstep with explicit time: conversions, zeroing, reply matching, every safety case, determinism;
 the emulator's protocol behaviour; the ``rig.motors`` configuration."""
-import itertools
 import math
-import os
 
 import can
 import numpy as np
@@ -15,66 +13,7 @@ from soft_arm_drivers.can.motor_driver import PERIOD_WINDOW, MotorDriver, tensio
 from soft_arm_drivers.sim.can_emulator import CanMotorEmulator, arm_plant
 from soft_arm_model.parameters import ConfigError
 
-_CHANNELS = itertools.count()
-R = 0.01                                    # m, pulley radius of rig.yaml
-T_STEP = 36.0 / 4095                        # N m, torque LSB of the AK80-9 (+-18 N m over 12 bits)
-V_STEP = 100.0 / 4095                       # rad/s, velocity LSB (+-50 rad/s)
-P_STEP = 25.0 / 65535                       # rad, position LSB (+-12.5 rad)
-
-
-def config(**overrides):
-    channel = f"motor_driver_{os.getpid()}_{next(_CHANNELS)}"
-    # shortenings counted from the zeroing pose here (rig.yaml counts them from the straight arm)
-    return load_driver_config(overrides={"interface": "virtual", "channel": channel,
-                                         "zero_shortening": [0.0] * 4, **overrides})
-
-
-class Rig:
-    """Driver and emulator on one virtual channel, stepped in lockstep: a driver cycle at t_k, then
-    the emulator runs to t_k+1 (the replies to cycle k are read by cycle k + 1)."""
-
-    def __init__(self, cfg, plant=None, **options):
-        self.config, self.period, self.k = cfg, 1.0 / cfg.rate, 0
-        self.bus = can.Bus(interface="virtual", channel=cfg.channel)
-        self.emulator_bus = can.Bus(interface="virtual", channel=cfg.channel, preserve_timestamps=True)
-        options.setdefault("reply_delay", 3e-4)
-        self.emulator = CanMotorEmulator.for_config(cfg, self.emulator_bus, plant, **options)
-        self.driver = MotorDriver(cfg, self.bus)
-
-    @property
-    def t(self):
-        return self.k * self.period
-
-    def step(self, n=1, tensions=None):
-        for _ in range(n):
-            if tensions is not None:
-                self.driver.command(tensions, self.t)
-            result = self.driver.cycle(self.t)
-            self.emulator.advance_to(self.t + self.period)
-            self.k += 1
-        return result
-
-    def close(self):
-        self.driver.close()
-        self.bus.shutdown()
-        self.emulator_bus.shutdown()
-
-
-@pytest.fixture
-def make_rig():
-    rigs = []
-
-    def make(plant=None, overrides=None, **options):
-        rigs.append(Rig(config(**(overrides or {})), plant, **options))
-        return rigs[-1]
-    yield make
-    for rig in rigs:
-        rig.close()
-
-
-def pull(emulator):
-    """direction * torque [N m] each emulated motor applies now (>= 0: pulling)."""
-    return np.array([m.motor.direction * emulator.torque(i) for i, m in enumerate(emulator.motors)])
+from can_rig import P_STEP, R, T_STEP, V_STEP, Rig, driver_config as config, pull
 
 
 # -- conversions -------------------------------------------------------------------------------------
@@ -96,7 +35,7 @@ def test_tension_frame_rounds_to_nearest_and_never_pushes(model, direction):
 def test_tension_to_torque_to_tension_round_trip(make_rig):
     rig = make_rig(overrides={"directions": [1, -1, 1, -1]})
     command = np.array([0.5, 1.7, 3.0, 5.0])
-    rig.driver.enable(rig.t)
+    rig.driver.enable()
     result = rig.step(8, command)                      # rate limit: 1 N per cycle
     assert result.diagnostics.mode == "enabled"
     np.testing.assert_array_equal(result.state.command, command)
@@ -132,9 +71,9 @@ def test_shortening_follows_the_arm_plant_under_tension(make_rig):
     rig.driver.zero()
     rig.step(2)
     s0, _ = rig.emulator.tendons()
-    rig.driver.enable(rig.t)
+    rig.driver.enable()
     for _ in range(100):                                  # 0.2 s at 2.5 N on tendon 1
-        rig.driver.command([2.5, 0.0, 0.0, 0.0], rig.t)
+        rig.driver.command([2.5, 0.0, 0.0, 0.0])
         true_s, true_rate = rig.emulator.tendons()       # what the replies to this cycle will carry
         state = rig.step(1).state
     state = rig.step(1, [2.5, 0.0, 0.0, 0.0]).state
@@ -149,7 +88,7 @@ def test_zeroing_is_explicit_and_refused_while_enabled(make_rig):
     state = rig.step(50).state
     assert all(m.zero_count == 0 for m in rig.emulator.motors)       # nothing zeroes at start-up
     assert np.max(np.abs(state.shortening)) > 1e-3
-    rig.driver.enable(rig.t)
+    rig.driver.enable()
     with pytest.raises(RuntimeError, match="slack"):
         rig.driver.zero()
     assert all(m.zero_count == 0 for m in rig.emulator.motors)
@@ -169,7 +108,7 @@ def test_replies_are_matched_by_the_motor_id_in_the_payload():
     other = can.Bus(interface="virtual", channel=cfg.channel, preserve_timestamps=True)
     bus = can.Bus(interface="virtual", channel=cfg.channel)
     try:
-        driver = MotorDriver(cfg, bus)
+        driver = MotorDriver(cfg, bus, clock=lambda: 0.0)
         lim = MOTOR_PRESETS["AK80-9"]
         angles = {3: 0.1, 1: -0.2, 7: 0.3, 2: -0.4}
 
@@ -186,7 +125,7 @@ def test_replies_are_matched_by_the_motor_id_in_the_payload():
         other.send(can.Message(arbitration_id=3, is_extended_id=False, data=bytes([3]) + bytes(7)))
         other.send(can.Message(arbitration_id=0, is_extended_id=True,               # extended id
                                data=encode_reply(lim, 3, 2.0, 0.0, 0.0)))
-        result = driver.cycle(0.0)
+        result = driver.cycle()
         state, diag = result.state, result.diagnostics
         np.testing.assert_allclose(state.shortening, [R * angles[i] for i in (3, 1, 7, 2)], atol=R * P_STEP)
         np.testing.assert_array_equal(state.stamps, [4.0, 2.0, 8.0, 3.0])
@@ -204,7 +143,7 @@ def test_replies_are_matched_by_the_motor_id_in_the_payload():
 
 def test_stale_commands_trip_the_watchdog_and_latch_until_enable(make_rig):
     rig = make_rig(overrides={"watchdog_timeout": 0.021})        # 10.5 cycles at 500 Hz
-    rig.driver.enable(rig.t)
+    rig.driver.enable()
     rig.step(10, [3.0, 3.0, 3.0, 3.0])
     last_command = rig.t - rig.period
     for _ in range(50):                                             # bounded: fail, never hang
@@ -219,7 +158,7 @@ def test_stale_commands_trip_the_watchdog_and_latch_until_enable(make_rig):
     assert np.all(pull(rig.emulator) <= T_STEP)                    # zero torque (the field's nearest pull)
     result = rig.step(5, [3.0, 3.0, 3.0, 3.0])                     # fresh commands do not clear it
     assert result.diagnostics.mode == "fault" and np.all(pull(rig.emulator) <= T_STEP)
-    rig.driver.enable(rig.t)
+    rig.driver.enable()
     result = rig.step(10, [3.0, 3.0, 3.0, 3.0])
     assert result.diagnostics.mode == "enabled" and result.diagnostics.fault is None
     np.testing.assert_allclose(rig.emulator.tensions, 3.0, atol=T_STEP / 2 / R)
@@ -227,7 +166,7 @@ def test_stale_commands_trip_the_watchdog_and_latch_until_enable(make_rig):
 
 def test_commands_are_clipped_to_the_range_and_rate_limited(make_rig):
     rig = make_rig(overrides={"tension_rate_limit": 250.0})     # 0.5 N per cycle at 500 Hz
-    rig.driver.enable(rig.t)
+    rig.driver.enable()
     rig.step(1)
     sent = []
     for _ in range(14):
@@ -245,11 +184,11 @@ def test_commands_are_clipped_to_the_range_and_rate_limited(make_rig):
                                  [[1.0, 1.0, 1.0, 1.0]]])
 def test_malformed_commands_are_rejected_and_the_last_one_ages(make_rig, bad):
     rig = make_rig()
-    rig.driver.enable(rig.t)
+    rig.driver.enable()
     rig.step(5, [2.0, 2.0, 2.0, 2.0])
     for _ in range(15):                                             # watchdog: 10 cycles
         with pytest.raises(ValueError):
-            rig.driver.command(bad, rig.t)
+            rig.driver.command(bad)
         result = rig.step(1)
         if result.diagnostics.mode == "fault":
             break
@@ -260,7 +199,7 @@ def test_malformed_commands_are_rejected_and_the_last_one_ages(make_rig, bad):
 
 def test_a_silent_motor_stops_every_motor(make_rig):
     rig = make_rig(overrides={"reply_timeout": 0.011})             # 5.5 cycles at 500 Hz
-    rig.driver.enable(rig.t)
+    rig.driver.enable()
     rig.step(5, [2.0, 2.0, 2.0, 2.0])
     rig.emulator.inject(2, silent=True)
     silent_from = rig.t                                             # its last reply is read now
@@ -283,7 +222,7 @@ def test_a_silent_motor_stops_every_motor(make_rig):
                                             "motor 3 at 71 deg C, above max_temperature 70")])
 def test_error_codes_and_temperatures_stop_every_motor(make_rig, fault, reason):
     rig = make_rig()
-    rig.driver.enable(rig.t)
+    rig.driver.enable()
     rig.step(5, [2.0, 2.0, 2.0, 2.0])
     rig.emulator.inject(3, temperature=70)                          # at the limit: fine
     assert rig.step(3, [2.0, 2.0, 2.0, 2.0]).diagnostics.mode == "enabled"
@@ -296,7 +235,7 @@ def test_error_codes_and_temperatures_stop_every_motor(make_rig, fault, reason):
     assert np.all(pull(rig.emulator) <= T_STEP)
     rig.emulator.inject(3, error=0, temperature=40)
     rig.step(1)                                       # the replies still in flight carry the fault
-    rig.driver.enable(rig.t)
+    rig.driver.enable()
     assert rig.step(5, [2.0, 2.0, 2.0, 2.0]).diagnostics.fault is None
 
 
@@ -305,14 +244,14 @@ def test_enable_disable_and_estop(make_rig):
     rig.step(3, [2.0, 2.0, 2.0, 2.0])
     assert not any(m.motor_mode for m in rig.emulator.motors)       # disabled: commands not applied
     assert np.all(rig.emulator.tensions == 0)
-    rig.driver.enable(rig.t)
+    rig.driver.enable()
     rig.step(5, [2.0, 2.0, 2.0, 2.0])
     assert all(m.motor_mode for m in rig.emulator.motors) and np.all(rig.emulator.tensions > 1.5)
     rig.driver.disable()
     result = rig.step(3, [2.0, 2.0, 2.0, 2.0])
     assert result.diagnostics.mode == "disabled" and result.diagnostics.fault is None
     assert not any(m.motor_mode for m in rig.emulator.motors) and np.all(rig.emulator.tensions == 0)
-    rig.driver.enable(rig.t)
+    rig.driver.enable()
     rig.step(5, [2.0, 2.0, 2.0, 2.0])
     rig.driver.estop()
     rig.emulator.advance_to(rig.t)                  # the e-stop frames act before the next cycle
@@ -323,7 +262,7 @@ def test_enable_disable_and_estop(make_rig):
     assert not any(m.motor_mode for m in rig.emulator.motors)
     rig.driver.disable()                                            # does not clear a latched fault
     assert rig.step(1).diagnostics.fault == "e-stop"
-    rig.driver.enable(rig.t)
+    rig.driver.enable()
     result = rig.step(5, [1.0, 1.0, 1.0, 1.0])
     assert result.diagnostics.mode == "enabled" and all(m.motor_mode for m in rig.emulator.motors)
 
@@ -334,11 +273,12 @@ def test_leaving_on_an_exception_exits_motor_mode():
     emulator = CanMotorEmulator.for_config(cfg, emulator_bus)
     try:
         with pytest.raises(KeyError):
-            with MotorDriver(cfg) as driver:                         # opens the virtual bus itself
-                driver.enable(0.0)
+            k = 0
+            with MotorDriver(cfg, clock=lambda: k * 0.002) as driver:   # opens the virtual bus itself
+                driver.enable()
                 for k in range(5):
-                    driver.command([3.0] * 4, k * 0.002)
-                    driver.cycle(k * 0.002)
+                    driver.command([3.0] * 4)
+                    driver.cycle()
                     emulator.advance_to((k + 1) * 0.002)
                 assert all(m.motor_mode for m in emulator.motors) and emulator.torque(0) > 0.02
                 raise KeyError("boom")
@@ -348,17 +288,18 @@ def test_leaving_on_an_exception_exits_motor_mode():
         with pytest.raises(can.CanOperationError):                  # the driver's own bus is shut
             driver.bus.send(can.Message(arbitration_id=1, data=bytes(8), is_extended_id=False))
         with pytest.raises(RuntimeError, match="closed"):
-            driver.cycle(1.0)
+            driver.cycle()
     finally:
         emulator_bus.shutdown()
 
 
 def test_bus_errors_latch_a_fault(make_rig):
     rig = make_rig()
-    rig.driver.enable(rig.t)
+    rig.driver.enable()
     rig.step(3, [1.0, 1.0, 1.0, 1.0])
     rig.bus.shutdown()
-    result = rig.driver.cycle(rig.t + rig.period)
+    rig.now = rig.t + rig.period
+    result = rig.driver.cycle()
     assert result.diagnostics.mode == "fault" and result.diagnostics.fault.startswith("CAN ")
 
 
@@ -369,9 +310,9 @@ def run_once(seed):
     rig = Rig(cfg, encoder_noise=1e-3, reply_delay=4e-4, seed=seed)
     try:
         rig.emulator.set_tendons([0.01, 0.02, 0.03, 0.04], [0.001, 0.0, -0.001, 0.0])
-        rig.driver.enable(0.0)
+        rig.driver.enable()
         out = [rig.step(1, [1.0 + 0.01 * k, 2.0, 0.5, 0.0]).state for k in range(30)]
-        return out, rig.driver.diagnostics(rig.t)
+        return out, rig.driver.diagnostics()
     finally:
         rig.close()
 
@@ -397,8 +338,9 @@ def test_late_cycles_are_counted_and_time_cannot_go_back(make_rig):
     rig.step(3)
     rig.k += 1                                                       # a cycle skipped
     assert rig.step(1).diagnostics.late_cycles == 1
-    with pytest.raises(ValueError, match="backwards"):
-        rig.driver.cycle(rig.t - 1.0)
+    rig.now = rig.t - 1.0
+    with pytest.raises(RuntimeError, match="not monotonic"):
+        rig.driver.cycle()
 
 
 def test_cycle_statistics_show_a_delayed_cycle_and_look_back_a_window(make_rig):
@@ -409,8 +351,8 @@ def test_cycle_statistics_show_a_delayed_cycle_and_look_back_a_window(make_rig):
     times = list(np.arange(201) * period)
     times.append(times[-1] + period + 7e-3)
     times += list(times[-1] + np.arange(1, 300) * period)
-    for t in times:
-        rig.driver.cycle(t)
+    for rig.now in times:
+        rig.driver.cycle()
     stats = rig.driver.cycle_statistics()
     assert stats.cycles == len(times) - 1 and stats.deadline_misses == 1
     assert stats.period_p50 == pytest.approx(period, abs=1e-9)
@@ -418,8 +360,8 @@ def test_cycle_statistics_show_a_delayed_cycle_and_look_back_a_window(make_rig):
     # one period in 500 is above the 99th percentile; the others are exact
     assert stats.period_p99 == pytest.approx(period, abs=1e-9)
     assert stats.period_error_p99 == pytest.approx(0.0, abs=1e-9)
-    for t in times[-1] + np.arange(1, PERIOD_WINDOW + 1) * period:
-        rig.driver.cycle(t)
+    for rig.now in times[-1] + np.arange(1, PERIOD_WINDOW + 1) * period:
+        rig.driver.cycle()
     stats = rig.driver.cycle_statistics()
     assert stats.cycles == PERIOD_WINDOW and stats.deadline_misses == 1     # a count, not a window
     assert stats.period_max == pytest.approx(period, abs=1e-9)
@@ -561,13 +503,16 @@ def test_probe_finds_the_answering_motors_without_a_silence_fault(make_rig):
     rig.emulator.inject(2, silent=True)
     period, answered, t = rig.period, np.zeros(4, dtype=bool), 0.0
     while t < 3 * rig.config.reply_timeout:
-        answered |= rig.driver.probe(t)
+        rig.now = t
+        answered |= rig.driver.probe()
         rig.emulator.advance_to(t + period)
         t += period
     assert answered.tolist() == [True, False, True, True]
-    assert rig.driver.fault is None and rig.driver.cycles == 0 and not rig.driver.diagnostics(t).zeroed
+    assert rig.driver.fault is None and rig.driver.cycles == 0 and not rig.driver.diagnostics().zeroed
     rig.emulator.inject(4, error=2)
-    rig.driver.probe(t)
+    rig.now = t
+    rig.driver.probe()
     rig.emulator.advance_to(t + period)
-    rig.driver.probe(t + period)
+    rig.now = t + period
+    rig.driver.probe()
     assert rig.driver.fault is not None and "motor 4 reports error 2" in rig.driver.fault

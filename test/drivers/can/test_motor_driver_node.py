@@ -40,9 +40,10 @@ def channel():
 
 
 def rig_parameters(name, **values):
-    """Node parameters: the virtual bus ``name`` and relaxed timeouts for a loaded test machine."""
+    """Node parameters: the virtual bus ``name``, relaxed timeouts for a loaded test machine, the
+    harness as the node that commands the motors."""
     values = {"interface": "virtual", "channel": name, "watchdog_timeout": 0.2, "reply_timeout": 0.2,
-              **values}
+              "command_publisher": "/harness", **values}
     return [Parameter(f"rig.motors.{k}", value=v) for k, v in values.items()]
 
 
@@ -323,11 +324,11 @@ def test_diagnostics_report_a_delayed_cycle_as_a_deadline_miss(rig):
     before = int(values()["deadline_misses"])
     cycle, held = node.driver.cycle, []
 
-    def held_once(now):
+    def held_once():
         if not held:
-            held.append(now)
+            held.append(time.monotonic())
             time.sleep(0.025)
-        return cycle(now)
+        return cycle()
     node.driver.cycle = held_once
     spin_until(executor, lambda: held and int(values()["deadline_misses"]) > before)
     assert float(values()["period_max_ms"]) >= 25.0
@@ -407,7 +408,8 @@ with EmulatorThread(emulator):
         # a node name of its own: the services of an earlier test's driver may linger in discovery
         status = main(["motor_driver", "--ros-args", "-r", "__node:=" + sys.argv[3],
                        "-p", "rig.motors.interface:=virtual",
-                       "-p", "rig.motors.channel:=" + name, "-p", "rig.motors.watchdog_timeout:=1.0"])
+                       "-p", "rig.motors.channel:=" + name, "-p", "rig.motors.watchdog_timeout:=1.0",
+                       "-p", "rig.motors.command_publisher:=/harness"])
     finally:                            # what the motors were left with, however main ended
         time.sleep(0.05)
         done.set()
@@ -466,12 +468,12 @@ FAILING_CYCLE = """
 from soft_arm_drivers.can.motor_driver import MotorDriver
 cycle, enabled_at = MotorDriver.cycle, []
 
-def failing(self, now):
+def failing(self):
     if self.mode == "enabled":
-        enabled_at.append(now)
-        if now - enabled_at[0] > 0.2:
+        enabled_at.append(self.clock())
+        if enabled_at[-1] - enabled_at[0] > 0.2:
             raise RuntimeError("injected: the bus vanished")
-    return cycle(self, now)
+    return cycle(self)
 MotorDriver.cycle = failing
 """
 
@@ -500,3 +502,38 @@ def test_parameters_are_declared_read_only_with_their_ranges(rig):
     result = node.set_parameters([Parameter("rig.motors.watchdog_timeout", value=0.5)])[0]
     assert not result.successful and "read-only" in result.reason
     assert node.config.watchdog_timeout == 0.2
+
+
+def test_a_stray_publisher_on_tendon_command_is_refused_named_and_latches_a_fault(rig, context):
+    """Only the configured node commands the motors: a second node publishing 4.5 N while the
+    motors are enabled (a second computer on the domain, a stray ``ros2 topic pub``) latches a
+    fault named on /diagnostics, and its tensions never reach the motors."""
+    executor, node, harness, emulator = rig
+    assert change(executor, harness, "configure")
+    harness.tension = [1.0, 1.0, 1.0, 1.0]
+    assert change(executor, harness, "activate")
+    spin_until(executor, lambda: values(harness)["command_source"] == "ok"
+               and emulator.tensions.min() > 0.5)
+    stray = rclpy.create_node("stray", context=context)
+    publisher = stray.create_publisher(JointState, "tendon/command", QOS["tendon/command"])
+    executor.add_node(stray)
+    applied = []
+    try:
+        def strayed():
+            publisher.publish(joint_state(NAMES, time.time(), effort=[4.5] * 4))
+            applied.append(emulator.tensions.max())
+            return node.driver.fault is not None
+        spin_until(executor, strayed)
+        assert node.driver.fault.startswith("foreign publisher") and "/stray" in node.driver.fault
+        spin_until(executor, lambda: node.lifecycle_state == "inactive"
+                   and values(harness)["command_source"] == "foreign")
+        assert "/stray" in values(harness)["command_publishers"]
+        assert harness.driver_status().level == DiagnosticStatus.ERROR
+        assert max(applied) < 1.5 and emulator.tensions.max() < 0.05         # never the stray's 4.5 N
+        assert not change(executor, harness, "activate")                     # refused while it is there
+    finally:
+        executor.remove_node(stray)
+        stray.destroy_node()
+    # the stray gone, the expected publisher alone again: activation is possible
+    spin_until(executor, lambda: node.source.update(node.command_sub.get_publisher_count()).accepts)
+    assert change(executor, harness, "activate") and node.driver.fault is None

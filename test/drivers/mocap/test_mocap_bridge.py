@@ -330,6 +330,75 @@ def test_clock_map_takes_the_smallest_delay_in_its_window():
         ClockMap(frequency=0, window=1.0)
 
 
+OUTLIER = st.one_of(st.floats(-1e6, -0.0011), st.floats(0.51, 1e6))       # s from the true offset
+
+
+def _samples(draw_delay, outliers: dict, n: int, offset: float = 1000.0, f: int = 1_000_000):
+    """n (ticks, local) samples at 500 Hz with the given delays; ``outliers``: index -> an offset
+    error [s] that sample carries (its ticks wrong by it)."""
+    out = []
+    for k in range(n):
+        ticks = 2000 * k
+        local = offset + ticks / f + draw_delay(k) - outliers.get(k, 0.0)
+        out.append((ticks, local))
+    return out
+
+
+def test_one_sample_far_below_the_offset_is_not_believed():
+    """One frame whose transmit ticks are 1000 s ahead (its offset 1000 s low): the minimum would
+    have taken it for the whole window; it is held, dropped when the next sample disagrees."""
+    clock = ClockMap(frequency=1_000_000, window=2.0)
+    for ticks, local in _samples(lambda k: 1e-4, {50: 1000.0}, 200):
+        clock.observe(ticks, local)
+        assert clock.offset == pytest.approx(1000.0 + 1e-4, abs=1e-9)
+    assert clock.outliers == 1 and clock.jumps == 0
+
+
+@settings(max_examples=200, deadline=None)
+@given(delays=st.lists(st.floats(50e-6, 2e-3), min_size=60, max_size=60),
+       spots=st.lists(st.tuples(st.integers(1, 59), OUTLIER), max_size=12))
+def test_isolated_outliers_never_move_the_offset(delays, spots):
+    """Random transport delays (50 us to 2 ms) and outliers, never three in a row: the offset stays
+    between the true offset plus the smallest delay so far and plus 2 ms, at every sample (a drop
+    of the delay by more than a millisecond is taken once three samples agree on it)."""
+    outliers = {}
+    for k, error in spots:
+        if not {k - 2, k - 1}.issubset(outliers) and not {k + 1, k + 2}.issubset(outliers) \
+                and not {k - 1, k + 1}.issubset(outliers):
+            outliers[k] = error
+    clock = ClockMap(frequency=1_000_000, window=10.0)
+    smallest = np.inf
+    for k, (ticks, local) in enumerate(_samples(lambda k: delays[k], outliers, 60)):
+        clock.observe(ticks, local)
+        if k not in outliers:
+            smallest = min(smallest, delays[k])
+        assert 1000.0 + smallest - 1e-9 <= clock.offset <= 1000.0 + 2e-3 + 1e-9, (k, outliers)
+
+
+@settings(max_examples=100, deadline=None)
+@given(jump=st.one_of(st.floats(-1e4, -0.51), st.floats(0.002, 1e4)), at=st.integers(0, 40))
+def test_a_server_clock_that_really_jumps_re_anchors_after_three_frames(jump, at):
+    """The server's clock jumps by ``jump`` [s] at sample ``at`` (the first sample, too): ahead by
+    any amount, or back by more than any transport delay, three agreeing samples re-anchor the map,
+    whatever the window still holds."""
+    clock = ClockMap(frequency=1_000_000, window=2.0)
+    samples = _samples(lambda k: 1e-4, {k: jump for k in range(at, 80)}, 80)
+    for k, (ticks, local) in enumerate(samples):
+        clock.observe(ticks, local)
+        if k >= at + 2:
+            assert clock.offset == pytest.approx(1000.0 + 1e-4 - jump, abs=1e-6), k
+    assert clock.jumps == (1 if at > 0 else 0)
+
+
+def test_a_server_clock_that_jumps_back_less_than_a_delay_re_anchors_within_a_window():
+    """Back by 0.2 s: indistinguishable from 0.2 s of transport delay until the window forgets the
+    samples before it (2 s)."""
+    clock = ClockMap(frequency=1_000_000, window=2.0)
+    for k, (ticks, local) in enumerate(_samples(lambda k: 1e-4, {k: -0.2 for k in range(100, 1200)}, 1200)):
+        clock.observe(ticks, local)
+    assert clock.offset == pytest.approx(1000.2001, abs=1e-6)
+
+
 # --- occlusion and packet faults -----------------------------------------------------------------
 
 @pytest.mark.parametrize("source", ["rigid_bodies", "labeled_markers"])
@@ -494,3 +563,30 @@ def test_bridge_config_checks_its_fields():
 def test_emulator_serves_loopback_only():
     with pytest.raises(ValueError, match="loopback"):
         NatNetEmulator(static, address="0.0.0.0")
+
+
+def test_a_burst_of_frames_is_handled_a_budget_at_a_time(monkeypatch):
+    """100 frames queued at once, each taking at least 1 ms to handle (a large frame on a loaded
+    machine): a poll hands on what it read within its 5 ms budget and leaves the rest in the
+    socket for the next poll; none is lost."""
+    with NatNetEmulator(static) as emulator:
+        settings = config(emulator, poll_budget=0.005, natnet_version="", ids=(1, 2, 3, 4))
+        with MocapBridge(settings) as bridge, \
+                socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sender:
+            bridge.handle_packet(SERVER_INFO, time.time())
+            handle = bridge.handle_packet
+
+            def slow(data, received_at):
+                time.sleep(0.001)
+                return handle(data, received_at)
+            monkeypatch.setattr(bridge, "handle_packet", slow)
+            for k in range(1, 101):
+                sender.sendto(build_frame_of_data(Version(4, 1), FrameOfData(
+                    frame_number=k, rigid_bodies=tuple(RigidBody(i, (0.0, 1.0, 0.0), (0.0, 0.0, 0.0, 1.0))
+                                                       for i in (1, 2, 3, 4)),
+                    camera_mid_exposure=10 * k, transmit_timestamp=10 * k + 5)), bridge.data_address)
+            time.sleep(0.2)
+            first = bridge.poll(0.1)
+            assert 1 <= frame_packets(bridge) <= 6 and len(first) == frame_packets(bridge)
+            pump(bridge, lambda: frame_packets(bridge) == 100)
+    assert bridge.counters["delivered"] == 100

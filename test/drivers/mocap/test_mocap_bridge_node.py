@@ -209,3 +209,45 @@ def test_node_process_streams_and_stops_cleanly_on_sigint(plant, context):
             out = stop(proc, signal.SIGINT, 20)
     assert len(markers) >= 50
     assert proc.returncode == 0 and "Traceback" not in out, out
+
+
+def test_one_frame_with_impossible_server_stamps_does_not_move_the_next_frames(ros, plant):
+    """A frame whose transmit ticks are 1000 s off (it would have set the minimum-delay offset and
+    stamped the next 2 s of frames 1000 s early): it is counted invalid, and every frame after it
+    is published within 1 ms of its true mid-exposure."""
+    with NatNetEmulator(plant_markers(plant), version="4.1", rate=240.0, layout="both",
+                        calibration=load_mocap_config().calibration, latency=0.003) as emulator:
+        emulator.start(stream=False)
+        bridge = MocapBridgeNode(parameter_overrides=[
+            Parameter("rig.mocap.command_port", value=emulator.command_port),
+            Parameter("rig.mocap.data_port", value=0)])
+        listener = rclpy.create_node("mocap_listener")
+        stamps = []
+        listener.create_subscription(PoseArray, "mocap/markers",
+                                     lambda msg: stamps.append(stamp_to_seconds(msg.header.stamp)),
+                                     QOS["mocap/markers"])
+        executor = SingleThreadedExecutor()
+        for node in (bridge, listener):
+            executor.add_node(node)
+        exposures = []
+        try:
+            assert bridge.trigger_configure() == TransitionCallbackReturn.SUCCESS
+            assert bridge.trigger_activate() == TransitionCallbackReturn.SUCCESS
+            spin_until(executor, lambda: bridge.bridge.server_info is not None)
+            for k in range(360):                                     # 1.5 s at 240 Hz
+                number = emulator.send_frame(transmit_offset=1000.0 if k == 120 else 0.0)
+                exposures.append((k, emulator.exposure_time(number)))
+                end = time.monotonic() + 1 / 240
+                while time.monotonic() < end:
+                    executor.spin_once(timeout_sec=max(0.0, end - time.monotonic()))
+            spin_until(executor, lambda: len(stamps) >= 355)
+            invalid = bridge.bridge.counters["invalid"]
+        finally:
+            executor.shutdown()
+            bridge.close()
+            bridge.destroy_node()
+            listener.destroy_node()
+    assert invalid == 1 and len(stamps) == 359
+    after = np.array([t for k, t in exposures if k > 120])
+    published = np.array(stamps[-len(after):])
+    assert np.max(np.abs(published - after)) < 1e-3

@@ -3,6 +3,7 @@ import socket
 import struct
 from dataclasses import replace
 
+import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings, strategies as st
 
@@ -12,6 +13,7 @@ from soft_arm_drivers.mocap.natnet import (AnalogData, ConnectRequest, FrameFilt
                                            build_frame_of_data, build_packet, build_request,
                                            build_server_info, parse_connect_request, parse_frame_of_data,
                                            parse_packet, parse_server_info)
+from soft_arm_drivers.mocap.natnet_scan import scan_frame_of_data
 
 VERSIONS = [Version(3, 1), Version(4, 0), Version(4, 1)]
 ALL_SUPPORTED = [Version(3, 0), *VERSIONS]
@@ -446,3 +448,77 @@ def test_handshake_and_frame_over_udp_loopback():
         received = client.recv(65535)
     assert version == Version(4, 1)
     assert parse_frame_of_data(received, version) == frame
+
+
+# --- the bridge's compiled scan agrees with the parser --------------------------------------------
+
+def _agree(data, version):
+    """parse_frame_of_data and scan_frame_of_data refuse the same datagrams and read the same
+    rigid bodies, labelled markers and time stamps from the others."""
+    try:
+        parsed = parse_frame_of_data(data, version)
+    except NatNetParseError:
+        with pytest.raises(NatNetParseError):
+            scan_frame_of_data(data, version)
+        return
+    scan = scan_frame_of_data(data, version)
+    assert scan.frame_number == parsed.frame_number
+    assert (scan.camera_mid_exposure, scan.camera_data_received, scan.transmit_timestamp) == (
+        parsed.camera_mid_exposure, parsed.camera_data_received, parsed.transmit_timestamp)
+    assert scan.timestamp == parsed.timestamp or (scan.timestamp != scan.timestamp)        # NaN
+    assert [int(i) for i in scan.rigid_bodies["id"]] == [b.id for b in parsed.rigid_bodies]
+    assert [int(p) for p in scan.rigid_bodies["params"]] == [b.params for b in parsed.rigid_bodies]
+    np.testing.assert_array_equal(scan.rigid_bodies["position"].reshape(-1, 3),
+                                  np.array([b.position for b in parsed.rigid_bodies]).reshape(-1, 3))
+    assert [int(i) for i in scan.labeled_markers["id"]] == [m.id for m in parsed.labeled_markers]
+    assert [int(p) for p in scan.labeled_markers["params"]] == [m.params for m in parsed.labeled_markers]
+
+
+@pytest.mark.parametrize("version", VERSIONS, ids=str)
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(data=st.data())
+def test_the_scan_reads_what_the_parser_reads(version, data):
+    _agree(build_frame_of_data(version, data.draw(frames(version))), version)
+
+
+@settings(max_examples=500, deadline=None)
+@given(data=st.data())
+def test_the_scan_refuses_what_the_parser_refuses(data):
+    version = data.draw(st.sampled_from(VERSIONS))
+    _agree(data.draw(mutated(version)), version)
+    _agree(packet(7, data.draw(st.binary(max_size=120))), version)
+
+
+@pytest.mark.parametrize("version", ALL_SUPPORTED, ids=str)
+def test_every_truncation_is_refused_by_the_scan_too(version):
+    data = hand_built_frame(version)
+    for end in range(len(data) - 4):
+        with pytest.raises(NatNetParseError):
+            scan_frame_of_data(packet(7, data[4:end]), version)
+
+
+def _device_frame(channels, samples=0):
+    """A 4.1 frame: one device of ``channels`` channels of ``samples`` samples each."""
+    return FrameOfData(frame_number=1, devices=(AnalogData(7, ((0.0,) * samples,) * channels),))
+
+
+@pytest.mark.parametrize("frame, message", [
+    (_device_frame(16000), "analog channel count 16000 is above the 32"),
+    (_device_frame(1, 31), "analog sample count 31 is above the 30"),
+    (FrameOfData(frame_number=1, devices=tuple(AnalogData(k) for k in range(33))), "device count 33"),
+    (FrameOfData(frame_number=1, labeled_markers=(LabeledMarker(1, (0.0, 0.0, 0.0)),) * 1001),
+     "labelled marker count 1001"),
+    (FrameOfData(frame_number=1, marker_sets=(MarkerSet("m", ((0.0, 0.0, 0.0),) * 201),)),
+     "marker set marker count 201"),
+    (FrameOfData(frame_number=1, skeletons=(Skeleton(1, (RigidBody(1, (0, 0, 0), (0, 0, 0, 1)),) * 201),)),
+     "skeleton rigid body count 201"),
+])
+@pytest.mark.parametrize("version", [Version(3, 1), Version(4, 1)], ids=str)
+def test_a_frame_beyond_what_motive_sends_is_malformed(frame, message, version):
+    data = build_frame_of_data(version, frame)
+    for read in (parse_frame_of_data, scan_frame_of_data):
+        with pytest.raises(NatNetParseError, match=message):
+            read(data, version)
+    limit = replace(frame, devices=frame.devices[:32]) if len(frame.devices) > 32 else None
+    if limit is not None:
+        assert len(scan_frame_of_data(build_frame_of_data(version, limit), version).rigid_bodies) == 0

@@ -7,10 +7,14 @@ import signal
 import struct
 import subprocess
 import sys
+import tempfile
+import time
 from pathlib import Path
 
 import pytest
 import yaml
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import Point, Pose, PoseArray, PoseStamped, Quaternion, Vector3
 from mcap.exceptions import McapError
@@ -28,8 +32,8 @@ from visualization_msgs.msg import Marker, MarkerArray
 from soft_arm_drivers.recording import rosbag_writer
 from soft_arm_drivers.recording.message_definitions import (UnknownMessageTypeError, message_definition,
                                                             type_description_hash)
-from soft_arm_drivers.recording.rosbag_writer import (METADATA_FILE, QosProfile, RosbagWriter, TopicSpec,
-                                                      UnknownTopicError, recover)
+from soft_arm_drivers.recording.rosbag_writer import (METADATA_FILE, BagError, QosProfile, RosbagWriter,
+                                                      TopicSpec, UnknownTopicError, open_bag, recover)
 
 JAZZY = get_typestore(Stores.ROS2_JAZZY)
 T0 = 1_700_000_000_000_000_000  # ns
@@ -556,3 +560,97 @@ def test_invalid_writes_are_rejected_and_the_writer_stays_usable(tmp_path):
         [(_, _, message)] = make_reader(file).iter_messages()
     assert (message.log_time, message.publish_time, message.data) == (T0, T0 - 5, data)
     assert message.sequence == 1
+
+
+# --- a bag cut off at any moment opens --------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def history(tmp_path_factory):
+    """A bag written in many chunks, then closed: its final file, and metadata.yaml as it stood when
+    the bag was created and after each flush (the states a kill can leave beside the file)."""
+    directory = tmp_path_factory.mktemp("history") / "cut"
+    records = _written()
+    metadata = []
+    with RosbagWriter(directory, TOPICS, chunk_size=700) as writer:
+        metadata.append((directory / METADATA_FILE).read_text())
+        for topic, stamp, data in records:
+            flushed = writer.flushed_message_count
+            writer.write(topic, stamp, data)
+            if writer.flushed_message_count != flushed:
+                metadata.append((directory / METADATA_FILE).read_text())
+    return (directory / "cut_0.mcap").read_bytes(), metadata, records
+
+
+@settings(max_examples=120, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(data=st.data())
+def test_a_bag_cut_at_any_byte_opens_with_the_projects_tools_and_rosbags(history, tmp_path, data):
+    """The MCAP file cut at any byte (a kill while it was created, between or during flushes, while
+    it was closed), beside any metadata.yaml the writer left, or none: open_bag recovers it, and
+    rosbags then reads every message of every chunk that was complete."""
+    final, metadata, records = history
+    cut = data.draw(st.integers(0, len(final)))
+    directory = Path(tempfile.mkdtemp(dir=tmp_path))
+    (directory / f"{directory.name}_0.mcap").write_bytes(final[:cut])
+    stale = data.draw(st.sampled_from([None] + metadata))
+    if stale is not None:
+        renamed = stale.replace("cut_0.mcap", f"{directory.name}_0.mcap")
+        (directory / METADATA_FILE).write_text(renamed)
+    expected = _stream_messages(directory / f"{directory.name}_0.mcap") if cut >= 8 else []
+    assert open_bag(directory) == len(expected)
+    assert _rosbags_messages(directory) == expected == records[:len(expected)]
+    assert open_bag(directory) == len(expected)                          # nothing left to mend
+
+
+KILLED_WRITER = """
+import sys
+from soft_arm_drivers.recording.rosbag_writer import RosbagWriter, TopicSpec
+payload = open(sys.argv[2], "rb").read()
+print("started", flush=True)
+with RosbagWriter(sys.argv[1], [TopicSpec("/arm/joint_states", "sensor_msgs/msg/JointState")],
+                  chunk_size=7 * len(payload)) as writer:
+    stamp = 0
+    while True:
+        stamp += 1000
+        writer.write("/arm/joint_states", stamp, payload)
+"""
+
+
+@pytest.mark.parametrize("delay", [0.0, 0.002, 0.01, 0.03, 0.07, 0.15])
+def test_a_writer_killed_at_any_moment_leaves_a_bag_that_opens(tmp_path, delay):
+    """SIGKILL at moments from the bag's creation on: the project's tools open what is left, and
+    rosbags reads it: a prefix of what was written."""
+    payload = serialize_message(_message("/arm/joint_states", 1))
+    (tmp_path / "payload.cdr").write_bytes(payload)
+    directory = tmp_path / "killed"
+    child = subprocess.Popen([sys.executable, "-c", KILLED_WRITER, str(directory),
+                              str(tmp_path / "payload.cdr")],
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert child.stdout.readline() == "started\n"
+        time.sleep(delay)
+        child.send_signal(signal.SIGKILL)
+        child.wait(timeout=10)
+    finally:
+        child.kill()
+        child.stdout.close()
+        child.stderr.close()
+    if not directory.exists():
+        return                                            # killed before it made anything
+    try:
+        count = open_bag(directory)
+    except BagError:
+        assert not any(directory.glob("*.mcap"))          # killed before the file existed
+        return
+    messages = _rosbags_messages(directory)
+    assert len(messages) == count
+    assert messages == [("/arm/joint_states", 1000 * (i + 1), payload) for i in range(count)]
+
+
+def test_what_is_not_a_bag_is_refused_by_name(tmp_path):
+    with pytest.raises(BagError, match="is not a bag directory"):
+        open_bag(tmp_path / "nothing")
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(BagError, match="is not a bag directory"):
+        open_bag(tmp_path / "file")
+    with pytest.raises(BagError, match="holds no rosbag2 bag"):
+        open_bag(tmp_path)

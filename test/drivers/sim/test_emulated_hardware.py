@@ -54,9 +54,8 @@ def _run(driver, seconds, tension, rate=500.0):
     end = time.monotonic() + seconds
     cycle = None
     while time.monotonic() < end:
-        now = time.time()
-        driver.command(np.full(len(driver.config.motors), tension), now)
-        cycle = driver.cycle(now)
+        driver.command(np.full(len(driver.config.motors), tension))
+        cycle = driver.cycle()
         time.sleep(1.0 / rate)
     return cycle
 
@@ -72,7 +71,7 @@ def test_the_driver_drives_the_motors_of_another_process_and_faults_when_it_dies
         # the set-up is out of the garbage collector: no full collection walks it mid-run
         assert hardware.frozen_objects > 50_000
         driver.zero()
-        driver.enable(time.time())
+        driver.enable()
         cycle = _run(driver, 1.5, 0.5)
         assert driver.fault is None and cycle.diagnostics.mode == "enabled"
         assert np.all(cycle.state.fresh) and np.all(cycle.state.tension > 0.3), cycle.state.tension

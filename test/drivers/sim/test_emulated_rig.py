@@ -278,3 +278,26 @@ def test_a_driver_deactivated_from_elsewhere_ends_the_run_as_no_result(tmp_path,
     # loaded machine)
     reason = "left the active state" if deactivated else "fault"
     assert reason in output and reason in metrics["failure"], output
+
+
+def test_motors_flashed_with_another_firmware_stop_the_run_naming_the_preset(tmp_path, config_dir):
+    """rig.yaml says AK80-9 (+-50 rad/s) but the motors' firmware is 1.1 (+-22.5 rad/s): the
+    velocities read 2.2 times too fast. Once the arm moves the driver names the mismatch and the
+    preset that fits, latches a fault, and the run ends as no result: the task is not run."""
+    flashed = tmp_path / "config"
+    shutil.copytree(config_dir, flashed)
+    tree = yaml.safe_load((flashed / "emulator.yaml").read_text())
+    tree["/**"]["ros__parameters"]["rig"]["emulator"]["firmware"] = "AK80-9-fw1.1"
+    (flashed / "emulator.yaml").write_text(yaml.safe_dump(tree))
+    out = tmp_path / "run"
+    proc = _experiment(str(flashed), out, "--quiet")
+    with killed_on_exit(proc):
+        output = proc.communicate(timeout=240)[0]
+    assert proc.returncode == 1, output
+    assert "the preset AK80-9 (+-50 rad/s) is not its firmware's" in output
+    assert "the preset AK80-9-fw1.1 would fit" in output and "rms[mm]" not in output
+    with open(out / "metrics.json", encoding="utf-8") as fh:
+        metrics = json.load(fh)
+    assert metrics["valid"] is False and "AK80-9-fw1.1 would fit" in metrics["failure"]
+    fault, = metrics["run"]["driver_faults"]
+    assert fault["time_s"] < 3.0                 # at the first move, not after the task
