@@ -32,7 +32,8 @@ setup(
         "ros-jazzy-rmw-fastrtps-cpp==8.4.3",
     ],
     extras_require={
-        "test": ["pytest>=8", "hypothesis>=6", "rosbags==0.11.9", "flake8>=7"],
+        "test": ["pytest>=8", "pytest-xdist>=3.5", "hypothesis>=6", "rosbags==0.11.9", "flake8>=7",
+                 "sphinx>=8", "myst-parser>=4", "furo>=2024.8.6"],
         "bench": ["pyelastica==1.0.0"],
     },
     zip_safe=True,
@@ -47,6 +48,7 @@ setup(
             "soft-arm-targets = soft_arm_control.targets_cli:main",
             "soft-arm-experiment = soft_arm_drivers.experiments.experiment:main",
             "soft-arm-identify = soft_arm_drivers.experiments.identify_cli:main",
+            "soft-arm-warmup = soft_arm_drivers.warmup:main",
             "simulator = soft_arm_drivers.sim.simulator_node:main",
             "recorder = soft_arm_drivers.recording.recorder_node:main",
             "inner_loop = soft_arm_control.inner_loop_node:main",

@@ -8,11 +8,12 @@ model on the same plant. Prints a table per draw and the worst errors, writes JS
 Plants: the robustness benchmark's draws (``bench_robustness.draw_plant``: E and viscosity +-20 %,
 density +-5 %, angles +-3 deg, offsets 0.55-0.65, friction 0.05-0.2, order 3-5 with or without
 shear, 0-5 g at the tip) with a mocap calibration error of up to 1.5 deg per axis and 5 mm per
-axis, and the issue's arm as draw ``issue``. The experiment is ``identification.yaml``'s, played
-on the ROS-free simulated rig (:func:`soft_arm_drivers.experiments.identification_run.simulate_recording`:
-the plant's dynamics, encoder quantisation, mocap noise and latency; the graph records the same
-series, minutes slower), fitted as ``soft-arm-identify`` fits it (one core per draw: ``--jobs``
-draws at a time). Reported per draw: the errors of E, viscosity, rotor mass, tip mass [g], friction, offsets,
+axis, and the structurally different arm ``bench_robustness.STRUCTURAL_PLANT`` as draw ``structural``. The
+experiment is ``identification.yaml``'s, played on the ROS-free simulated rig
+(:func:`soft_arm_drivers.experiments.identification_run.simulate_recording`: the plant's dynamics,
+encoder quantisation, mocap noise and latency; the graph records the same series, minutes slower),
+fitted as ``soft-arm-identify`` fits it (one core per draw: ``--jobs`` draws at a time).
+Reported per draw: the errors of E, viscosity, rotor mass, tip mass [g], friction, offsets,
 tendon angles (relative to their mean: the common turn is the mocap frame's), the mocap frame
 (rotation after removing that turn, translation), which basis gave the estimates (``fit``:
 ``identification.fit``'s, ``check``: the basis check's, the one with the lower weighted
@@ -43,13 +44,13 @@ from concurrent.futures import ProcessPoolExecutor
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from bench_robustness import ISSUE_PLANT, draw_plant, plant_holds
+from bench_robustness import STRUCTURAL_PLANT, draw_plant, plant_holds
 from timing import results_path, run_harness, write_results
 
 FRAME_ROTATION_DEG = 1.5      # per axis, uniform
 FRAME_TRANSLATION = 0.005     # m per axis, uniform
-ISSUE_FRAME = {"mocap.frame_error.rotation_deg": [0.0, 1.2, 1.6],
-               "mocap.frame_error.translation": [0.003, -0.004, 0.0]}
+STRUCTURAL_FRAME = {"mocap.frame_error.rotation_deg": [0.0, 1.2, 1.6],
+                    "mocap.frame_error.translation": [0.003, -0.004, 0.0]}
 
 
 def draw_frame(rng: np.random.Generator) -> dict:
@@ -163,11 +164,11 @@ def main(argv=None) -> int:
     parser.add_argument("--output", default=results_path("identification.json"))
     args = parser.parse_args(argv)
     rng = np.random.default_rng(args.seed)
-    plants = [{**ISSUE_PLANT, **ISSUE_FRAME}]
+    plants = [{**STRUCTURAL_PLANT, **STRUCTURAL_FRAME}]
     plants += [{**draw_plant(rng), **draw_frame(rng)} for _ in range(args.draws)]
     with ProcessPoolExecutor(args.jobs) as pool:
         results = list(pool.map(identify_one, plants))
-    runs = [{"draw": i - 1 if i else "issue", "plant": p, **r}
+    runs = [{"draw": i - 1 if i else "structural", "plant": p, **r}
             for i, (p, r) in enumerate(zip(plants, results))]
     print(f"{'draw':>5s} {'E %':>6s} {'visc %':>6s} {'rotor %':>7s} {'tip g':>6s} {'fric':>6s} "
           f"{'offs':>6s} {'ang deg':>7s} {'frame deg':>9s} {'mm':>5s} {'basis':>6s} {'/unc':>5s} {'/se':>5s} "

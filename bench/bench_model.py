@@ -1,4 +1,4 @@
-"""Benchmarks of the Variable-Strain model (issue: model performance). Prints a table, writes JSON.
+"""Benchmarks of the Variable-Strain model's performance. Prints a table, writes JSON.
 
     python bench/bench_model.py [--output bench/results/model.json] [--skip-elastica]
 

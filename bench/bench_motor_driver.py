@@ -11,8 +11,8 @@ emulator answers from a thread of the same process (real time, 0.2 ms reply dela
 arm behind it (``soft_arm_control.rig.Plant`` stepped every 1 ms: it competes for the GIL) or with
 static tendons (the bus alone). Two ways of waiting for the next period: ``sleep`` (``time.sleep``
 up to the deadline) and ``sleep+spin`` (sleep to 0.3 ms before it, then poll the clock, yielding the
-GIL). Then the ``motor_driver`` node itself: its rclpy timer driven by the executor ``run_node``
-spins (``make_executor``: the events executor), with the arm emulator.
+GIL). Then the ``motor_driver`` node itself: its cycle thread (``PeriodicThread``, apart from the
+executor ``run_node`` spins), with the arm emulator.
 
 Reported per run: the period between successive cycle starts minus the nominal period (jitter:
 p50 and p99 of its absolute value, max), the lateness of each start behind its deadline, the time
@@ -109,7 +109,7 @@ def bench_core(rate: float, plant, strategy: str, seconds: float, interface: str
 
 
 def bench_node(rate: float, plant, seconds: float) -> dict:
-    """The node's timer under the executor run_node spins, with a tick hook."""
+    """The node's cycle thread beside the executor run_node spins, with a hook on each cycle."""
     import rclpy
     from rclpy.parameter import Parameter
 
@@ -155,7 +155,7 @@ def bench_node(rate: float, plant, seconds: float) -> dict:
         rclpy.try_shutdown(context=context)
         bus.shutdown()
     starts = np.asarray(starts[10:])                    # after start-up
-    # the timer has no deadline list: lateness is measured against the ideal grid of the first tick
+    # the thread keeps no deadline list here: lateness is measured against the ideal grid of the first cycle
     deadlines = starts[0] + period * np.round((starts - starts[0]) / period)
     return {**_stats(starts, deadlines, durations[10:], complete[10:], period), "fault": fault}
 
@@ -174,7 +174,7 @@ def main():
                     result = bench_core(rate, p, strategy, args.seconds, interface)
                     runs.append({"rate_hz": rate, "loop": f"core, {strategy}", "bus": interface,
                                  "emulator": emulator, **result})
-        runs.append({"rate_hz": rate, "loop": "node, rclpy timer", "bus": "virtual", "emulator": "arm",
+        runs.append({"rate_hz": rate, "loop": "node, cycle thread", "bus": "virtual", "emulator": "arm",
                      **bench_node(rate, plant, args.seconds)})
     header = (f"{'rate':>6} {'loop':<18} {'bus':<17} {'emulator':<9} {'jitter p50':>10} {'p99':>8} "
               f"{'max':>8} {'late p99':>9} {'cycle p50':>9} {'p99':>7} {'complete':>8}  fault")

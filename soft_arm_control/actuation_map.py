@@ -8,8 +8,12 @@ tensions and checked on random equilibria that the fit did not see.
 """
 from __future__ import annotations
 
+import hashlib
 import itertools
+import os
+import sys
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 from numba import njit
@@ -143,8 +147,57 @@ def fit_actuation_map(model: ArmModel, levels, degree: int = 2, validation_sampl
 
 def actuation_map_for(model: ArmModel, control) -> ActuationMap:
     """The map the controller configuration asks for (``control.yaml``): fitted with friction, the
-    identity without."""
+    identity without. A fit takes one to two seconds and is the same for the same arm, settings and
+    code, so it is kept (:func:`cached_fit`): every node and run of one arm fits it once."""
     if not control.friction:
         return ActuationMap.identity()
-    return fit_actuation_map(model, control.map_levels, control.map_degree,
-                             control.map_validation_samples)
+    return cached_fit(model, tuple(control.map_levels), control.map_degree, control.map_validation_samples)
+
+
+_FITTED: dict = {}       # digest -> ActuationMap, this process's
+
+
+def cache_dir() -> Path:
+    """Where fitted maps are kept across processes: ``$SOFT_ARM_CACHE_DIR``, else
+    ``$XDG_CACHE_HOME/soft_arm`` (``~/.cache/soft_arm``)."""
+    base = os.environ.get("SOFT_ARM_CACHE_DIR") or os.path.join(
+        os.environ.get("XDG_CACHE_HOME") or os.path.expanduser("~/.cache"), "soft_arm")
+    return Path(base) / "actuation_maps"
+
+
+def _digest(model: ArmModel, levels, degree: int, samples: int) -> str:
+    """What a fit depends on: the arm's description, the fit's settings and the code that computes
+    the equilibria and the features (a changed model or fit gives another digest, never a stale map)."""
+    code = hashlib.sha256()
+    modules = [m for name, m in sorted(sys.modules.items()) if name.startswith("soft_arm_model.")]
+    for module in [sys.modules[__name__]] + modules:
+        path = getattr(module, "__file__", None)
+        if path and path.endswith(".py"):
+            code.update(Path(path).read_bytes())
+    key = repr((model.config, tuple(float(v) for v in levels), int(degree), int(samples), code.hexdigest()))
+    return hashlib.sha256(key.encode()).hexdigest()[:32]
+
+
+def cached_fit(model: ArmModel, levels, degree: int, samples: int) -> ActuationMap:
+    """:func:`fit_actuation_map`, kept in this process and in :func:`cache_dir` (a file written whole
+    or not at all; a cache that cannot be read or written is no cache, never an error)."""
+    digest = _digest(model, levels, degree, samples)
+    if digest in _FITTED:
+        return _FITTED[digest]
+    path = cache_dir() / f"{digest}.npz"
+    try:
+        with np.load(path) as f:
+            fit = ActuationMap(f["exponents"], f["coef"], float(f["rms_error"]), float(f["max_error"]),
+                               int(f["samples"]))
+    except (OSError, KeyError, ValueError):
+        fit = fit_actuation_map(model, levels, degree, samples)
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            partial = path.with_suffix(f".{os.getpid()}.partial.npz")
+            np.savez(partial, exponents=fit.exponents, coef=fit.coef, rms_error=fit.rms_error,
+                     max_error=fit.max_error, samples=fit.samples)
+            os.replace(partial, path)
+        except OSError:
+            pass
+    _FITTED[digest] = fit
+    return fit

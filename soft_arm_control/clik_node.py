@@ -76,7 +76,9 @@ class ClikNode(Node):
         self.trajectories = {ph.name: ph.trajectory for ph in self.task.phases if ph.trajectory is not None}
         self.model = build_model(params.arm)
         self.outer = outer_loop_for(self.model, self.control, self.task)
-        self.outer.seeds()              # now, not at the goal that needs them (0.7 s, seconds under load)
+        # at start-up, not at the goal that needs them (0.7 s idle, seconds under load; see
+        # docs/decisions/0008-clik-node-solves-its-seed-equilibria-at-start-up.md)
+        self.outer.seeds()
         self.names = self.model.tendon_names
         self.labels = self.task.space.labels()
         self.now = 0.0                  # the CLIK's time [s]: the frames' stamps, clock steps taken out

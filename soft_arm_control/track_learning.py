@@ -16,7 +16,7 @@ reference R_k and of the path D_k, fitted by least squares over the period's fra
 missing or uneven: a period whose frames do not cover it is not used), give, per coordinate, the
 period's complex gain from reference to arm G_k = X_k / R_k (the whole closed loop: inner loop,
 CLIK, arm and mocap latency, as the arm answered; the mean, k = 0, has gain 1: the CLIK's error
-term integrates it), and the update, from the correction the period applied (R_k - D_k),
+term integrates it), and the update, from the correction the period applied (R_k - D_k)::
 
     C_k <- (R_k - D_k) + gain (D_k - X_k) / G_k.
 
@@ -25,7 +25,7 @@ response (it is the arm's own measured answer; one gain per coordinate leaves ou
 The new coefficients are blended in over the next period (a quintic smootherstep, with its
 derivatives in the reference's velocity and acceleration: the reference, its velocity and its
 acceleration have no step). Learned are the mean and, per coordinate, the harmonics
-1..``harmonics`` the path holds (|D_k| at least a tenth of the largest): the circle and the line
+1..``harmonics`` the path holds (``|D_k|`` at least a tenth of the largest): the circle and the line
 hold the first, the figure eight the first two. A frame with a non-finite coordinate is dropped.
 
 Guards, so that learning cannot make the tracking much worse than the CLIK alone:

@@ -7,12 +7,14 @@ Everything is in the body frame of each cross-section (axis = local x) except po
 rotations, which are expressed in ``arm_base``.
 
 ``evaluate`` computes, by ``level``:
+
 - 0: kinematics: rotations R, positions p, body Jacobians J at the points and at the markers;
 - 1: + static terms: gravity force F_g, elastic force F_el and its tangent K_t, tendon matrices A
   (with friction) and A0 (without), tendon lengths L_c, friction-aware tendon integrals theta,
   wrap angles, elastic and gravitational energies;
 - 2: + dynamic terms: body twists eta, Jdot, mass matrix M, Coriolis matrix C (Mdot = C + C^T),
   kinetic energy.
+
 It returns False when the configuration is outside the model's domain (non-positive axial stretch
 or a degenerate tendon tangent); the outputs are then meaningless.
 """

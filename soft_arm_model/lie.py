@@ -4,6 +4,7 @@ Twists are ordered angular first, ``[omega; v]``, as in SoRoSim. All functions w
 caller-provided arrays so that the kernels in :mod:`soft_arm_model.kernels` stay allocation-light.
 
 Conventions:
+
 - ``ad(x) = [[w~, 0], [v~, w~]]`` for ``x = [w; v]``.
 - ``Ad_g = [[R, 0], [p~ R, R]]`` for ``g = (R, p)``.
 - ``T(Omega) = sum_k ad(Omega)^k / (k+1)!`` is the tangent operator of the exponential, so that the

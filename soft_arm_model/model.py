@@ -37,7 +37,8 @@ def _frozen(a):
 class ArmModel:
     """Discretised arm. Arrays are read-only; ``P`` points, ``n`` coordinates, ``n_tendons`` tendons.
 
-    Attributes (units SI, vectors in the section frame unless noted):
+    Attributes (units SI, vectors in the section frame unless noted)::
+
       X, w: point abscissae [m] and quadrature weights [m] (zero at division ends).
       B, Bd: strain basis and its X-derivative at the points, (P, 6, n).
       h, B1, B2: Magnus interval lengths [m] and bases at the two Zanna points, (P-1,), (P-1, 6, n).

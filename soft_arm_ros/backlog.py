@@ -4,15 +4,15 @@ rclpy's events executor queues one event per message received and serves the eve
 each taking the newest message a depth-1 subscription holds. When the callback takes longer than
 the period (a CLIK step on a loaded computer), every event still finds a newer message, the queue
 grows by the difference, and whatever else the node waits for (a goal, a timer) waits behind it:
-seconds, and a depth-1 goal can be overwritten by the next before it is taken (README, issue 17,
-stop 34). A :class:`BacklogGuard` tells such a queued event by its start: it follows the end of the
-subscription's last callback within ``gap`` (the executor's own dispatch: measured *ad hoc* on this
-machine, 240 Hz frames and a 12.5 ms callback, 114 us median and 270 us at most over 236 queued
-callbacks), where a message that arrives to an idle executor starts a period minus the callback's
-cost later (0.56 ms median, 0.69 ms p99 with a 3.5 ms callback). The
-message a queued event takes arrived during the last callback: it is dropped, the events queued
-behind it find nothing to take, and the next message to arrive is processed. Nothing is dropped
-while the callback keeps up (its cost below the period minus ``gap``).
+seconds, and a depth-1 goal can be overwritten by the next before it is taken. A
+:class:`BacklogGuard` tells such a queued event by its start: it follows the end of the
+subscription's last callback within ``gap`` (the executor's own dispatch, a few hundred
+microseconds at most), where a message that arrives to an idle executor starts a period minus the
+callback's cost later (about 0.6 ms for 240 Hz frames and a 3.5 ms callback). The message a queued event
+takes arrived during the last callback: it is dropped, the events queued behind it find nothing to
+take, and the next message to arrive is processed. Nothing is dropped while the callback keeps up
+(its cost below the period minus ``gap``). See
+docs/decisions/0006-clik-node-drops-frames-queued-behind-a-slow-step.md for the measurements.
 
 (The middleware's receive time would tell it exactly, but rclpy Jazzy's events executor fails on a
 callback that takes the message info: "SystemError: null argument to internal routine".)

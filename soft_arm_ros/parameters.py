@@ -46,6 +46,17 @@ GRAPH_SCHEMA = {
 }
 
 
+# A run's own options, given to a node on its command line (``-p output:=...``), not in a config file.
+RUN_SCHEMA = {
+    "output": ("str", None, "a path the node writes its result to: the bag directory (recorder), the "
+                            "metrics file (task_runner) or the schedule file (excitation); empty: the "
+                            "recorder's runs/bag-<time>, the others none"),
+    "wait_for_start": ("bool", None, "true: the task or schedule begins at a call of ~/start (on the "
+                                     "rig, once the motors are enabled); false: with the first message"),
+}
+_RUN_DEFAULTS = {"output": "", "wait_for_start": False}
+
+
 def parameter_overrides(node, prefix: str) -> dict:
     """The node's parameters under ``prefix`` (from --params-file / -p) as dotted overrides relative
     to it. ROS has typed the values already: strings are passed quoted, so that the overrides' YAML
@@ -146,6 +157,21 @@ class NodeParameters:
             except (ValueError, ConfigError) as exc:
                 return SetParametersResult(successful=False, reason=str(exc))
         return SetParametersResult(successful=True)
+
+    def run_option(self, key: str):
+        """The run option ``key`` (:data:`RUN_SCHEMA`) the node was given, or its default; declared
+        read-only with its description. ConfigError for a value of the wrong kind."""
+        kind, _, allowed = RUN_SCHEMA[key]
+        value = self.node.get_parameter(key).value if self.node.has_parameter(key) else _RUN_DEFAULTS[key]
+        if not isinstance(value, type(_RUN_DEFAULTS[key])):
+            raise ConfigError(f"{key} = {value!r} is not valid: expected {allowed}")
+        d = descriptor(key, kind, allowed, read_only=True)
+        if self.node.has_parameter(key):
+            self.node.set_descriptor(key, d, alternative_value=Parameter(key, ROS_TYPES[kind], value)
+                                     .get_parameter_value())
+        else:
+            self.node.declare_parameter(key, value, d)
+        return value
 
     def overrides(self, namespace: str) -> dict:
         """The node's own values under ``namespace`` as dotted overrides; ConfigError when the node

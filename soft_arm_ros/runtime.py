@@ -18,7 +18,8 @@ def make_executor(context=None):
     """The executor every soft_arm process spins: rclpy's events executor (callbacks dispatched from
     C++, about a third of the CPU time per callback of the SingleThreadedExecutor, which rebuilds
     its wait set in Python for every callback) where this rclpy has it, else the
-    SingleThreadedExecutor. One thread; a node is added once."""
+    SingleThreadedExecutor. One thread; a node is added once. See
+    docs/decisions/0001-nodes-spin-the-events-executor-and-freeze-their-set-up.md."""
     try:
         from rclpy.experimental import EventsExecutor
     except ImportError:

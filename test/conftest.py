@@ -10,6 +10,39 @@ import pytest
 
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 os.environ.setdefault("ROS_DOMAIN_ID", str(100 + os.getpid() % 100))
+# pytest-xdist's workers run tests side by side: each on a domain of its own, so that two tests'
+# nodes (two "harness" publishers on tendon/command, two simulators) never meet
+if os.environ.get("PYTEST_XDIST_WORKER", "").startswith("gw"):
+    os.environ["ROS_DOMAIN_ID"] = str(1 + (int(os.environ["ROS_DOMAIN_ID"])
+                                           + 1 + int(os.environ["PYTEST_XDIST_WORKER"][2:])) % 200)
+
+# Tests that need the cores to themselves: real time (the emulated rig, the driver's cycle thread,
+# real-time scheduling, mocap streams at 240 Hz), or graphs of node processes whose discovery and
+# wall-clock deadlines a loaded machine would stretch: a file, or one test of it. `test/run` runs them
+# alone after the rest, which runs on every core. Graphs composed in one process, in lockstep, are
+# deterministic whatever the load, and run with the rest.
+SERIAL = ("drivers/sim/test_emulated_rig.py", "drivers/sim/test_emulated_hardware.py",
+          "experiments/test_realtime.py", "drivers/can/test_motor_driver_node.py",
+          "drivers/can/test_periodic_thread.py", "drivers/can/test_loopback_bus.py",
+          "drivers/mocap/test_mocap_bridge_node.py", "drivers/mocap/test_mocap_bridge.py",
+          "drivers/recording/test_recorder_node.py",
+          "graph/test_nodes.py::test_simulator_in_realtime_holds_the_tension_and_counts_missing_commands",
+          "graph/test_nodes.py::test_a_slow_clik_takes_a_goal_at_once_and_drops_the_frames_it_cannot_"
+          "keep_up_with",
+          "graph/test_nodes.py::test_ctrl_c_stops_the_experiment_and_keeps_the_bag",
+          "graph/test_graph.py::test_processes_mode_runs_each_node_as_its_own_process",
+          "graph/test_identification_graph.py::test_the_identification_experiment_runs_one_process_per_node",
+          "test_layering.py::test_controller_nodes_start_without_the_plant_file")
+
+
+def pytest_collection_modifyitems(config, items):
+    """Mark the tests of :data:`SERIAL` ``serial``."""
+    root = os.path.dirname(os.path.abspath(__file__))
+    for item in items:
+        path = os.path.relpath(str(item.fspath), root)
+        if path in SERIAL or f"{path}::{item.originalname}" in SERIAL:
+            item.add_marker(pytest.mark.serial)
+
 
 from soft_arm_model import build_model, load_arm_config  # noqa: E402
 

@@ -22,6 +22,10 @@ ROSDEP = {
     "hypothesis": ("test_depend", "python3-hypothesis"),
     "flake8": ("test_depend", "python3-flake8"),
     "rosbags": None,                               # no rosdep key
+    "pytest-xdist": None,                          # the suite's parallel runner (test/run): pip
+    "sphinx": None,                                # the documentation's build (docs/): pip, with
+    "myst-parser": None,                           # MyST and the theme, which have no rosdep key;
+    "furo": None,                                  # rosdoc2 brings its own on a ROS build farm
 }
 INTERFACE = re.compile(r"^(\w+_(?:msgs|srvs|interfaces))(?:\.|$)")
 ROS_PYTHON = re.compile(r"^(launch_ros|launch|ament_index_python|rclpy)(?:\.|$)")

@@ -1,17 +1,18 @@
 """A CAN bus between two processes of one machine: python-can's ``soft_arm_loopback`` interface.
 
 python-can's ``virtual`` bus does not leave its process, SocketCAN's ``vcan`` needs a kernel module
-this machine lacks, and ``udp_multicast`` sends to a multicast group. This bus carries CAN 2.0
-frames as UDP datagrams between two ends on 127.0.0.1 only: ``channel`` is ``"LOCAL:PEER"``, the
-UDP port this end binds and the one the other end binds (the other end's channel is
-``"PEER:LOCAL"``). It is registered as a python-can plugin (entry point group ``can.interface``),
-so ``can.Bus(interface="soft_arm_loopback", channel="29536:29537")`` opens it and the motor driver
-takes it from ``rig.motors.interface`` like any other interface.
+that containers and CI machines often lack, and ``udp_multicast`` sends to a multicast group. This
+bus carries CAN 2.0 frames as UDP datagrams between two ends on 127.0.0.1 only: ``channel`` is
+``"LOCAL:PEER"``, the UDP port this end binds and the one the other end binds (the other end's
+channel is ``"PEER:LOCAL"``). It is registered as a python-can plugin (entry point group
+``can.interface``), so ``can.Bus(interface="soft_arm_loopback", channel="29536:29537")`` opens it
+and the motor driver takes it from ``rig.motors.interface`` like any other interface.
 
 Like a bus without the other node on it, a frame sent while the other end is not listening is lost;
 the sender does not know (the motor driver's watchdog notices the silence). Each datagram carries a
-sequence number and its sender's session: frames that never arrived or arrived out of order are
-counted (``lost``, ``reordered``; a restarted sender starts a new count). A received frame's
+sequence number and its sender's epoch (a random number drawn when the sender opens the bus, which
+tells a restarted sender from the one before it): frames that never arrived or arrived out of order
+are counted (``lost``, ``reordered``; a new epoch starts a new count). A received frame's
 ``timestamp`` [s, system time] is the sender's (the time it was sent, or the message's own with
 ``preserve_timestamps``), like a hardware bus's receive stamp up to the loopback's latency; frames
 are delivered in the order they were sent.
@@ -28,7 +29,7 @@ import can
 
 INTERFACE = "soft_arm_loopback"
 HOST = "127.0.0.1"
-# sender's session, sequence number, time stamp [s], arbitration id, dlc, flags, 8 data bytes
+# sender's epoch, sequence number, time stamp [s], arbitration id, dlc, flags, 8 data bytes
 _WIRE = struct.Struct("<IIdIBB8s")
 _EXTENDED, _REMOTE, _ERROR = 1, 2, 4
 # bytes of the socket's receive buffer (the kernel caps it at net.core.rmem_max): some 1300 frames,
@@ -77,9 +78,9 @@ class LoopbackBus(can.BusABC):
                                              f"{HOST}:{local}: {exc.strerror}") from None
         self._peer = (HOST, peer)
         self._preserve = bool(preserve_timestamps)
-        self._session = int.from_bytes(os.urandom(4), "little")    # a restarted sender is a new one
+        self._epoch = int.from_bytes(os.urandom(4), "little")      # a restarted sender is a new one
         self._sent = 0
-        self._peer_session = None
+        self._peer_epoch = None
         self._next = None                   # the sequence number expected next
         self.lost = 0
         self.reordered = 0
@@ -92,7 +93,7 @@ class LoopbackBus(can.BusABC):
         flags = ((_EXTENDED * msg.is_extended_id) | (_REMOTE * msg.is_remote_frame)
                  | (_ERROR * msg.is_error_frame))
         stamp = msg.timestamp if self._preserve else time.time()
-        frame = _WIRE.pack(self._session, self._sent & 0xFFFFFFFF, stamp, msg.arbitration_id, msg.dlc,
+        frame = _WIRE.pack(self._epoch, self._sent & 0xFFFFFFFF, stamp, msg.arbitration_id, msg.dlc,
                            flags, bytes(msg.data).ljust(8, b"\0"))
         self._sent += 1
         try:
@@ -113,9 +114,9 @@ class LoopbackBus(can.BusABC):
             frame = self._sock.recv(64)
         if len(frame) != _WIRE.size:
             raise can.CanOperationError(f"{INTERFACE}: a datagram of {len(frame)} bytes is not a frame")
-        session, seq, stamp, arbitration_id, dlc, flags, data = _WIRE.unpack(frame)
-        if session != self._peer_session:            # the other end (re)started: count from here
-            self._peer_session, self._next = session, None
+        epoch, seq, stamp, arbitration_id, dlc, flags, data = _WIRE.unpack(frame)
+        if epoch != self._peer_epoch:                # the other end (re)started: count from here
+            self._peer_epoch, self._next = epoch, None
         if self._next is not None and seq != self._next:
             if (seq - self._next) & 0xFFFFFFFF < 1 << 31:
                 self.lost += (seq - self._next) & 0xFFFFFFFF

@@ -2,9 +2,11 @@
 
 The motor driver's cycle runs in one, as a ros2_control hardware loop runs apart from its node's
 executor: its deadlines are kept by the kernel's sleep, not by a timer event posted through the
-executor, and it cycles whether or not anything spins the node. It does not help against what
-blocks the whole process: rclpy publishes holding the interpreter lock (README, issue 17: the
-driver's own state publish, held up inside Fast DDS).
+executor, and it cycles whether or not anything spins the node (see
+docs/decisions/0002-motor-driver-cycle-runs-on-a-thread-of-its-own.md). It does not help against
+what blocks the whole process: rclpy publishes holding the interpreter lock, so a publish held up
+inside the middleware (the driver's own state publish among them) holds every thread of the process
+(docs/decisions/0005-middleware-threads-of-the-other-processes-run-under-sched-fifo.md).
 """
 from __future__ import annotations
 

@@ -37,9 +37,8 @@ class ExcitationNode(Node):
         config = parse_excitation(params.section(NAMESPACE, SCHEMA), len(self.names),
                                   control.tension_min, control.tension_max)
         self.core = Excitation(config, len(self.names))
-        self.output = self.get_parameter("output").value if self.has_parameter("output") else ""
-        self.wait_for_start = bool(self.get_parameter("wait_for_start").value) \
-            if self.has_parameter("wait_for_start") else False
+        self.output = params.run_option("output")
+        self.wait_for_start = params.run_option("wait_for_start")
         self.started = not self.wait_for_start
         self.t0 = None
         self.finished = self.done = False

@@ -1,6 +1,7 @@
 """The paper's task-space metrics (Results; Table 1) from sampled task errors.
 
 For each transition (one target held for one time window):
+
 - the time to reach and remain within a band: every controlled coordinate's error below the band
   from that sample to the end of the window (cm band: 3 cm, mm band: 1 cm);
 - the equivalent task velocity: tip displacement over the window [m] / that time [s], the
@@ -8,6 +9,7 @@ For each transition (one target held for one time window):
   does not count its uncontrolled y); none when every coordinate is within the band already;
 - the RMS of the task error norm over the steady-state part (the last ``steady_time`` seconds);
 - the peak tip speed [m/s] (true, or from measured positions: :func:`measured_speed`).
+
 The summary row reports, like Table 1, the best (largest) task velocities over all transitions that
 reached the band, the peak tip speed, and the steady-state RMS error of the transitions with the
 longest window.
@@ -23,7 +25,7 @@ MM_BAND = 0.01  # m
 
 
 def settling_time(t, error, band: float) -> float | None:
-    """Time [s] from t[0] until |error| stays below ``band`` on every coordinate to the end; None if
+    """Time [s] from t[0] until ``|error|`` stays below ``band`` on every coordinate to the end; None if
     the last sample is outside the band. ``error``: (N, m) [m]; t: (N,) [s], increasing."""
     t = np.asarray(t, dtype=float)
     inside = np.all(np.abs(np.asarray(error, dtype=float)) < band, axis=1)

@@ -1,6 +1,7 @@
-"""Running the graph one process per node, as on the rig: the node processes (console scripts in
-their own sessions, SCHED_FIFO where permitted), waiting until the graph is wired, the operator's
-service calls, and a teardown that always runs (motors disabled, then the nodes stopped).
+"""Running the graph one process per node, as on the rig: the node processes (console scripts,
+each in a process group of its own (setsid), SCHED_FIFO where permitted), waiting until the graph
+is wired, the operator's service calls, and a teardown that always runs (motors disabled, then the
+nodes stopped).
 
 ``STOP`` is set by the first Ctrl-C / SIGTERM of ``soft-arm-experiment``: the run loops end at their
 next turn.
@@ -144,10 +145,10 @@ class _Children:
         self.procs: dict = {}
 
     def start(self, name: str):
-        """Start a node in its own session (a Ctrl-C in the terminal reaches this process only,
-        which stops the nodes in order), under SCHED_FIFO if it has a priority, else at the
-        niceness: set before the interpreter has started a thread, so that every thread of the
-        node inherits it."""
+        """Start a node in a process group of its own (setsid: a Ctrl-C in the terminal reaches
+        this process only, which stops the nodes in order), under SCHED_FIFO if it has a priority,
+        else at the niceness: set before the interpreter has started a thread, so that every thread
+        of the node inherits it."""
         proc = subprocess.Popen(
             [sys.executable, "-m", node_module(name)] + self.ros_args + self.extra.get(name, []),
             env=self.env, start_new_session=True)
@@ -305,7 +306,9 @@ def run_emulated_hardware(ros_args: list, out: dict, duration: float,
     children = _Children(ros_args, {
         "recorder": ["-p", f"output:={out['bag']}"],
         runner: ["-p", f"output:={out['metrics']}", "-p", "wait_for_start:=true"],
-        "emulated_rig": files + ["-p", f"rig.mocap.command_port:={port}"],
+        # the one node whose commands the driver takes: the inner loop, or the excitation
+        "emulated_rig": files + ["-p", f"rig.mocap.command_port:={port}",
+                                 "-p", f"rig.motors.command_publisher:=/{(controller or (runner,))[0]}"],
         # the bridge takes the mocap calibration of an arm file (an identified one) over mocap.yaml's;
         # the emulated Motive stays in the rig's frame, that of mocap.yaml
         "mocap_bridge": files + (["--params-file", os.path.abspath(arm_file)] if arm_file else [])
@@ -384,9 +387,9 @@ def run_emulated_hardware(ros_args: list, out: dict, duration: float,
 # it, on their CPUs once they are set up (realtime.py says why and how). On the rig, run motor_driver,
 # mocap_bridge and inner_loop the same way (README, "On the rig, and on the emulated rig").
 _REALTIME = {"emulated_rig": 30, "inner_loop": 20, "mocap_bridge": 20}
-# The other nodes (recorder, clik, task runner) run ahead of a lab PC's other work: at niceness 0
-# beside one CPU-bound process the recorder lost a quarter of the messages in 3 runs of 5
-# (bench_emulated_rig.py --load 1).
+# The other nodes (recorder, clik, task runner) run ahead of a lab PC's other work: at niceness 0,
+# beside one CPU-bound process, the recorder loses up to 30 % of the messages
+# (docs/decisions/0003-emulated-hardware-runs-below-the-nodes-on-a-cpu-of-its-own.md).
 _NICENESS = -10
 
 

@@ -6,28 +6,23 @@ now and then, and the motor driver's watchdog rightly trips. Two limits of the k
 the nodes need of a CPU, shape how:
 
 - when the real-time tasks of one CPU use more than ``sched_rt_runtime_us`` (950 ms) of a second,
-  every real-time task on that CPU waits 50 ms (measured: a FIFO 50 task beside a FIFO 10 busy
-  loop on its CPU waits 50 ms each second). So the emulated hardware, which stands for a machine
-  that takes no CPU on the rig, runs on a CPU of its own (:func:`hardware_cpu`) that the nodes keep
-  off, from when their set-up (seconds of computing) is done: set up on one CPU, the three
-  real-time nodes took 127 s to start once. Its Motive server is a process of its own
-  (:mod:`soft_arm_drivers.sim.emulated_motive`), not scheduled here: under the normal policy it
-  takes nothing from that CPU's budget. As a thread of the hardware's process it did (the hardware
-  took a median 50 % of its CPU, since 37 %), and every fault of a batch under load came with the
-  budget's 40-58 ms stall of that CPU (``bench_emulated_rig.py --probe``); in 15 runs since, none;
+  every real-time task on that CPU waits 50 ms. So the emulated hardware, which stands for a
+  machine that takes no CPU on the rig, runs on a CPU of its own (:func:`hardware_cpu`), which the
+  nodes keep off once their set-up is done (seconds of computing each: the three real-time nodes
+  set up on one CPU under SCHED_FIFO take minutes). Its Motive server is a process of its own
+  (:mod:`soft_arm_drivers.sim.emulated_motive`) under the normal policy, so that it takes nothing
+  from that CPU's budget (see
+  docs/decisions/0003-emulated-hardware-runs-below-the-nodes-on-a-cpu-of-its-own.md);
 - equal FIFO priorities do not preempt: the emulated hardware runs below every node
-  (:data:`HARDWARE_PRIORITY`), not at the driver's priority, where a plant thread catching up held
-  a core the driver waited for. Under the normal policy instead (tried: niceness -10, and -20 on
-  a CPU of its own) a lab PC's other work delayed it past the driver's reply timeout;
+  (:data:`HARDWARE_PRIORITY`), so that a plant thread catching up does not hold a core the driver
+  waits for; under the normal policy a lab PC's other work would delay it past the driver's reply
+  timeout;
 - the motors' loop (the driver and the inner loop, which its watchdog watches) keeps its CPU to
   itself: the mocap bridge, whose frames feed the outer loop at the camera's rate, runs on the
-  emulated hardware's CPU (:data:`BESIDE_HARDWARE`), as the Motive server it reads is there. With
-  the three on one CPU, on a computer half as fast, they needed 68-91 % of it and bursts held the
-  inner loop past the watchdog (``bench_emulated_rig.py``: 0 valid runs in 3, each ended by a
-  50-81 ms gap in the commands; with the bridge beside the hardware, 3 valid in 3). The bridge
-  stays under SCHED_FIFO there: under the normal policy (niceness -20) some of its frames were
-  stamped no later than the frame before (2-46 in each of 7 runs of 23; in none of 16 under
-  SCHED_FIFO).
+  emulated hardware's CPU (:data:`BESIDE_HARDWARE`), as the Motive server it reads is there, since
+  on one CPU the three need most of it and their bursts hold the inner loop past the watchdog. The
+  bridge stays under SCHED_FIFO there, since under the normal policy some of its frames get stamps
+  that go back (see docs/decisions/0004-mocap-bridge-runs-on-the-emulated-hardwares-cpu.md).
 
 Every thread of a process is set (a thread inherits its creator's policy and CPUs from then on).
 
@@ -36,15 +31,10 @@ stay under the normal policy, but their middleware threads (Fast DDS's, named ``
 SCHED_FIFO :data:`MIDDLEWARE_PRIORITY`, below everything else real-time (:func:`schedule` with
 ``named=MIDDLEWARE_THREADS``). The loop's writers wait on them: Fast DDS's discovery thread,
 pairing a reader with a local reliable writer, opens that reader's shared-memory port and polls the
-port's listeners, sleeping until they show alive, all the while holding its participant's send lock. The
-driver's state publish waited behind it for 43-293 ms when the listeners were those of a starved
-process (README, issue 17, stop 33; two batches with this in place: no such stall in 10 runs;
-before it, 10 of 27 instrumented runs were ended by one; in alternating batches, 10 of 10 runs
-valid with it, 6 of 10 without). It does not cost the outer loop's accuracy (the accuracy lost in
-one batch was the clik node's goals waiting behind queued frames: README, issue 17, stop 34). The
-recorder lost more messages under load with it (5-23 % of each tendon stream per run, against
-0-17 % without) while it spent 36-46 % of a core on rclpy's executor; since it takes its messages
-in batches (15 % of a core, stop 35) it loses none in most runs.
+port's listeners, sleeping until they show alive, all the while holding its participant's send
+lock, so that a starved process's listeners hold up the driver's state publish, and with it the
+driver's whole process, for tens to hundreds of milliseconds (see
+docs/decisions/0005-middleware-threads-of-the-other-processes-run-under-sched-fifo.md).
 """
 from __future__ import annotations
 

@@ -57,9 +57,8 @@ class TaskRunnerNode(Node):
                     f"{plan.rehearsed_gap * 1e3:.1f} mm away): the strike will miss on the model")
         self.core = TaskRunner(task, len(params.arm.marker_positions) - 1, plan, params.arm)
         self.release_sent = False
-        self.output = self.get_parameter("output").value if self.has_parameter("output") else ""
-        self.wait_for_start = bool(self.get_parameter("wait_for_start").value) \
-            if self.has_parameter("wait_for_start") else False
+        self.output = params.run_option("output")
+        self.wait_for_start = params.run_option("wait_for_start")
         self.started = not self.wait_for_start
         self.finished = self.done = False
         self.create_service(Trigger, "~/start", self.on_start)

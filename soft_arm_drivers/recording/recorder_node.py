@@ -20,12 +20,13 @@ when a publisher appears that the subscription does not match. The bag's topic m
 readers match the two.
 
 Messages are not handed to the recorder one callback at a time (an executor's wait and take, some
-0.25 ms of CPU per message in rclpy, held the recorder at 40 % of a core for the emulated rig's
-1600 messages a second): they wait in each subscription's history (1000 deep, 2 s of a 500 Hz
-stream) and every ``graph.recorder.take_period`` the node takes all of them (:class:`PolledGroup`
-keeps the executor off the subscriptions) and writes them in the order
-they were received, holding back those received since the previous take so that a message that
-was still on its way into a history is not written after a later one. (The composed graph's wave
+0.25 ms of CPU per message in rclpy, would hold the recorder at 40 % of a core for the emulated
+rig's 1600 messages a second; docs/decisions/0007-recorder-takes-messages-in-batches.md): they wait
+in each subscription's history (1000 deep, 2 s of a 500 Hz stream) and every
+``graph.recorder.take_period`` the node takes all of them (:class:`PolledGroup` keeps the executor
+off the subscriptions) and writes them in the order they were received, holding back those received
+since the previous take so that a message still on its way into a history is not written after a
+later one. (The composed graph's wave
 executor, which delivers to each subscription itself, calls their callbacks, and :meth:`take` to
 write.)
 
@@ -95,7 +96,7 @@ class PolledGroup(CallbackGroup):
     """A callback group no executor waits on or runs anything of: its subscriptions' messages stay in
     their histories for the node to take. A subscription's QoS event handlers join its group, so
     give them none (``SubscriptionEventCallbacks(use_default_callbacks=False)``) rather than
-    handlers that never run. (Handlers in a wait set cost the recorder most of its CPU: with
+    handlers that never run. (Handlers in a wait set would cost the recorder most of its CPU: with
     rmw_fastrtps every message wakes a wait set holding a subscription's events, and rclpy's
     executor, finding nothing ready, builds its wait set again, some 14 times per timer callback.)"""
 
@@ -131,8 +132,9 @@ class RecorderNode(Node):
     def __init__(self, config_dir: str | None = None, **node_options):
         super().__init__("recorder", allow_undeclared_parameters=True,
                          automatically_declare_parameters_from_overrides=True, **node_options)
-        graph = NodeParameters(self, config_dir).graph
-        output = self.get_parameter("output").value if self.has_parameter("output") else ""
+        params = NodeParameters(self, config_dir)
+        graph = params.graph
+        output = params.run_option("output")
         if not output:
             stamp = datetime.datetime.now(datetime.timezone.utc).strftime("%Y%m%d-%H%M%S")
             output = os.path.join("runs", f"bag-{stamp}")

@@ -118,8 +118,9 @@ def _serve(spec: HardwareSpec, conn):
     What the set-up allocated (the model, compiled kernels, scipy: some 1.5e5 objects) is collected
     once and frozen out of the garbage collector, as every node's process does
     (:func:`soft_arm_ros.runtime.run_node`): a full collection walking them holds the interpreter
-    lock, and with it the motors' thread, for 50-300 ms (measured, *ad hoc*), past
-    the driver's reply timeout: the motors fall silent and the driver faults."""
+    lock, and with it the motors' thread, for 50-300 ms, past the driver's reply timeout: the
+    motors fall silent and the driver faults
+    (docs/decisions/0001-nodes-spin-the-events-executor-and-freeze-their-set-up.md)."""
     bus = hardware = None
     try:
         bus = LoopbackBus(peer_channel(spec.driver.channel), preserve_timestamps=True)

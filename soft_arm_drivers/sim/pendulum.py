@@ -4,8 +4,8 @@
 length ``length`` [m] from ``pivot`` [m, arm_base]: a spherical pendulum, so that a blow from the
 side sends it out of its plane as the paper's Fig. 5B shows (its cable is taken as taut). It is held
 at ``release_angle`` [rad] from the vertical on the side ``direction`` (horizontal, from below the
-pivot towards the held ball) until :meth:`Pendulum.release`. With r = p - pivot (|r| = L) and F the
-contact force on the ball, the acceleration is
+pivot towards the held ball) until :meth:`Pendulum.release`. With r = p - pivot (``|r| = L``) and F
+the contact force on the ball, the acceleration is::
 
     a = (I - r_hat r_hat^T) (g + F / m) - (|v|^2 / L) r_hat
 
@@ -15,7 +15,7 @@ contact the energy is conserved to the integrator's order.
 **The contact.** The arm is the chain of capsules between consecutive backbone points (the model's
 points and markers, ordered by arc length), of the cone's radius there; the ball meets the capsule it
 overlaps most, along the normal n from the closest backbone point Q to the ball's centre, overlap
-delta = r_arm(Q) + r_ball - |c - Q|. The force is Hunt and Crossley's with the damping of Lankarani and
+delta = ``r_arm(Q) + r_ball - |c - Q|``. The force is Hunt and Crossley's with the damping of Lankarani and
 Nikravesh (restitution e, approach speed delta_dot_0 at first touch):
 
     F_n = k delta^(3/2) (1 + 3 (1 - e^2) / 4 * delta_dot / delta_dot_0),  F_n >= 0
@@ -45,7 +45,7 @@ def hertz_stiffness(youngs_modulus: float, arm_radius: float, ball_radius: float
 def closest_capsule(points, radii, centre) -> tuple[int, float, np.ndarray, float]:
     """The capsule of the chain through ``points`` (P, 3) [m] with radii (P,) [m] that ``centre``
     [m] is closest to the surface of: (segment index i between points i and i+1, fraction s along
-    it, the backbone point Q [m], the gap [m] from Q's surface: |c - Q| - r(Q))."""
+    it, the backbone point Q [m], the gap [m] from Q's surface: ``|c - Q| - r(Q)``)."""
     a, b = points[:-1], points[1:]
     d = b - a
     s = np.clip(np.einsum("ij,ij->i", centre - a, d) / np.maximum(np.einsum("ij,ij->i", d, d), 1e-18),

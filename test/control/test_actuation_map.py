@@ -57,3 +57,27 @@ def test_identity_without_friction():
 def test_too_few_equilibria_is_an_error(paper_model):
     with pytest.raises(ValueError, match="needs at least"):
         fit_actuation_map(paper_model, [0.0, 1.0], degree=3)
+
+
+def test_a_kept_fit_is_the_fit_and_another_arm_gets_its_own(tmp_path, monkeypatch, model_factory):
+    """The fit kept across processes is the one fitted now (bit for bit), a corrupted file is fitted
+    again, and another arm, or other settings, never get a kept map of another."""
+    from soft_arm_control import actuation_map as am
+    monkeypatch.setenv("SOFT_ARM_CACHE_DIR", str(tmp_path))
+    monkeypatch.setattr(am, "_FITTED", {})
+    model = model_factory()
+    kept = am.cached_fit(model, (0.0, 2.5), 1, 5)
+    files = list(tmp_path.glob("actuation_maps/*.npz"))
+    assert len(files) == 1
+    monkeypatch.setattr(am, "_FITTED", {})                       # a new process: from the file
+    again = am.cached_fit(model, (0.0, 2.5), 1, 5)
+    fresh = am.fit_actuation_map(model, (0.0, 2.5), 1, 5)
+    np.testing.assert_array_equal(again.coef, fresh.coef)
+    assert (again.rms_error, again.samples) == (fresh.rms_error, fresh.samples) and again is not kept
+    files[0].write_bytes(b"not a map")
+    monkeypatch.setattr(am, "_FITTED", {})
+    np.testing.assert_array_equal(am.cached_fit(model, (0.0, 2.5), 1, 5).coef, fresh.coef)
+    other = model_factory(**{"material.youngs_modulus": 2.0e5})
+    assert am._digest(other, (0.0, 2.5), 1, 5) != am._digest(model, (0.0, 2.5), 1, 5)
+    assert am._digest(model, (0.0, 2.5), 1, 6) != am._digest(model, (0.0, 2.5), 1, 5)
+    assert not np.allclose(am.cached_fit(other, (0.0, 2.5), 1, 5).coef, fresh.coef)

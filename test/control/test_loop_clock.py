@@ -122,4 +122,4 @@ def test_the_reference_rate_hold_counts_loop_time_not_stamps():
         moving = [tc.update(t, z, z)[0] for t in (0.0, PERIOD, 2 * PERIOD + jump)]
         later = [tc.update(2 * PERIOD + jump + k * PERIOD, z, z)[0] for k in range(1, 8)]
         assert moving[0] == moving[1] == moving[2]                      # the rate counts through the step
-        assert later[:2] == [moving[0]] * 2 and later[-1] < moving[0]   # and stops 10 ms of loop time on
+        assert later[:2] == [moving[0]] * 2 and later[-1] < moving[0]   # and ends 10 ms of loop time on

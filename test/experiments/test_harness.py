@@ -126,25 +126,31 @@ def test_sugar_payload_is_unmodelled_but_the_online_loop_copes():
     assert all(r.final_error < 1e-3 for r in result.metrics)
 
 
-@pytest.mark.parametrize("plant", [
+@pytest.mark.parametrize("plant, reached", [
     # softer than the model, tendons misplaced; stiffer, misplaced the other way, finer basis
-    ["plant.youngs_modulus_scale=0.9", "plant.viscosity_scale=1.2",
-     "plant.tendon.offset_fraction=[0.58,0.62,0.6,0.61]",
-     "plant.tendon.start_angle_error=[0.03,-0.03,0.02,-0.02]"],
-    ["plant.youngs_modulus_scale=1.15", "plant.viscosity_scale=0.8",
-     "plant.tendon.offset_fraction=[0.62,0.58,0.61,0.59]",
-     "plant.tendon.end_angle_error=[-0.03,0.03,-0.02,0.02]", "plant.discretisation.legendre_order=[4,0]"],
+    (["plant.youngs_modulus_scale=0.9", "plant.viscosity_scale=1.2",
+      "plant.tendon.offset_fraction=[0.58,0.62,0.6,0.61]",
+      "plant.tendon.start_angle_error=[0.03,-0.03,0.02,-0.02]"], [True, False, False]),
+    (["plant.youngs_modulus_scale=1.15", "plant.viscosity_scale=0.8",
+      "plant.tendon.offset_fraction=[0.62,0.58,0.61,0.59]",
+      "plant.tendon.end_angle_error=[-0.03,0.03,-0.02,0.02]", "plant.discretisation.legendre_order=[4,0]"],
+     [True, True, True]),
 ], ids=["softer", "stiffer"])
-def test_every_triangle_target_is_reached_on_structurally_different_plants(plant):
+def test_every_triangle_target_is_reached_on_structurally_different_plants(plant, reached):
     """The unchanged controller on arms that differ from its model in stiffness, damping, tendon
-    geometry and strain basis: each triangle vertex within 5 mm at the end of its CLIK window, and
-    every goal's report says ok or constrained (never held, never a silent stall)."""
+    geometry and strain basis: each triangle vertex within 5 mm at the end of its CLIK window.
+    On both arms every goal has online steps projected onto the tension limits and says
+    constrained (never held: the reference kept moving); the softer arm ends vertices 2 and 3
+    just beyond the 1 mm reach tolerance (1.1-1.2 mm), and their reports say they were not
+    reached."""
     setup = load_setup("triangle", overrides=["tasks.triangle.phases=[approach]"] + plant)
     result = run_experiment(setup)
     assert [r.final_error < 5e-3 for r in result.metrics] == [True] * 3, result.metrics
-    for goal in result.goals:
-        assert goal["status"] in ("ok", "constrained") and goal["held_steps"] == 0, goal
-        assert goal["reached"] or goal["status"] != "ok", goal
+    goals = result.goals
+    assert [g["status"] for g in goals] == ["constrained"] * 3, goals
+    assert [g["reached"] for g in goals] == reached, goals
+    for goal in goals:
+        assert goal["closed"] and goal["held_steps"] == 0 and goal["infeasible_steps"] > 0, goal
 
 
 @pytest.mark.parametrize("timing", ["planned", "rehearsed"])
@@ -231,7 +237,7 @@ SHORT_TRACKING = ["tasks.tracking.phases=[approach, circle_slow]", "tasks.tracki
 
 
 def test_a_slow_circle_is_tracked_within_2_mm_and_the_feedforward_keeps_a_fast_one_on_its_path():
-    """The issue's figure: a circle of period 20 s on the declared plant, RMS below 2 mm; a circle
+    """The tracking task's figure: a circle of period 20 s on the declared plant, RMS below 2 mm; a circle
     of period 5 s without the trajectory's velocity as feedforward lags behind it (a larger error)."""
     result = run_experiment(load_setup("tracking", overrides=SHORT_TRACKING))
     slow, = result.tracking
@@ -256,7 +262,7 @@ def fast_circle(size: float, speed: float, periods: int) -> list:
 
 
 def test_a_circle_at_5_cm_s_is_tracked_within_2_mm_with_the_damping_and_the_dynamics_of_the_path():
-    """The issue's goal at 0.05 m/s: a 1 cm circle (1.26 s, just below the held arm's lowest mode)
+    """The goal at 0.05 m/s: a 1 cm circle (1.26 s, just below the held arm's lowest mode)
     within 2 mm RMS on the declared plant; without the dynamic reference the arm swings off the
     path, and with the paper's derivative term, -G_D thetadot, it drags behind it as well (the
     path not learned: learning would make up for both)."""
@@ -272,7 +278,7 @@ def test_a_circle_at_5_cm_s_is_tracked_within_2_mm_with_the_damping_and_the_dyna
 
 
 def test_a_circle_at_20_cm_s_is_learned_to_within_5_mm_where_the_unlearned_path_is_not():
-    """The issue's goal at 0.2 m/s: a 1.5 cm circle (0.47 s, 2.1 Hz, above the held arm's lowest
+    """The goal at 0.2 m/s: a 1.5 cm circle (0.47 s, 2.1 Hz, above the held arm's lowest
     mode, where the dynamic reference is wrong) on the declared plant. Unlearned the arm misses it
     by a centimetre; the learned path (control.clik.track_learning) comes to a few millimetres
     within the window, and the goal's report counts the periods learned from."""

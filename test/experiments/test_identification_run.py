@@ -12,7 +12,7 @@ from soft_arm_model.identification import IdentificationError
 
 # the controller's own arm as the plant (its discretisation, friction, geometry, viscosity)
 OWN_ARM = ["plant.youngs_modulus_scale=1", "plant.viscosity_scale=1", "plant.friction=[0.1,0.1,0.1,0.1]"]
-# the issue's different arm: E -12 %, viscosity +30 %, density +5 %, uneven friction, offsets and
+# a structurally different arm: E -12 %, viscosity +30 %, density +5 %, uneven friction, offsets and
 # angles, order 4 with shear, and a mocap calibration off by 2 deg and 5 mm
 DIFFERENT = ["plant.youngs_modulus_scale=0.88", "plant.viscosity_scale=1.3", "plant.density_scale=1.05",
              "plant.friction=[0.09,0.16,0.12,0.14]", "plant.tendon.offset_fraction=[0.57,0.64,0.62,0.58]",
@@ -31,8 +31,9 @@ def _identified(overrides, excitation_overrides=(), fit=None):
 
 
 def test_the_controllers_own_arm_is_returned():
-    """The issue's first test: E within 0.5 %, friction within 0.005; the dynamics too. The data
-    prefer the fit's basis, the arm's own, to the basis check's (order 4 with shear)."""
+    """The controller's arm as the plant is found again: E within 0.5 %, friction within 0.005; the
+    dynamics too. The data prefer the fit's basis, the arm's own, to the basis check's (order 4 with
+    shear)."""
     setup, truth, result = _identified(OWN_ARM)
     fit, dyn = result["static"], result["dynamic"]
     assert not result["report"]["basis_check"]["kept"]
@@ -46,9 +47,9 @@ def test_the_controllers_own_arm_is_returned():
 
 
 def test_a_different_arm_and_a_misplaced_mocap_frame_are_recovered():
-    """E, viscosity, friction, offsets, tendon angles and the mocap frame within the issue's goal
-    tolerances (E 3 %, viscosity 15 %, friction 0.02, offsets 0.02, angles 1 deg relative to their
-    mean (the common turn is the mocap frame's, see the fit's gauge), frame 1 mm and 0.5 deg), and
+    """E, viscosity, friction, offsets, tendon angles and the mocap frame within the identification's
+    goal tolerances (E 3 %, viscosity 15 %, friction 0.02, offsets 0.02, angles 1 deg relative to
+    their mean (the common turn is the mocap frame's, see the fit's gauge), frame 1 mm and 0.5 deg), and
     each within two of its uncertainties."""
     setup, truth, result = _identified(DIFFERENT)
     fit, dyn = result["static"], result["dynamic"]

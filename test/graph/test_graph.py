@@ -3,7 +3,9 @@ lockstep determinism, remapping, and the recorded bag read back with rosbags."""
 import json
 import os
 import pathlib
+import re
 
+import numpy as np
 import pytest
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
@@ -36,6 +38,41 @@ def _messages(bag_dir):
             out.setdefault(conn.topic, []).append(bytes(raw))
             types[conn.topic] = conn.msgtype
     return out, types
+
+
+def _window_errors(bag_dir) -> list:
+    """Per goal recorded on task/goal: the task error norms [m] of the recorded mocap frames of its
+    window (stamped from the goal's stamp to the next goal's, the last to the end of its window),
+    the task coordinates read from the markers the goal's labels name."""
+    goals, frames = [], []
+    with AnyReader([pathlib.Path(bag_dir)],
+                   default_typestore=get_typestore(Stores.ROS2_JAZZY)) as reader:
+        connections = [c for c in reader.connections if c.topic in ("/task/goal", "/mocap/markers")]
+        for conn, _, raw in reader.messages(connections=connections):
+            msg = reader.deserialize(raw, conn.msgtype)
+            t = msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
+            if conn.topic == "/task/goal":
+                goals.append((t, msg.window, list(msg.labels), np.array(msg.target)))
+            else:
+                frames.append((t, msg.poses))
+    out = []
+    for k, (start, window, labels, target) in enumerate(goals):
+        end = goals[k + 1][0] if k + 1 < len(goals) else start + window
+        read = [(int(name[len("marker"):name.index(".")]) - 1, name[-1]) for name in labels]   # "marker4.x"
+        out.append([float(np.linalg.norm([getattr(poses[i].position, axis) for i, axis in read] - target))
+                    for t, poses in frames if start - 1e-9 <= t < end - 1e-9])
+    return out
+
+
+def _node_logs(log_dir) -> dict:
+    """Per node name: the process ids [int] of the ROS log files (``<exe>_<pid>_<time>.log``, one
+    per process) under ``log_dir`` whose lines that node logged."""
+    out = {}
+    for path in pathlib.Path(log_dir).rglob("*.log"):
+        pid = int(re.search(r"_(\d+)_\d+\.log$", path.name).group(1))
+        for name in set(re.findall(r"^\[\w+\] \[[\d.]+\] \[([\w.]+)\]", path.read_text(), re.M)):
+            out.setdefault(name, []).append(pid)
+    return out
 
 
 @pytest.fixture(scope="module")
@@ -91,8 +128,12 @@ def test_lockstep_runs_with_the_same_seed_record_the_same_messages(tmp_path):
     assert first["summary"] == second["summary"]
     goals = first["goals"]                  # what became of each goal, with the clik node's report
     assert [g["target"] for g in goals] == [1, 2]
-    for g in goals:
-        assert g["closest_error"] <= g["error"]
+    # the closest and the last error of each window are those of the frames recorded in it
+    windows = _window_errors(out_a["bag"])
+    assert [len(errors) for errors in windows] == [240, 240]            # 1 s windows at 240 Hz
+    for g, errors in zip(goals, windows):
+        assert g["closest_error"] == pytest.approx(min(errors), rel=1e-12, abs=0.0), (g, errors)
+        assert g["error"] == pytest.approx(errors[-1], rel=1e-12, abs=0.0), (g, errors)
     report = goals[0]["clik"]               # final: published when the next goal closed it
     harness = run_experiment(load_setup("coiling", overrides=SHORT)).goals[0]
     assert report["goal"] == 0 and report["closed"]
@@ -115,8 +156,11 @@ def test_the_simulator_can_be_swapped_by_remapping(tmp_path):
     assert metrics["transitions"][-1]["final_error"] < 0.03
 
 
-def test_processes_mode_runs_each_node_as_its_own_process(tmp_path):
+def test_processes_mode_runs_each_node_as_its_own_process(tmp_path, monkeypatch):
+    """Each node logs from a process of its own (its own ROS log file, named with its process id,
+    not this one's), and the run reaches the target and draws the figures."""
     from soft_arm_drivers.experiments.experiment import main
+    monkeypatch.setenv("ROS_LOG_DIR", str(tmp_path / "log"))          # the node processes inherit it
     out = tmp_path / "procs"
     code = main(["coiling", "--processes", "--quiet", "--output", str(out), "--set",
                  "tasks.coiling.phases=[upward]", "--set", "tasks.coiling.phase.upward.sequence=[1]",
@@ -128,6 +172,11 @@ def test_processes_mode_runs_each_node_as_its_own_process(tmp_path):
     assert metrics["transitions"][0]["final_error"] < 3e-3
     assert sorted(p.name for p in (out / "figures").iterdir()) == [
         "actuation.png", "task_error.png", "tensions.png"]
+    logs = _node_logs(tmp_path / "log")
+    nodes = ("simulator", "inner_loop", "clik", "task_runner", "recorder")
+    assert all(len(logs.get(name, [])) == 1 for name in nodes), logs
+    pids = [logs[name][0] for name in nodes]
+    assert len(set(pids)) == len(nodes) and os.getpid() not in pids, logs
 
 
 def test_a_node_that_fails_mid_run_leaves_an_invalid_result(tmp_path, monkeypatch, capsys):

@@ -1,6 +1,9 @@
 """The identification experiment as a graph run (composed and one process per node) and
 soft-arm-identify on its bag: what a user runs, end to end."""
 import json
+import os
+import pathlib
+import re
 
 import pytest
 
@@ -14,8 +17,10 @@ from soft_arm_model.parameters import read_parameters
 SHORT = ["identification.steps=1", "identification.pairs=[1,2]", "identification.hold=3.0",
          "identification.average=1.0", "identification.step.hold=1.0", "identification.chirp.duration=2.0",
          "identification.chirp.tendons=[3]"]
+# the fit of that bag, without the basis check (what it adds is tested in test_identification_run.py)
 FIT = ["identification.fit.min_plateau=2.5", "identification.average=1.0",
-       "identification.fit.legendre_order=[3,0]", "identification.fit.shear=false"]
+       "identification.fit.legendre_order=[3,0]", "identification.fit.shear=false",
+       "identification.fit.basis_check.max_evaluations=0"]
 
 
 def _sets(pairs):
@@ -54,12 +59,16 @@ def test_identify_writes_an_arm_every_entry_point_takes(short_run, tmp_path, cap
         "dynamics.png", "hysteresis.png", "markers.png", "shortenings.png"]
 
 
-def test_a_bag_without_the_commands_is_refused_naming_the_topic(tmp_path, capsys):
-    out = tmp_path / "nocommands"
-    assert experiment(["identification", "--quiet", "--output", str(out),
-                       "--set", "graph.recorder.topics=[tendon/state, mocap/markers]"] + _sets(SHORT)) == 0
-    capsys.readouterr()
-    assert identify([str(out / "bag")] + _sets(FIT)) == 2
+def test_a_bag_without_the_commands_is_refused_naming_the_topic(short_run, tmp_path, capsys):
+    """The run's bag copied without its tendon/command messages (a recorder not told to keep them)."""
+    from soft_arm_drivers.recording.rosbag_writer import RosbagWriter, TopicSpec
+    from rosbags.highlevel import AnyReader
+    with AnyReader([short_run / "bag"]) as reader:
+        kept = [c for c in reader.connections if c.topic != "/tendon/command"]
+        with RosbagWriter(tmp_path / "bag", [TopicSpec(c.topic, c.msgtype) for c in kept]) as writer:
+            for connection, stamp, raw in reader.messages(connections=kept):
+                writer.write(connection.topic, stamp, raw)
+    assert identify([str(tmp_path / "bag")] + _sets(FIT)) == 2
     assert "the bag lacks tendon/command" in capsys.readouterr().err
 
 
@@ -78,12 +87,31 @@ def test_a_bag_whose_run_is_marked_invalid_is_refused(short_run, tmp_path, capsy
     assert "marked invalid" in err and "stale command" in err
 
 
-def test_the_identification_experiment_runs_one_process_per_node(tmp_path):
+def _node_logs(log_dir) -> dict:
+    """Per node name: the process ids [int] of the ROS log files (``<exe>_<pid>_<time>.log``, one
+    per process) under ``log_dir`` whose lines that node logged."""
+    out = {}
+    for path in pathlib.Path(log_dir).rglob("*.log"):
+        pid = int(re.search(r"_(\d+)_\d+\.log$", path.name).group(1))
+        for name in set(re.findall(r"^\[\w+\] \[[\d.]+\] \[([\w.]+)\]", path.read_text(), re.M)):
+            out.setdefault(name, []).append(pid)
+    return out
+
+
+def test_the_identification_experiment_runs_one_process_per_node(tmp_path, monkeypatch):
+    """The experiment plays to its end, and each node logs from a process of its own (its own ROS
+    log file, named with its process id, not this one's)."""
+    monkeypatch.setenv("ROS_LOG_DIR", str(tmp_path / "log"))          # the node processes inherit it
     out = tmp_path / "procs"
     assert experiment(["identification", "--processes", "--quiet", "--output", str(out)]
                       + _sets(SHORT)) == 0
     with open(out / "excitation.json", encoding="utf-8") as fh:
         assert json.load(fh)["duration"] > 20
+    logs = _node_logs(tmp_path / "log")
+    nodes = ("simulator", "excitation", "recorder")
+    assert all(len(logs.get(name, [])) == 1 for name in nodes), logs
+    pids = [logs[name][0] for name in nodes]
+    assert len(set(pids)) == len(nodes) and os.getpid() not in pids, logs
 
 
 def test_calibrate_identifies_then_reruns_the_task_with_the_identified_arm(tmp_path):

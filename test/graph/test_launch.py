@@ -60,15 +60,24 @@ def test_parameter_file_parses_with_rcl(path):
     rclpy.shutdown(context=context)
 
 
-def test_the_rig_launch_manages_the_lifecycle_drivers():
-    """The launch configures the managed drivers (and activates only the bridge: the motors wait for
-    the operator); the nodes it manages are the ones that are lifecycle nodes."""
+@pytest.mark.parametrize("name", ["rig.launch.py", "identification.launch.py"])
+def test_the_rig_launches_manage_the_lifecycle_drivers(name):
+    """The launches configure the managed drivers (and activate only the bridge: the motors wait for
+    the operator); the nodes they manage are the ones that are lifecycle nodes."""
     from soft_arm_drivers.can.motor_driver_node import MotorDriverNode
     from soft_arm_drivers.mocap.mocap_bridge_node import MocapBridgeNode
     from soft_arm_ros.lifecycle import ManagedHardwareNode
-    tree = ast.parse((ROOT / "launch" / "rig.launch.py").read_text())
+    tree = ast.parse((ROOT / "launch" / name).read_text())
     managed = _constant(tree, "MANAGED")
     assert managed == {"motor_driver": "inactive", "mocap_bridge": "active"}
     assert set(managed) <= set(_constant(tree, "NODES"))
     for cls in (MotorDriverNode, MocapBridgeNode):
         assert issubclass(cls, ManagedHardwareNode)
+
+
+def test_the_identification_launch_lets_the_excitation_command_the_motors():
+    """The motor driver takes commands from one node: there, the excitation, not the inner loop."""
+    tree = ast.parse((ROOT / "launch" / "identification.launch.py").read_text())
+    own = _constant(tree, "OWN")
+    assert own["motor_driver"]["rig.motors.command_publisher"] == "/excitation"
+    assert "excitation" in _constant(tree, "NODES") and "inner_loop" not in _constant(tree, "NODES")

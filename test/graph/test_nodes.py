@@ -218,9 +218,10 @@ def test_clik_node_rejects_bad_goals_and_keeps_the_last_reference():
 
 def test_a_slow_clik_takes_a_goal_at_once_and_drops_the_frames_it_cannot_keep_up_with():
     """A CLIK step of 12.5 ms against 240 Hz frames (a loaded computer), on the events executor the
-    node runs on: it queued an event per frame, so a goal sent 1.5 s in waited seconds (stop 34: 6 s,
-    and a goal lost). Now the frames queued behind a step are dropped: the goal is taken within
-    0.25 s, the drops are counted and reported, and a step is taken per step's worth of time."""
+    node runs on, which queues an event per frame, so that a goal sent 1.5 s in would wait seconds
+    behind them: the frames queued behind a step are dropped, the goal is taken within 0.25 s, the
+    drops are counted and reported, and a step is taken per step's worth of time
+    (docs/decisions/0006-clik-node-drops-frames-queued-behind-a-slow-step.md)."""
     import threading
 
     import rclpy
@@ -341,7 +342,7 @@ def test_clik_node_rejects_a_fragile_goal():
 def test_clik_node_solves_its_seed_equilibria_before_the_first_goal(monkeypatch):
     """The triangle's third vertex is not reached from the hanging arm: its reference starts from
     the seed equilibria. The node solves them at start-up, not at that goal (0.7 s idle, 2.4-4.9 s
-    under load at stop 34, the arm holding the last vertex meanwhile): at the goal none is solved."""
+    under load, the arm holding the last vertex meanwhile): at the goal none is solved."""
     import rclpy
     from rclpy.parameter import Parameter
 

@@ -12,7 +12,7 @@ from soft_arm_model.identification import (IdentificationError, StaticProblem, S
                                            with_basis_shift)
 
 ZERO = np.array([0.01, -0.02, 0.005, 0.0])          # encoder zeros [m]
-# the issue's structurally different arm: E -12 %, density +5 %, uneven friction, offsets, angles,
+# a structurally different arm: E -12 %, density +5 %, uneven friction, offsets, angles,
 # and 3 g at the tip
 DEG = np.radians
 
@@ -71,9 +71,9 @@ def test_the_fit_returns_the_arm_it_is_given_data_of(paper_model):
 
 
 def test_a_trial_step_without_an_equilibrium_is_refused_not_the_fit(paper_model):
-    """On these data (the issue's different arm, the mocap frame in place) the fit's third trial
+    """On these data (the different arm, the mocap frame in place) the fit's third trial
     step has no equilibrium under the crossed pair's 2.5 N: the trust region shrinks and the fit
-    goes on to the arm (it used to stop there with an error)."""
+    goes on to the arm rather than stopping with an error."""
     arm = paper_model.config
     truth = _different(arm)
     fit = identify_static(arm, _samples(truth, TENSIONS, noise=2e-5), marker_sigma=2e-5,

@@ -230,7 +230,7 @@ def test_node_drives_the_emulated_rig_through_its_lifecycle_topics_and_services(
     assert harness.latest("position")[0] > 5e-3                              # tendon 1 shortened
     # sensor stamps, one per cycle: strictly increasing, near the 2 ms period (this process also
     # runs the harness, the emulated motors and rclpy's Python executor: a late tick stretches one
-    # period, and the timer's fixed grid shortens the next; on this 2-core machine the median was
+    # period, and the timer's fixed grid shortens the next; on a 2-core machine the median is
     # 2-6 ms: the driver's own timing is measured, alone, by bench_motor_driver)
     periods = np.diff([stamp_to_seconds(m.header.stamp) for m in harness.states[start:]])
     assert np.all(periods > 0) and 0.0015 < np.median(periods) < 0.01

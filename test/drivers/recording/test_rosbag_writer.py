@@ -135,7 +135,7 @@ def _stream_messages(path):
 
 @pytest.fixture(scope="module")
 def bag(tmp_path_factory):
-    directory = tmp_path_factory.mktemp("bags") / "session"
+    directory = tmp_path_factory.mktemp("bags") / "run"
     return directory, _write_bag(directory, custom_data={"rig": "soft_arm"})
 
 
@@ -178,7 +178,7 @@ def test_rosbags_decodes_field_values(bag):
 
 def test_mcap_schemas_channels_and_summary(bag):
     directory, records = bag
-    with open(directory / "session_0.mcap", "rb") as file:
+    with open(directory / "run_0.mcap", "rb") as file:
         reader = make_reader(file)
         header = reader.get_header()
         summary = reader.get_summary()
@@ -220,8 +220,8 @@ def test_metadata_yaml_is_jazzy_version_9(bag):
     assert info["message_count"] == len(records)
     assert info["starting_time"] == {"nanoseconds_since_epoch": min(stamps)}
     assert info["duration"] == {"nanoseconds": max(stamps) - min(stamps)}
-    assert info["relative_file_paths"] == ["session_0.mcap"]
-    assert info["files"] == [{"path": "session_0.mcap", "starting_time": info["starting_time"],
+    assert info["relative_file_paths"] == ["run_0.mcap"]
+    assert info["files"] == [{"path": "run_0.mcap", "starting_time": info["starting_time"],
                               "duration": info["duration"], "message_count": len(records)}]
     assert (info["compression_format"], info["compression_mode"]) == ("", "")
     assert info["custom_data"] == {"rig": "soft_arm"}
@@ -241,7 +241,7 @@ def test_metadata_yaml_is_jazzy_version_9(bag):
                         "liveliness_lease_duration": {"sec": 9223372036, "nsec": 854775807},
                         "avoid_ros_namespace_conventions": False}]
     assert by_topic["/arm/never_written"]["message_count"] == 0
-    assert sorted(p.name for p in directory.iterdir()) == ["metadata.yaml", "session_0.mcap"]
+    assert sorted(p.name for p in directory.iterdir()) == ["metadata.yaml", "run_0.mcap"]
 
 
 @pytest.mark.parametrize("type_name", sorted({s.type for s in TOPICS}))
@@ -474,7 +474,7 @@ def test_a_flush_cut_after_one_byte_is_recovered(tmp_path, monkeypatch):
 
 
 def test_recover_leaves_a_closed_bag_unchanged(bag, tmp_path):
-    directory = tmp_path / "session"
+    directory = tmp_path / "run"
     shutil.copytree(bag[0], directory)
     before = {p.name: p.read_bytes() for p in directory.iterdir()}
     assert recover(directory) == len(bag[1])

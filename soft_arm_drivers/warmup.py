@@ -1,0 +1,70 @@
+"""``soft-arm-warmup``: compile every numba kernel of the package into its cache, once.
+
+The model's, the integrator's, the inner loop's, the actuation map's and the mocap bridge's kernels
+are compiled on their first call and cached beside their modules (numba's ``cache=True``). On a fresh
+machine that first call takes about a minute, and it would otherwise come in the middle of a run:
+harmless on the simulator, but on the emulated rig (or the rig) a node that compiles while its
+neighbours time out looks like a fault. This command makes the calls a run makes, says what it
+compiles and how long each took, and is quick once the cache is warm. Exit status 0, or 1 with the
+reason when a kernel cannot be compiled.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+
+import numpy as np
+
+# One target of coiling for a fraction of a second: the plant, the inner loop, the actuation map, the
+# precomputed and the online CLIK all run at least once.
+SHORT_RUN = ["tasks.coiling.phases=[upward]", "tasks.coiling.phase.upward.sequence=[1]",
+             "tasks.coiling.phase.upward.window=0.6"]
+
+
+def _model():
+    from soft_arm_model import build_model, simulate, solve_equilibrium
+    from soft_arm_model.dynamics import CORIOLIS, evaluate
+    from soft_arm_model.model import ArmData
+    model = build_model()
+    evaluate(model, ArmData(model), np.zeros(model.n), np.zeros(model.n), CORIOLIS, markers=True)
+    eq = solve_equilibrium(model, [0.5, 0.0, 0.5, 0.0])
+    simulate(model, eq.q, np.zeros(model.n), lambda t: [0.5, 0.0, 0.5, 0.0], 0.01, dt=1e-3)
+
+
+def _controller_and_plant():
+    from soft_arm_drivers.experiments.harness import load_setup, run_experiment
+    run_experiment(load_setup("coiling", overrides=SHORT_RUN))
+
+
+def _mocap():
+    from soft_arm_drivers.mocap.natnet_scan import warm_up
+    warm_up()
+
+
+STEPS = (("the model's kernels (kinematics to Coriolis, statics, the IMEX step)", _model),
+         ("the plant, the inner loop, the actuation map and the CLIK (a short coiling run)",
+          _controller_and_plant),
+         ("the mocap bridge's frame reader", _mocap))
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="soft-arm-warmup", description=__doc__.splitlines()[0])
+    parser.parse_args(argv)
+    start = time.monotonic()
+    for what, step in STEPS:
+        print(f"soft-arm-warmup: compiling {what} ...", end="", file=sys.stderr, flush=True)
+        t0 = time.monotonic()
+        try:
+            step()
+        except Exception as exc:  # noqa: BLE001 - any failure here is reported, not a traceback
+            print(f" failed: {type(exc).__name__}: {exc}", file=sys.stderr)
+            return 1
+        print(f" {time.monotonic() - t0:.1f} s", file=sys.stderr)
+    print(f"soft-arm-warmup: every kernel is in the cache ({time.monotonic() - start:.1f} s)",
+          file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
