@@ -26,6 +26,9 @@ setup(
         "matplotlib>=3.8",
         "python-can>=4.3",
         "mcap==1.6.0",
+        # soft-arm-campaign: runs on Dask distributed; bokeh serves its dashboard
+        "dask[distributed]>=2024.8",
+        "bokeh>=3.1",
         # Real ROS 2 Jazzy rclpy from PyPI; without the RMW implementation rclpy cannot start.
         "ros-jazzy-rclpy==7.1.6",
         "ros-jazzy-common-interfaces==5.3.6",
@@ -49,6 +52,7 @@ setup(
             "soft-arm-experiment = soft_arm_drivers.experiments.experiment:main",
             "soft-arm-identify = soft_arm_drivers.experiments.identify_cli:main",
             "soft-arm-warmup = soft_arm_drivers.warmup:main",
+            "soft-arm-campaign = soft_arm_drivers.campaigns.cli:main",
             "simulator = soft_arm_drivers.sim.simulator_node:main",
             "recorder = soft_arm_drivers.recording.recorder_node:main",
             "inner_loop = soft_arm_control.inner_loop_node:main",

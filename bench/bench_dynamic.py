@@ -3,10 +3,10 @@ triangle against the paper's, and the tracking error against path speed, on the 
 Prints three tables and writes JSON.
 
     python bench/bench_dynamic.py [--runs 10] [--planned-runs 3] [--speeds 0.0125 0.025 0.05 0.1 0.2]
-                                  [--sizes 0.01 0.015] [--jobs 2] [--output bench/results/dynamic.json]
+                                  [--sizes 0.01 0.015] [--workers 2] [--output bench/results/dynamic.json]
 
-Every figure is one ``soft-arm-harness TASK --json`` run (one process per run, ``--jobs`` at a
-time):
+Every figure is one ``soft-arm-harness TASK --json`` run, each a process of its own, the runs shared
+out by the campaign engine (Dask, ``--workers`` at a time; ``soft_arm_drivers.campaigns.engine``):
 - pendulum, ``--runs`` times with ``plant.mocap.seed`` 0, 1, ... (the mocap noise differs): struck
   or not, the impact time after the release, the ball's speed before and after, and the equivalent
   task velocity of the strike, the tip's displacement to the strike target over the time from the
@@ -20,7 +20,7 @@ time):
   periods at least the task's ``steady_time`` + 8 s long, with the path learned
   (``control.clik.track_learning``, :mod:`soft_arm_control.track_learning`) and without: tracking
   RMS and maximum error after ``steady_time``, and the RMS of the window's last period.
-The same strike on randomly drawn plants is ``bench_robustness.py --tasks pendulum``.
+The same strike on randomly drawn plants is ``soft-arm-campaign robustness --tasks pendulum``.
 """
 from __future__ import annotations
 
@@ -29,10 +29,10 @@ import json
 import math
 import os
 import sys
-from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
 
+from soft_arm_drivers.campaigns.engine import map_runs
 from timing import results_path, run_harness, write_results
 
 PAPER = {"strike_time": 0.35, "strike_velocity": 1.48}     # s after the release, m/s
@@ -133,6 +133,11 @@ def _run(job):
     return tracking_run(*arg)
 
 
+def run_spec(spec: dict):
+    """One job on a campaign worker (:func:`soft_arm_drivers.campaigns.engine.map_runs`)."""
+    return _run(spec["job"])
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--runs", type=int, default=10)
@@ -140,7 +145,8 @@ def main(argv=None) -> int:
     parser.add_argument("--speeds", type=float, nargs="+", default=[0.0125, 0.025, 0.05, 0.1, 0.2])
     parser.add_argument("--sizes", type=float, nargs="+", default=None,
                         help="circle radii [m] (default: the tracking task's, and 0.015)")
-    parser.add_argument("--jobs", type=int, default=os.cpu_count() or 2)
+    parser.add_argument("--workers", type=int, default=os.cpu_count() or 2,
+                        help="Dask workers on this machine (default: the cores)")
     parser.add_argument("--output", default=results_path("dynamic.json"))
     args = parser.parse_args(argv)
     from soft_arm_drivers.experiments.harness import load_setup
@@ -151,8 +157,8 @@ def main(argv=None) -> int:
             + [("speed", (t,)) for t in ("coiling", "triangle")]
             + [("tracking", (v, a, track.steady_time, learned)) for a in sizes for v in args.speeds
                for learned in (False, True)])
-    with ProcessPoolExecutor(args.jobs) as pool:
-        results = list(pool.map(_run, jobs))
+    specs = [{"job": list(job)} for job in jobs]
+    results = map_runs(f"{os.path.abspath(__file__)}:run_spec", specs, workers=args.workers)
     strikes = results[:args.runs]
     planned = results[args.runs:args.runs + args.planned_runs]
     speeds = results[args.runs + args.planned_runs:args.runs + args.planned_runs + 2]

@@ -3,14 +3,16 @@ to the pendulum task's strike target, against the hardware the model is given. P
 writes JSON.
 
     python bench/bench_strike_limits.py [--rotor-masses 0.6 0.3 0.15 0] [--tension-limits 5 20]
-                                        [--pieces 3 6] [--jobs 2] [--output bench/results/strike_limits.json]
+                                        [--pieces 3 6] [--workers 2]
+                                        [--output bench/results/strike_limits.json]
 
 For every combination of the reflected rotor mass on each tendon [kg] (``control.rotor_mass``; the
 declared AK80-class rotor is 0.6 kg), the upper tension limit [N] (``control.tension_max``) and the
 number of constant tension levels of the planned profile (``pieces``),
 :func:`soft_arm_control.strike_planner.plan_strike_move` bisects the shortest duration whose fitted
 profile brings the task point within 1 mm of the strike target from the hanging arm (between 0.05
-and 0.5 s, 5 bisections: about 14 ms of resolution), one process per combination. The table gives
+and 0.5 s, 5 bisections: about 14 ms of resolution), the combinations shared out by the campaign
+engine (Dask, ``--workers`` at a time). The table gives
 that duration, the equivalent task velocity (the target's distance from the hanging arm's task
 point over the duration; the paper: 1.48 m/s) and the planned tip speed at the target. A
 combination whose fit fails says why.
@@ -23,10 +25,10 @@ import itertools
 import os
 import sys
 import time
-from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
 
+from soft_arm_drivers.campaigns.engine import map_runs
 from timing import results_path, write_results
 
 PAPER_VELOCITY = 1.48      # m/s, the paper's equivalent task velocity of the strike
@@ -57,17 +59,23 @@ def plan(job) -> dict:
             "wall_s": time.perf_counter() - t0}
 
 
+def run_spec(spec: dict):
+    """One job on a campaign worker (:func:`soft_arm_drivers.campaigns.engine.map_runs`)."""
+    return plan(spec["job"])
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rotor-masses", type=float, nargs="+", default=[0.6, 0.3, 0.15, 0.0])
     parser.add_argument("--tension-limits", type=float, nargs="+", default=[5.0, 20.0])
     parser.add_argument("--pieces", type=int, nargs="+", default=[3, 6])
-    parser.add_argument("--jobs", type=int, default=os.cpu_count() or 2)
+    parser.add_argument("--workers", type=int, default=os.cpu_count() or 2,
+                        help="Dask workers on this machine (default: the cores)")
     parser.add_argument("--output", default=results_path("strike_limits.json"))
     args = parser.parse_args(argv)
     jobs = list(itertools.product(args.rotor_masses, args.tension_limits, args.pieces))
-    with ProcessPoolExecutor(args.jobs) as pool:
-        rows = list(pool.map(plan, jobs))
+    specs = [{"job": list(job)} for job in jobs]
+    rows = map_runs(f"{os.path.abspath(__file__)}:run_spec", specs, workers=args.workers)
     print(f"the shortest planned strike move (target {rows[0]['distance'] * 1e3:.0f} mm from the hanging "
           f"arm's task point; the paper's equivalent velocity {PAPER_VELOCITY} m/s)")
     print(f"{'rotor kg':>8s} {'T_max N':>7s} {'pieces':>6s} | {'move s':>6s} {'v_eq m/s':>8s} "

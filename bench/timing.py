@@ -1,12 +1,13 @@
 """Helpers shared by the benchmark scripts: timing, writing the results, running the harness."""
 import json
 import os
-import platform
 import subprocess
 import sys
 import time
 
 import numpy as np
+
+from soft_arm_drivers.campaigns import report as campaign_report
 
 
 def best_of(fn, repeats: int = 7, inner: int = 500) -> float:
@@ -25,37 +26,10 @@ def results_path(name: str) -> str:
     return os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", name)
 
 
-def machine() -> dict:
-    """What a result was measured on: the CPU model, its count, the Python, the OS."""
-    model = platform.processor()
-    try:
-        with open("/proc/cpuinfo", encoding="utf-8") as fh:
-            model = next((line.split(":", 1)[1].strip() for line in fh if line.startswith("model name")),
-                         model)
-    except OSError:
-        pass
-    return {"cpu": model, "cpus": os.cpu_count(), "python": platform.python_version(),
-            "system": platform.platform()}
-
-
-def commit() -> str:
-    """The git commit of the code measured (with ``+changes`` when the tree differs from it)."""
-    here = os.path.dirname(os.path.abspath(__file__))
-    try:
-        head = subprocess.run(["git", "rev-parse", "--short=12", "HEAD"], cwd=here, capture_output=True,
-                              text=True, check=True).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=here,
-                               capture_output=True, text=True, check=True).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
-    return head + ("+changes" if dirty else "")
-
-
 def write_results(path: str, results: dict):
     """Write ``results`` as JSON to ``path`` with when (UTC), on what machine and at which commit
     they were measured (the docs' benchmark page shows all three); say where."""
-    measured = {"date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "commit": commit(),
-                "machine": machine()}
+    measured = campaign_report.measured()
     os.makedirs(os.path.dirname(path), exist_ok=True)
     with open(path, "w", encoding="utf-8") as fh:
         json.dump({"measured": measured, **results}, fh, indent=2, default=float)

@@ -87,7 +87,7 @@ def _coerce(full_key: str, value: Any, kind: str, allowed: str):
             raise bad()
         return v
 
-    if kind in ("floats", "ints", "strs"):
+    if kind in ("floats", "ints", "strs", "bools"):
         if not isinstance(value, (list, tuple)):
             raise bad()
         return tuple(scalar(v, kind[:-1]) for v in value)

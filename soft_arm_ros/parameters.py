@@ -30,7 +30,8 @@ from soft_arm_model.parameters import (ConfigError, allowed_interval, check_valu
 
 ROS_TYPES = {"float": Parameter.Type.DOUBLE, "int": Parameter.Type.INTEGER, "bool": Parameter.Type.BOOL,
              "str": Parameter.Type.STRING, "floats": Parameter.Type.DOUBLE_ARRAY,
-             "ints": Parameter.Type.INTEGER_ARRAY, "strs": Parameter.Type.STRING_ARRAY}
+             "ints": Parameter.Type.INTEGER_ARRAY, "strs": Parameter.Type.STRING_ARRAY,
+             "bools": Parameter.Type.BOOL_ARRAY}
 
 GRAPH_SCHEMA = {
     "task": ("str", lambda v: bool(v), "a task name of tasks.yaml"),

@@ -129,3 +129,19 @@ def test_no_markers_and_targets_beyond_reach_are_refused_before_anything_moves(c
     _refused(capsys, lambda: main(["coiling", "--set", far, "--accept-closest",
                                    "--output", str(tmp_path / "run")]),
              "tasks.coiling.targets", "target 1: marker4 7.071 m away")
+
+
+def test_the_campaign_command_names_a_bad_tolerance_file(capsys, bad_file, tmp_path):
+    from soft_arm_drivers.campaigns.cli import main
+    _refused(capsys, lambda: main(["robustness", "--tolerances", bad_file, "--output", str(tmp_path / "c")]),
+             bad_file)
+    assert not (tmp_path / "c").exists()
+
+
+def test_the_campaign_command_refuses_a_folder_without_bags(capsys, tmp_path):
+    from soft_arm_drivers.campaigns.cli import main
+    (tmp_path / "bags" / "not_a_bag").mkdir(parents=True)
+    _refused(capsys, lambda: main(["identification", "--bags", str(tmp_path / "bags"), "--output",
+                                   str(tmp_path / "c")]), "no bag folder")
+    _refused(capsys, lambda: main(["identification", "--bags", str(tmp_path / "missing"), "--output",
+                                   str(tmp_path / "c")]), "not a directory")

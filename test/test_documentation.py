@@ -1,5 +1,6 @@
 """The generated reference covers what the code declares: every schema of the packages is rendered,
 every key with a description of what it allows; a key without one stops the page."""
+import ast
 import importlib
 import pkgutil
 import sys
@@ -53,6 +54,14 @@ def test_a_key_without_a_description_stops_the_reference(monkeypatch):
     monkeypatch.setitem(parameters.GRAPH_SCHEMA, "recorder.undocumented", ("float", None, ""))
     with pytest.raises(Exception, match="graph.recorder.undocumented has no description"):
         soft_arm_reference.parameters_page()
+
+
+def test_every_command_of_the_package_is_documented():
+    tree = ast.parse((ROOT / "setup.py").read_text(encoding="utf-8"))
+    scripts = {node.value.partition(" = ")[0] for node in ast.walk(tree)
+               if isinstance(node, ast.Constant) and isinstance(node.value, str)
+               and node.value.startswith("soft-arm-") and " = " in node.value}
+    assert scripts and scripts == {name for name, _, _ in soft_arm_reference.COMMANDS}
 
 
 def test_every_command_has_its_help():

@@ -22,6 +22,8 @@ ROSDEP = {
     "hypothesis": ("test_depend", "python3-hypothesis"),
     "flake8": ("test_depend", "python3-flake8"),
     "rosbags": None,                               # no rosdep key
+    "dask": None,                                  # campaigns (soft-arm-campaign): no rosdep key for
+    "bokeh": None,                                 # distributed; pip, on every worker machine too
     "pytest-xdist": None,                          # the suite's parallel runner (test/run): pip
     "sphinx": None,                                # the documentation's build (docs/): pip, with
     "myst-parser": None,                           # MyST and the theme, which have no rosdep key;

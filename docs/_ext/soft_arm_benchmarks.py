@@ -3,9 +3,9 @@
 Every bench script writes ``bench/results/<name>.json`` with when (UTC), on what machine and at
 which commit it was measured (``bench/timing.py``). At ``builder-inited`` this writes
 ``docs/benchmarks/generated.md``: per results file, that header and its figures as tables (nested
-mappings flattened to dotted keys, lists of records as tables), and, for a campaign's records
-(``bench/results/campaigns/*/summary.json`` with its plots), the campaign's own figures. A results
-file that is not JSON, or lacks its header, stops the build.
+mappings flattened to dotted keys, lists of records as tables), and, for a campaign's folder
+(``bench/results/campaigns/*/``: ``summary.json``, ``summary.md`` and the plots), its summary
+tables and histograms. A results file that is not JSON, or lacks its header, stops the build.
 """
 from __future__ import annotations
 
@@ -90,9 +90,14 @@ def _section(path: Path) -> list:
 
 
 def _campaigns(page_dir: Path) -> list:
+    """Per campaign folder: its header (from ``summary.json``), its summary tables (``summary.md`` up
+    to the per-run table, which stays in the folder) and its histograms."""
     out = []
     for summary in sorted((RESULTS / "campaigns").glob("*/summary.json")):
-        out += _section(summary)
+        header = [f"## Campaign `{summary.parent.name}`"] + _section(summary)[1:4]
+        tables = (summary.parent / "summary.md").read_text(encoding="utf-8").partition("\n## Runs")[0]
+        lines = tables.splitlines()[1:]                # its title is the section's
+        out += header + [("#" + line) if line.startswith("#") else line for line in lines] + [""]
         for image in sorted(summary.parent.glob("*.png")):
             target = page_dir / "images" / f"{summary.parent.name}-{image.name}"
             target.parent.mkdir(parents=True, exist_ok=True)

@@ -41,6 +41,7 @@ SCHEMAS = [
     ("rig.motors", "soft_arm_drivers.can.driver_config:SCHEMA", "rig.yaml", ""),
     ("rig", "soft_arm_drivers.mocap.bridge_config:MOCAP_SCHEMA", "mocap.yaml", ""),
     ("rig.emulator", "soft_arm_drivers.sim.emulated_rig:SCHEMA", "emulator.yaml", ""),
+    ("campaign.tolerances", "soft_arm_drivers.campaigns.plants:SCHEMA", "campaign.yaml", ""),
     ("", "soft_arm_ros.parameters:RUN_SCHEMA", None, ""),
 ]
 # nodes that write a file (parameter ``output``): built with one in a scratch folder
@@ -215,6 +216,8 @@ COMMANDS = [
     ("soft-arm-model", "soft_arm_model.cli", ["summary", "equilibrium", "workspace"]),
     ("soft-arm-targets", "soft_arm_control.targets_cli", []),
     ("soft-arm-identify", "soft_arm_drivers.experiments.identify_cli", []),
+    ("soft-arm-campaign", "soft_arm_drivers.campaigns.cli", ["robustness", "identification", "sweep"]),
+    ("soft-arm-warmup", "soft_arm_drivers.warmup", []),
 ]
 
 

@@ -87,6 +87,30 @@ def test_a_bag_whose_run_is_marked_invalid_is_refused(short_run, tmp_path, capsy
     assert "marked invalid" in err and "stale command" in err
 
 
+def test_a_campaign_fits_every_bag_of_a_folder_and_records_the_one_refused(short_run, tmp_path):
+    """``soft-arm-campaign identification --bags``: the run's folder, and a copy marked invalid."""
+    import shutil
+    from soft_arm_drivers.campaigns.cli import main as campaign
+    from soft_arm_drivers.campaigns.engine import read_records
+    bags = tmp_path / "bags"
+    shutil.copytree(short_run, bags / "good")
+    shutil.copytree(short_run, bags / "faulted")
+    schedule = json.loads((bags / "faulted" / "excitation.json").read_text(encoding="utf-8"))
+    schedule.update(valid=False, failure="the motor driver faulted: stale command")
+    (bags / "faulted" / "excitation.json").write_text(json.dumps(schedule), encoding="utf-8")
+    out = tmp_path / "campaign"
+    assert campaign(["identification", "--bags", str(bags), "--workers", "1", "--quiet", "--output", str(out)]
+                    + _sets(FIT)) == 1
+    records = {pathlib.Path(r["spec"]["bag"]).parent.name: r for r in read_records(out)}
+    assert records["faulted"]["status"] == "failed" and "marked invalid" in records["faulted"]["error"]
+    good = records["good"]
+    assert good["status"] == "ok", good["error"]
+    estimate = good["result"]["estimates"]["youngs_modulus"]
+    assert abs(estimate["value"] / 1.5e5 - 1.15) < 0.1 and estimate["standard_error"] > 0
+    summary = json.loads((out / "summary.json").read_text(encoding="utf-8"))
+    assert summary["groups"]["bags"]["runs"] == 2 and summary["groups"]["bags"]["failed"] == 1
+
+
 def _node_logs(log_dir) -> dict:
     """Per node name: the process ids [int] of the ROS log files (``<exe>_<pid>_<time>.log``, one
     per process) under ``log_dir`` whose lines that node logged."""

@@ -240,7 +240,7 @@ def test_one_frame_with_impossible_server_stamps_does_not_move_the_next_frames(r
                 end = time.monotonic() + 1 / 240
                 while time.monotonic() < end:
                     executor.spin_once(timeout_sec=max(0.0, end - time.monotonic()))
-            spin_until(executor, lambda: len(stamps) >= 355)
+            spin_until(executor, lambda: len(stamps) >= 359, timeout=5.0)
             invalid = bridge.bridge.counters["invalid"]
         finally:
             executor.shutdown()
