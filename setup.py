@@ -57,6 +57,7 @@ setup(
             "recorder = soft_arm_drivers.recording.recorder_node:main",
             "inner_loop = soft_arm_control.inner_loop_node:main",
             "clik = soft_arm_control.clik_node:main",
+            "shape_estimator = soft_arm_control.shape_estimator_node:main",
             "task_runner = soft_arm_drivers.experiments.task_runner_node:main",
             "excitation = soft_arm_drivers.experiments.excitation_node:main",
             "mocap_bridge = soft_arm_drivers.mocap.mocap_bridge_node:main",

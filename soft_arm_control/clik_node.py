@@ -55,7 +55,8 @@ REPORT_PERIOD = 1.0     # s: the current goal's report on /diagnostics at least 
 # A goal report's status (soft_arm_control.outer_loop.STATUSES) on /diagnostics: level and message
 LEVELS = {"ok": DiagnosticStatus.OK, "constrained": DiagnosticStatus.WARN,
           "saturated": DiagnosticStatus.WARN, "stalled": DiagnosticStatus.WARN,
-          "unreached": DiagnosticStatus.WARN, "held": DiagnosticStatus.ERROR}
+          "unreached": DiagnosticStatus.WARN, "unseen": DiagnosticStatus.WARN,
+          "held": DiagnosticStatus.ERROR}
 MESSAGES = {"ok": "target feasible",
             "constrained": "target infeasible for the model: moving to the closest feasible point",
             "saturated": "the path is too fast for the tendons: its dynamic feedforward exceeds the "
@@ -63,6 +64,7 @@ MESSAGES = {"ok": "target feasible",
             "stalled": "target not reached: the error does not fall although every step is feasible "
                        "(out of reach, or a load the model lacks)",
             "unreached": "the goal ended away from its target",
+            "unseen": "the task's markers are not seen: no online step, the reference holds",
             "held": "no feasible step: the last reference is held"}
 
 

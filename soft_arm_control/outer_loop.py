@@ -50,7 +50,7 @@ from .track_learning import HarmonicLearner
 from .trajectories import Trajectory
 
 MODES = ("clik", "replay", "precomputed", "online", "track")
-STATUSES = ("ok", "constrained", "saturated", "stalled", "unreached", "held")   # GoalReport.status
+STATUSES = ("ok", "constrained", "saturated", "stalled", "unreached", "unseen", "held")   # GoalReport.status
 
 
 @dataclass
@@ -71,7 +71,10 @@ class GoalReport:
     inner loop clips it, and the arm falls behind). ``learner``: a track goal's
     :class:`~soft_arm_control.track_learning.HarmonicLearner` (None: not learned), whose counts the
     report gives: ``learned_periods``, ``backed_off_periods`` (the CLIK could not follow, or the
-    error grew) and ``frozen_periods`` (the dynamic reference was clipped)."""
+    error grew) and ``frozen_periods`` (the dynamic reference was clipped). ``unseen_frames``: frames
+    on which an online step was due but the task's markers were not all seen (no step: the reference
+    holds); ``unseen_time`` [s]: how long the current such stretch has lasted (0 once a step is
+    taken). A goal is *unseen* while that stretch is longer than one online period."""
     target: list
     mode: str
     reach_tolerance: float = 1e-3
@@ -85,6 +88,9 @@ class GoalReport:
     saturated_steps: int = 0
     closed: bool = False
     shaped_mode: tuple | None = None
+    unseen_frames: int = 0
+    unseen_time: float = 0.0
+    unseen_after: float = 0.0
     learner: HarmonicLearner | None = field(default=None, repr=False, compare=False)
     _progress_level: float = np.inf
 
@@ -127,6 +133,8 @@ class GoalReport:
         error, is never stalled or unreached)."""
         if self.held_steps:
             return "held"
+        if self.unseen_time > self.unseen_after:
+            return "unseen"
         if self.infeasible_steps:
             return "constrained"
         if self.saturated_steps:
@@ -140,7 +148,7 @@ class GoalReport:
     def as_dict(self) -> dict:
         keys = ("target", "mode", "online_steps", "infeasible_steps", "held_steps", "closest_error",
                 "error", "stalled_steps", "saturated_steps", "closed", "shaped_mode", "learned_periods",
-                "backed_off_periods", "frozen_periods")
+                "backed_off_periods", "frozen_periods", "unseen_frames", "unseen_time")
         return {**{k: getattr(self, k) for k in keys}, "reached": self.reached, "status": self.status}
 
 
@@ -194,6 +202,7 @@ class OuterLoop:
         self._trajectory, self._t0 = None, 0.0
         self._online_from = np.inf
         self._next_step = np.inf
+        self._unseen_since = None       # frame time [s] since which the task's markers went unseen
         self._steps = 0
 
     @staticmethod
@@ -264,7 +273,8 @@ class OuterLoop:
             self.learner = HarmonicLearner(trajectory.period, space.m, self.track_harmonics,
                                            self.track_learning, self.track_settle_time)
         report = GoalReport([float(v) for v in x_d], mode, self.reach_tolerance, self.stall_steps,
-                            learner=self.learner)
+                            unseen_after=self.period, learner=self.learner)
+        self._unseen_since = None
         self.reports.append(report)
         settled = t
         self._planned, self._planned_from = move, t
@@ -352,6 +362,15 @@ class OuterLoop:
                 self._move = None
         if t < self._next_step - 1e-9:
             return moved
+        report = self.reports[-1]
+        if not np.all(np.isfinite(x_measured)):           # a task marker not seen: no step on it
+            report.unseen_frames += 1
+            if self._unseen_since is None:
+                self._unseen_since = t
+            report.unseen_time = t - self._unseen_since
+            return moved
+        self._unseen_since = None
+        report.unseen_time = 0.0
         self._next_step = max(self._next_step + self.period, t + 0.5 * self.period)
         refresh = self._steps % self.jacobian_every == 0
         self._steps += 1

@@ -23,7 +23,7 @@ class Recording:
     """Time series of one experiment, each on its own stamps [s]: tendon states (``t``; encoder
     shortenings and applied tensions (N, n_t) [m], [N]), commanded tensions (``t_command``,
     ``command`` (C, n_t) [N]) and marker frames (``t_markers``, ``markers`` (M, n_m, 3) [m], in
-    the mocap frame as calibrated when recorded)."""
+    the mocap frame as calibrated when recorded; an occluded marker is NaN)."""
     t: np.ndarray
     shortening: np.ndarray
     tension: np.ndarray
@@ -33,8 +33,11 @@ class Recording:
     markers: np.ndarray
 
     def window(self, a: float, b: float) -> tuple[np.ndarray, np.ndarray]:
-        """Boolean selections of the states and of the frames with stamps in [a, b)."""
-        return (self.t >= a) & (self.t < b), (self.t_markers >= a) & (self.t_markers < b)
+        """Boolean selections of the states and of the frames with stamps in [a, b); only the frames
+        that saw every marker (the fits compare whole frames with the model)."""
+        complete = np.all(np.isfinite(self.markers), axis=(1, 2)) if self.markers.size else \
+            np.ones(self.t_markers.size, bool)
+        return (self.t >= a) & (self.t < b), (self.t_markers >= a) & (self.t_markers < b) & complete
 
 
 @dataclass(frozen=True)

@@ -1,5 +1,9 @@
 """The graph's contract: topic names, their message types and QoS, the frame of every pose.
 
+A marker the mocap did not see is an *invalid marker* of its ``mocap/markers`` frame (and of
+``fused/markers``, ``estimate/markers``' layout): NaN position and a zero quaternion
+(:func:`soft_arm_ros.conversions.pose_array`); every reader takes it as not seen.
+
 Topics are relative names (a node moved under a namespace, or remapped, keeps the wiring). Streams
 (state, command, mocap, clock) are best effort with depth 1: a late sample is worth nothing. What a
 viewer draws (the shape) is reliable with depth 1, the QoS RViz and Foxglove ask for by default.
@@ -20,6 +24,8 @@ TOPICS = {
     "markers": "mocap/markers", "tip": "mocap/tip", "goal": "task/goal",
     "configuration": "arm/configuration_reference", "shape": "arm/shape", "clock": "/clock",
     "ball": "mocap/pendulum", "release": "pendulum/release",
+    "estimate": "estimate/markers", "fused": "fused/markers", "estimate_tip": "estimate/tip",
+    "estimate_shape": "estimate/shape",
 }
 TYPES = {
     "tendon/command": "sensor_msgs/msg/JointState", "tendon/state": "sensor_msgs/msg/JointState",
@@ -29,6 +35,9 @@ TYPES = {
     "arm/shape": "visualization_msgs/msg/MarkerArray", "/clock": "rosgraph_msgs/msg/Clock",
     "mocap/pendulum": "geometry_msgs/msg/PoseStamped", "pendulum/release": "std_msgs/msg/Header",
     "/diagnostics": "diagnostic_msgs/msg/DiagnosticArray",
+    "estimate/markers": "geometry_msgs/msg/PoseArray", "fused/markers": "geometry_msgs/msg/PoseArray",
+    "estimate/tip": "geometry_msgs/msg/PoseWithCovarianceStamped",
+    "estimate/shape": "visualization_msgs/msg/MarkerArray",
 }
 STREAM = QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT,
                     history=HistoryPolicy.KEEP_LAST)
@@ -45,7 +54,8 @@ EVENTS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE, history=Hi
 QOS = {"tendon/command": STREAM, "tendon/state": STREAM, "mocap/markers": STREAM, "mocap/tip": STREAM,
        "arm/shape": VISUAL, "/clock": STREAM, "tendon/reference": RELIABLE, "task/goal": RELIABLE,
        "arm/configuration_reference": RELIABLE, "mocap/pendulum": STREAM, "pendulum/release": RELIABLE,
-       "/diagnostics": EVENTS}
+       "/diagnostics": EVENTS, "estimate/markers": STREAM, "fused/markers": STREAM, "estimate/tip": STREAM,
+       "estimate/shape": VISUAL}
 
 
 def message_class(type_name: str):

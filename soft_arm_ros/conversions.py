@@ -1,6 +1,8 @@
 """Message conversions between the graph's messages and numpy (SI units, times in seconds)."""
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from geometry_msgs.msg import Pose, PoseArray, PoseStamped
 from sensor_msgs.msg import JointState
@@ -44,14 +46,21 @@ def ordered(msg: JointState, field: str, names) -> np.ndarray:
 
 
 def pose_array(markers, t: float) -> PoseArray:
-    """Marker positions (n, 3) [m] as a PoseArray in arm_base (orientation: identity)."""
+    """Marker positions (n, 3) [m] as a PoseArray in arm_base (orientation: identity). A marker that
+    was not seen (a row with a NaN) goes out as the frame's *invalid marker*: NaN position and a
+    zero quaternion, so that no reader can take it for a pose (:func:`markers_of` reads it back as
+    NaN)."""
     msg = PoseArray()
     msg.header.frame_id = FRAME
     seconds_to_stamp(msg.header.stamp, t)
-    for p in markers:
+    for p in np.asarray(markers, dtype=float):
         pose = Pose()
-        pose.position.x, pose.position.y, pose.position.z = (float(v) for v in p)
-        pose.orientation.w = 1.0
+        if np.all(np.isfinite(p)):
+            pose.position.x, pose.position.y, pose.position.z = (float(v) for v in p)
+            pose.orientation.w = 1.0
+        else:
+            pose.position.x = pose.position.y = pose.position.z = math.nan
+            pose.orientation.w = 0.0
         msg.poses.append(pose)
     return msg
 
@@ -66,7 +75,14 @@ def pose_stamped(p, t: float) -> PoseStamped:
 
 
 def markers_of(msg: PoseArray) -> np.ndarray:
-    return np.array([[p.position.x, p.position.y, p.position.z] for p in msg.poses], dtype=float)
+    """Marker positions (n, 3) [m] of a PoseArray; NaN rows for the invalid markers (a non-finite
+    position or a zero quaternion: :func:`pose_array`)."""
+    out = np.array([[p.position.x, p.position.y, p.position.z] for p in msg.poses], dtype=float)
+    invalid = [p.orientation.w == 0.0 and p.orientation.x == 0.0 and p.orientation.y == 0.0
+               and p.orientation.z == 0.0 for p in msg.poses]
+    if any(invalid):
+        out[np.array(invalid)] = np.nan
+    return out.reshape(-1, 3)
 
 
 def task_goal(t: float, target, mode: str, phase: str, window: float, labels) -> TaskGoal:

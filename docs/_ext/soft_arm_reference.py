@@ -42,6 +42,7 @@ SCHEMAS = [
     ("rig", "soft_arm_drivers.mocap.bridge_config:MOCAP_SCHEMA", "mocap.yaml", ""),
     ("rig.emulator", "soft_arm_drivers.sim.emulated_rig:SCHEMA", "emulator.yaml", ""),
     ("campaign.tolerances", "soft_arm_drivers.campaigns.plants:SCHEMA", "campaign.yaml", ""),
+    ("estimator", "soft_arm_control.shape_estimation:ESTIMATOR_SCHEMA", "estimator.yaml", ""),
     ("", "soft_arm_ros.parameters:RUN_SCHEMA", None, ""),
 ]
 # nodes that write a file (parameter ``output``): built with one in a scratch folder

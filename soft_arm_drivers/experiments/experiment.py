@@ -37,10 +37,10 @@ from .metrics import Summary, TrackingMetrics, TransitionMetrics, format_table, 
 from .strike import PLANNED_ON_THE_GRAPH, format_strike
 from .harness import add_setup_arguments, check_targets, load_setup, setup_overrides
 from .excitation import Excitation
-from .orchestration import STOP, request_stop, roles, run_emulated_hardware, run_processes
+from .orchestration import STOP, feedback_remap, request_stop, roles, run_emulated_hardware, run_processes
 from .writable import writable_directory
 
-NAMESPACES = ("arm", "control", "plant", "tasks", "graph", "identification")
+NAMESPACES = ("arm", "control", "plant", "tasks", "graph", "identification", "estimator")
 
 
 def _ros_arguments(task: str, sets, config_dir: str | None, arm_file: str | None = None) -> list:
@@ -84,12 +84,13 @@ def _shut_down(nodes, executor):
 
 
 def run_composed(ros_args: list, out: dict, progress=None, config_dir: str | None = None,
-                 node_args: dict | None = None, task: str = "") -> dict:
+                 node_args: dict | None = None, task: str = "", feedback: str = "mocap") -> dict:
     """All nodes of a run of ``task`` (:func:`~.orchestration.roles`) in this process, lockstep
     waves. Returns run facts (simulated time, waves...).
 
     ``node_args``: extra command-line arguments per node name (e.g. remaps:
-    ``{"simulator": ["--ros-args", "-r", "__ns:=/hw"]}``).
+    ``{"simulator": ["--ros-args", "-r", "__ns:=/hw"]}``); ``feedback``: what the clik closes its
+    loop on (:func:`~.orchestration.feedback_remap`).
     """
     import rclpy
     from rclpy.parameter import Parameter
@@ -97,6 +98,7 @@ def run_composed(ros_args: list, out: dict, progress=None, config_dir: str | Non
 
     from soft_arm_control.clik_node import ClikNode
     from soft_arm_control.inner_loop_node import InnerLoopNode
+    from soft_arm_control.shape_estimator_node import ShapeEstimatorNode
     from soft_arm_drivers.recording.recorder_node import RecorderNode
     from soft_arm_drivers.sim.simulator_node import SimulatorNode
 
@@ -105,15 +107,17 @@ def run_composed(ros_args: list, out: dict, progress=None, config_dir: str | Non
     from .task_runner_node import TaskRunnerNode
 
     classes = {"inner_loop": InnerLoopNode, "clik": ClikNode, "task_runner": TaskRunnerNode,
-               "excitation": ExcitationNode}
-    controller, runner_name = roles(task)
+               "excitation": ExcitationNode, "shape_estimator": ShapeEstimatorNode}
+    controller, runner_name = roles(task, feedback)
 
     # Ctrl-C stays Python's KeyboardInterrupt (no rclpy handler shutting the context mid-wave), so
     # that the shutdown below always runs in order.
     rclpy.init(args=["soft-arm-experiment"] + ros_args, signal_handler_options=SignalHandlerOptions.NO)
     nodes, executor = [], None
     try:
-        node_args = node_args or {}
+        node_args = dict(node_args or {})
+        if feedback_remap(feedback):
+            node_args["clik"] = (node_args.get("clik") or ["--ros-args"]) + feedback_remap(feedback)
 
         def options(name):
             return {"start_parameter_services": False, "cli_args": node_args.get(name)}
@@ -185,7 +189,8 @@ def _calibrate(args) -> int:
         return 2
     config = ["--config", args.config] if args.config else []
     sets = [a for s in args.sets for a in ("--set", s)]
-    common = config + sets + (["--plant-file", args.plant_file] if args.plant_file else []) + [
+    common = config + sets + (["--plant-file", args.plant_file] if args.plant_file else []) + \
+        ["--feedback", args.feedback] + [
         flag for flag, on in (("--processes", args.processes), ("--quiet", args.quiet),
                               ("--emulated-hardware", args.emulated_hardware)) if on]
     start_arm = ["--arm-file", args.arm_file] if args.arm_file else []
@@ -284,11 +289,13 @@ def _run(args, setup, ros_args: list, out: dict) -> int:
         if args.emulated_hardware:
             duration = sum(ph.window * len(ph.sequence) for ph in setup.task.phases) \
                 if setup.task is not None else Excitation(setup.excitation, len(setup.arm.tendons)).duration
-            facts = run_emulated_hardware(ros_args, out, duration, args.config, args.task, args.arm_file)
+            facts = run_emulated_hardware(ros_args, out, duration, args.config, args.task, args.arm_file,
+                                          args.feedback)
         elif args.processes:
-            facts = run_processes(ros_args, out, args.task)
+            facts = run_processes(ros_args, out, args.task, args.feedback)
         else:
-            facts = run_composed(ros_args, out, progress, args.config, task=args.task)
+            facts = run_composed(ros_args, out, progress, args.config, task=args.task,
+                                 feedback=args.feedback)
     except KeyboardInterrupt:
         facts = {}
     except ConfigError as exc:

@@ -24,6 +24,8 @@ from soft_arm_control.clik import TargetError
 from soft_arm_control.config import (IDENTIFICATION, ControlConfig, TaskConfig, load_control_config,
                                      load_task_config)
 from soft_arm_control.outer_loop import OuterLoop, outer_loop_for
+from soft_arm_control.shape_estimation import (FEEDBACKS, EstimatorConfig, ShapeEstimator, fused_markers,
+                                               load_estimator_config)
 from soft_arm_control.strike_planner import strike_move_for
 from soft_arm_control.two_level import TwoLevelController
 from soft_arm_control.target_margin import target_point
@@ -41,16 +43,20 @@ from .strike import measured_strike, plan_strike, rehearse, strike_metrics
 @dataclass(frozen=True)
 class Setup:
     """Everything a run needs: the controller's arm, controller, plant and task parameters (the
-    identification experiment: no task, its ``excitation``)."""
+    identification experiment: no task, its ``excitation``), the shape estimator's parameters and
+    what the online CLIK closes its loop on (``feedback``, one of
+    :data:`~soft_arm_control.shape_estimation.FEEDBACKS`)."""
     arm: ArmConfig
     control: ControlConfig
     plant: PlantConfig
     task: TaskConfig | None
     excitation: ExcitationConfig | None = None
+    estimator: EstimatorConfig | None = None
+    feedback: str = "mocap"
 
 
 def load_setup(task: str, config_dir: str | None = None, overrides=None,
-               arm_file: str | None = None) -> Setup:
+               arm_file: str | None = None, feedback: str = "mocap") -> Setup:
     """Load the parameter files from ``config_dir`` (default: the package's) with overrides
     (``namespace.key=value`` strings); ``arm_file``: the controller's arm description instead of
     ``arm.yaml`` (e.g. an identified one): the plant stays the arm of ``plant.yaml`` over
@@ -58,9 +64,11 @@ def load_setup(task: str, config_dir: str | None = None, overrides=None,
     calibration an arm file carries (``rig.mocap.calibration``, as soft-arm-identify writes it) is
     the one the markers come through, as the mocap bridge given that file would publish them.
     ``task`` "identification": the identification experiment of ``identification.yaml`` instead of
-    a task."""
+    a task. ``feedback``: what the online CLIK closes its loop on (mocap, fused or estimate)."""
+    if feedback not in FEEDBACKS:
+        raise ValueError(f"feedback must be one of {list(FEEDBACKS)}, got {feedback!r}")
     d = config_dir or default_config_dir()
-    groups = split_overrides(overrides, ("arm", "control", "plant", "tasks", "identification"))
+    groups = split_overrides(overrides, ("arm", "control", "plant", "tasks", "identification", "estimator"))
     drawing = load_arm_config(os.path.join(d, "arm.yaml"), groups["arm"])
     arm = load_arm_config(arm_file, groups["arm"]) if arm_file else drawing
     plant = load_plant_config(arm, os.path.join(d, "plant.yaml"), groups["plant"])
@@ -69,18 +77,20 @@ def load_setup(task: str, config_dir: str | None = None, overrides=None,
                                         calibration_overrides(arm_file))
     plant.plant_arm(arm)                  # a bad plant file is refused before anything runs
     control = load_control_config(arm, os.path.join(d, "control.yaml"), groups["control"])
+    estimator = load_estimator_config(os.path.join(d, "estimator.yaml"), groups["estimator"])
     if task == IDENTIFICATION:
         return Setup(arm, control, plant, None, load_excitation(
             len(arm.tendons), control.tension_min, control.tension_max,
-            os.path.join(d, "identification.yaml"), groups["identification"]))
+            os.path.join(d, "identification.yaml"), groups["identification"]), estimator, feedback)
     return Setup(arm, control, plant,
-                 load_task_config(task, arm, os.path.join(d, "tasks.yaml"), groups["tasks"]))
+                 load_task_config(task, arm, os.path.join(d, "tasks.yaml"), groups["tasks"]),
+                 estimator=estimator, feedback=feedback)
 
 
 def add_setup_arguments(parser):
     """The options that say what a run simulates (soft-arm-harness, soft-arm-experiment): ``--config
-    DIR``, repeated ``--set ns.key=value``, ``--plant-file FILE``, ``--arm-file FILE`` and
-    ``--accept-closest``;
+    DIR``, repeated ``--set ns.key=value``, ``--plant-file FILE``, ``--arm-file FILE``,
+    ``--feedback`` and ``--accept-closest``;
     :func:`setup_overrides` and :func:`check_targets` read them back."""
     parser.add_argument("--config", metavar="DIR", help="directory with the parameter files")
     parser.add_argument("--set", dest="sets", action="append", default=[], metavar="NS.KEY=VALUE",
@@ -91,6 +101,11 @@ def add_setup_arguments(parser):
     parser.add_argument("--arm-file", metavar="FILE",
                         help="the controller's arm description (the schema of arm.yaml, e.g. "
                              "identified) instead of the configuration's arm.yaml")
+    parser.add_argument("--feedback", choices=FEEDBACKS, default="mocap",
+                        help="what the online CLIK closes its loop on: the mocap's markers (default), "
+                             "fused (the mocap's where seen, the shape estimate's elsewhere) or the "
+                             "shape estimate (soft-arm-experiment: the shape_estimator node joins "
+                             "the graph)")
     parser.add_argument("--accept-closest", action="store_true",
                         help="run a target the model cannot reach within the tension limits at the "
                              "closest point it can (printed), instead of refusing the task")
@@ -106,8 +121,12 @@ def setup_overrides(args) -> list:
 class Record:
     """Time series of a run. Inner-loop rate: t_inner, tension, shortening (measured), shortening_ref,
     theta (thetabar_a of the measured shortenings), theta_ref. Mocap rate: t_mocap (exposure times),
-    x (measured task coordinates), x_true, x_d, tip (the measured tip coordinates the task controls;
-    all three if it controls none), tip_speed (true), window (index of the transition). All SI."""
+    x (measured task coordinates, NaN where the markers were not seen), x_true, x_d, tip (the
+    measured tip coordinates the task controls; all three if it controls none), tip_true, tip_speed
+    (true),
+    window (index of the transition); with a shape estimator, at the same exposures: markers_true
+    (n_markers, 3), markers_estimated and marker_covariance (n_markers, 3, 3) [m^2] (the estimate's)
+    and markers_seen (n_markers,) bool (in the frame exposed then). All SI."""
     t_inner: list = field(default_factory=list)
     tension: list = field(default_factory=list)
     shortening: list = field(default_factory=list)
@@ -119,8 +138,13 @@ class Record:
     x_true: list = field(default_factory=list)
     x_d: list = field(default_factory=list)
     tip: list = field(default_factory=list)
+    tip_true: list = field(default_factory=list)
     tip_speed: list = field(default_factory=list)
     window: list = field(default_factory=list)
+    markers_true: list = field(default_factory=list)
+    markers_estimated: list = field(default_factory=list)
+    marker_covariance: list = field(default_factory=list)
+    markers_seen: list = field(default_factory=list)
 
     def arrays(self) -> dict:
         return {k: np.asarray(v) for k, v in self.__dict__.items()}
@@ -252,10 +276,17 @@ def _reason(exc: TargetError) -> str:
     return text.partition(": ")[2].partition(";")[0]
 
 
-def run_experiment(setup: Setup, progress=None, actuation_map: ActuationMap | None = None) -> RunResult:
+def run_experiment(setup: Setup, progress=None, actuation_map: ActuationMap | None = None,
+                   estimate: bool = False, truth: bool = False) -> RunResult:
     """Run the task's protocol on the simulated rig and compute the paper's metrics.
 
-    ``progress(t, t_end)`` is called about once per simulated second.
+    ``progress(t, t_end)`` is called about once per simulated second. The shape estimator runs at
+    every mocap exposure (the encoders and tensions of that instant, the markers of the latest
+    frame delivered since the last update) when the CLIK's ``setup.feedback`` needs it or
+    ``estimate`` asks for it (its estimate is then in the record); with fused or estimate
+    feedback the online CLIK takes its task coordinates from it at each update instead of from
+    the delivered frames. The metrics are of what the mocap measured, or with ``truth`` of the
+    plant's true markers (a run whose mocap is lost has no measured figures).
     """
     ctl, task, pc = setup.control, setup.task, setup.plant
     model = build_model(setup.arm)
@@ -280,6 +311,10 @@ def run_experiment(setup: Setup, progress=None, actuation_map: ActuationMap | No
     tip_index = model.marker_X.size - 1
     tip_axes = [a for k, a in zip(task.space.markers, task.space.axes) if k == tip_index] or [0, 1, 2]
     space = task.space
+    estimator = None
+    if estimate or setup.feedback != "mocap":
+        estimator = ShapeEstimator(model, setup.estimator or load_estimator_config())
+    latest = None                # markers of the latest frame delivered since the last estimate
     u = pretension.copy()
     balls = []                   # (exposure time, ball marker, tip marker) of the strike's frames
     total = sum(w for *_, w in schedule(task))
@@ -307,12 +342,31 @@ def run_experiment(setup: Setup, progress=None, actuation_map: ActuationMap | No
                 rec.x_true.append(space.from_markers(frame.true_markers))
                 rec.x_d.append(phases[phase].target_at(x_d, frame.stamp - t_start))
                 rec.tip.append(frame.markers[tip_index, tip_axes])
+                rec.tip_true.append(frame.true_markers[tip_index, tip_axes])
                 rec.tip_speed.append(frame.tip_speed)
                 rec.window.append(w_index)
                 if frame.ball is not None:
                     balls.append((frame.stamp, frame.ball, frame.markers))
             if delivered:
-                ref = outer.frame(t, space.from_markers(delivered[-1].markers))
+                latest = delivered[-1].markers
+            x_feedback = None
+            if estimator is not None and frame is not None:
+                s, sd = rig.tendons()
+                estimator.update(t, s, sd, rig.tension, latest)
+                estimated = estimator.estimate()
+                rec.markers_true.append(frame.true_markers)
+                rec.markers_estimated.append(estimated.markers)
+                rec.marker_covariance.append(estimated.marker_covariance)
+                rec.markers_seen.append(frame.visible)
+                if setup.feedback == "fused":
+                    x_feedback = space.from_markers(fused_markers(latest, estimated.markers))
+                elif setup.feedback == "estimate":
+                    x_feedback = space.from_markers(estimated.markers)
+                latest = None
+            if setup.feedback == "mocap" and delivered:
+                x_feedback = space.from_markers(delivered[-1].markers)
+            if x_feedback is not None:
+                ref = outer.frame(t, x_feedback)
                 if ref is not None:
                     ctrl.reference = ref
             if rig.step_index % inner_every == 0:
@@ -331,6 +385,9 @@ def run_experiment(setup: Setup, progress=None, actuation_map: ActuationMap | No
     rec.theta = list(ctrl.actuation_map.batch(rec.shortening))
     rec.theta_ref = list(ctrl.actuation_map.batch(rec.shortening_ref))
     arrays = rec.arrays()
+    if truth:
+        arrays["x"] = arrays["x_true"]
+        arrays["tip"] = arrays["tip_true"]
     tracking = []
     for w_index, tr in enumerate(transitions):
         sel = arrays["window"] == w_index

@@ -36,7 +36,7 @@ def main(argv=None) -> int:
     parser.add_argument("--quiet", action="store_true", help="no progress line on stderr")
     args = parser.parse_args(argv)
     try:
-        setup = load_setup(args.task, args.config, setup_overrides(args), args.arm_file)
+        setup = load_setup(args.task, args.config, setup_overrides(args), args.arm_file, args.feedback)
         if setup.task is None:
             raise ConfigError("the identification experiment is a run of the graph: "
                               "soft-arm-experiment identification")
@@ -45,7 +45,8 @@ def main(argv=None) -> int:
             for note in notes:
                 print(f"soft-arm-harness: {note}", file=sys.stderr)
             if closest:
-                setup = load_setup(args.task, args.config, setup_overrides(args) + closest, args.arm_file)
+                setup = load_setup(args.task, args.config, setup_overrides(args) + closest, args.arm_file,
+                                   args.feedback)
     except (ConfigError, ValueError) as exc:          # TargetError is a ValueError
         print(f"soft-arm-harness: {exc}", file=sys.stderr)
         return 2

@@ -10,6 +10,9 @@ For each transition (one target held for one time window):
 - the RMS of the task error norm over the steady-state part (the last ``steady_time`` seconds);
 - the peak tip speed [m/s] (true, or from measured positions: :func:`measured_speed`).
 
+The metrics are of what the mocap saw: a sample whose task or tip markers were occluded (NaN) is
+left out, and a window in which no frame saw them is an error (ValueError), never a figure.
+
 The summary row reports, like Table 1, the best (largest) task velocities over all transitions that
 reached the band, the peak tip speed, and the steady-state RMS error of the transitions with the
 longest window.
@@ -43,16 +46,21 @@ def measured_speed(t, positions, baseline: float = SPEED_BASELINE) -> np.ndarray
     """Speed [m/s] at each sample of measured positions (N, 3) [m] at ascending times t (N,) [s]:
     the displacement from the latest sample at least ``baseline`` > 0 [s] earlier over the time
     between them (0 before the first such sample). Mocap frames of a rig are not evenly spaced: two
-    frames 0.1 ms apart would turn 0.2 mm of marker noise into 2 m/s."""
+    frames 0.1 ms apart would turn 0.2 mm of marker noise into 2 m/s. Samples with occluded (NaN)
+    positions are skipped, and their speed is NaN."""
     if not baseline > 0:
         raise ValueError(f"baseline must be > 0 s, got {baseline}")
-    t = np.asarray(t, dtype=float)
-    p = np.asarray(positions, dtype=float)
+    t_all = np.asarray(t, dtype=float)
+    p_all = np.asarray(positions, dtype=float)
+    seen = np.all(np.isfinite(p_all), axis=1)
+    t, p = t_all[seen], p_all[seen]
     j = np.searchsorted(t, t - baseline, side="right") - 1
     speed = np.zeros(t.size)
     ok = j >= 0
     speed[ok] = np.linalg.norm(p[ok] - p[j[ok]], axis=1) / (t[ok] - t[j[ok]])
-    return speed
+    out = np.full(t_all.size, np.nan)
+    out[seen] = speed
+    return out
 
 
 @dataclass(frozen=True)
@@ -78,10 +86,13 @@ def transition_metrics(phase: str, target: int, t, error, tip, tip_speed, steady
     """Metrics of one window: samples t [s] (N,), task errors (N, m) [m], measured tip coordinates
     (N, k) [m] (those the task controls) and true tip speeds (N,) [m/s]. The steady part is the last
     ``steady_time`` seconds, at most half the window; ``window`` [s] defaults to the span of the samples."""
-    t = np.asarray(t, dtype=float)
-    error = np.asarray(error, dtype=float)
-    tip = np.asarray(tip, dtype=float)
+    t, error, tip = (np.asarray(v, dtype=float) for v in (t, error, tip))
+    seen = np.all(np.isfinite(error), axis=1) & np.all(np.isfinite(tip), axis=1)
+    if np.count_nonzero(seen) < 2:
+        raise ValueError(f"the {phase} window of target {target}: {np.count_nonzero(seen)} of {t.size} "
+                         "frames saw the task's markers, no metrics")
     window = float(t[-1] - t[0]) if window is None else float(window)
+    t, error, tip = t[seen], error[seen], tip[seen]
     displacement = float(np.linalg.norm(tip[-1] - tip[0]))
     times = {band: settling_time(t, error, band) for band in (CM_BAND, MM_BAND)}
 
@@ -99,7 +110,7 @@ def transition_metrics(phase: str, target: int, t, error, tip, tip_speed, steady
         time_cm=times[CM_BAND], time_mm=times[MM_BAND],
         velocity_cm=velocity(times[CM_BAND], CM_BAND), velocity_mm=velocity(times[MM_BAND], MM_BAND),
         rms_steady=float(np.sqrt(np.mean(norms[steady] ** 2))), final_error=float(norms[-1]),
-        peak_speed=float(np.max(tip_speed)))
+        peak_speed=float(np.max(np.asarray(tip_speed, dtype=float)[seen])))
 
 
 @dataclass(frozen=True)
@@ -186,8 +197,9 @@ def tracking_metrics(phase: str, target: int, trajectory, t, errors, settle: flo
     """Tracking figures of one window: mocap times t [s] from the window's start and the task
     errors (N, m) [m] against the moving target."""
     t = np.asarray(t, dtype=float)
-    counted = t >= settle
     norm = np.linalg.norm(np.asarray(errors, dtype=float), axis=1)
+    t, norm = t[np.isfinite(norm)], norm[np.isfinite(norm)]          # frames that saw the markers
+    counted = t >= settle
     if not np.any(counted):
         raise ValueError(f"no frame after the settling time ({settle} s) of the {phase} window")
     last = None

@@ -225,12 +225,27 @@ def _orchestrating(children: _Children):
 ROLES = {"task": (("inner_loop", "clik"), "task_runner"), "identification": ((), "excitation")}
 
 
-def roles(task: str) -> tuple:
-    """(controller nodes, runner node) of a run of ``task``."""
-    return ROLES["identification" if task == IDENTIFICATION else "task"]
+# what the clik's mocap/markers is remapped onto for each feedback (soft-arm-experiment --feedback;
+# the names of soft_arm_ros.contract.TOPICS, which this module imports only where it uses rclpy)
+FEEDBACK_TOPICS = {"mocap": None, "fused": "fused/markers", "estimate": "estimate/markers"}
 
 
-def run_processes(ros_args: list, out: dict, task: str = "") -> dict:
+def roles(task: str, feedback: str = "mocap") -> tuple:
+    """(controller nodes, runner node) of a run of ``task``; the shape estimator is a controller
+    node when the online CLIK's ``feedback`` is not the mocap."""
+    controller, runner = ROLES["identification" if task == IDENTIFICATION else "task"]
+    if controller and FEEDBACK_TOPICS[feedback] is not None:
+        controller = controller + ("shape_estimator",)
+    return controller, runner
+
+
+def feedback_remap(feedback: str) -> list:
+    """The clik's remapping (arguments after ``--ros-args``) that closes its loop on ``feedback``."""
+    topic = FEEDBACK_TOPICS[feedback]
+    return [] if topic is None else ["-r", f"mocap/markers:={topic}"]
+
+
+def run_processes(ros_args: list, out: dict, task: str = "", feedback: str = "mocap") -> dict:
     """Each node its own process, the same parameters: the recorder, the controller's nodes and the
     simulator start; once the graph is wired (the controller's, the plant's and the recorder's
     endpoints exist) the runner (task runner, or excitation for the identification experiment)
@@ -240,10 +255,11 @@ def run_processes(ros_args: list, out: dict, task: str = "") -> dict:
     then stops the nodes with SIGINT."""
     import rclpy
     from std_srvs.srv import Trigger
-    controller, runner = roles(task)
+    controller, runner = roles(task, feedback)
     children = _Children(ros_args, {
         "recorder": ["-p", f"output:={out['bag']}", "-p", "use_sim_time:=true"],
-        runner: ["-p", f"output:={out['metrics']}", "-p", "wait_for_start:=true"]})
+        runner: ["-p", f"output:={out['metrics']}", "-p", "wait_for_start:=true"],
+        "clik": feedback_remap(feedback)})
     start = time.monotonic()
     with _orchestrating(children) as node:
         begin = node.create_client(Trigger, f"/{runner}/start")
@@ -266,7 +282,8 @@ def run_processes(ros_args: list, out: dict, task: str = "") -> dict:
 
 
 def run_emulated_hardware(ros_args: list, out: dict, duration: float,
-                          config_dir: str | None = None, task: str = "", arm_file: str | None = None) -> dict:
+                          config_dir: str | None = None, task: str = "", arm_file: str | None = None,
+                          feedback: str = "mocap") -> dict:
     """The rig's graph in real time, each node its own process, with the ``emulated_rig`` (the
     motor_driver node with the CAN motor emulators and the NatNet server emulator behind it,
     :mod:`.emulated_rig`) and the ``mocap_bridge`` in the simulator's place; ``duration`` [s]: the
@@ -302,8 +319,9 @@ def run_emulated_hardware(ros_args: list, out: dict, duration: float,
         print("soft-arm-experiment: real-time scheduling is not permitted here (it needs root, "
               "CAP_SYS_NICE or an rtprio limit): a busy computer may hold the emulated hardware "
               "long enough for the motor driver's watchdog to trip", file=sys.stderr)
-    controller, runner = roles(task)
+    controller, runner = roles(task, feedback)
     children = _Children(ros_args, {
+        "clik": feedback_remap(feedback),
         "recorder": ["-p", f"output:={out['bag']}"],
         runner: ["-p", f"output:={out['metrics']}", "-p", "wait_for_start:=true"],
         # the one node whose commands the driver takes: the inner loop, or the excitation

@@ -209,14 +209,17 @@ def marker_backbone(arm, markers) -> tuple[np.ndarray, np.ndarray]:
 def measured_strike(pendulum, release_time: float, t, ball, markers, arm) -> dict:
     """The strike as the motion capture sees it (what the rig can measure): mocap frame times t
     [s], the ball marker (N, 3) and the arm's markers (N, n_markers, 3) [m] of ``arm`` (an
-    ArmConfig: where the markers sit and the cone's radii). The ball is
+    ArmConfig: where the markers sit and the cone's radii); frames with an unseen marker are left
+    out. The ball is
     struck at the last frame still within a third of :data:`DEVIATION` of its free swing
     before it leaves it by more (``impact_time`` after the release); its speeds before and after are
     fitted over :data:`SPEED_WINDOW` of frames on each side. Without an impact: the closest
     approach of the ball's surface to the arm's (:func:`marker_backbone`) and when."""
     t = np.asarray(t, dtype=float) - release_time
-    keep = t >= 0
-    t, ball, markers = t[keep], np.asarray(ball, dtype=float)[keep], np.asarray(markers, dtype=float)[keep]
+    ball, markers = np.asarray(ball, dtype=float), np.asarray(markers, dtype=float)
+    seen = np.all(np.isfinite(ball), axis=1) & np.all(np.isfinite(markers), axis=(1, 2))
+    keep = (t >= 0) & seen                       # the frames that saw the ball and every marker
+    t, ball, markers = t[keep], ball[keep], markers[keep]
     out = {"struck": False}
     if t.size < 3:
         return out

@@ -131,9 +131,9 @@ class TaskRunner:
         (:meth:`tracking`)."""
         rows = []
         for w, (phase, mode, k, window) in enumerate(self.windows):
-            s = [x for x in self.samples if x[1] == w]
+            s = [x for x in self.samples if x[1] == w and _seen(x)]
             if len(s) < 3 or mode == "track":
-                continue
+                continue                      # a window the mocap did not see has no figures
             t = np.array([x[0] for x in s])
             tip3 = np.array([x[5] for x in s])
             speed = measured_speed(t, tip3)
@@ -167,7 +167,7 @@ class TaskRunner:
         of another target: a goal the node rejected shifts the count)."""
         out = []
         for w, (phase, mode, k, _) in enumerate(self.windows):
-            errors = [float(np.linalg.norm(x[3] - x[2])) for x in self.samples if x[1] == w]
+            errors = [float(np.linalg.norm(x[3] - x[2])) for x in self.samples if x[1] == w and _seen(x)]
             report = self.clik_reports.get(w)
             if report is not None and not np.allclose(report["target"], self.task.targets[k]):
                 report = None
@@ -175,3 +175,8 @@ class TaskRunner:
                         "closest_error": min(errors) if errors else None,
                         "error": errors[-1] if errors else None, "clik": report})
         return out
+
+
+def _seen(sample) -> bool:
+    """A sample whose task and tip markers the mocap saw (no NaN)."""
+    return bool(np.all(np.isfinite(sample[2])) and np.all(np.isfinite(sample[4])))

@@ -22,8 +22,10 @@ the mid-exposure time on the local clock (see :class:`ClockMap`); a frame whose 
 impossible (its server latency, or its exposure mapped onto the local clock, beyond what a
 transport delay explains) is counted ``invalid``.
 
-A frame in which a selected marker is occluded (labelled marker with the occluded bit, rigid body
-without the tracking-valid bit) or absent is skipped, never filled in, and recorded in
+A selected marker that is occluded (labelled marker with the occluded bit, rigid body without the
+tracking-valid bit), absent or not a finite position is an *unseen* marker: the frame is delivered
+with NaN in its row, never filled in (``partial`` counts such frames, :attr:`MocapBridge.unseen`
+each marker's). A frame in which no selected marker was seen is skipped and recorded in
 :attr:`MocapBridge.last_skipped`. Every datagram ends in exactly one of :data:`PACKET_OUTCOMES`
 (malformed, truncated and unknown packets included; the handler never raises for received bytes),
 and the counts are in :attr:`MocapBridge.counters` for diagnostics.
@@ -79,9 +81,9 @@ def _name(version: Version) -> str:
 
 @dataclass(frozen=True)
 class MarkerFrame:
-    """The arm's markers in one mocap frame: ``markers`` (n, 3) [m] in ``arm_base``, base to tip;
-    ``stamp``: mid-exposure on the local clock [s]; ``received_at``: when the datagram was read
-    [s, local clock]; ``frame_number``: the server's."""
+    """The arm's markers in one mocap frame: ``markers`` (n, 3) [m] in ``arm_base``, base to tip
+    (NaN rows: markers the cameras did not see); ``stamp``: mid-exposure on the local clock [s];
+    ``received_at``: when the datagram was read [s, local clock]; ``frame_number``: the server's."""
 
     stamp: float
     markers: np.ndarray
@@ -126,8 +128,9 @@ class MocapBridge:
         self._clock = clock
         self._wanted = {marker_id: k for k, marker_id in enumerate(config.ids)}
         self._server = (config.server_address, config.command_port)
-        self._counts = dict.fromkeys(PACKET_OUTCOMES + ("restarts", "lost", "foreign",
+        self._counts = dict.fromkeys(PACKET_OUTCOMES + ("restarts", "lost", "foreign", "partial",
                                                         "socket_errors", "connect_requests"), 0)
+        self._unseen = np.zeros(len(self._wanted), dtype=int)
         self._filter = FrameFilter()
         self._outbox: deque = deque(maxlen=8)
         self.state = "disconnected"
@@ -371,19 +374,29 @@ class MocapBridge:
         if not received_at - 2 * clock.max_delay <= stamp <= received_at + clock.tolerance:
             return self._skip(frame.frame_number, "invalid", ())      # exposed after, or long before, it came
         positions, problems = self._select(frame)
-        if problems:
+        if len(problems) == len(self._wanted):
             reason = "missing" if "missing" in problems.values() else "occluded"
             return self._skip(frame.frame_number, reason, tuple(problems))
-        if not np.all(np.isfinite(positions)):
+        unseen = ~np.all(np.isfinite(positions), axis=1)
+        for marker_id in problems:
+            unseen[self._wanted[marker_id]] = True
+        positions[unseen] = 0.0
+        markers = self.config.calibration.to_arm(positions)
+        unseen |= ~np.all(np.isfinite(markers), axis=1)          # finite, but beyond a double
+        if unseen.all():
             return self._skip(frame.frame_number, "invalid", ())
+        markers[unseen] = np.nan
         self._counts["delivered"] += 1
-        return MarkerFrame(stamp, self.config.calibration.to_arm(positions), frame.frame_number, received_at)
+        if unseen.any():
+            self._counts["partial"] += 1
+            self._unseen += unseen
+        return MarkerFrame(stamp, markers, frame.frame_number, received_at)
 
     def _select(self, frame: FrameScan):
         """Positions (n, 3) in the mocap frame, base to tip, and {id: "occluded" | "missing"}: the
         first item of each wanted id (rigid bodies without the tracking-valid bit and labelled
         markers with the occluded bit are occluded)."""
-        positions = np.empty((len(self._wanted), 3))
+        positions = np.zeros((len(self._wanted), 3))       # a missing marker's row stays zero
         if self.config.source == "rigid_bodies":
             items = frame.rigid_bodies
             occluded = (items["params"] & 1) == 0
@@ -401,6 +414,11 @@ class MocapBridge:
                 problems[marker_id] = "occluded"
         return positions, problems
 
+    @property
+    def unseen(self) -> list:
+        """How many delivered frames lacked each selected marker (base to tip)."""
+        return self._unseen.tolist()
+
     def _skip(self, frame_number: int, reason: str, ids: tuple) -> None:
         self._counts[reason] += 1
         self.last_skipped = SkippedFrame(frame_number, reason, ids)
@@ -410,7 +428,8 @@ class MocapBridge:
     def counters(self) -> dict:
         """Datagram outcomes (:data:`PACKET_OUTCOMES`, from the frame filter: ``duplicates``,
         ``out_of_order``) and ``packets`` (their sum), ``lost`` (frame numbers skipped by the
-        stream: lost or late), ``restarts`` (the stream's frame numbers jumped back), ``foreign``
+        stream: lost or late), ``partial`` (delivered frames with unseen markers), ``restarts`` (the
+        stream's frame numbers jumped back), ``foreign``
         (datagrams from other hosts), ``socket_errors`` and ``connect_requests``."""
         counts = dict(self._counts)
         for key in ("duplicates", "out_of_order", "restarts"):

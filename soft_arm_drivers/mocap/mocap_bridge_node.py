@@ -2,11 +2,12 @@
 
 Publishes what the simulator publishes in its place: ``mocap/markers`` (geometry_msgs/PoseArray in
 ``arm_base``, the arm's markers base to tip, identity orientations) and ``mocap/tip``
-(PoseStamped, the last marker), both stamped at mid-exposure on the node's clock, best effort,
-depth 1; and once a second ``/diagnostics`` (diagnostic_msgs/DiagnosticArray: lifecycle and
+(PoseStamped, the last marker, when it was seen), both stamped at mid-exposure on the node's clock,
+best effort, depth 1; and once a second ``/diagnostics`` (diagnostic_msgs/DiagnosticArray: lifecycle and
 connection state, the bridge's counters). A thread waits on the NatNet sockets and publishes each
-frame as it arrives; frames with an occluded or missing marker are not published (see
-:mod:`soft_arm_drivers.mocap.mocap_bridge`).
+frame as it arrives; a marker that is occluded or missing goes out as an invalid marker of its frame
+(NaN position, zero quaternion: :func:`soft_arm_ros.conversions.pose_array`), and a frame with no
+marker seen is not published (see :mod:`soft_arm_drivers.mocap.mocap_bridge`).
 
 A managed (lifecycle) node (:mod:`soft_arm_ros.lifecycle`): ``configure`` opens the sockets and
 waits for the Motive server's answer to the connect request (refused, sockets closed, when none
@@ -27,6 +28,7 @@ import sys
 import threading
 import time
 
+import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseArray, PoseStamped
 
@@ -136,7 +138,8 @@ class MocapBridgeNode(ManagedHardwareNode):
                     continue
                 try:
                     self.markers_pub.publish(pose_array(frame.markers, frame.stamp))
-                    self.tip_pub.publish(pose_stamped(frame.markers[-1], frame.stamp))
+                    if np.all(np.isfinite(frame.markers[-1])):      # mocap/tip: seen tips only
+                        self.tip_pub.publish(pose_stamped(frame.markers[-1], frame.stamp))
                 except RuntimeError:        # rclpy's RCLError: publisher's context is invalid
                     if self.context.ok():
                         raise
@@ -144,8 +147,8 @@ class MocapBridgeNode(ManagedHardwareNode):
                 self.published += 1
 
     def status(self, fresh: int) -> DiagnosticStatus:
-        """The bridge's state and counters as one DiagnosticStatus; ``fresh``: complete frames
-        received in the last diagnostics period."""
+        """The bridge's state and counters as one DiagnosticStatus; ``fresh``: frames received in
+        the last diagnostics period."""
         b, c = self.bridge, self.config
         hardware_id = f"natnet://{c.server_address}:{c.command_port}"
         lifecycle = self.lifecycle_state
@@ -163,13 +166,13 @@ class MocapBridgeNode(ManagedHardwareNode):
         elif b.state != "streaming":
             level, message = DiagnosticStatus.WARN, f"{b.state} {b.note}".strip()
         elif fresh == 0:
-            level, message = DiagnosticStatus.WARN, "no complete frame in the last period " \
-                                                    "(occluded or missing markers)"
+            level, message = DiagnosticStatus.WARN, "no frame in the last period " \
+                                                    "(every marker occluded or missing)"
         values = {"lifecycle_state": lifecycle, "state": b.state, "note": b.note,
                   "natnet_version": version, "server": b.server_info.app_name if b.server_info else "",
                   "received": self.received, "published": self.published,
                   "rate_hz": fresh / DIAGNOSTICS_PERIOD, "latency_ms": 1e3 * self.last_latency,
-                  **b.counters}
+                  "unseen": b.unseen, **b.counters}
         return DiagnosticStatus(level=level, name="mocap_bridge: NatNet", message=message,
                                 hardware_id=hardware_id,
                                 values=[KeyValue(key=k, value=str(v)) for k, v in values.items()])

@@ -30,6 +30,7 @@ from soft_arm_model.parameters import ConfigError
 
 from .configuration_history import ConfigurationHistory
 from .natnet_emulator import NatNetEmulator
+from .occlusion import Occlusions
 from .simulated_rig import Plant
 
 _READY, _ERROR = "ready", "error"
@@ -44,11 +45,17 @@ def start_motive(spec, model, configuration_at: Callable[[float], np.ndarray]) -
     data = ArmData(model)
     marker_positions(model, configuration_at(time.time()), data)    # compiled before the stream
     rng = np.random.default_rng(p.mocap_seed)
+    occlusions = None if p.occlusion is None else Occlusions(p.occlusion, model.marker_X.size,
+                                                             1.0 / p.mocap_rate, [p.mocap_seed, 1])
 
     def markers(t: float) -> np.ndarray:
-        """On the NatNet thread: the plant at the exposure time ``t`` [s, system time]."""
+        """On the NatNet thread: the plant at the exposure time ``t`` [s, system time]; the markers
+        the cameras do not see are NaN (the emulator flags them occluded, as Motive does)."""
         true = marker_positions(model, configuration_at(t), data)
-        return p.as_mocap_reports(true) + rng.normal(0.0, p.mocap_noise, true.shape)
+        out = p.as_mocap_reports(true) + rng.normal(0.0, p.mocap_noise, true.shape)
+        if occlusions is not None:
+            out[~occlusions.of_arm(model, data)] = np.nan
+        return out
 
     ids = {"rigid_body_ids" if mocap.source == "rigid_bodies" else "labeled_marker_ids": mocap.ids}
     try:

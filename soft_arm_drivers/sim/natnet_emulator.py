@@ -20,7 +20,9 @@ mid-exposure time in server ticks, the data-received and transmit ticks, and Mot
 timestamp. Faults can be injected with a seeded :class:`Faults`.
 
 Marker positions come from ``markers(t)``: (n, 3) [m] in ``arm_base`` at the mid-exposure time
-``t`` [s, emulator clock]; :func:`plant_markers` reads a :class:`~.simulated_rig.Plant` (of a
+``t`` [s, emulator clock], a NaN row for a marker the cameras did not see (it goes out occluded, as
+Motive marks it: a rigid body without its tracking-valid bit, a labelled marker with its occluded
+bit, position zero); :func:`plant_markers` reads a :class:`~.simulated_rig.Plant` (of a
 ``SimulatedRig``: ``rig.plant``). Either :meth:`NatNetEmulator.start` streams at ``rate`` on a
 thread (real time), or ``start(stream=False)`` only serves requests and the caller sends each frame
 with :meth:`NatNetEmulator.send_frame` (stepped, e.g. once per exposure of a ``SimulatedRig``). The
@@ -347,7 +349,7 @@ class NatNetEmulator:
         """The frame in the mocap system's frame, with the occlusion and absence faults; its
         transmit ticks ``transmit_offset`` [s] off."""
         positions = [tuple(float(v) for v in p) for p in self.calibration.to_mocap(arm)]
-        visible = [True] * self.n_markers
+        visible = [bool(np.all(np.isfinite(p))) for p in positions]       # NaN: the cameras missed it
         present = [True] * self.n_markers
         if self._rng.random() < self.faults.occlusion:
             visible[self._rng.randrange(self.n_markers)] = False

@@ -17,6 +17,8 @@ from soft_arm_drivers.mocap.bridge_config import load_mocap_config
 from soft_arm_model.config import ArmConfig, load_arm_config, with_basis
 from soft_arm_model.parameters import ConfigError, default_config_dir, load_section
 
+from .occlusion import OcclusionConfig
+
 PLANT_SCHEMA = {
     "plant_file": ("str", None, "the path of a complete arm description in the schema of arm.yaml, "
                                 "or an empty string (the controller's arm with the differences below)"),
@@ -51,6 +53,26 @@ PLANT_SCHEMA = {
                                        "a rotation vector of 3 components in [-10, 10] deg"),
     "mocap.frame_error.translation": ("floats", lambda v: len(v) == 3 and all(abs(a) <= 0.1 for a in v),
                                       "a translation of 3 components in [-0.1, 0.1] m"),
+    "mocap.occlusion.enabled": ("bool", None, "true or false (false: every marker in every frame)"),
+    "mocap.occlusion.cameras.positions": (
+        "floats", lambda v: len(v) >= 3 and len(v) % 3 == 0 and all(abs(a) <= 50 for a in v),
+        "camera positions [m] in arm_base, x y z of each camera in turn, components in [-50, 50]"),
+    "mocap.occlusion.cameras.aim": ("floats", lambda v: len(v) == 3 and all(abs(a) <= 50 for a in v),
+                                    "the point [m] every camera looks at, 3 components in [-50, 50]"),
+    "mocap.occlusion.cameras.field_of_view_deg": ("float", lambda v: 0 < v < 180,
+                                                  "a full cone angle in (0, 180) deg"),
+    "mocap.occlusion.min_cameras": ("int", lambda v: v >= 1,
+                                    "a number of cameras >= 1 (and at most the cameras given)"),
+    "mocap.occlusion.self_occlusion": ("bool", None, "true or false (the arm's body hides markers)"),
+    "mocap.occlusion.dropout": ("float", lambda v: 0 <= v <= 0.5,
+                                "a probability per marker per frame in [0, 0.5]"),
+    "mocap.occlusion.bursts.fraction": ("floats", lambda v: all(0 <= a <= 0.95 for a in v),
+                                        "fractions of time in [0, 0.95], one per marker"),
+    "mocap.occlusion.bursts.duration": ("float", lambda v: 0.001 <= v <= 60,
+                                        "a mean burst duration in [0.001, 60] s"),
+    "mocap.occlusion.blackout": ("floats", lambda v: len(v) == 2 and 0 <= v[0] <= v[1],
+                                 "[start, end] s with 0 <= start <= end: no marker is seen in between "
+                                 "(equal: never)"),
 }
 # the keys that describe the plant's arm (ignored when plant_file names a complete description)
 ARM_KEYS = ("youngs_modulus_scale", "viscosity_scale", "density_scale", "friction",
@@ -68,7 +90,9 @@ class PlantConfig:
     step [s], the motor rotor inertia [kg m^2], the encoder (pulley radius
     [m], angle and rate resolution [rad], [rad/s]) and the mocap (frame rate [Hz], noise standard
     deviation [m], latency [s], seed, and the error of its calibration: the markers arrive as
-    R p + t for p in arm_base, ``mocap_frame_error`` = (rotation vector R [rad] (3,), t [m] (3,))).
+    R p + t for p in arm_base, ``mocap_frame_error`` = (rotation vector R [rad] (3,), t [m] (3,));
+    ``occlusion``: its cameras and losses, :class:`~.occlusion.OcclusionConfig`, None: every marker
+    is seen in every frame).
 
     ``bridge_correction`` = (rotation matrix (3, 3), translation [m] (3,)): what a mocap bridge
     whose calibration differs from ``mocap.yaml``'s (the one ``mocap_frame_error`` is the error of)
@@ -88,6 +112,7 @@ class PlantConfig:
     mocap_latency: float
     mocap_seed: int
     mocap_frame_error: tuple = ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
+    occlusion: OcclusionConfig | None = None
     bridge_correction: tuple = (((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)), (0.0, 0.0, 0.0))
     drawing: ArmConfig | None = None
 
@@ -164,6 +189,8 @@ def parse_plant(v: dict, arm: ArmConfig) -> PlantConfig:
     expect = {**{k: (len(arm.tendons), "one per tendon in arm.tendons.names") for k in _PER_TENDON},
               **{k: (len(arm.discretisation.division_ends),
                      "one per division in arm.discretisation.division_ends") for k in _PER_DIVISION}}
+    expect["mocap.occlusion.bursts.fraction"] = (len(arm.marker_positions),
+                                                 "one per marker in arm.markers.positions")
     for key, (n, what) in expect.items():
         if len(v[key]) != n:
             raise ConfigError(f"plant.{key} = {list(v[key])} is not valid: expected {n} values, {what}")
@@ -172,7 +199,26 @@ def parse_plant(v: dict, arm: ArmConfig) -> PlantConfig:
                        v["encoder.velocity_resolution"], v["mocap.rate"], v["mocap.noise"],
                        v["mocap.latency"], v["mocap.seed"],
                        (tuple(math.radians(a) for a in v["mocap.frame_error.rotation_deg"]),
-                        v["mocap.frame_error.translation"]))
+                        v["mocap.frame_error.translation"]), _occlusion(v))
+
+
+def _occlusion(v: dict) -> OcclusionConfig | None:
+    """``plant.mocap.occlusion`` (None when not enabled)."""
+    if not v["mocap.occlusion.enabled"]:
+        return None
+    flat = v["mocap.occlusion.cameras.positions"]
+    cameras = tuple(tuple(flat[i:i + 3]) for i in range(0, len(flat), 3))
+    aim = tuple(v["mocap.occlusion.cameras.aim"])
+    if any(math.dist(c, aim) < 0.1 for c in cameras):
+        raise ConfigError(f"plant.mocap.occlusion.cameras.positions = {list(flat)} is not valid: every "
+                          f"camera must stand at least 0.1 m from the aim point {list(aim)}")
+    if v["mocap.occlusion.min_cameras"] > len(cameras):
+        raise ConfigError(f"plant.mocap.occlusion.min_cameras = {v['mocap.occlusion.min_cameras']} is not "
+                          f"valid: at most the {len(cameras)} cameras of cameras.positions")
+    return OcclusionConfig(cameras, aim, math.radians(v["mocap.occlusion.cameras.field_of_view_deg"]),
+                           v["mocap.occlusion.min_cameras"], v["mocap.occlusion.self_occlusion"],
+                           v["mocap.occlusion.dropout"], tuple(v["mocap.occlusion.bursts.fraction"]),
+                           v["mocap.occlusion.bursts.duration"], tuple(v["mocap.occlusion.blackout"]))
 
 
 def load_plant_config(arm: ArmConfig, path: str | None = None, overrides=None) -> PlantConfig:

@@ -3,8 +3,9 @@
 Shared by the closed-loop harness and the ROS ``simulator`` node, so that both see the same plant.
 One call of :meth:`SimulatedRig.begin_step` and one of :meth:`SimulatedRig.end_step` advance the
 plant by ``plant.timestep``; in between, the true sensor values of the current state are readable.
-Mocap frames are exposed at ``mocap.rate`` (markers with Gaussian noise, seeded) and delivered
-``mocap.latency`` later; a frame carries its mid-exposure time stamp. A task's pendulum
+Mocap frames are exposed at ``mocap.rate`` (markers with Gaussian noise, seeded; the markers the
+cameras do not see, :mod:`.occlusion`, are NaN) and delivered ``mocap.latency`` later; a frame
+carries its mid-exposure time stamp. A task's pendulum
 (:mod:`.pendulum`) swings with the arm, in contact with it, and its ball is in every frame.
 """
 from __future__ import annotations
@@ -16,6 +17,7 @@ import numpy as np
 
 from soft_arm_model import ImexStepper, build_model, solve_equilibrium
 
+from .occlusion import Occlusions
 from .pendulum import ArmSurface, Contact, Pendulum
 from .plant_config import PlantConfig
 
@@ -111,14 +113,16 @@ class Encoders:
 @dataclass(frozen=True)
 class MocapFrame:
     """One motion-capture frame: mid-exposure time [s], measured marker positions (n_markers, 3) [m]
-    (noisy, in arm_base as the mocap's calibration has it) and the true ones in arm_base, true tip
-    speed [m/s], the frame number and the pendulum ball's measured centre [m] (None without one)."""
+    (noisy, in arm_base as the mocap's calibration has it; NaN rows for the markers the cameras did
+    not see) and the true ones in arm_base, true tip speed [m/s], the frame number, the pendulum
+    ball's measured centre [m] (None without one) and which markers were seen (n_markers,) bool."""
     stamp: float
     markers: np.ndarray
     true_markers: np.ndarray
     tip_speed: float
     number: int
     ball: np.ndarray | None = None
+    visible: np.ndarray | None = None
 
 
 class SimulatedRig:
@@ -149,6 +153,8 @@ class SimulatedRig:
         zero, _ = self.plant.tendons()
         self.encoders = Encoders(plant, zero, encoder_offset)
         self.rng = np.random.default_rng(plant.mocap_seed)
+        self.occlusions = None if plant.occlusion is None else Occlusions(
+            plant.occlusion, plant_model.marker_X.size, 1.0 / plant.mocap_rate, [plant.mocap_seed, 1])
         self.step_index = 0
         self._frame_period = 1.0 / plant.mocap_rate
         self._next_frame = 0
@@ -175,18 +181,28 @@ class SimulatedRig:
             true, speed = self.plant.markers()
             noisy = self.config.as_mocap_reports(true) + self.rng.normal(0.0, self.config.mocap_noise,
                                                                          true.shape)
+            visible = self.visible(true)
+            noisy[~visible] = np.nan
             ball = None
             if self.pendulum is not None:
                 ball = self.config.as_mocap_reports(self.pendulum.p[None, :])[0] + self.rng.normal(
                     0.0, self.config.mocap_noise, 3)
             frame = MocapFrame(self._next_frame * self._frame_period, noisy, true, speed,
-                               self._next_frame, ball)
+                               self._next_frame, ball, visible)
             self._pending.append(frame)
             self._next_frame += 1
         delivered = []
         while self._pending and self._pending[0].stamp + self.config.mocap_latency <= self.t + 1e-12:
             delivered.append(self._pending.popleft())
         return frame, delivered
+
+    def visible(self, true_markers) -> np.ndarray:
+        """(n_markers,) bool: which of the plant's markers (at ``true_markers`` (n, 3) [m, arm_base],
+        the state sensed with markers) the cameras see in the frame exposed now; all without
+        occlusions."""
+        if self.occlusions is None:
+            return np.ones(len(true_markers), bool)
+        return self.occlusions.of_arm(self.plant.model, self.plant.stepper.data, self.t)
 
     def tendons(self) -> tuple[np.ndarray, np.ndarray]:
         """Encoder readings at the sensed state: shortenings [m] and rates [m/s]."""

@@ -2,7 +2,9 @@
 
 Publishes what the motor driver and the mocap bridge publish on the rig: ``tendon/state``
 (position: encoder shortening [m], velocity [m/s], effort: applied tension [N]), ``mocap/markers``
-and ``mocap/tip`` (mid-exposure stamps, at the mocap rate, with noise and latency), plus ``/clock``
+and ``mocap/tip`` (mid-exposure stamps, at the mocap rate, with noise, latency and the occlusions
+of ``plant.mocap.occlusion``: an unseen marker is an invalid marker of the frame, an unseen tip is
+no ``mocap/tip`` message), plus ``/clock``
 and ``arm/shape`` (MarkerArray). Subscribes ``tendon/command`` (effort: tensions [N]). With a
 task's pendulum (``tasks.<graph.task>.pendulum``): the ball swings with the arm and strikes it, its
 marker goes out on ``mocap/pendulum`` (PoseStamped, the same exposures as the arm's markers; on the
@@ -147,7 +149,8 @@ class SimulatorNode(Node):
     def _publish_frames(self, frames):
         for frame in frames:
             self.markers_pub.publish(pose_array(frame.markers, frame.stamp))
-            self.tip_pub.publish(pose_stamped(frame.markers[-1], frame.stamp))
+            if np.all(np.isfinite(frame.markers[-1])):          # mocap/tip carries seen tips only
+                self.tip_pub.publish(pose_stamped(frame.markers[-1], frame.stamp))
             if frame.ball is not None:
                 self.ball_pub.publish(pose_stamped(frame.ball, frame.stamp))
 

@@ -43,7 +43,7 @@ def _messages(bag_dir):
 def _window_errors(bag_dir) -> list:
     """Per goal recorded on task/goal: the task error norms [m] of the recorded mocap frames of its
     window (stamped from the goal's stamp to the next goal's, the last to the end of its window),
-    the task coordinates read from the markers the goal's labels name."""
+    the task coordinates read from the markers the goal's labels name (NaN: a marker not seen)."""
     goals, frames = [], []
     with AnyReader([pathlib.Path(bag_dir)],
                    default_typestore=get_typestore(Stores.ROS2_JAZZY)) as reader:
@@ -123,7 +123,7 @@ def test_lockstep_runs_with_the_same_seed_record_the_same_messages(tmp_path):
     a, _ = _messages(out_a["bag"])
     b, _ = _messages(out_b["bag"])
     assert set(a) == set(b)
-    for topic in a:
+    for topic in set(a) - {"/diagnostics"}:      # diagnostics are paced by wall time, not the waves
         assert a[topic] == b[topic], topic
     assert first["summary"] == second["summary"]
     goals = first["goals"]                  # what became of each goal, with the clik node's report
@@ -131,6 +131,7 @@ def test_lockstep_runs_with_the_same_seed_record_the_same_messages(tmp_path):
     # the closest and the last error of each window are those of the frames recorded in it
     windows = _window_errors(out_a["bag"])
     assert [len(errors) for errors in windows] == [240, 240]            # 1 s windows at 240 Hz
+    windows = [[e for e in errors if np.isfinite(e)] for errors in windows]   # the frames that saw
     for g, errors in zip(goals, windows):
         assert g["closest_error"] == pytest.approx(min(errors), rel=1e-12, abs=0.0), (g, errors)
         assert g["error"] == pytest.approx(errors[-1], rel=1e-12, abs=0.0), (g, errors)

@@ -71,3 +71,21 @@ def test_noise_levels_come_from_the_spread_of_the_readings():
     assert marker == pytest.approx(2e-4, rel=0.15) and shortening == pytest.approx(2e-4, rel=0.15)
     marker_avg, _ = noise_levels(rec, held, 1.0)
     assert marker_avg == pytest.approx(2e-4 / np.sqrt(240), rel=0.2)
+
+
+def test_frames_with_an_unseen_marker_are_left_out_of_the_samples():
+    """A frame with an occluded marker (NaN) is not averaged: the samples are those of the frames
+    that saw every marker, and a plateau whose frames all lost one has no mocap frames."""
+    rec = _recording()
+    markers = rec.markers.copy()
+    markers[::3, 1] = np.nan                        # a third of the frames lost the second marker
+    late = rec.t_markers >= 7.5
+    markers[late, 0] = np.nan                       # the end of plateau 2 onwards lost the first
+    lossy = Recording(rec.t, rec.shortening, rec.tension, rec.t_command, rec.command, rec.t_markers, markers)
+    held = plateaus(lossy, 2.5)
+    clean = static_samples(rec, held[:1], 1.0)[0]
+    sample = static_samples(lossy, held[:1], 1.0)[0]
+    assert np.all(np.isfinite(sample.markers))
+    np.testing.assert_allclose(sample.markers, clean.markers, atol=1e-9)
+    with pytest.raises(IdentificationError, match="plateau 2 .* no mocap frames"):
+        static_samples(lossy, held, 1.0)

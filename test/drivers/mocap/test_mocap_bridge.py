@@ -89,6 +89,13 @@ def step(emulator, bridge, count):
     return frames
 
 
+def step_with(emulator, bridge, markers):
+    """Send one frame of ``markers`` (n, 3) [m, arm_base]; the frames the bridge delivered."""
+    backlog = emulator.counters["sent"] - frame_packets(bridge)
+    emulator.send_frame(markers)
+    return pump(bridge, lambda: emulator.counters["sent"] - frame_packets(bridge) == backlog)
+
+
 # --- handshake, versions, streaming --------------------------------------------------------------
 
 def test_handshake_keepalives_and_streaming_at_240_hz():
@@ -402,20 +409,43 @@ def test_a_server_clock_that_jumps_back_less_than_a_delay_re_anchors_within_a_wi
 # --- occlusion and packet faults -----------------------------------------------------------------
 
 @pytest.mark.parametrize("source", ["rigid_bodies", "labeled_markers"])
-@pytest.mark.parametrize("fault, reason", [("occlusion", "occluded"), ("absence", "missing")])
-def test_occluded_or_missing_marker_skips_and_flags_the_frame(source, fault, reason):
+@pytest.mark.parametrize("fault", ["occlusion", "absence"])
+def test_an_occluded_or_missing_marker_is_delivered_unseen_never_filled_in(source, fault):
+    """The frame goes out with the marker's row NaN (the others as measured), counted ``partial``
+    and in that marker's ``unseen`` count."""
     with connected(layout="both", source=source) as (emulator, bridge):
         good = step(emulator, bridge, 5)
         emulator.faults = Faults(**{fault: 1.0})
-        bad = step(emulator, bridge, 5)
+        partial = step(emulator, bridge, 5)
         emulator.faults = Faults()
         good += step(emulator, bridge, 5)
-    assert bad == [] and len(good) == 10
-    assert bridge.counters[reason] == 5 and bridge.counters["delivered"] == 10
-    skipped = bridge.last_skipped
-    assert skipped.reason == reason and skipped.frame_number == 10 and len(skipped.ids) == 1
-    for frame in good:                                     # never filled in
+    assert len(good) == 10 and len(partial) == 5
+    assert bridge.counters["partial"] == 5 and bridge.counters["delivered"] == 15
+    assert sum(bridge.unseen) == 5
+    for frame in partial:
+        unseen = ~np.all(np.isfinite(frame.markers), axis=1)
+        assert unseen.sum() == 1
+        np.testing.assert_allclose(frame.markers[~unseen], TRUE[~unseen], atol=1e-6)
+    for frame in good:
         np.testing.assert_allclose(frame.markers, TRUE, atol=1e-6)
+
+
+@pytest.mark.parametrize("source", ["rigid_bodies", "labeled_markers"])
+def test_the_cameras_occlusion_travels_in_motives_bits_and_a_frame_with_nothing_seen_is_skipped(source):
+    """Markers the simulated cameras missed (NaN from ``markers(t)``) go out with Motive's bits (no
+    tracking-valid bit, the occluded bit) and come out of the bridge as the same NaN rows; a frame
+    in which no marker was seen is skipped as ``occluded``."""
+    with connected(layout="both", source=source) as (emulator, bridge):
+        hidden = TRUE.copy()
+        hidden[[1, 3]] = np.nan
+        frames = [f for _ in range(3) for f in step_with(emulator, bridge, hidden)]
+        nothing = step_with(emulator, bridge, np.full_like(TRUE, np.nan))
+    assert len(frames) == 3 and nothing == []
+    for frame in frames:
+        assert np.isnan(frame.markers[[1, 3]]).all()
+        np.testing.assert_allclose(frame.markers[[0, 2]], TRUE[[0, 2]], atol=1e-6)
+    assert bridge.counters["occluded"] == 1 and bridge.last_skipped.reason == "occluded"
+    assert bridge.unseen == [0, 3, 0, 3]
 
 
 @pytest.mark.parametrize("fault", ["drop", "duplicate", "reorder"])
@@ -498,7 +528,8 @@ def _mutate(data, packet):
 @given(data=st.data())
 def test_random_and_mutated_packets_never_raise_and_are_counted(handler_bridge, data):
     """Any datagram, fed once or twice to a bridge on a fresh NatNet 4.1 stream: no exception, one
-    outcome counted per datagram, and only complete, finite frames delivered."""
+    outcome counted per datagram, and only frames whose markers are finite or NaN rows (unseen),
+    at least one seen, delivered."""
     bridge = handler_bridge
     bridge.handle_packet(SERVER_INFO, 0.0)
     kind = data.draw(st.sampled_from(["random", "frame", "mutated frame", "mutated other"]))
@@ -518,7 +549,9 @@ def test_random_and_mutated_packets_never_raise_and_are_counted(handler_bridge, 
         assert sum(after[k] != before[k] for k in PACKET_OUTCOMES) == 1
         assert (frame is not None) == (after["delivered"] == before["delivered"] + 1)
         if frame is not None:
-            assert frame.markers.shape == (2, 3) and np.all(np.isfinite(frame.markers))
+            finite = np.isfinite(frame.markers)
+            assert frame.markers.shape == (2, 3) and finite.all(axis=1).any()
+            assert np.array_equal(finite.all(axis=1), finite.any(axis=1))
 
 
 # --- configuration -------------------------------------------------------------------------------

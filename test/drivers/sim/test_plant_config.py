@@ -81,7 +81,7 @@ def test_a_plant_file_equal_to_arm_yaml_reproduces_the_run_exactly(tmp_path):
         f"plant.plant_file={tmp_path / 'arm.yaml'}"]))
     a, b = neutral.record.arrays(), from_file.record.arrays()
     assert a["x"].shape == b["x"].shape and a["x"].size > 0
-    assert np.array_equal(a["x"], b["x"]) and np.array_equal(a["tension"], b["tension"])
+    assert np.array_equal(a["x"], b["x"], equal_nan=True) and np.array_equal(a["tension"], b["tension"])
     default = run_experiment(load_setup("coiling", overrides=SHORT)).record.arrays()
     assert not np.array_equal(default["x"], a["x"])       # plant.yaml's differences do matter
     assert math.isfinite(neutral.summary.rms_error)

@@ -1,0 +1,130 @@
+"""Sensing benchmark: the shape estimate against the simulator's truth, and the closed loop on each
+feedback (mocap, fused, estimate) under four mocap scenarios; prints tables, writes JSON.
+
+    python bench/bench_sensing.py [--tasks triangle coiling] [--feedbacks mocap fused estimate]
+                                  [--scenarios clean realistic heavy lost] [--workers 2]
+                                  [--output bench/results/sensing.json]
+
+Scenarios (``plant.mocap.occlusion``): *clean*, no occlusion; *realistic*, the declared plant's
+(the cameras' lines of sight against the arm's body, 1 % dropouts); *heavy*, realistic with the
+tip marker lost 30 % of the time in 0.5 s bursts; *lost*, realistic until the end of the first
+target's window, then no marker at all; *blind*, no marker ever (the tendons alone from the start:
+no marker has corrected the learnt stiffness and friction). Every run is on the declared plant
+(plant.yaml) with the controller's model, its figures on the plant's true markers (a lost mocap
+measures nothing).
+
+The estimate's error is per marker, RMS, median, 95th percentile and maximum, at rest (the true tip
+slower than 5 mm/s) and in motion, from the estimator's first second on (the *lost* runs: from the
+mocap's loss, when the estimator has the tendons alone). The estimate's consistency: the fraction
+of frames whose tip NEES is above the chi-square 99 % bound (3 degrees of freedom), and its mean (3
+for an honest filter).
+"""
+from __future__ import annotations
+
+import argparse
+import itertools
+import os
+import sys
+import time
+
+import numpy as np
+
+from soft_arm_drivers.campaigns.engine import map_runs
+from timing import results_path, write_results
+
+REST_SPEED = 0.005        # m/s: the true tip slower than this is at rest
+CHI2_99 = 11.345          # chi-square, 3 degrees of freedom, 99 %
+SCENARIOS = {
+    "clean": ["plant.mocap.occlusion.enabled=false"],
+    "realistic": [],
+    "heavy": ["plant.mocap.occlusion.bursts.fraction=[0.0, 0.0, 0.0, 0.3]",
+              "plant.mocap.occlusion.bursts.duration=0.5"],
+    "lost": None,           # blackout from the end of the first window, set per task
+    "blind": ["plant.mocap.occlusion.blackout=[0.0, 1.0e6]"],
+}
+
+
+def _sets(task: str, scenario: str) -> list:
+    if scenario != "lost":
+        return SCENARIOS[scenario]
+    from soft_arm_drivers.experiments.harness import load_setup, schedule
+    first = schedule(load_setup(task).task)[0][3]
+    return [f"plant.mocap.occlusion.blackout=[{first}, 1.0e6]"]
+
+
+def _errors(rec: dict, select) -> dict:
+    """Per marker RMS, median, 95th percentile and maximum [m] of the estimate's error on the
+    frames ``select``."""
+    err = np.linalg.norm(rec["markers_estimated"] - rec["markers_true"], axis=2)[select]
+    if not err.size:
+        return {"frames": 0}
+    return {"frames": int(err.shape[0]), "rms": np.sqrt(np.mean(err ** 2, axis=0)).tolist(),
+            "max": err.max(axis=0).tolist(), "median": np.median(err, axis=0).tolist(),
+            "p95": np.percentile(err, 95, axis=0).tolist()}
+
+
+def run_spec(spec: dict) -> dict:
+    """One run on a campaign worker: the closed loop and the estimate's figures."""
+    from soft_arm_drivers.experiments.harness import load_setup, run_experiment
+    t0 = time.perf_counter()
+    setup = load_setup(spec["task"], overrides=spec["sets"], feedback=spec["feedback"])
+    result = run_experiment(setup, estimate=True, truth=True)
+    rec = result.record.arrays()
+    s = result.summary
+    t = rec["t_mocap"]
+    speed = np.linalg.norm(np.gradient(rec["markers_true"][:, -1], t, axis=0), axis=1)
+    after = t >= 1.0
+    if spec["scenario"] == "lost":
+        after &= t >= spec["lost_at"]
+    diff = rec["markers_estimated"][:, -1] - rec["markers_true"][:, -1]
+    nees = np.einsum("ki,kij,kj->k", diff, np.linalg.inv(rec["marker_covariance"][:, -1]), diff)[after]
+    return {**{k: spec[k] for k in ("task", "feedback", "scenario")},
+            "rms_error": s.rms_error, "reached_mm": s.reached_mm, "reached_cm": s.reached_cm,
+            "transitions": s.transitions, "velocity_mm": s.velocity_mm, "velocity_cm": s.velocity_cm,
+            "statuses": sorted({g["status"] for g in result.goals}),
+            "seen": rec["markers_seen"].mean(axis=0).tolist(),
+            "estimate_at_rest": _errors(rec, after & (speed < REST_SPEED)),
+            "estimate_moving": _errors(rec, after & (speed >= REST_SPEED)),
+            "tip_nees_mean": float(nees.mean()), "tip_nees_above_99": float(np.mean(nees > CHI2_99)),
+            "wall_s": time.perf_counter() - t0}
+
+
+def _tip(e: dict, worst: bool = False) -> str:
+    """The tip's median/p95(/max) of :func:`_errors` [mm]."""
+    if not e["frames"]:
+        return "-"
+    out = f"{1e3 * e['median'][-1]:.2f}/{1e3 * e['p95'][-1]:.2f}"
+    return out + (f"/{1e3 * e['max'][-1]:.0f}" if worst else "")
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--tasks", nargs="+", default=["triangle", "coiling"])
+    parser.add_argument("--feedbacks", nargs="+", default=["mocap", "fused", "estimate"])
+    parser.add_argument("--scenarios", nargs="+", default=list(SCENARIOS))
+    parser.add_argument("--workers", type=int, default=os.cpu_count() or 2,
+                        help="Dask workers on this machine (default: the cores)")
+    parser.add_argument("--output", default=results_path("sensing.json"))
+    args = parser.parse_args(argv)
+    from soft_arm_drivers.experiments.harness import load_setup, schedule
+    specs = []
+    for task, scenario, feedback in itertools.product(args.tasks, args.scenarios, args.feedbacks):
+        lost_at = schedule(load_setup(task).task)[0][3]
+        specs.append({"task": task, "scenario": scenario, "feedback": feedback,
+                      "sets": _sets(task, scenario), "lost_at": lost_at})
+    rows = map_runs(f"{os.path.abspath(__file__)}:run_spec", specs, workers=args.workers)
+    print(f"{'task':9} {'scenario':10} {'feedback':9} {'RMS mm':>7} {'mm band':>8} {'v_mm m/s':>9} "
+          f"{'tip est. rest mm (median/p95)':>30} {'moving (median/p95/max)':>24} {'NEES':>5}  statuses")
+    for r in rows:
+        rest, moving = r["estimate_at_rest"], r["estimate_moving"]
+        v = "-" if r["velocity_mm"] is None else f"{r['velocity_mm']:.3f}"
+        print(f"{r['task']:9} {r['scenario']:10} {r['feedback']:9} {1e3 * r['rms_error']:7.3f} "
+              f"{r['reached_mm']:>3}/{r['transitions']:<4} {v:>9} {_tip(rest):>30} "
+              f"{_tip(moving, True):>24} "
+              f"{r['tip_nees_mean']:5.2f}  {', '.join(r['statuses'])}")
+    write_results(args.output, {"runs": rows, "rest_speed": REST_SPEED})
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,347 @@
+"""Proprioceptive shape estimation: the arm's configuration from its tendons, fused with whatever
+markers the mocap still sees. ROS-free; the ``shape_estimator`` node is its shell.
+
+The estimate is an extended Kalman filter on the configuration q of the controller's model, with a
+random walk between updates (intensity ``process`` per coordinate, scaled by the coordinate's
+compliance so that soft modes may move more), and three kinds of measurement:
+
+- **tendon shortenings** (the encoders): h(q) = L_c(0) - L_c(q), Jacobian -A0(q)^T, with
+  ``shortening`` [m] of noise (encoder and model geometry). Four numbers, but exact ones: they fix
+  how much the arm bends along each tendon's path;
+- **static balance** (a pseudo-measurement): the residual R = k F_el(q) - F_g(q) + A(q, mu) u is
+  zero at rest under the measured tensions u, A with the paper's friction weight at the tendons'
+  friction coefficients mu. The model is not the plant: its stiffness scale k (1 for the model)
+  and the friction coefficients' offsets from the model's are estimated with q (the state is (q, k,
+  dmu); they drift by ``parameter_drift`` per sqrt(s); dA/dmu by a finite difference, a second
+  model with every coefficient raised by :data:`FRICTION_STEP`), and what remains is uncertain in
+  proportion to the forces in the balance: a standard deviation of ``balance`` times the magnitude
+  of the elastic
+  and tendon forces of each coordinate, inflated by ``moving`` per m/s of tendon speed (the arm's
+  inertia and damping while it moves); the stiffness and friction are learnt only while every
+  tendon is slower than ``rest_speed``. The balance fixes the shape's family, which the four
+  lengths cannot;
+- **markers** (mocap, when seen): the model's marker positions [m] in arm_base, noise ``marker``
+  [m], growing with the tendons' speed as the balance's does (a frame arrives a few milliseconds
+  after its exposure); they correct q, never the stiffness and friction. Each marker's innovation
+  is gated (Mahalanobis distance squared above ``gate``, chi-square
+  with 3 degrees of freedom, is rejected as an outlier); a marker whose innovations stay out of the
+  gate for ``regate`` frames in a row is taken again, and kept until its innovation is back
+  within the gate (the estimate had diverged from it: counted in ``diverged``).
+
+The tendon and balance updates are iterated (``iterations`` Gauss-Newton steps of the iterated EKF,
+the balance being strongly nonlinear in bending). Everything is in SI units and arm_base. Each
+update returns the innovations' normalised squares for the diagnostics, and the estimate carries
+the covariance of q and of every marker position, so that a consumer can tell what it knows.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+import os
+
+from soft_arm_model import ArmData, ArmModel, build_model, evaluate, solve_equilibrium
+from soft_arm_model.dynamics import STATICS, OutOfDomainError
+from soft_arm_model.parameters import default_config_dir, load_section
+from soft_arm_model.statics import residual_jacobian
+
+FEEDBACKS = ("mocap", "fused", "estimate")   # what the online CLIK closes its loop on
+FRICTION_STEP = 1e-3                          # the finite difference of dA/dmu
+MAX_PREDICTION = 0.3          # the largest predicted step of a coordinate, in compliance units
+
+ESTIMATOR_SCHEMA = {
+    "rate": ("float", lambda v: 1 <= v <= 1000, "an update rate in [1, 1000] Hz"),
+    "noise.process": ("float", lambda v: 0 < v <= 100,
+                      "a random-walk intensity in (0, 100] (generalised force units per sqrt(s))"),
+    "noise.shortening": ("float", lambda v: 0 < v <= 0.01, "a standard deviation in (0, 0.01] m"),
+    "noise.balance": ("float", lambda v: 0 < v <= 10, "a relative standard deviation in (0, 10]"),
+    "noise.balance_floor": ("float", lambda v: 0 < v <= 1,
+                            "a standard deviation in (0, 1] (generalised force units)"),
+    "noise.moving": ("float", lambda v: 0 <= v <= 1000, "an inflation in [0, 1000] per m/s"),
+    "noise.marker": ("float", lambda v: 0 < v <= 0.05, "a standard deviation in (0, 0.05] m"),
+    "noise.tension_change": ("float", lambda v: 0 <= v <= 100,
+                             "a random-walk step in [0, 100] per N of tension change (compliance units)"),
+    "rest_speed": ("float", lambda v: 0 < v <= 1,
+                   "a tendon speed in (0, 1] m/s below which the arm counts as at rest"),
+    "noise.parameter_drift": ("float", lambda v: 0 <= v <= 1,
+                              "a random-walk intensity in [0, 1] per sqrt(s) of the stiffness and "
+                              "friction scales"),
+    "prior.stiffness": ("float", lambda v: 0 < v <= 1, "a relative standard deviation in (0, 1]"),
+    "prior.friction": ("float", lambda v: 0 < v <= 1,
+                       "a standard deviation in (0, 1] of each tendon's friction coefficient"),
+    "gate": ("float", lambda v: 1 <= v <= 1000, "a chi-square threshold in [1, 1000] (3 degrees of freedom)"),
+    "regate": ("int", lambda v: v >= 1, "a number of frames >= 1"),
+    "iterations": ("int", lambda v: 1 <= v <= 10, "a number of Gauss-Newton steps in [1, 10]"),
+}
+
+
+@dataclass(frozen=True)
+class EstimatorConfig:
+    """The estimator's rate [Hz] and noise levels (see the module docstring for each; the values
+    are ``config/estimator.yaml``'s, :func:`load_estimator_config`)."""
+    rate: float
+    process: float
+    shortening: float
+    balance: float
+    balance_floor: float
+    moving: float
+    marker: float
+    gate: float
+    regate: int
+    iterations: int
+    parameter_drift: float
+    tension_change: float
+    rest_speed: float
+    prior_stiffness: float
+    prior_friction: float
+
+    @classmethod
+    def of(cls, values: dict) -> "EstimatorConfig":
+        """From validated ``estimator`` values (:data:`ESTIMATOR_SCHEMA`)."""
+        return cls(**{key.replace("noise.", "").replace(".", "_"): value for key, value in values.items()})
+
+
+def load_estimator_config(path: str | None = None, overrides=None) -> EstimatorConfig:
+    """``estimator`` of ``config/estimator.yaml`` (default: the package's) with overrides."""
+    path = path or os.path.join(default_config_dir(), "estimator.yaml")
+    return EstimatorConfig.of(load_section(path, "estimator", ESTIMATOR_SCHEMA, overrides))
+
+
+def fused_markers(mocap, estimate) -> np.ndarray:
+    """(n_markers, 3) [m]: the mocap's markers where they were seen, the estimate's elsewhere
+    (``mocap`` None: the estimate's)."""
+    out = np.array(estimate, dtype=float)
+    if mocap is not None:
+        mocap = np.asarray(mocap, dtype=float)
+        seen = np.all(np.isfinite(mocap), axis=1)
+        out[seen] = mocap[seen]
+    return out
+
+
+@dataclass(frozen=True)
+class ShapeEstimate:
+    """The estimate at time ``t`` [s]: configuration q (n,) and its covariance (n, n), marker
+    positions (n_markers, 3) [m] in arm_base and their covariances (n_markers, 3, 3) [m^2]."""
+    t: float
+    q: np.ndarray
+    covariance: np.ndarray
+    markers: np.ndarray
+    marker_covariance: np.ndarray
+
+    @property
+    def marker_sigma(self) -> np.ndarray:
+        """(n_markers,) [m]: the square root of the largest eigenvalue of each marker's covariance."""
+        return np.sqrt(np.linalg.eigvalsh(self.marker_covariance)[:, -1])
+
+
+@dataclass
+class UpdateReport:
+    """What one update used: the markers taken and those gated out (indices), the tendon and balance
+    innovations' normalised squares (NIS, sums), each marker's NIS (NaN: not seen)."""
+    used: list = field(default_factory=list)
+    gated: list = field(default_factory=list)
+    tendon_nis: float = 0.0
+    marker_nis: np.ndarray | None = None
+
+
+class ShapeEstimator:
+    """The filter for ``model`` (the controller's) with ``config``. :meth:`start` initialises it at
+    the equilibrium of the measured tensions; then :meth:`update` once per sample. The state is
+    (q, stiffness scale, friction offsets); :attr:`q` and :attr:`P` are its configuration part's."""
+
+    def __init__(self, model: ArmModel, config: EstimatorConfig):
+        self.model, self.config = model, config
+        self.data = ArmData(model)
+        arm = model.config
+        raised = replace(arm, tendons=tuple(replace(t, friction=t.friction + FRICTION_STEP)
+                                            for t in arm.tendons))
+        self.raised = build_model(raised)
+        self.raised_data = ArmData(self.raised)
+        n, nt = model.n, model.n_tendons
+        # compliance scale of each coordinate: the random walk follows it
+        stiffness = np.abs(np.diag(model.K))
+        self.scale = 1.0 / np.sqrt(np.maximum(stiffness, 1e-9 * stiffness.max()))
+        self.z = np.concatenate([np.zeros(n), [1.0], np.zeros(nt)])
+        self.Pz = np.diag(np.concatenate([(0.05 * self.scale) ** 2, [config.prior_stiffness ** 2],
+                                          np.full(nt, config.prior_friction ** 2)]))
+        self.t = None
+        self.counts = {"updates": 0, "markers_used": 0, "markers_gated": 0, "diverged": 0,
+                       "out_of_domain": 0}
+        self._rejected = np.zeros(model.marker_X.size, dtype=int)   # frames in a row out of the gate
+        self._retaken = np.zeros(model.marker_X.size, dtype=bool)   # taken again, not yet back in it
+        self._linear = None          # (dR/dq, A, u) of the last tendon update, for the prediction
+
+    @property
+    def q(self) -> np.ndarray:
+        return self.z[:self.model.n]
+
+    @property
+    def P(self) -> np.ndarray:
+        n = self.model.n
+        return self.Pz[:n, :n]
+
+    @property
+    def parameters(self) -> tuple[float, np.ndarray]:
+        """The estimated stiffness scale of the arm against the model and its tendons' friction
+        coefficients."""
+        n = self.model.n
+        mu = np.array([t.friction for t in self.model.config.tendons]) + self.z[n + 1:]
+        return float(self.z[n]), mu
+
+    def start(self, t: float, tension, shortening=None):
+        """Start at the equilibrium of ``tension`` [N] (refined by three tendon updates with the
+        shortenings [m] when given)."""
+        u = np.asarray(tension, dtype=float)
+        self.z[:self.model.n] = solve_equilibrium(self.model, u).q
+        self.t = float(t)
+        if shortening is not None:
+            for _ in range(3):
+                self._tendon_update(np.asarray(shortening, dtype=float), u, np.zeros(u.size))
+
+    @property
+    def started(self) -> bool:
+        return self.t is not None
+
+    def update(self, t: float, shortening, rate, tension, markers=None) -> UpdateReport:
+        """One sample at time ``t`` [s]: the tendons' shortenings [m], rates [m/s] and tensions [N],
+        and ``markers`` (n_markers, 3) [m] in arm_base with NaN rows for the unseen (None: no
+        frame). Returns what was used."""
+        s, sd, u = (np.asarray(v, dtype=float) for v in (shortening, rate, tension))
+        if not self.started:
+            self.start(t, u, s)
+        saved = self.z.copy(), self.Pz.copy(), self._linear
+        dt = max(0.0, float(t) - self.t)
+        self.t = float(t)
+        c = self.config
+        self._predict(u)
+        change = 0.0 if self._linear is None else float(np.linalg.norm(u - self._linear[2]))
+        walk = (c.process ** 2 * dt + (c.tension_change * change) ** 2) * self.scale ** 2
+        drift = np.full(self.z.size - self.model.n, c.parameter_drift ** 2 * dt)
+        self.Pz += np.diag(np.concatenate([walk, drift]))
+        report = UpdateReport()
+        try:
+            report.tendon_nis = self._tendon_update(s, u, sd)
+            if markers is not None:
+                self._marker_update(np.asarray(markers, dtype=float), report, sd)
+            evaluate(self.model, self.data, self.q, level=STATICS, markers=True)    # in the domain
+        except OutOfDomainError:                  # the update left the model's domain: not taken
+            self.counts["out_of_domain"] += 1
+            self.z, self.Pz, self._linear = saved
+            self.Pz[np.diag_indices(self.model.n)] += (c.tension_change * self.scale) ** 2 * 1e-2
+        self.counts["updates"] += 1
+        return report
+
+    def _predict(self, u):
+        """Move q with the change of the tensions since the last update, along the model's static
+        sensitivity dq = -(dR/dq)^-1 A du at the last estimate (the arm follows its tensions: the
+        random walk is left with what the tensions do not explain)."""
+        if self._linear is None:
+            return
+        jacobian, actuation, u_last = self._linear
+        du = u - u_last
+        if np.any(du):
+            try:
+                step = -np.linalg.solve(jacobian, actuation @ du)
+            except np.linalg.LinAlgError:
+                return
+            if np.max(np.abs(step) / self.scale) <= MAX_PREDICTION:    # beyond: not linear any more
+                self.z[:self.model.n] += step
+
+    def estimate(self) -> ShapeEstimate:
+        """The current estimate (markers and their covariance from the model's kinematics)."""
+        d = evaluate(self.model, self.data, self.q, level=STATICS, markers=True)
+        H = self._marker_jacobians(d)
+        cov = np.einsum("kin,nm,kjm->kij", H, self.P, H)
+        return ShapeEstimate(self.t if self.t is not None else 0.0, self.q.copy(), self.P.copy(),
+                             d.marker_p.copy(), cov)
+
+    # --- updates ---------------------------------------------------------------------------------
+
+    def _tendon_update(self, s, u, sd) -> float:
+        """Iterated update with the shortenings and the static balance; returns their NIS."""
+        c, model, n = self.config, self.model, self.model.n
+        z_prior, P = self.z.copy(), self.Pz
+        z = z_prior.copy()
+        speed = float(np.max(np.abs(sd))) if sd.size else 0.0
+        inflation = 1.0 + c.moving * speed
+        moving = speed > c.rest_speed
+        nis = 0.0
+        for _ in range(c.iterations):
+            q, k, dmu = z[:n], z[n], z[n + 1:]
+            r1, Jr = residual_jacobian(model, q, u, data=self.data)   # k = 1, the model's mu
+            d = evaluate(model, self.data, q, level=STATICS)
+            dA = (evaluate(self.raised, self.raised_data, q, level=STATICS).A - d.A) / FRICTION_STEP
+            tendon_force = dA * u[None, :]                            # d(A u)/d mu_i, column i
+            r = r1 + (k - 1.0) * d.Fel + tendon_force @ dmu
+            H_r = np.hstack([Jr + (k - 1.0) * d.Kt, d.Fel[:, None], tendon_force])
+            H_s = np.hstack([-d.A0.T, np.zeros((s.size, 1 + dmu.size))])
+            sigma_r = (c.balance * (np.abs(d.Fel) + np.abs(d.A @ u)) + c.balance_floor) * inflation
+            H = np.vstack([H_s, H_r])
+            y = np.concatenate([s - (model.rest_tendon_lengths - d.Lc), -r])
+            noise = np.concatenate([np.full(s.size, c.shortening ** 2), sigma_r ** 2])
+            innovation = y - H @ (z_prior - z)              # iterated EKF: about the prior
+            S = H @ P @ H.T + np.diag(noise)
+            K = np.linalg.solve(S, H @ P).T
+            if moving:
+                K[n:] = 0.0                                 # the parameters learn at rest only
+            z = z_prior + K @ innovation
+            nis = float(innovation @ np.linalg.solve(S, innovation))
+        self.z = z
+        self.Pz = _joseph(P, K, H, noise)
+        self._linear = (H_r[:, :n], d.A + dA * dmu[None, :], u.copy())
+        return nis
+
+    def _marker_update(self, markers, report: UpdateReport, sd):
+        """Update with the seen markers, gated; their noise grows with the tendons' speed ``sd``
+        [m/s] as the balance's does (a frame is a few milliseconds old when it arrives). The
+        stiffness and friction are left to the tendons."""
+        c, n = self.config, self.model.n
+        sigma = c.marker * (1.0 + c.moving * (float(np.max(np.abs(sd))) if sd.size else 0.0))
+        d = evaluate(self.model, self.data, self.q, level=STATICS, markers=True)
+        H_all = self._marker_jacobians(d)
+        seen = np.all(np.isfinite(markers), axis=1)
+        report.marker_nis = np.full(len(markers), np.nan)
+        rows, ys = [], []
+        R1 = np.eye(3) * sigma ** 2
+        for k in np.flatnonzero(seen):
+            nu = markers[k] - d.marker_p[k]
+            S = H_all[k] @ self.P @ H_all[k].T + R1
+            d2 = float(nu @ np.linalg.solve(S, nu))
+            report.marker_nis[k] = d2
+            if d2 > c.gate and not self._retaken[k]:
+                self._rejected[k] += 1
+                if self._rejected[k] < c.regate:
+                    report.gated.append(int(k))
+                    continue
+                self.counts["diverged"] += 1          # believed again until it is back in the gate
+                self._retaken[k] = True
+            if d2 <= c.gate:
+                self._retaken[k] = False
+            self._rejected[k] = 0
+            rows.append(H_all[k])
+            ys.append(nu)
+            report.used.append(int(k))
+        self.counts["markers_used"] += len(report.used)
+        self.counts["markers_gated"] += len(report.gated)
+        if not rows:
+            return
+        H = np.hstack([np.vstack(rows), np.zeros((3 * len(rows), self.z.size - n))])
+        y = np.concatenate(ys)
+        noise = np.full(y.size, sigma ** 2)
+        S = H @ self.Pz @ H.T + np.diag(noise)
+        K = np.linalg.solve(S, H @ self.Pz).T
+        K[n:] = 0.0
+        self.z = self.z + K @ y
+        self.Pz = _joseph(self.Pz, K, H, noise)
+
+    def _marker_jacobians(self, d) -> np.ndarray:
+        """(n_markers, 3, n): d(marker position in arm_base)/dq at the evaluated workspace."""
+        return np.einsum("kij,kjn->kin", d.marker_R, d.marker_J[:, 3:, :])
+
+
+def _joseph(P, K, H, noise) -> np.ndarray:
+    """The covariance after the update with gain K (Joseph form: stays symmetric and positive)."""
+    A = np.eye(P.shape[0]) - K @ H
+    out = A @ P @ A.T + (K * noise) @ K.T
+    return 0.5 * (out + out.T)

@@ -1,0 +1,175 @@
+"""``shape_estimator`` node: the arm's shape from its tendons and the markers the mocap still sees
+(:mod:`soft_arm_control.shape_estimation`).
+
+Subscribes ``tendon/state`` (shortenings [m], rates [m/s], applied tensions [N]) and
+``mocap/markers`` (unseen markers NaN). Every ``1 / estimator.rate`` of state time it updates the
+estimate with the latest state and the latest frame since the last update, and publishes, stamped
+with that state's stamp:
+
+- ``estimate/markers`` (PoseArray, the layout of ``mocap/markers``): the estimate of every marker;
+- ``fused/markers`` (the same layout): the frame's markers where the mocap saw them, the estimate's
+  elsewhere (the estimate's alone when no frame came since the last update);
+- ``estimate/tip`` (PoseWithCovarianceStamped): the tip and its position covariance [m^2];
+- ``estimate/shape`` (MarkerArray): the estimated backbone, for RViz;
+- once a second of wall time ``/diagnostics`` (status ``shape_estimator``, from the first update):
+  markers used and gated, the
+  innovations' mean normalised squares, divergences, updates left out of the model's domain, the
+  estimated stiffness scale and friction coefficients, the tip's standard deviation. WARN when a
+  marker diverged or an update was left out since the last report.
+
+The online CLIK closes its loop on either topic by remapping its ``mocap/markers`` (``soft-arm-
+experiment --feedback fused|estimate``). A state whose stamp is no number, or any field no number,
+is counted and left out.
+"""
+from __future__ import annotations
+
+import math
+import sys
+import time
+
+import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import Point, PoseArray, PoseWithCovarianceStamped
+from rclpy.node import Node
+from sensor_msgs.msg import JointState
+from visualization_msgs.msg import Marker, MarkerArray
+
+from soft_arm_model import build_model
+from soft_arm_ros.contract import FRAME, QOS, TOPICS
+from soft_arm_ros.conversions import markers_of, ordered, pose_array, seconds_to_stamp, stamp_to_seconds
+from soft_arm_ros.parameters import NodeParameters
+from soft_arm_ros.runtime import run_node
+
+from .shape_estimation import ESTIMATOR_SCHEMA, EstimatorConfig, ShapeEstimator, fused_markers
+
+REPORT_PERIOD = 1.0          # s of wall time between diagnostics
+
+
+class ShapeEstimatorNode(Node):
+    def __init__(self, config_dir: str | None = None, **node_options):
+        super().__init__("shape_estimator", allow_undeclared_parameters=True,
+                         automatically_declare_parameters_from_overrides=True, **node_options)
+        params = NodeParameters(self, config_dir)
+        self.config = EstimatorConfig.of(params.section("estimator", ESTIMATOR_SCHEMA))
+        self.model = build_model(params.arm)
+        self.core = ShapeEstimator(self.model, self.config)
+        self.names = self.model.tendon_names
+        self.period = 1.0 / self.config.rate
+        self.next_update = -math.inf
+        self.frame = None                # the latest frame's markers since the last update
+        self.rejected = 0
+        self.nis, self.used, self.gated = [], 0, 0
+        self._reported_counts = dict(self.core.counts)
+        self._reported_at = -math.inf
+        self.estimate_pub = self.create_publisher(PoseArray, TOPICS["estimate"], QOS["estimate/markers"])
+        self.fused_pub = self.create_publisher(PoseArray, TOPICS["fused"], QOS["fused/markers"])
+        self.tip_pub = self.create_publisher(PoseWithCovarianceStamped, TOPICS["estimate_tip"],
+                                             QOS["estimate/tip"])
+        self.shape_pub = self.create_publisher(MarkerArray, TOPICS["estimate_shape"], QOS["estimate/shape"])
+        self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self.create_subscription(PoseArray, TOPICS["markers"], self.on_markers, QOS["mocap/markers"])
+        self.create_subscription(JointState, TOPICS["state"], self.on_state, QOS["tendon/state"])
+        self.create_timer(REPORT_PERIOD, self._heartbeat)
+        self._last = None                # (stamp [s], estimate) of the last update
+        self.get_logger().info(f"shape estimator ready: {self.config.rate:g} Hz on tendon/state")
+
+    def on_markers(self, msg: PoseArray):
+        markers = markers_of(msg)
+        if markers.shape != (self.model.marker_X.size, 3):
+            self.rejected += 1
+            self.get_logger().warning(f"mocap frame with {markers.shape[0]} markers, expected "
+                                      f"{self.model.marker_X.size}", throttle_duration_sec=1.0)
+            return
+        self.frame = markers
+
+    def on_state(self, msg: JointState):
+        t = stamp_to_seconds(msg.header.stamp)
+        try:
+            s, sd, u = (ordered(msg, field, self.names) for field in ("position", "velocity", "effort"))
+            if not (math.isfinite(t) and np.all(np.isfinite(s)) and np.all(np.isfinite(sd))
+                    and np.all(np.isfinite(u))):
+                raise ValueError("a stamp or a value that is no number")
+        except ValueError as exc:
+            self.rejected += 1
+            self.get_logger().warning(f"state left out: {exc}", throttle_duration_sec=1.0)
+            return
+        if t < self.next_update - 1e-9 and t >= self.next_update - 2 * self.period:
+            return                              # between updates (a stamp far off re-anchors)
+        self.next_update = t + self.period
+        report = self.core.update(t, s, sd, u, self.frame)
+        estimate = self.core.estimate()
+        if report.marker_nis is not None:
+            self.nis += [v for v in report.marker_nis if np.isfinite(v)]
+        self.used += len(report.used)
+        self.gated += len(report.gated)
+        self.estimate_pub.publish(pose_array(estimate.markers, t))
+        self.fused_pub.publish(pose_array(fused_markers(self.frame, estimate.markers), t))
+        self.tip_pub.publish(self._tip(estimate, t))
+        self.shape_pub.publish(self._shape(t))
+        self.frame = None
+        self._last = (t, estimate)
+        if time.monotonic() >= self._reported_at + REPORT_PERIOD:
+            self.publish_diagnostics(t, estimate)
+
+    def _heartbeat(self):
+        """The diagnostics when the states have not given them for a second of wall time."""
+        if self._last is not None and time.monotonic() >= self._reported_at + REPORT_PERIOD:
+            self.publish_diagnostics(*self._last)
+
+    def _tip(self, estimate, t: float) -> PoseWithCovarianceStamped:
+        msg = PoseWithCovarianceStamped()
+        msg.header.frame_id = FRAME
+        seconds_to_stamp(msg.header.stamp, t)
+        p = estimate.markers[-1]
+        msg.pose.pose.position.x, msg.pose.pose.position.y, msg.pose.pose.position.z = (float(v) for v in p)
+        msg.pose.pose.orientation.w = 1.0
+        covariance = np.zeros((6, 6))
+        covariance[:3, :3] = estimate.marker_covariance[-1]
+        covariance[3:, 3:] = np.eye(3) * 1e6            # the orientation is not estimated
+        msg.pose.covariance = covariance.ravel().tolist()
+        return msg
+
+    def _shape(self, t: float) -> MarkerArray:
+        m = Marker()
+        m.header.frame_id = FRAME
+        seconds_to_stamp(m.header.stamp, t)
+        m.ns, m.id, m.type, m.action = "estimate", 0, Marker.LINE_STRIP, Marker.ADD
+        m.scale.x = 0.008
+        m.color.r, m.color.g, m.color.b, m.color.a = 0.1, 0.6, 0.9, 1.0
+        m.pose.orientation.w = 1.0
+        m.points = [Point(x=float(p[0]), y=float(p[1]), z=float(p[2])) for p in self.core.data.p]
+        out = MarkerArray()
+        out.markers.append(m)
+        return out
+
+    def publish_diagnostics(self, stamp: float, estimate):
+        counts = self.core.counts
+        new = {k: counts[k] - self._reported_counts[k] for k in ("diverged", "out_of_domain")}
+        stiffness, friction = self.core.parameters
+        level = DiagnosticStatus.WARN if any(new.values()) else DiagnosticStatus.OK
+        message = "estimating" if not any(new.values()) else (
+            f"{new['diverged']} marker divergences, {new['out_of_domain']} updates left out of the "
+            "model's domain since the last report")
+        values = {"updates": counts["updates"], "markers_used": self.used, "markers_gated": self.gated,
+                  "marker_nis_mean": float(np.mean(self.nis)) if self.nis else "",
+                  "diverged": counts["diverged"], "out_of_domain": counts["out_of_domain"],
+                  "rejected": self.rejected, "stiffness_scale": round(stiffness, 4),
+                  "friction": [round(float(f), 4) for f in friction],
+                  "tip_sigma_mm": round(1e3 * float(estimate.marker_sigma[-1]), 3)}
+        status = DiagnosticStatus(level=level, name="shape_estimator", hardware_id="soft_arm",
+                                  message=message,
+                                  values=[KeyValue(key=k, value=str(v)) for k, v in values.items()])
+        msg = DiagnosticArray(status=[status])
+        seconds_to_stamp(msg.header.stamp, stamp)
+        self.diagnostics_pub.publish(msg)
+        self.nis, self.used, self.gated = [], 0, 0
+        self._reported_counts = dict(counts)
+        self._reported_at = time.monotonic()
+
+
+def main(args=None) -> int:
+    return run_node(ShapeEstimatorNode, "shape_estimator", args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

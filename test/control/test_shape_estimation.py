@@ -1,0 +1,184 @@
+"""The shape estimator against the simulated plant's truth: the tendons alone, fused with the markers
+it sees, innovation gating, and the derivatives its updates use."""
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from soft_arm_control.shape_estimation import (FRICTION_STEP, ShapeEstimator, fused_markers,
+                                               load_estimator_config)
+from soft_arm_drivers.sim.plant_config import load_plant_config
+from soft_arm_drivers.sim.simulated_rig import SimulatedRig
+from soft_arm_model import (ArmData, build_model, evaluate, load_arm_config, marker_positions,
+                            solve_equilibrium, static_residual, tendon_lengths)
+from soft_arm_model.dynamics import STATICS
+from soft_arm_model.parameters import ConfigError
+
+NEUTRAL = {"youngs_modulus_scale": 1.0, "viscosity_scale": 1.0, "friction": "[0.1, 0.1, 0.1, 0.1]",
+           "mocap.occlusion.enabled": False}
+POSES = np.random.default_rng(0).uniform(0.2, 4.0, (10, 4))        # tensions [N]
+PERIOD = 1 / 250                                                    # s between updates
+CONFIG = load_estimator_config()
+
+
+@pytest.fixture(scope="module")
+def arm():
+    return load_arm_config()
+
+
+@pytest.fixture(scope="module")
+def model(arm):
+    return build_model(arm)
+
+
+def _rig(arm, model, overrides=None):
+    plant = load_plant_config(arm, overrides={"mocap.occlusion.enabled": False, **(overrides or {})})
+    pre = np.full(4, 0.5)
+    offset = model.rest_tendon_lengths - tendon_lengths(model, solve_equilibrium(model, pre).q)
+    return SimulatedRig(build_model(plant.plant_arm(arm)), plant, offset, pre)
+
+
+def _hold(rig, u):
+    """The plant at rest under tensions u: (encoder shortenings, rates, true markers)."""
+    rig.plant.settle(u)
+    rig.tension = np.asarray(u, dtype=float)
+    rig.plant.sense(markers=True)
+    s, sd = rig.tendons()
+    return s, sd, rig.plant.markers()[0]
+
+
+class Clock:
+    def __init__(self):
+        self.t = 0.0
+
+    def __call__(self):
+        self.t += PERIOD
+        return self.t
+
+
+def _tip_errors(estimator, rig, poses, updates, clock):
+    errors = []
+    for u in poses:
+        s, sd, true = _hold(rig, u)
+        for _ in range(updates):
+            estimator.update(clock(), s, sd, u)
+        errors.append(np.linalg.norm(estimator.estimate().markers[-1] - true[-1]))
+    return np.array(errors)
+
+
+def test_with_the_model_as_the_plant_the_tendons_alone_give_the_shape(arm, model):
+    rig = _rig(arm, model, NEUTRAL)
+    errors = _tip_errors(ShapeEstimator(model, CONFIG), rig, POSES[:4], 40, Clock())
+    assert errors.max() < 3e-4, errors
+
+
+def test_on_the_declared_plant_the_tendons_alone_put_the_tip_within_3_mm(arm, model):
+    """The declared plant is 15 % stiffer with more friction: its equilibrium under the same
+    tensions is centimetres from the model's. The shortenings and the estimated stiffness and
+    friction bring the tip within 3 mm (median over ten poses, after one pass over them)."""
+    rig = _rig(arm, model)
+    estimator, clock = ShapeEstimator(model, CONFIG), Clock()
+    _tip_errors(estimator, rig, POSES, 100, clock)
+    errors = _tip_errors(estimator, rig, POSES, 100, clock)
+    naive = [np.linalg.norm(marker_positions(model, solve_equilibrium(model, u).q)[-1]
+                            - _hold(rig, u)[2][-1]) for u in POSES]
+    assert np.median(errors) <= 3e-3 and errors.max() < 1e-2, errors
+    assert np.median(naive) > 5 * np.median(errors)
+    stiffness, friction = estimator.parameters
+    assert 1.0 < stiffness < 1.3 and np.all((friction > 0.1) & (friction < 0.15))
+
+
+def test_with_the_markers_the_tip_stays_known_through_a_2_s_occlusion(arm, model):
+    """Seen, the tip is known to the markers' noise; hidden for 2 s, the other markers and the
+    tendons hold it within 2 mm, better than the tendons alone, and its error does not grow."""
+    rig = _rig(arm, model)
+    rng = np.random.default_rng(1)
+    estimator, clock = ShapeEstimator(model, CONFIG), Clock()
+    u = POSES[2]
+    s, sd, true = _hold(rig, u)
+    for _ in range(100):
+        estimator.update(clock(), s, sd, u, true + rng.normal(0, 2e-4, true.shape))
+    before = np.linalg.norm(estimator.estimate().markers[-1] - true[-1])
+    during = []
+    for _ in range(500):                               # 2 s without the tip marker
+        seen = true + rng.normal(0, 2e-4, true.shape)
+        seen[-1] = np.nan
+        estimator.update(clock(), s, sd, u, seen)
+        during.append(np.linalg.norm(estimator.estimate().markers[-1] - true[-1]))
+    alone = _tip_errors(ShapeEstimator(model, CONFIG), rig, [u], 100, Clock())[0]
+    during = np.array(during)
+    assert before < 1e-3 and during.max() < 2e-3 and during.max() < alone, (before, during.max(), alone)
+    assert during[250:].mean() < during[:250].mean() + 3e-4          # bounded: it does not grow
+
+
+def test_one_marker_moved_5_cm_for_one_frame_is_gated_out(arm, model):
+    rig = _rig(arm, model)
+    estimator, clock = ShapeEstimator(model, CONFIG), Clock()
+    u = POSES[4]
+    s, sd, true = _hold(rig, u)
+    for _ in range(50):
+        estimator.update(clock(), s, sd, u, true)
+    tip = estimator.estimate().markers[-1]
+    outlier = true.copy()
+    outlier[-1, 0] += 0.05
+    report = estimator.update(clock(), s, sd, u, outlier)
+    assert report.gated == [3] and report.used == [0, 1, 2] and report.marker_nis[3] > 100
+    assert np.linalg.norm(estimator.estimate().markers[-1] - tip) < 3e-4
+    report = estimator.update(clock(), s, sd, u, true)
+    assert report.used == [0, 1, 2, 3]
+
+
+def test_a_marker_that_stays_out_of_the_gate_is_taken_again_and_counted(arm, model):
+    """The estimate had gone wrong (here: the mocap moved 2 cm for good): after ``regate`` frames
+    the marker is believed again, and the estimate follows it."""
+    rig = _rig(arm, model)
+    config = replace(CONFIG, regate=10)
+    estimator, clock = ShapeEstimator(model, config), Clock()
+    u = POSES[4]
+    s, sd, true = _hold(rig, u)
+    for _ in range(50):
+        estimator.update(clock(), s, sd, u, true)
+    moved = true.copy()
+    moved[-1, 1] += 0.02
+    used = [3 in estimator.update(clock(), s, sd, u, moved).used for _ in range(40)]
+    assert used[:9] == [False] * 9 and all(used[9:]) and estimator.counts["diverged"] == 1
+    assert np.linalg.norm(estimator.estimate().markers[-1] - moved[-1]) < 2e-3
+
+
+def test_the_balance_derivatives_match_finite_differences(arm, model):
+    """dR/dk = F_el, dR/dmu_i from the raised-friction model, dF_el/dq = K_t: against models with
+    the stiffness and one tendon's friction changed, and a perturbed q."""
+    estimator = ShapeEstimator(model, CONFIG)
+    u = POSES[1]
+    q = solve_equilibrium(model, u).q
+    d = evaluate(model, ArmData(model), q, level=STATICS)
+    dA = (evaluate(estimator.raised, ArmData(estimator.raised), q, level=STATICS).A - d.A) / FRICTION_STEP
+    for i in range(4):
+        eps = 1e-4
+        tendons = tuple(replace(t, friction=t.friction + (eps if k == i else 0.0))
+                        for k, t in enumerate(arm.tendons))
+        moved = build_model(replace(arm, tendons=tendons))
+        fd = (static_residual(moved, q, u) - static_residual(model, q, u)) / eps
+        np.testing.assert_allclose(dA[:, i] * u[i], fd, rtol=0.02, atol=1e-6 * np.abs(fd).max())
+    h = 1e-6
+    for b in range(0, model.n, 5):
+        dq = np.zeros(model.n)
+        dq[b] = h
+        plus = evaluate(model, ArmData(model), q + dq, level=STATICS).Fel.copy()
+        minus = evaluate(model, ArmData(model), q - dq, level=STATICS).Fel.copy()
+        np.testing.assert_allclose(d.Kt[:, b], (plus - minus) / (2 * h), rtol=1e-4,
+                                   atol=1e-6 * np.abs(d.Kt).max())
+
+
+def test_fused_markers_take_the_mocap_where_it_saw_and_the_estimate_elsewhere():
+    estimate = np.arange(12.0).reshape(4, 3)
+    mocap = np.full((4, 3), np.nan)
+    mocap[1] = [9.0, 9.0, 9.0]
+    out = fused_markers(mocap, estimate)
+    assert np.array_equal(out[1], [9.0, 9.0, 9.0]) and np.array_equal(out[[0, 2, 3]], estimate[[0, 2, 3]])
+    assert np.array_equal(fused_markers(None, estimate), estimate)
+
+
+def test_a_bad_estimator_value_names_the_key():
+    with pytest.raises(ConfigError, match=r"estimator\.noise\.marker"):
+        load_estimator_config(overrides={"noise.marker": 1.0})

@@ -1,0 +1,141 @@
+"""The simulated mocap's occlusions: lines of sight against the arm's body, fields of view, random
+dropouts and bursts, their configuration, and the frames of the simulated rig."""
+import math
+
+import numpy as np
+import pytest
+
+from soft_arm_drivers.sim.occlusion import (OcclusionConfig, Occlusions, body, cameras_seeing, in_view,
+                                            segment_distances)
+from soft_arm_drivers.sim.plant_config import load_plant_config
+from soft_arm_drivers.sim.simulated_rig import SimulatedRig
+from soft_arm_model import ArmData, build_model, load_arm_config, marker_positions, solve_equilibrium
+from soft_arm_model.parameters import ConfigError
+
+# eight cameras 0.3 m around the z axis, 1 m above a horizontal rod along x at z = 0
+RING = tuple((0.3 * math.cos(a), 0.3 * math.sin(a), 1.0) for a in np.arange(8) * math.pi / 4)
+ROD = np.array([[x, 0.0, 0.0] for x in np.linspace(-0.2, 0.2, 9)])
+ROD_RADII = np.full(9, 0.05)
+ROD_ARCS = np.linspace(0.0, 0.4, 9)
+
+
+def _config(**kw):
+    kw.setdefault("cameras", RING)
+    kw.setdefault("aim", (0.0, 0.0, 0.0))
+    kw.setdefault("field_of_view", math.radians(120))
+    return OcclusionConfig(**kw)
+
+
+def test_segment_distances_match_a_dense_sampling():
+    rng = np.random.default_rng(3)
+    p, d, a, e = (rng.normal(size=(200, 3)) for _ in range(4))
+    e[:20] = 0.0                                        # degenerate segments: points
+    d[20:40] = 2.5 * e[20:40]                           # parallel pairs
+    s = np.linspace(0.0, 1.0, 401)
+    brute = np.array([np.min(np.linalg.norm((p[i] + s[:, None] * d[i])[:, None, :]
+                                            - (a[i] + s[:, None] * e[i])[None, :, :], axis=2))
+                      for i in range(200)])
+    exact = segment_distances(p, d, a, e)
+    assert np.all(exact <= brute + 1e-12)
+    np.testing.assert_allclose(exact, brute, atol=0.02 * np.linalg.norm(d, axis=1).max())
+
+
+def test_a_marker_behind_the_body_from_every_camera_is_occluded_and_one_in_plain_view_is_seen():
+    config = _config()
+    hidden, plain = np.array([0.0, 0.0, -0.1]), np.array([0.0, 0.5, -0.1])
+    markers = np.array([hidden, plain])
+    count = cameras_seeing(config, markers, np.array([2.0, 2.0]), ROD, ROD_RADII, ROD_ARCS)
+    assert count.tolist() == [0, 8]
+    # without the body, or with self-occlusion off, every camera sees both
+    assert cameras_seeing(config, markers).tolist() == [8, 8]
+    assert cameras_seeing(_config(self_occlusion=False), markers, np.array([2.0, 2.0]), ROD, ROD_RADII,
+                          ROD_ARCS).tolist() == [8, 8]
+
+
+def test_the_markers_own_ring_does_not_hide_it():
+    """A marker on the rod's axis at arc 0.2 m: the capsules within two radii of it are its ring."""
+    config = _config()
+    marker = np.array([[0.0, 0.0, 0.0]])
+    assert cameras_seeing(config, marker, np.array([0.2]), ROD, ROD_RADII, ROD_ARCS).tolist() == [8]
+    # the same point counted as the end of another body part (arc 2 m) is inside the rod: hidden
+    assert cameras_seeing(config, marker, np.array([2.0]), ROD, ROD_RADII, ROD_ARCS).tolist() == [0]
+
+
+def test_the_field_of_view_is_a_cone_of_the_given_full_angle():
+    config = _config(cameras=((0.0, 0.0, 1.0),), aim=(0.0, 0.0, 0.0), field_of_view=math.radians(60))
+    inside = np.array([[math.tan(math.radians(29)), 0.0, 0.0]])
+    outside = np.array([[math.tan(math.radians(31)), 0.0, 0.0]])
+    assert in_view(config, inside).all() and not in_view(config, outside).any()
+
+
+def test_the_hanging_arm_is_seen_by_most_of_the_default_ring():
+    arm = load_arm_config()
+    plant = load_plant_config(arm)
+    model = build_model(arm)
+    data = ArmData(model)
+    marker_positions(model, solve_equilibrium(model, np.full(4, 0.5)).q, data)
+    points, radii, arcs = body(model, data)
+    assert np.all(np.diff(arcs) >= 0) and points.shape == (arcs.size, 3)
+    seen = cameras_seeing(plant.occlusion, data.marker_p, model.marker_X, points, radii, arcs)
+    assert np.all(seen >= 6), seen
+
+
+def test_dropouts_and_bursts_have_the_configured_rate_and_length():
+    period = 1 / 240
+    drop = Occlusions(_config(dropout=0.1), 1, period, seed=1)
+    seen = np.array([drop.visible(np.zeros((1, 3)))[0] for _ in range(20000)])
+    assert abs((~seen).mean() - 0.1) < 4 * math.sqrt(0.1 * 0.9 / 20000)
+    bursts = Occlusions(_config(burst_fraction=(0.3,), burst_duration=0.5), 1, period, seed=2)
+    lost = np.array([not bursts.visible(np.zeros((1, 3)))[0] for _ in range(240 * 400)])
+    edges = np.flatnonzero(np.diff(lost.astype(int)))
+    runs = np.diff(edges)[::2] if lost[edges[0] + 1] else np.diff(edges)[1::2]
+    assert abs(lost.mean() - 0.3) < 0.04
+    assert runs.mean() * period == pytest.approx(0.5, rel=0.15)
+
+
+def test_the_same_seed_draws_the_same_losses():
+    def draw(seed):
+        occ = Occlusions(_config(dropout=0.05, burst_fraction=(0.1, 0.2), burst_duration=0.2), 2, 0.01, seed)
+        return np.array([occ.visible(np.zeros((2, 3))) for _ in range(500)])
+    assert np.array_equal(draw([1, 1]), draw([1, 1])) and not np.array_equal(draw([1, 1]), draw([2, 1]))
+
+
+@pytest.mark.parametrize("overrides, message", [
+    ({"mocap.occlusion.min_cameras": 9}, "plant.mocap.occlusion.min_cameras = 9"),
+    ({"mocap.occlusion.cameras.positions": "[0.0, 0.0, -0.2]"}, "at least 0.1 m from the aim point"),
+    ({"mocap.occlusion.cameras.positions": "[1.0, 0.0]"}, "plant.mocap.occlusion.cameras.positions"),
+    ({"mocap.occlusion.bursts.fraction": "[0.1, 0.1]"}, "one per marker"),
+    ({"mocap.occlusion.dropout": 0.9}, r"plant.mocap.occlusion.dropout.*\[0, 0.5\]"),
+    ({"mocap.occlusion.cameras.field_of_view_deg": 180.0}, "field_of_view_deg"),
+])
+def test_bad_occlusion_values_name_the_key(overrides, message):
+    with pytest.raises(ConfigError, match=message):
+        load_plant_config(load_arm_config(), overrides=overrides)
+
+
+def _rig(overrides):
+    arm = load_arm_config()
+    plant = load_plant_config(arm, overrides=overrides)
+    u = np.full(4, 0.5)
+    return SimulatedRig(build_model(plant.plant_arm(arm)), plant, np.zeros(4), u), u
+
+
+def _frames(rig, u, count):
+    out = []
+    while len(out) < count:
+        frame, _ = rig.begin_step()
+        if frame is not None:
+            out.append(frame)
+        rig.end_step(u)
+    return out
+
+
+def test_the_rigs_frames_carry_nan_for_the_markers_not_seen_and_the_same_noise_on_the_others():
+    lossy, u = _rig({"mocap.occlusion.dropout": 0.3})
+    clean, _ = _rig({"mocap.occlusion.enabled": False})
+    a, b = _frames(lossy, u, 60), _frames(clean, u, 60)
+    unseen = np.array([~f.visible for f in a])
+    assert 0.15 < unseen.mean() < 0.45 and all(f.visible.all() for f in b)
+    for fa, fb in zip(a, b):
+        assert np.isnan(fa.markers[~fa.visible]).all()
+        np.testing.assert_array_equal(fa.markers[fa.visible], fb.markers[fa.visible])

@@ -1,0 +1,45 @@
+"""The online CLIK on the shape estimate, on the graph: ``--feedback fused`` remaps the clik onto
+``fused/markers`` with the shape_estimator node in the graph; with the tip marker hidden it keeps
+stepping, where on the mocap alone it holds."""
+import json
+
+import pytest
+
+from soft_arm_drivers.experiments.experiment import _ros_arguments, run_composed
+from soft_arm_drivers.experiments.orchestration import FEEDBACK_TOPICS, feedback_remap, roles
+from soft_arm_ros.contract import TOPICS
+
+ONE_TARGET = ["tasks.coiling.phases=[upward]", "tasks.coiling.phase.upward.sequence=[3]",
+              "tasks.coiling.phase.upward.window=4.0"]
+TIP_HIDDEN = ["plant.mocap.occlusion.bursts.fraction=[0.0, 0.0, 0.0, 0.95]",
+              "plant.mocap.occlusion.bursts.duration=0.5"]
+
+
+def _run(tmp_path, feedback):
+    run_dir = tmp_path / feedback
+    run_dir.mkdir()
+    out = {"bag": str(run_dir / "bag"), "metrics": str(run_dir / "metrics.json")}
+    facts = run_composed(_ros_arguments("coiling", ONE_TARGET + TIP_HIDDEN, None), out, task="coiling",
+                         feedback=feedback)
+    with open(out["metrics"], encoding="utf-8") as fh:
+        return facts, json.load(fh)
+
+
+def test_the_feedback_topics_are_the_contracts_and_add_the_estimator():
+    assert FEEDBACK_TOPICS["fused"] == TOPICS["fused"] and FEEDBACK_TOPICS["estimate"] == TOPICS["estimate"]
+    assert roles("coiling", "fused")[0] == ("inner_loop", "clik", "shape_estimator")
+    assert roles("coiling")[0] == ("inner_loop", "clik") and roles("identification", "fused")[0] == ()
+    assert feedback_remap("estimate") == ["-r", "mocap/markers:=estimate/markers"]
+    assert feedback_remap("mocap") == []
+
+
+@pytest.mark.parametrize("feedback", ["mocap", "fused"])
+def test_with_the_tip_hidden_fused_feedback_keeps_stepping_where_the_mocap_holds(tmp_path, feedback):
+    facts, metrics = _run(tmp_path, feedback)
+    assert facts["missing_commands"] == 0
+    clik = metrics["goals"][0]["clik"]
+    # the node's last report (once a second of frame time) of 2 s of online CLIK at 240 Hz
+    if feedback == "mocap":
+        assert clik["unseen_frames"] > 100 and clik["unseen_frames"] > 5 * clik["online_steps"]
+    else:
+        assert clik["unseen_frames"] == 0 and clik["status"] != "unseen" and clik["online_steps"] > 200

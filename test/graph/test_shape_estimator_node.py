@@ -1,0 +1,83 @@
+"""The shape_estimator node on real rclpy: it answers tendon states with the estimate, the fused
+markers (the mocap's where seen), the tip with its covariance and its diagnostics, at its rate;
+states it cannot use are counted, never a crash."""
+import math
+import time
+
+import numpy as np
+import pytest
+
+from soft_arm_model import build_model, marker_positions, solve_equilibrium, tendon_lengths
+
+
+def test_the_node_publishes_estimate_fused_tip_and_diagnostics():
+    import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray
+    from geometry_msgs.msg import PoseArray, PoseWithCovarianceStamped
+    from rclpy.executors import SingleThreadedExecutor
+    from sensor_msgs.msg import JointState
+
+    from soft_arm_control.shape_estimator_node import ShapeEstimatorNode
+    from soft_arm_ros.contract import QOS
+    from soft_arm_ros.conversions import joint_state, markers_of, pose_array
+
+    model = build_model()
+    u = np.array([0.5, 2.0, 1.5, 0.3])
+    q = solve_equilibrium(model, u).q
+    s = model.rest_tendon_lengths - tendon_lengths(model, q)
+    true = marker_positions(model, q)
+    rclpy.init()
+    try:
+        node = ShapeEstimatorNode()
+        peer = rclpy.create_node("peer")
+        state = peer.create_publisher(JointState, "tendon/state", QOS["tendon/state"])
+        frames = peer.create_publisher(PoseArray, "mocap/markers", QOS["mocap/markers"])
+        got = {"estimate": [], "fused": [], "tip": [], "diagnostics": []}
+        peer.create_subscription(PoseArray, "estimate/markers", got["estimate"].append,
+                                 QOS["estimate/markers"])
+        peer.create_subscription(PoseArray, "fused/markers", got["fused"].append, QOS["fused/markers"])
+        peer.create_subscription(PoseWithCovarianceStamped, "estimate/tip", got["tip"].append,
+                                 QOS["estimate/tip"])
+        peer.create_subscription(DiagnosticArray, "/diagnostics", got["diagnostics"].append, 10)
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        executor.add_node(peer)
+        names = model.tendon_names
+        deadline = time.monotonic() + 10.0
+        while not all(peer.count_subscribers(t) for t in ("tendon/state", "mocap/markers")) \
+                or not peer.count_publishers("fused/markers"):
+            executor.spin_once(timeout_sec=0.01)
+            assert time.monotonic() < deadline
+        seen = true.copy()
+        seen[-1] = np.nan                                   # the tip occluded
+        for k in range(200):                                # 0.4 s of states at 500 Hz
+            if k % 2 == 0:
+                frames.publish(pose_array(seen, k * 0.002))
+            state.publish(joint_state(names, k * 0.002, position=s, velocity=np.zeros(4), effort=u))
+            if k == 100:
+                state.publish(joint_state(names, k * 0.002, position=s + np.array([math.nan, 0, 0, 0]),
+                                          velocity=np.zeros(4), effort=u))
+            for _ in range(3):
+                executor.spin_once(timeout_sec=0.002)
+
+        def updates():
+            status = [st for m in got["diagnostics"] for st in m.status if st.name == "shape_estimator"]
+            return int({kv.key: kv.value for kv in status[-1].values}["updates"]) if status else 0
+
+        end = time.monotonic() + 3.0                        # the next report, once a second
+        while updates() < 90 and time.monotonic() < end:
+            executor.spin_once(timeout_sec=0.01)
+        # one update per 4 ms of state time: about half the states
+        assert 60 <= len(got["estimate"]) <= 110 and len(got["fused"]) == len(got["estimate"])
+        estimate, fused = markers_of(got["estimate"][-1]), markers_of(got["fused"][-1])
+        assert np.all(np.isfinite(estimate)) and np.all(np.isfinite(fused))
+        np.testing.assert_allclose(estimate, true, atol=1e-3)
+        tip = got["tip"][-1]
+        cov = np.array(tip.pose.covariance).reshape(6, 6)[:3, :3]
+        assert np.all(np.linalg.eigvalsh(cov) > 0) and np.sqrt(np.trace(cov)) < 0.05
+        assert node.rejected == 1
+        status = [st for m in got["diagnostics"] for st in m.status if st.name == "shape_estimator"]
+        values = {kv.key: kv.value for kv in status[-1].values}
+        assert int(values["updates"]) > 50 and float(values["stiffness_scale"]) == pytest.approx(1.0, abs=0.1)
+    finally:
+        rclpy.try_shutdown()
