@@ -1,6 +1,7 @@
 """The experiment graph on the physical rig (a ROS 2 Jazzy installation): the motor driver and the
 mocap bridge replace the simulator and publish the same topics; the controller nodes and the
-recorder are unchanged. ``ros2 launch soft_arm rig.launch.py task:=triangle``.
+recorder are unchanged. ``ros2 launch soft_arm rig.launch.py task:=triangle [feedback:=fused]``
+(``feedback``: what the clik closes its loop on, as in sim.launch.py).
 
 The two drivers are managed nodes. The launch configures both (the driver finds its motors, the
 bridge its Motive server; a failure is in their log and ``ros2 lifecycle get``) and activates the
@@ -20,15 +21,18 @@ import os
 from ament_index_python.packages import get_package_share_directory
 from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument, EmitEvent, RegisterEventHandler
+from launch.conditions import IfCondition
 from launch.events import matches_action
-from launch.substitutions import LaunchConfiguration
+from launch.substitutions import LaunchConfiguration, PythonExpression
 from launch_ros.actions import LifecycleNode, Node
 from launch_ros.event_handlers import OnStateTransition
 from launch_ros.events.lifecycle import ChangeState
 from lifecycle_msgs.msg import Transition
 
 PARAMETER_FILES = ["arm.yaml", "control.yaml", "plant.yaml", "tasks.yaml", "graph.yaml", "rig.yaml",
-                   "mocap.yaml"]
+                   "mocap.yaml", "estimator.yaml"]
+# the clik's mocap/markers per feedback (soft_arm_drivers.experiments.orchestration.FEEDBACK_TOPICS)
+FEEDBACK = {"mocap": "mocap/markers", "fused": "fused/markers", "estimate": "estimate/markers"}
 NODES = ["motor_driver", "mocap_bridge", "inner_loop", "clik", "task_runner", "recorder"]
 REALTIME = {"motor_driver", "mocap_bridge", "inner_loop"}
 MANAGED = {"motor_driver": "inactive", "mocap_bridge": "active"}     # the state the launch brings each to
@@ -44,11 +48,18 @@ def generate_launch_description():
     params = [os.path.join(config, name) for name in PARAMETER_FILES]
     task = {"graph.task": LaunchConfiguration("task")}
     start = {"task_runner": {"wait_for_start": True}}
-    actions = [DeclareLaunchArgument("task", default_value="triangle")]
+    feedback = LaunchConfiguration("feedback")
+    topic = PythonExpression([repr(FEEDBACK), "['", feedback, "']"])
+    actions = [DeclareLaunchArgument("task", default_value="triangle"),
+               DeclareLaunchArgument("feedback", default_value="mocap", choices=list(FEEDBACK)),
+               Node(package="soft_arm", executable="shape_estimator", name="shape_estimator",
+                    output="screen", parameters=params,
+                    condition=IfCondition(PythonExpression(["'", feedback, "' != 'mocap'"])))]
     for name in NODES:
         options = dict(package="soft_arm", executable=name, name=name, output="screen",
                        parameters=params + [task] + ([start[name]] if name in start else []),
-                       prefix="chrt -f 20" if name in REALTIME else None)
+                       prefix="chrt -f 20" if name in REALTIME else None,
+                       remappings=[("mocap/markers", topic)] if name == "clik" else [])
         if name not in MANAGED:
             actions.append(Node(**options))
             continue

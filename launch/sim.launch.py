@@ -1,15 +1,20 @@
 """The experiment graph on the simulator (a ROS 2 Jazzy installation; run with
-``ros2 launch soft_arm sim.launch.py task:=triangle``). Every node reads the package's parameter
-files; ``soft-arm-experiment`` starts the same graph without ``launch``."""
+``ros2 launch soft_arm sim.launch.py task:=triangle [feedback:=fused]``). Every node reads the
+package's parameter files; ``soft-arm-experiment`` starts the same graph without ``launch``.
+``feedback`` (mocap, fused or estimate): what the clik closes its loop on; other than mocap, the
+shape estimator joins the graph and the clik's ``mocap/markers`` is remapped onto its topic."""
 import os
 
 from ament_index_python.packages import get_package_share_directory
 from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument
-from launch.substitutions import LaunchConfiguration
+from launch.conditions import IfCondition
+from launch.substitutions import LaunchConfiguration, PythonExpression
 from launch_ros.actions import Node
 
-PARAMETER_FILES = ["arm.yaml", "control.yaml", "plant.yaml", "tasks.yaml", "graph.yaml"]
+PARAMETER_FILES = ["arm.yaml", "control.yaml", "plant.yaml", "tasks.yaml", "graph.yaml", "estimator.yaml"]
+# the clik's mocap/markers per feedback (soft_arm_drivers.experiments.orchestration.FEEDBACK_TOPICS)
+FEEDBACK = {"mocap": "mocap/markers", "fused": "fused/markers", "estimate": "estimate/markers"}
 NODES = ["simulator", "inner_loop", "clik", "task_runner", "recorder"]
 # Nodes on the simulator's /clock (use_sim_time): the recorder, whose log times are the clock's.
 # The controller and the task runner run on the stamps of the messages they get (mocap exposures,
@@ -21,7 +26,13 @@ def generate_launch_description():
     config = os.path.join(get_package_share_directory("soft_arm"), "config")
     params = [os.path.join(config, name) for name in PARAMETER_FILES]
     task = {"graph.task": LaunchConfiguration("task")}
+    feedback = LaunchConfiguration("feedback")
+    topic = PythonExpression([repr(FEEDBACK), "['", feedback, "']"])
     return LaunchDescription(
-        [DeclareLaunchArgument("task", default_value="triangle")]
+        [DeclareLaunchArgument("task", default_value="triangle"),
+         DeclareLaunchArgument("feedback", default_value="mocap", choices=list(FEEDBACK))]
         + [Node(package="soft_arm", executable=name, name=name, output="screen",
-                parameters=params + [task, {"use_sim_time": name in SIM_TIME_NODES}]) for name in NODES])
+                parameters=params + [task, {"use_sim_time": name in SIM_TIME_NODES}],
+                remappings=[("mocap/markers", topic)] if name == "clik" else []) for name in NODES]
+        + [Node(package="soft_arm", executable="shape_estimator", name="shape_estimator", output="screen",
+                parameters=params, condition=IfCondition(PythonExpression(["'", feedback, "' != 'mocap'"])))])

@@ -28,10 +28,16 @@ compliance so that soft modes may move more), and three kinds of measurement:
   gate for ``regate`` frames in a row is taken again, and kept until its innovation is back
   within the gate (the estimate had diverged from it: counted in ``diverged``).
 
+The stiffness scale stays within :data:`STIFFNESS_BOUNDS` and the friction within
+:data:`FRICTION_BOUNDS`. An estimate that is lost (:data:`RESTART_AFTER` updates in a row out of the
+model's domain, or at rest with shortenings :data:`RESTART_NIS` normalised squares each away from
+what it predicts, or a stiffness the tendons can only explain beyond its bounds) starts again from
+the equilibrium of the measured tensions (``restarts``).
+
 The tendon and balance updates are iterated (``iterations`` Gauss-Newton steps of the iterated EKF,
 the balance being strongly nonlinear in bending). Everything is in SI units and arm_base. Each
-update returns the innovations' normalised squares for the diagnostics, and the estimate carries
-the covariance of q and of every marker position, so that a consumer can tell what it knows.
+update returns the innovations' normalised squares for the diagnostics, and the estimate carries the
+covariance of q and of every marker position, so that a consumer can tell what it knows.
 """
 from __future__ import annotations
 
@@ -49,6 +55,10 @@ from soft_arm_model.statics import residual_jacobian
 FEEDBACKS = ("mocap", "fused", "estimate")   # what the online CLIK closes its loop on
 FRICTION_STEP = 1e-3                          # the finite difference of dA/dmu
 MAX_PREDICTION = 0.3          # the largest predicted step of a coordinate, in compliance units
+STIFFNESS_BOUNDS = (0.5, 2.0)  # the arm's stiffness against the model's: what a cast arm can be
+FRICTION_BOUNDS = (0.0, 0.5)   # a tendon's friction coefficient
+RESTART_NIS = 25.0             # per shortening: the tendons disagree with the estimate by 5 sigma
+RESTART_AFTER = 25             # updates in a row out of the domain, or at rest and disagreeing
 
 ESTIMATOR_SCHEMA = {
     "rate": ("float", lambda v: 1 <= v <= 1000, "an update rate in [1, 1000] Hz"),
@@ -167,7 +177,9 @@ class ShapeEstimator:
                                           np.full(nt, config.prior_friction ** 2)]))
         self.t = None
         self.counts = {"updates": 0, "markers_used": 0, "markers_gated": 0, "diverged": 0,
-                       "out_of_domain": 0}
+                       "out_of_domain": 0, "restarts": 0}
+        self._prior = self.z.copy(), self.Pz.copy()
+        self._bad = 0                # updates in a row that say the estimate is lost
         self._rejected = np.zeros(model.marker_X.size, dtype=int)   # frames in a row out of the gate
         self._retaken = np.zeros(model.marker_X.size, dtype=bool)   # taken again, not yet back in it
         self._linear = None          # (dR/dq, A, u) of the last tendon update, for the prediction
@@ -198,6 +210,7 @@ class ShapeEstimator:
         if shortening is not None:
             for _ in range(3):
                 self._tendon_update(np.asarray(shortening, dtype=float), u, np.zeros(u.size))
+                self._clamp_parameters()
 
     @property
     def started(self) -> bool:
@@ -221,16 +234,36 @@ class ShapeEstimator:
         self.Pz += np.diag(np.concatenate([walk, drift]))
         report = UpdateReport()
         try:
-            report.tendon_nis = self._tendon_update(s, u, sd)
+            report.tendon_nis, shortening_nis = self._tendon_update(s, u, sd)
             if markers is not None:
                 self._marker_update(np.asarray(markers, dtype=float), report, sd)
             evaluate(self.model, self.data, self.q, level=STATICS, markers=True)    # in the domain
+            at_rest = not sd.size or float(np.max(np.abs(sd))) <= c.rest_speed
+            pinned = self._clamp_parameters()
+            lost = shortening_nis > RESTART_NIS * s.size or pinned
+            self._bad = self._bad + 1 if at_rest and lost else 0
         except OutOfDomainError:                  # the update left the model's domain: not taken
             self.counts["out_of_domain"] += 1
             self.z, self.Pz, self._linear = saved
             self.Pz[np.diag_indices(self.model.n)] += (c.tension_change * self.scale) ** 2 * 1e-2
+            self._bad += 1
+        if self._bad >= RESTART_AFTER:            # lost: start again from the tensions' equilibrium
+            self.counts["restarts"] += 1
+            self.z, self.Pz = (a.copy() for a in self._prior)
+            self._linear, self._bad = None, 0
+            self.start(t, u, s)
         self.counts["updates"] += 1
         return report
+
+    def _clamp_parameters(self) -> bool:
+        """The stiffness scale and friction coefficients into what a cast arm can have; True when the
+        stiffness had to be clipped (the tendons describe no such arm)."""
+        n = self.model.n
+        pinned = not STIFFNESS_BOUNDS[0] <= self.z[n] <= STIFFNESS_BOUNDS[1]
+        self.z[n] = np.clip(self.z[n], *STIFFNESS_BOUNDS)
+        mu = np.array([t.friction for t in self.model.config.tendons])
+        self.z[n + 1:] = np.clip(self.z[n + 1:], FRICTION_BOUNDS[0] - mu, FRICTION_BOUNDS[1] - mu)
+        return pinned
 
     def _predict(self, u):
         """Move q with the change of the tensions since the last update, along the model's static
@@ -258,8 +291,9 @@ class ShapeEstimator:
 
     # --- updates ---------------------------------------------------------------------------------
 
-    def _tendon_update(self, s, u, sd) -> float:
-        """Iterated update with the shortenings and the static balance; returns their NIS."""
+    def _tendon_update(self, s, u, sd) -> tuple[float, float]:
+        """Iterated update with the shortenings and the static balance; returns their NIS, and the
+        shortenings' alone."""
         c, model, n = self.config, self.model, self.model.n
         z_prior, P = self.z.copy(), self.Pz
         z = z_prior.copy()
@@ -290,7 +324,9 @@ class ShapeEstimator:
         self.z = z
         self.Pz = _joseph(P, K, H, noise)
         self._linear = (H_r[:, :n], d.A + dA * dmu[None, :], u.copy())
-        return nis
+        m = s.size
+        shortening_nis = float(innovation[:m] @ np.linalg.solve(S[:m, :m], innovation[:m]))
+        return nis, shortening_nis
 
     def _marker_update(self, markers, report: UpdateReport, sd):
         """Update with the seen markers, gated; their noise grows with the tendons' speed ``sd``

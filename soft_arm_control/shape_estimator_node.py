@@ -13,9 +13,10 @@ with that state's stamp:
 - ``estimate/shape`` (MarkerArray): the estimated backbone, for RViz;
 - once a second of wall time ``/diagnostics`` (status ``shape_estimator``, from the first update):
   markers used and gated, the
-  innovations' mean normalised squares, divergences, updates left out of the model's domain, the
-  estimated stiffness scale and friction coefficients, the tip's standard deviation. WARN when a
-  marker diverged or an update was left out since the last report.
+  innovations' mean normalised squares, divergences, updates left out of the model's domain,
+  restarts, the estimated stiffness scale and friction coefficients, the tip's standard deviation.
+  WARN when a marker diverged, an update was left out or the estimate restarted since the last
+  report.
 
 The online CLIK closes its loop on either topic by remapping its ``mocap/markers`` (``soft-arm-
 experiment --feedback fused|estimate``). A state whose stamp is no number, or any field no number,
@@ -144,15 +145,16 @@ class ShapeEstimatorNode(Node):
 
     def publish_diagnostics(self, stamp: float, estimate):
         counts = self.core.counts
-        new = {k: counts[k] - self._reported_counts[k] for k in ("diverged", "out_of_domain")}
+        new = {k: counts[k] - self._reported_counts[k] for k in ("diverged", "out_of_domain", "restarts")}
         stiffness, friction = self.core.parameters
         level = DiagnosticStatus.WARN if any(new.values()) else DiagnosticStatus.OK
         message = "estimating" if not any(new.values()) else (
             f"{new['diverged']} marker divergences, {new['out_of_domain']} updates left out of the "
-            "model's domain since the last report")
+            f"model's domain, {new['restarts']} restarts (the estimate was lost) since the last report")
         values = {"updates": counts["updates"], "markers_used": self.used, "markers_gated": self.gated,
                   "marker_nis_mean": float(np.mean(self.nis)) if self.nis else "",
                   "diverged": counts["diverged"], "out_of_domain": counts["out_of_domain"],
+                  "restarts": counts["restarts"],
                   "rejected": self.rejected, "stiffness_scale": round(stiffness, 4),
                   "friction": [round(float(f), 4) for f in friction],
                   "tip_sigma_mm": round(1e3 * float(estimate.marker_sigma[-1]), 3)}

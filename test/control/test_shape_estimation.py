@@ -145,6 +145,21 @@ def test_a_marker_that_stays_out_of_the_gate_is_taken_again_and_counted(arm, mod
     assert np.linalg.norm(estimator.estimate().markers[-1] - moved[-1]) < 2e-3
 
 
+def test_tendons_that_contradict_the_estimate_at_rest_restart_it_and_the_parameters_stay_physical(
+        arm, model):
+    """Shortenings no arm can have under these tensions (15 cm more on every tendon, an encoder
+    that lost its zero): the estimate cannot make them agree; it says so by restarting, and its
+    stiffness and friction stay within what a cast arm can have."""
+    rig = _rig(arm, model)
+    estimator, clock = ShapeEstimator(model, CONFIG), Clock()
+    s, sd, _ = _hold(rig, POSES[0])
+    for _ in range(200):
+        estimator.update(clock(), s + 0.15, sd, POSES[5])
+    stiffness, friction = estimator.parameters
+    assert estimator.counts["restarts"] >= 1
+    assert 0.5 <= stiffness <= 2.0 and np.all((friction >= 0.0) & (friction <= 0.5))
+
+
 def test_the_balance_derivatives_match_finite_differences(arm, model):
     """dR/dk = F_el, dR/dmu_i from the raised-friction model, dF_el/dq = K_t: against models with
     the stiffness and one tendon's friction changed, and a perturbed q."""

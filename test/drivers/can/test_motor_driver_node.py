@@ -432,6 +432,10 @@ def _activated_driver_process(context, node_name: str, inject: str = "") -> subp
         harness = Harness(context, node_name)
         executor = SingleThreadedExecutor(context=context)
         executor.add_node(harness.node)
+        # the process's start-up (imports, the compiled kernels' cache) may take seconds on a busy
+        # machine: its services first
+        spin_until(executor, harness.clients["change_state"].service_is_ready, timeout=60.0,
+                   unless_ended=proc)
         # rclpy's change_state would raise out of the node's executor on a transition the state
         # does not have: the node refuses it and lives on
         assert not change(executor, harness, "activate")
