@@ -1,5 +1,7 @@
 """Shared fixtures. Every rclpy process in the suite stays on loopback with its own domain id."""
 import os
+import pathlib
+import re
 import signal
 import subprocess
 import time
@@ -172,3 +174,14 @@ def make_rig():
     yield make
     for rig in rigs:
         rig.close()
+
+
+def node_logs(log_dir) -> dict:
+    """Per node name: the process ids [int] of the ROS log files (``<exe>_<pid>_<time>.log``, one
+    per process) under ``log_dir`` whose lines that node logged."""
+    out = {}
+    for path in pathlib.Path(log_dir).rglob("*.log"):
+        pid = int(re.search(r"_(\d+)_\d+\.log$", path.name).group(1))
+        for name in set(re.findall(r"^\[\w+\] \[[\d.]+\] \[([\w.]+)\]", path.read_text(), re.M)):
+            out.setdefault(name, []).append(pid)
+    return out

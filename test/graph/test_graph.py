@@ -3,13 +3,13 @@ lockstep determinism, remapping, and the recorded bag read back with rosbags."""
 import json
 import os
 import pathlib
-import re
 
 import numpy as np
 import pytest
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 
+from conftest import node_logs
 from soft_arm_drivers.experiments.experiment import _ros_arguments, run_composed
 from soft_arm_drivers.experiments.harness import load_setup, run_experiment
 from soft_arm_ros.contract import TYPES
@@ -61,17 +61,6 @@ def _window_errors(bag_dir) -> list:
         read = [(int(name[len("marker"):name.index(".")]) - 1, name[-1]) for name in labels]   # "marker4.x"
         out.append([float(np.linalg.norm([getattr(poses[i].position, axis) for i, axis in read] - target))
                     for t, poses in frames if start - 1e-9 <= t < end - 1e-9])
-    return out
-
-
-def _node_logs(log_dir) -> dict:
-    """Per node name: the process ids [int] of the ROS log files (``<exe>_<pid>_<time>.log``, one
-    per process) under ``log_dir`` whose lines that node logged."""
-    out = {}
-    for path in pathlib.Path(log_dir).rglob("*.log"):
-        pid = int(re.search(r"_(\d+)_\d+\.log$", path.name).group(1))
-        for name in set(re.findall(r"^\[\w+\] \[[\d.]+\] \[([\w.]+)\]", path.read_text(), re.M)):
-            out.setdefault(name, []).append(pid)
     return out
 
 
@@ -173,7 +162,7 @@ def test_processes_mode_runs_each_node_as_its_own_process(tmp_path, monkeypatch)
     assert metrics["transitions"][0]["final_error"] < 3e-3
     assert sorted(p.name for p in (out / "figures").iterdir()) == [
         "actuation.png", "task_error.png", "tensions.png"]
-    logs = _node_logs(tmp_path / "log")
+    logs = node_logs(tmp_path / "log")
     nodes = ("simulator", "inner_loop", "clik", "task_runner", "recorder")
     assert all(len(logs.get(name, [])) == 1 for name in nodes), logs
     pids = [logs[name][0] for name in nodes]

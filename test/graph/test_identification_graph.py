@@ -3,10 +3,10 @@ soft-arm-identify on its bag: what a user runs, end to end."""
 import json
 import os
 import pathlib
-import re
 
 import pytest
 
+from conftest import node_logs
 from soft_arm_drivers.experiments.experiment import main as experiment
 from soft_arm_drivers.experiments.identify_cli import main as identify
 from soft_arm_drivers.mocap.bridge_config import load_mocap_config
@@ -111,17 +111,6 @@ def test_a_campaign_fits_every_bag_of_a_folder_and_records_the_one_refused(short
     assert summary["groups"]["bags"]["runs"] == 2 and summary["groups"]["bags"]["failed"] == 1
 
 
-def _node_logs(log_dir) -> dict:
-    """Per node name: the process ids [int] of the ROS log files (``<exe>_<pid>_<time>.log``, one
-    per process) under ``log_dir`` whose lines that node logged."""
-    out = {}
-    for path in pathlib.Path(log_dir).rglob("*.log"):
-        pid = int(re.search(r"_(\d+)_\d+\.log$", path.name).group(1))
-        for name in set(re.findall(r"^\[\w+\] \[[\d.]+\] \[([\w.]+)\]", path.read_text(), re.M)):
-            out.setdefault(name, []).append(pid)
-    return out
-
-
 def test_the_identification_experiment_runs_one_process_per_node(tmp_path, monkeypatch):
     """The experiment plays to its end, and each node logs from a process of its own (its own ROS
     log file, named with its process id, not this one's)."""
@@ -131,7 +120,7 @@ def test_the_identification_experiment_runs_one_process_per_node(tmp_path, monke
                       + _sets(SHORT)) == 0
     with open(out / "excitation.json", encoding="utf-8") as fh:
         assert json.load(fh)["duration"] > 20
-    logs = _node_logs(tmp_path / "log")
+    logs = node_logs(tmp_path / "log")
     nodes = ("simulator", "excitation", "recorder")
     assert all(len(logs.get(name, [])) == 1 for name in nodes), logs
     pids = [logs[name][0] for name in nodes]
