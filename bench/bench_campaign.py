@@ -61,7 +61,7 @@ def main(argv=None) -> int:
     speedup = two["runs_per_hour"] / one["runs_per_hour"]
     per_worker = two["runs_per_hour"] / two["workers"]
     runs_1000 = 1000 * len(args.tasks)
-    cost = {"runs": runs_1000, "this_machine_h": runs_1000 / two["runs_per_hour"],
+    cost = {"runs": runs_1000, "one_machine_h": runs_1000 / two["runs_per_hour"],
             "ten_machines_h": runs_1000 / (10 * two["runs_per_hour"]),
             "core_hours": runs_1000 / per_worker}
     print(f"{'workers':>7s} {'runs':>4s} {'wall s':>7s} {'runs/h':>7s} {'run s (median)':>14s} "
@@ -72,9 +72,9 @@ def main(argv=None) -> int:
               f"{r['overhead_s_max'] * 1e3:9.1f} "
               f"{r['overhead_fraction_median'] * 100:10.3f} {r['busy_fraction'] * 100:6.1f}")
     print(f"two workers / one: {speedup:.2f}x; {per_worker:.1f} runs per hour per worker")
-    print(f"1,000 draws of {' and '.join(args.tasks)} ({runs_1000} runs): {cost['this_machine_h']:.1f} h "
-          f"on this machine, {cost['ten_machines_h']:.1f} h on ten like it ({cost['core_hours']:.0f} "
-          "core-hours)")
+    print(f"1,000 draws of {' and '.join(args.tasks)} ({runs_1000} runs): {cost['one_machine_h']:.1f} h "
+          f"on the measuring machine, {cost['ten_machines_h']:.1f} h on ten of its kind "
+          f"({cost['core_hours']:.0f} core-hours)")
     write_results(args.output, {"draws": args.draws, "seed": args.seed, "tasks": args.tasks,
                                 "one_worker": one, "two_workers": two, "speedup": speedup,
                                 "runs_per_hour_per_worker": per_worker, "thousand_draws": cost})

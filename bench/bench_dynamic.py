@@ -146,7 +146,7 @@ def main(argv=None) -> int:
     parser.add_argument("--sizes", type=float, nargs="+", default=None,
                         help="circle radii [m] (default: the tracking task's, and 0.015)")
     parser.add_argument("--workers", type=int, default=os.cpu_count() or 2,
-                        help="Dask workers on this machine (default: the cores)")
+                        help="local Dask workers (default: the number of cores)")
     parser.add_argument("--output", default=results_path("dynamic.json"))
     args = parser.parse_args(argv)
     from soft_arm_drivers.experiments.harness import load_setup

@@ -103,7 +103,7 @@ def main(argv=None) -> int:
     parser.add_argument("--feedbacks", nargs="+", default=["mocap", "fused", "estimate"])
     parser.add_argument("--scenarios", nargs="+", default=list(SCENARIOS))
     parser.add_argument("--workers", type=int, default=os.cpu_count() or 2,
-                        help="Dask workers on this machine (default: the cores)")
+                        help="local Dask workers (default: the number of cores)")
     parser.add_argument("--output", default=results_path("sensing.json"))
     args = parser.parse_args(argv)
     from soft_arm_drivers.experiments.harness import load_setup, schedule

@@ -70,7 +70,7 @@ def main(argv=None) -> int:
     parser.add_argument("--tension-limits", type=float, nargs="+", default=[5.0, 20.0])
     parser.add_argument("--pieces", type=int, nargs="+", default=[3, 6])
     parser.add_argument("--workers", type=int, default=os.cpu_count() or 2,
-                        help="Dask workers on this machine (default: the cores)")
+                        help="local Dask workers (default: the number of cores)")
     parser.add_argument("--output", default=results_path("strike_limits.json"))
     args = parser.parse_args(argv)
     jobs = list(itertools.product(args.rotor_masses, args.tension_limits, args.pieces))

@@ -10,7 +10,7 @@ Examples::
 Every run is keyed by its specification (seed and overrides) and written to ``DIR/records.jsonl`` as
 it finishes: the same command on the same folder runs only what is missing, and a larger
 ``--draws`` only the new draws. ``DIR`` gets ``summary.json``, ``summary.md`` and histograms. Runs go
-to an embedded Dask ``LocalCluster`` on this machine's cores (``--workers``), or to an existing
+to an embedded Dask ``LocalCluster`` on the local cores (``--workers``), or to an existing
 cluster (``--scheduler tcp://host:8786``). Exit status: 0 every run done, 1 a run failed (listed),
 2 bad input (nothing ran), 130 interrupted (what finished is kept; run the command again).
 """
