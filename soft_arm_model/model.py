@@ -160,22 +160,35 @@ def _coordinate_layout(config: ArmConfig):
     return labels, offsets
 
 
+def _legendre(s: float, order: int) -> tuple[np.ndarray, np.ndarray]:
+    """Legendre polynomials P_0..P_order at ``s`` in [-1, 1] and their derivatives d/ds, by
+    Bonnet's recurrence (one pass for every order, where evaluating each series apart costs a
+    polynomial derivative per order and point)."""
+    P = np.empty(order + 1)
+    dP = np.empty(order + 1)
+    P[0], dP[0] = 1.0, 0.0
+    if order >= 1:
+        P[1], dP[1] = s, 1.0
+    for j in range(1, order):
+        P[j + 1] = ((2 * j + 1) * s * P[j] - j * P[j - 1]) / (j + 1)
+        dP[j + 1] = dP[j - 1] + (2 * j + 1) * P[j]
+    return P, dP
+
+
 def _basis_at(config: ArmConfig, n: int, X: float, division: int | None = None):
-    labels, offsets = _coordinate_layout(config)
+    labels, _ = _coordinate_layout(config)
     d = _division_of(config, X) if division is None else division
     a, b = _division_bounds(config)[d]
     L = b - a
-    s = 2.0 * (X - a) / L - 1.0
+    P, dP = _legendre(2.0 * (X - a) / L - 1.0, config.discretisation.legendre_order[d])
     B = np.zeros((6, n))
     Bd = np.zeros((6, n))
     for col, (dd, r, j) in enumerate(labels):
         if dd != d:
             continue
-        c = np.zeros(j + 1)
-        c[j] = 1.0
         scale = 1.0 / L if r < 3 else 1.0
-        B[r, col] = scale * npleg.legval(s, c)
-        Bd[r, col] = scale * npleg.legval(s, npleg.legder(c)) * 2.0 / L
+        B[r, col] = scale * P[j]
+        Bd[r, col] = scale * dP[j] * 2.0 / L
     return B, Bd
 
 

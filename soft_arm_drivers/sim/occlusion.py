@@ -18,9 +18,12 @@ generator, so that switching occlusions on or off does not change the markers' n
 """
 from __future__ import annotations
 
+import functools
+import math
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 _EPS = 1e-12
 
@@ -51,63 +54,95 @@ class OcclusionConfig:
         return self.dropout > 0 or any(f > 0 for f in self.burst_fraction)
 
 
-def segment_distances(p, d, a, e) -> np.ndarray:
-    """Smallest distances [m] between segments p + s d (s in [0, 1]) and a + t e (t in [0, 1]),
-    broadcast over the leading axes of the four (..., 3) arrays."""
-    r = p - a
-    dd = np.einsum("...i,...i", d, d)
-    ee = np.maximum(np.einsum("...i,...i", e, e), _EPS)
-    de = np.einsum("...i,...i", d, e)
-    dr = np.einsum("...i,...i", d, r)
-    er = np.einsum("...i,...i", e, r)
+@njit(cache=True, nogil=True)
+def segment_distance(p, d, a, e) -> float:
+    """Smallest distance [m] between the segments p + s d (s in [0, 1]) and a + t e (t in [0, 1]),
+    each argument a (3,) array."""
+    r0, r1, r2 = p[0] - a[0], p[1] - a[1], p[2] - a[2]
+    dd = d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
+    ee = max(e[0] * e[0] + e[1] * e[1] + e[2] * e[2], _EPS)
+    de = d[0] * e[0] + d[1] * e[1] + d[2] * e[2]
+    dr = d[0] * r0 + d[1] * r1 + d[2] * r2
+    er = e[0] * r0 + e[1] * r1 + e[2] * r2
     denominator = dd * ee - de * de
-    s = np.where(denominator > _EPS * dd * ee,
-                 np.clip((de * er - dr * ee) / np.maximum(denominator, _EPS), 0.0, 1.0), 0.0)
+    s = 0.0
+    if denominator > _EPS * dd * ee:                    # not parallel: the lines' closest points
+        s = min(max((de * er - dr * ee) / max(denominator, _EPS), 0.0), 1.0)
     t = (de * s + er) / ee
-    low, high = t < 0.0, t > 1.0
-    s = np.where(low, np.clip(-dr / np.maximum(dd, _EPS), 0.0, 1.0), s)
-    s = np.where(high, np.clip((de - dr) / np.maximum(dd, _EPS), 0.0, 1.0), s)
-    t = np.clip(t, 0.0, 1.0)
-    gap = r + s[..., None] * d - t[..., None] * e
-    return np.sqrt(np.einsum("...i,...i", gap, gap))
+    if t < 0.0:
+        s, t = min(max(-dr / max(dd, _EPS), 0.0), 1.0), 0.0
+    elif t > 1.0:
+        s, t = min(max((de - dr) / max(dd, _EPS), 0.0), 1.0), 1.0
+    g0 = r0 + s * d[0] - t * e[0]
+    g1 = r1 + s * d[1] - t * e[1]
+    g2 = r2 + s * d[2] - t * e[2]
+    return math.sqrt(g0 * g0 + g1 * g1 + g2 * g2)
 
 
-def in_view(config: OcclusionConfig, markers) -> np.ndarray:
-    """(C, M) bool: marker m inside camera c's field of view."""
-    cameras = np.asarray(config.cameras, dtype=float)
-    to_marker = np.asarray(markers, dtype=float)[None, :, :] - cameras[:, None, :]
-    axis = np.asarray(config.aim, dtype=float)[None, :] - cameras
-    axis = axis / np.linalg.norm(axis, axis=1, keepdims=True)
-    cosine = np.einsum("cmi,ci->cm", to_marker, axis) / np.maximum(np.linalg.norm(to_marker, axis=2), _EPS)
-    return cosine >= np.cos(0.5 * config.field_of_view)
+@njit(cache=True, nogil=True)
+def _seeing(cameras, axes, cos_half, markers, ring_low, ring_high, points, capsule_radii, arcs, occlude):
+    """(M,) cameras that see each marker: in the field of view (unit ``axes``, cosine of the half
+    angle) and, when ``occlude``, with a line of sight that no capsule between consecutive ``points``
+    blocks but those whose arc span meets the marker's ring (``ring_low``, ``ring_high``)."""
+    count = np.zeros(markers.shape[0], np.int64)
+    sight = np.empty(3)
+    for c in range(cameras.shape[0]):
+        for m in range(markers.shape[0]):
+            norm = 0.0
+            along = 0.0
+            for i in range(3):
+                sight[i] = markers[m, i] - cameras[c, i]
+                norm += sight[i] * sight[i]
+                along += sight[i] * axes[c, i]
+            if along < cos_half * max(math.sqrt(norm), _EPS):
+                continue
+            clear = True
+            if occlude:
+                for k in range(points.shape[0] - 1):
+                    if arcs[k + 1] > ring_low[m] and arcs[k] < ring_high[m]:
+                        continue                        # the marker's own ring
+                    if segment_distance(cameras[c], sight, points[k],
+                                        points[k + 1] - points[k]) < capsule_radii[k]:
+                        clear = False
+                        break
+            if clear:
+                count[m] += 1
+    return count
 
 
-def unblocked(config: OcclusionConfig, markers, marker_arcs, points, radii, arcs) -> np.ndarray:
-    """(C, M) bool: camera c's line of sight to marker m clears the body, the capsules between
-    consecutive backbone ``points`` (P, 3) [m] (ordered by arc length ``arcs`` (P,) [m], cone radius
-    ``radii`` (P,) [m]) but those of the marker's own ring (two radii either side)."""
-    markers = np.asarray(markers, dtype=float)
-    points, radii, arcs = (np.asarray(v, dtype=float) for v in (points, radii, arcs))
-    start, end = points[:-1], points[1:]
-    capsule_radius = np.maximum(radii[:-1], radii[1:])
-    ring = 2.0 * np.interp(marker_arcs, arcs, radii)            # half-width of the marker's ring
-    own = ((arcs[None, 1:] > np.asarray(marker_arcs)[:, None] - ring[:, None])
-           & (arcs[None, :-1] < np.asarray(marker_arcs)[:, None] + ring[:, None]))      # (M, K)
-    cams = np.asarray(config.cameras, dtype=float)[:, None, None, :]
-    sight = markers[None, :, None, :] - cams
-    distance = segment_distances(cams, sight, start[None, None], (end - start)[None, None])   # (C, M, K)
-    blocked = (distance < capsule_radius[None, None, :]) & ~own[None, :, :]
-    return ~blocked.any(axis=2)
+@functools.lru_cache(maxsize=16)
+def _layout(config: OcclusionConfig) -> tuple[np.ndarray, np.ndarray, float]:
+    """The cameras (C, 3) [m], their unit optical axes (C, 3) and the cosine of half the field of
+    view, computed once per configuration (it is frozen)."""
+    cameras = np.ascontiguousarray(config.cameras, dtype=float).reshape(-1, 3)
+    axes = np.asarray(config.aim, dtype=float)[None, :] - cameras
+    axes = np.ascontiguousarray(axes / np.linalg.norm(axes, axis=1, keepdims=True))
+    return cameras, axes, math.cos(0.5 * config.field_of_view)
 
 
 def cameras_seeing(config: OcclusionConfig, markers, marker_arcs=None, points=None, radii=None,
                    arcs=None) -> np.ndarray:
-    """(M,) int: how many cameras see each marker (the body, when given and ``self_occlusion``,
-    blocks lines of sight)."""
-    seen = in_view(config, markers)
-    if config.self_occlusion and points is not None:
-        seen &= unblocked(config, markers, marker_arcs, points, radii, arcs)
-    return seen.sum(axis=0)
+    """(M,) int: how many cameras see each marker (M, 3) [m]. Each camera sees the markers inside
+    its field of view (a cone of full angle ``config.field_of_view`` around its line to
+    ``config.aim``); the body, when given and ``config.self_occlusion``, blocks lines of sight: the
+    capsules between consecutive backbone ``points`` (P, 3) [m] (ordered by arc length ``arcs``
+    (P,) [m], cone radius ``radii`` (P,) [m]) but those of the marker's own ring (two radii either
+    side of its arc length ``marker_arcs`` (M,) [m])."""
+    markers = np.ascontiguousarray(markers, dtype=float).reshape(-1, 3)
+    cameras, axes, cos_half = _layout(config)
+    occlude = bool(config.self_occlusion and points is not None)
+    if occlude:
+        points, radii, arcs = (np.ascontiguousarray(v, dtype=float) for v in (points, radii, arcs))
+        marker_arcs = np.asarray(marker_arcs, dtype=float).reshape(-1)
+        ring = 2.0 * np.interp(marker_arcs, arcs, radii)    # half-width of the marker's ring
+        low, high = marker_arcs - ring, marker_arcs + ring
+        capsule_radii = np.maximum(radii[:-1], radii[1:])
+    else:
+        points = np.zeros((1, 3))
+        arcs = np.zeros(1)
+        low = high = np.zeros(markers.shape[0])
+        capsule_radii = np.zeros(0)
+    return _seeing(cameras, axes, cos_half, markers, low, high, points, capsule_radii, arcs, occlude)
 
 
 def body(model, data) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

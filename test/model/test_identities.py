@@ -145,3 +145,19 @@ def test_tip_mass_is_a_point_mass_at_the_tip(model_factory, rng):
     z1 = marker_positions(loaded, solve_equilibrium(loaded, np.zeros(4)).q)[-1]
     np.testing.assert_allclose(z0[2] - z1[2], drop, rtol=0.03)
     np.testing.assert_allclose(z1[:2], z0[:2], atol=1e-9)
+
+
+def test_the_strain_basis_is_the_legendre_polynomials_and_their_derivatives():
+    """The recurrence that builds the basis against numpy's Legendre series, order by order, and
+    each derivative against a central difference."""
+    from numpy.polynomial import legendre
+    from soft_arm_model.model import _legendre
+    for s in np.linspace(-1.0, 1.0, 9):
+        P, dP = _legendre(s, 8)
+        for j in range(9):
+            unit = np.eye(9)[j][:j + 1]
+            assert P[j] == pytest.approx(legendre.legval(s, unit), abs=1e-14)
+            h = 1e-6
+            central = (_legendre(s + h, 8)[0][j] - _legendre(s - h, 8)[0][j]) / (2 * h)
+            assert dP[j] == pytest.approx(central, abs=1e-7)
+    assert _legendre(0.3, 0)[0].tolist() == [1.0]

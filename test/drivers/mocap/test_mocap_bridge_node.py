@@ -18,6 +18,7 @@ from lifecycle_msgs.srv import ChangeState
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.lifecycle import TransitionCallbackReturn
 from rclpy.parameter import Parameter
+from rclpy.qos import QoSProfile, ReliabilityPolicy
 
 from conftest import change_state, killed_on_exit, spin_until, stop
 from soft_arm_drivers.can.loopback_bus import free_udp_ports
@@ -29,6 +30,10 @@ from soft_arm_model import build_model
 from soft_arm_model.parameters import ConfigError, default_config_dir
 from soft_arm_ros.contract import FRAME, QOS
 from soft_arm_ros.conversions import markers_of, stamp_to_seconds
+
+# a listener that counts every frame: the stream's depth of 1 drops all but the latest when the
+# test's spin falls behind by a frame, which a loaded machine does
+RECEIVE_ALL = QoSProfile(depth=1000, reliability=ReliabilityPolicy.BEST_EFFORT)
 
 
 @pytest.fixture
@@ -225,7 +230,7 @@ def test_one_frame_with_impossible_server_stamps_does_not_move_the_next_frames(r
         stamps = []
         listener.create_subscription(PoseArray, "mocap/markers",
                                      lambda msg: stamps.append(stamp_to_seconds(msg.header.stamp)),
-                                     QOS["mocap/markers"])
+                                     RECEIVE_ALL)
         executor = SingleThreadedExecutor()
         for node in (bridge, listener):
             executor.add_node(node)
@@ -240,14 +245,14 @@ def test_one_frame_with_impossible_server_stamps_does_not_move_the_next_frames(r
                 end = time.monotonic() + 1 / 240
                 while time.monotonic() < end:
                     executor.spin_once(timeout_sec=max(0.0, end - time.monotonic()))
-            spin_until(executor, lambda: len(stamps) >= 359, timeout=5.0)
-            invalid = bridge.bridge.counters["invalid"]
+            spin_until(executor, lambda: bridge.published >= 359, timeout=5.0)
+            spin_until(executor, lambda: len(stamps) >= 359, timeout=1.0)
+            invalid, published = bridge.bridge.counters["invalid"], bridge.published
         finally:
             executor.shutdown()
             bridge.close()
             bridge.destroy_node()
             listener.destroy_node()
-    assert invalid == 1 and len(stamps) == 359
+    assert invalid == 1 and published == 359 and len(stamps) == 359
     after = np.array([t for k, t in exposures if k > 120])
-    published = np.array(stamps[-len(after):])
-    assert np.max(np.abs(published - after)) < 1e-3
+    assert np.max(np.abs(np.array(stamps[-len(after):]) - after)) < 1e-3
