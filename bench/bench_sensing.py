@@ -4,6 +4,7 @@ feedback (mocap, fused, estimate) under four mocap scenarios; prints tables, wri
     python bench/bench_sensing.py [--tasks triangle coiling] [--feedbacks mocap fused estimate]
                                   [--scenarios clean realistic heavy lost] [--workers 2]
                                   [--output bench/results/sensing.json]
+    python bench/bench_sensing.py --draws 10 [--tasks triangle] [--output bench/results/sensing_draws.json]
 
 Scenarios (``plant.mocap.occlusion``): *clean*, no occlusion; *realistic*, the declared plant's
 (the cameras' lines of sight against the arm's body, 1 % dropouts); *heavy*, realistic with the
@@ -63,30 +64,80 @@ def _errors(rec: dict, select) -> dict:
             "p95": np.percentile(err, 95, axis=0).tolist()}
 
 
+def _figures(result, after) -> dict:
+    """A run's closed-loop figures (on the plant's truth) and its estimate's, on the frames from
+    ``after`` (a function of the mocap times [s] to a bool mask) on."""
+    rec = result.record.arrays()
+    s = result.summary
+    t = rec["t_mocap"]
+    speed = np.linalg.norm(np.gradient(rec["markers_true"][:, -1], t, axis=0), axis=1)
+    kept = after(t)
+    diff = rec["markers_estimated"][:, -1] - rec["markers_true"][:, -1]
+    nees = np.einsum("ki,kij,kj->k", diff, np.linalg.inv(rec["marker_covariance"][:, -1]), diff)
+    rest = kept & (speed < REST_SPEED)
+    return {"rms_error": s.rms_error, "reached_mm": s.reached_mm, "reached_cm": s.reached_cm,
+            "transitions": s.transitions, "velocity_mm": s.velocity_mm, "velocity_cm": s.velocity_cm,
+            "statuses": sorted({g["status"] for g in result.goals}),
+            "seen": rec["markers_seen"].mean(axis=0).tolist(),
+            "estimate_at_rest": _errors(rec, rest),
+            "estimate_moving": _errors(rec, kept & (speed >= REST_SPEED)),
+            "tip_nees_mean": float(nees[kept].mean()),
+            "tip_nees_above_99": float(np.mean(nees[kept] > CHI2_99)),
+            "tip_nees_rest_mean": float(nees[rest].mean()) if rest.any() else None}
+
+
 def run_spec(spec: dict) -> dict:
     """One run on a campaign worker: the closed loop and the estimate's figures."""
     from soft_arm_drivers.experiments.harness import load_setup, run_experiment
     t0 = time.perf_counter()
     setup = load_setup(spec["task"], overrides=spec["sets"], feedback=spec["feedback"])
     result = run_experiment(setup, estimate=True, truth=True)
-    rec = result.record.arrays()
-    s = result.summary
-    t = rec["t_mocap"]
-    speed = np.linalg.norm(np.gradient(rec["markers_true"][:, -1], t, axis=0), axis=1)
-    after = t >= 1.0
-    if spec["scenario"] == "lost":
-        after &= t >= spec["lost_at"]
-    diff = rec["markers_estimated"][:, -1] - rec["markers_true"][:, -1]
-    nees = np.einsum("ki,kij,kj->k", diff, np.linalg.inv(rec["marker_covariance"][:, -1]), diff)[after]
+    lost_at = spec["lost_at"] if spec["scenario"] == "lost" else 0.0
     return {**{k: spec[k] for k in ("task", "feedback", "scenario")},
-            "rms_error": s.rms_error, "reached_mm": s.reached_mm, "reached_cm": s.reached_cm,
-            "transitions": s.transitions, "velocity_mm": s.velocity_mm, "velocity_cm": s.velocity_cm,
-            "statuses": sorted({g["status"] for g in result.goals}),
-            "seen": rec["markers_seen"].mean(axis=0).tolist(),
-            "estimate_at_rest": _errors(rec, after & (speed < REST_SPEED)),
-            "estimate_moving": _errors(rec, after & (speed >= REST_SPEED)),
-            "tip_nees_mean": float(nees.mean()), "tip_nees_above_99": float(np.mean(nees > CHI2_99)),
-            "wall_s": time.perf_counter() - t0}
+            **_figures(result, lambda t: (t >= 1.0) & (t >= lost_at)), "wall_s": time.perf_counter() - t0}
+
+
+def _blind(task: str, overrides: list, arm_file=None) -> dict:
+    """``task`` without a marker, closed on the estimate, with the controller's (and estimator's)
+    model of ``arm_file`` (None: arm.yaml); targets its model cannot hold moved to the closest it
+    can (``--accept-closest``)."""
+    from soft_arm_drivers.experiments.harness import check_targets, load_setup, run_experiment
+    sets = overrides + SCENARIOS["blind"]
+    setup = load_setup(task, overrides=sets, arm_file=arm_file, feedback="estimate")
+    closest, _ = check_targets(setup, accept_closest=True)
+    if closest:
+        setup = load_setup(task, overrides=sets + closest, arm_file=arm_file, feedback="estimate")
+    return {**_figures(run_experiment(setup, estimate=True, truth=True), lambda t: t >= 1.0),
+            "targets_moved": len(closest)}
+
+
+def run_draw(spec: dict) -> dict:
+    """One plant of the robustness campaign's draws (``seed``, with its mocap calibration error):
+    the identification experiment simulated on it and fitted as ``soft-arm-identify`` fits it, then
+    ``task`` blind (the tendons alone) with the controller's model and with the identified arm."""
+    import tempfile
+
+    from soft_arm_drivers.campaigns.plants import draw_frame, draw_plant, load_tolerances, plant_overrides
+    from soft_arm_drivers.experiments.excitation import Excitation, load_identification, parse_fit
+    from soft_arm_drivers.experiments.harness import load_setup
+    from soft_arm_drivers.experiments.identification_run import simulate_recording
+    from soft_arm_drivers.experiments.identify_cli import composed_calibration, identify, write_identified_arm
+    from soft_arm_drivers.mocap.bridge_config import load_mocap_config
+    t0 = time.perf_counter()
+    tolerances = load_tolerances()
+    plant = {**draw_plant(spec["seed"], tolerances), **draw_frame(spec["seed"], tolerances)}
+    overrides = plant_overrides(plant)
+    setup = load_setup("identification", overrides=overrides)
+    rec = simulate_recording(setup, Excitation(setup.excitation, len(setup.arm.tendons)))
+    fit = identify(rec, setup.arm, parse_fit(load_identification()), workers=1)["static"]
+    out = {"seed": spec["seed"], "task": spec["task"], "plant": plant,
+           "model": _blind(spec["task"], overrides)}
+    with tempfile.TemporaryDirectory() as tmp:
+        path = os.path.join(tmp, "arm.yaml")
+        write_identified_arm(path, fit.arm, composed_calibration(fit.registration,
+                                                                 load_mocap_config().calibration))
+        out["identified"] = _blind(spec["task"], overrides, path)
+    return {**out, "wall_s": time.perf_counter() - t0}
 
 
 def _tip(e: dict, worst: bool = False) -> str:
@@ -104,8 +155,15 @@ def main(argv=None) -> int:
     parser.add_argument("--scenarios", nargs="+", default=list(SCENARIOS))
     parser.add_argument("--workers", type=int, default=os.cpu_count() or 2,
                         help="local Dask workers (default: the number of cores)")
-    parser.add_argument("--output", default=results_path("sensing.json"))
+    parser.add_argument("--draws", type=int, default=0,
+                        help="instead: this many plants of the robustness campaign's draws (seeds 0..N-1), "
+                             "each identified, then the first of --tasks blind with the controller's "
+                             "model and with the identified arm (default output sensing_draws.json)")
+    parser.add_argument("--output", default=None)
     args = parser.parse_args(argv)
+    if args.draws:
+        return _draws(args)
+    args.output = args.output or results_path("sensing.json")
     from soft_arm_drivers.experiments.harness import load_setup, schedule
     specs = []
     for task, scenario, feedback in itertools.product(args.tasks, args.scenarios, args.feedbacks):
@@ -123,6 +181,26 @@ def main(argv=None) -> int:
               f"{_tip(moving, True):>24} "
               f"{r['tip_nees_mean']:5.2f}  {', '.join(r['statuses'])}")
     write_results(args.output, {"runs": rows, "rest_speed": REST_SPEED})
+    return 0
+
+
+def _draws(args) -> int:
+    specs = [{"seed": seed, "task": args.tasks[0]} for seed in range(args.draws)]
+    rows = map_runs(f"{os.path.abspath(__file__)}:run_draw", specs, workers=args.workers)
+    print(f"{'seed':>4} {'model':10} {'RMS mm':>7} {'mm band':>8} {'tip est. rest mm (median/p95/max)':>34} "
+          f"{'NEES rest':>9}")
+    for r in rows:
+        for which in ("model", "identified"):
+            f = r[which]
+            nees = "-" if f["tip_nees_rest_mean"] is None else f"{f['tip_nees_rest_mean']:.2f}"
+            print(f"{r['seed']:>4} {which:10} {1e3 * f['rms_error']:7.3f} "
+                  f"{f['reached_mm']:>3}/{f['transitions']:<4} "
+                  f"{_tip(f['estimate_at_rest'], True):>34} {nees:>9}")
+    worst = {which: max(r[which]["estimate_at_rest"]["median"][-1] for r in rows)
+             for which in ("model", "identified")}
+    print("worst median tip error at rest [mm]: " + ", ".join(f"{k} {1e3 * v:.2f}" for k, v in worst.items()))
+    write_results(args.output or results_path("sensing_draws.json"),
+                  {"draws": rows, "rest_speed": REST_SPEED})
     return 0
 
 
