@@ -9,6 +9,8 @@ Measures, on one core, with the default configuration (config/*.yaml):
   coiling task at the edge of its workspace, heading for a target no tension within limits reaches;
 - the path learner's work per CLIK step of a track goal (its correction, then the frame it is
   handed; :mod:`soft_arm_control.track_learning`);
+- one update of the shape estimator (:mod:`soft_arm_control.shape_estimation`) on the tendons alone
+  and with the four markers, and the share of a core it takes at estimator.yaml's rate;
 - precomputing each triangle target from the start-up pose (without and with the seed equilibria);
 - the paper's Table 1 on the harness: the full triangle protocol (25 s windows with CLIK, then the
   stored configurations three times round with 5 s and with 1 s windows) under the declared plant
@@ -22,11 +24,12 @@ import time
 import numpy as np
 
 from soft_arm_control.clik import equilibrium_seeds
+from soft_arm_control.shape_estimation import ShapeEstimator
 from soft_arm_control.track_learning import HarmonicLearner
 from soft_arm_control.two_level import TwoLevelController
 from soft_arm_drivers.experiments.harness import load_setup, run_experiment
 from soft_arm_drivers.experiments.metrics import format_table, to_json
-from soft_arm_model import build_model, solve_equilibrium
+from soft_arm_model import build_model, marker_positions, solve_equilibrium, tendon_lengths
 
 from timing import best_of, results_path, write_results
 
@@ -74,9 +77,29 @@ def bench_steps():
     return {"inner_loop_step_us": 1e6 * inner, "clik_online_step_ms": 1e3 * full,
             "clik_online_step_reused_jacobian_ms": 1e3 * chord, "track_learning_frame_us": 1e6 * learning,
             "clik_online_step_projected_ms": 1e3 * bench_projected_step(), "precompute": pre,
+            **bench_estimator(),
             "seed_equilibria": len(seeds), "seed_equilibria_s": seed_time,
             "actuation_map": {"rms_error_m": ctrl.actuation_map.rms_error,
                               "max_error_m": ctrl.actuation_map.max_error}}
+
+
+def bench_estimator() -> dict:
+    """One shape-estimator update [ms] at a pose of the triangle, on the tendons alone and with its
+    four markers (seen, at the model's positions plus 0.2 mm), and the core share at its rate."""
+    setup = load_setup("triangle")
+    model = build_model(setup.arm)
+    u = np.array([1.2, 0.3, 0.8, 0.5])
+    q = solve_equilibrium(model, u).q
+    s = model.rest_tendon_lengths - tendon_lengths(model, q)
+    markers = marker_positions(model, q) + 2e-4
+    estimator = ShapeEstimator(model, setup.estimator)
+    clock = iter(np.arange(0, 1e6, 1 / setup.estimator.rate))
+    zero = np.zeros(4)
+    tendons = best_of(lambda: estimator.update(next(clock), s, zero, u), inner=50)
+    fused = best_of(lambda: estimator.update(next(clock), s, zero, u, markers), inner=50)
+    return {"estimator_update_tendons_ms": 1e3 * tendons, "estimator_update_markers_ms": 1e3 * fused,
+            "estimator_rate_hz": setup.estimator.rate,
+            "estimator_core_share": fused * setup.estimator.rate}
 
 
 def bench_projected_step() -> float:
@@ -120,6 +143,10 @@ def main():
     projected = steps["clik_online_step_projected_ms"]
     print(f"online CLIK step projected onto the limits  {projected:8.3f} ms   (Z recomputed)")
     print(f"path learner per CLIK step (track goals)    {steps['track_learning_frame_us']:8.1f} us")
+    print(f"shape estimator update, tendons alone       {steps['estimator_update_tendons_ms']:8.3f} ms")
+    print(f"shape estimator update, with four markers   {steps['estimator_update_markers_ms']:8.3f} ms"
+          f"   ({100 * steps['estimator_core_share']:.0f} % of a core at {steps['estimator_rate_hz']:g} Hz; "
+          "target <= 50 %)")
     for k, v in steps["precompute"].items():
         rest = "unreachable within limits" if v["from_rest_s"] is None else f"{v['from_rest_s']:.3f} s"
         print(f"precompute target {k}: from rest {rest}, with seeds {v['with_seeds_s']:.3f} s"
