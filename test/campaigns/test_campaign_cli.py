@@ -106,8 +106,9 @@ def _campaign(args, **kwargs):
 
 def test_ctrl_c_keeps_what_finished_and_the_restart_runs_only_the_rest(tmp_path):
     moduli = "[1.2e5,1.3e5,1.4e5,1.5e5,1.6e5,1.7e5,1.8e5,1.9e5]"
-    args = WORKSPACE + ["--vary", f"arm.material.youngs_modulus={moduli}", "--workers", "2",
-                        "--output", str(tmp_path)]
+    # runs of 256 equilibria (some tenths of a second each): the signal lands while most still run
+    args = ["sweep", "--outcome", "workspace", "--levels", "0", "1", "2", "3",
+            "--vary", f"arm.material.youngs_modulus={moduli}", "--workers", "2", "--output", str(tmp_path)]
     # a terminal's Ctrl-C goes to the whole process group: the command and its cluster's workers
     proc = _campaign(args, start_new_session=True)
     deadline = time.monotonic() + 120
