@@ -5,6 +5,9 @@
 Measures, on one core:
 - one evaluation of all dynamics terms (M, C qd, F_g, F_el/K_t, A with friction, L_c; D and K are
   constant) at 12/16/20/24 DOF (the paper arm with Legendre orders 1..4 on the tendon span);
+- building the model (the discretisation: basis, quadrature, constant matrices) at each of them;
+- one frame's visibility in the simulated mocap (plant.yaml's cameras, the arm's body blocking
+  the lines of sight to its four markers);
 - static equilibrium from rest to 5 N on tendons 1 and 3;
 - simulation real-time factor at 1 ms IMEX steps, 10 s with a tendon step;
 - peak memory of the model process (before PyElastica is imported);
@@ -16,17 +19,14 @@ Measures, on one core:
 from __future__ import annotations
 
 import argparse
-import json
-import os
-import platform
 import resource
-import sys
 import time
 
 import numpy as np
-from timing import best_of, results_path
+from timing import best_of, results_path, write_results
 
-from soft_arm_model import ArmData, build_model, load_arm_config, simulate, solve_equilibrium, tip_frame
+from soft_arm_model import (ArmData, build_model, load_arm_config, marker_positions, simulate,
+                            solve_equilibrium, tip_frame)
 from soft_arm_model import kernels
 from soft_arm_model.model import R_BASE
 from soft_arm_model.references import kirchhoff_cantilever_tip, tendon_load_tip
@@ -53,6 +53,23 @@ def bench_evaluation():
         args3 = (*m.kernel_args, q, qd, 3, False, *d.kernel_args)
         rows[dof]["with_coriolis_matrix_us"] = 1e6 * best_of(lambda: kernels.evaluate(*args3))
     return rows
+
+
+def bench_build():
+    """Time [ms] to build the model at each DOF (what an identification fit does per evaluation)."""
+    return {dof: 1e3 * best_of(lambda: _model(dof), repeats=5, inner=10) for dof in ORDERS}
+
+
+def bench_visibility() -> float:
+    """Time [us] of one frame's visibility of the declared plant's markers at a bent pose."""
+    from soft_arm_drivers.sim.occlusion import Occlusions
+    from soft_arm_drivers.sim.plant_config import load_plant_config
+    arm = load_arm_config()
+    m = build_model(arm)
+    d = ArmData(m)
+    marker_positions(m, solve_equilibrium(m, [2.0, 0.0, 3.0, 0.0]).q, d)
+    occlusions = Occlusions(load_plant_config(arm).occlusion, m.marker_X.size, 1 / 240, 0)
+    return 1e6 * best_of(lambda: occlusions.of_arm(m, d), inner=1000)
 
 
 def bench_statics(dof):
@@ -170,9 +187,10 @@ def main(argv=None):
     ap.add_argument("--output", default=results_path("model.json"))
     ap.add_argument("--skip-elastica", action="store_true")
     args = ap.parse_args(argv)
-    res = {"machine": {"python": sys.version.split()[0], "platform": platform.platform(),
-                       "cpus": os.cpu_count()}}
+    res = {}
     res["evaluation"] = bench_evaluation()
+    res["build_ms"] = bench_build()
+    res["mocap_visibility_us"] = bench_visibility()
     res["statics"] = {dof: bench_statics(dof) for dof in (16, 20)}
     res["simulation"] = {dof: bench_simulation(dof) for dof in (16, 20)}
     res["peak_memory_mb_model"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
@@ -184,6 +202,9 @@ def main(argv=None):
     for dof, r in res["evaluation"].items():
         print(f"{dof:>4} {r['points']:>6} {r['dynamics_terms_us']:>32.1f} "
               f"{r['with_coriolis_matrix_us']:>24.1f}")
+    print("building the model [ms]: "
+          + ", ".join(f"{dof} DOF {ms:.1f}" for dof, ms in res["build_ms"].items()))
+    print(f"simulated mocap, one frame's visibility (self-occlusion): {res['mocap_visibility_us']:.1f} us")
     for dof, r in res["statics"].items():
         print(f"static equilibrium 0 -> 5 N on tendons 1 and 3, {dof} DOF: {r['ms']:.1f} ms "
               f"[<= 20 ms] ({r['newton_iterations']} Newton iterations, {r['load_steps']} load steps)")
@@ -207,10 +228,7 @@ def main(argv=None):
               f"{1e3 * pe['error_vs_kirchhoff_m']:.2f} mm; tip difference "
               f"{1e3 * c['tip_difference_m']:.2f} mm; speed ratio {c['speed_ratio_dynamics']:.0f}x "
               f"(same simulated time), {c['speed_ratio_statics']:.0f}x (static solve) [> 10x]")
-    os.makedirs(os.path.dirname(os.path.abspath(args.output)), exist_ok=True)
-    with open(args.output, "w", encoding="utf-8") as fh:
-        json.dump(res, fh, indent=2)
-    print(f"\nJSON: {args.output}")
+    write_results(args.output, res)
 
 
 if __name__ == "__main__":
