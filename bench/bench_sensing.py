@@ -101,14 +101,11 @@ def _blind(task: str, overrides: list, arm_file=None) -> dict:
     """``task`` without a marker, closed on the estimate, with the controller's (and estimator's)
     model of ``arm_file`` (None: arm.yaml); targets its model cannot hold moved to the closest it
     can (``--accept-closest``)."""
-    from soft_arm_drivers.experiments.harness import check_targets, load_setup, run_experiment
-    sets = overrides + SCENARIOS["blind"]
-    setup = load_setup(task, overrides=sets, arm_file=arm_file, feedback="estimate")
-    closest, _ = check_targets(setup, accept_closest=True)
-    if closest:
-        setup = load_setup(task, overrides=sets + closest, arm_file=arm_file, feedback="estimate")
+    from soft_arm_drivers.experiments.harness import load_setup_at_closest, run_experiment
+    setup, moved = load_setup_at_closest(task, overrides=overrides + SCENARIOS["blind"], arm_file=arm_file,
+                                         feedback="estimate")
     return {**_figures(run_experiment(setup, estimate=True, truth=True), lambda t: t >= 1.0),
-            "targets_moved": len(closest)}
+            "targets_moved": len(moved)}
 
 
 def run_draw(spec: dict) -> dict:

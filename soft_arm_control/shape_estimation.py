@@ -41,11 +41,10 @@ covariance of q and of every marker position, so that a consumer can tell what i
 """
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-
-import os
 
 from soft_arm_model import ArmData, ArmModel, build_model, evaluate, solve_equilibrium
 from soft_arm_model.dynamics import STATICS, OutOfDomainError

@@ -47,14 +47,13 @@ def run_task(task: str, overrides: list, arm_file: str | None = None, accept_clo
     """``task`` on the simulated rig with ``overrides`` (``ns.key=value``), as ``soft-arm-harness``
     runs it: :func:`task_outcome`, the run's wall time [s] and, with ``accept_closest``, how far
     [mm] the targets the controller's model cannot hold were moved."""
-    from soft_arm_drivers.experiments.harness import check_targets, load_setup, run_experiment
-    setup = load_setup(task, overrides=overrides, arm_file=arm_file)
+    from soft_arm_drivers.experiments.harness import load_setup, load_setup_at_closest, run_experiment
     moved = []
     if accept_closest:
-        closest, notes = check_targets(setup, accept_closest=True)
+        setup, notes = load_setup_at_closest(task, overrides=overrides, arm_file=arm_file)
         moved = [float(m) for note in notes for m in re.findall(r"\(([\d.]+) mm away", note)]
-        if closest:
-            setup = load_setup(task, overrides=overrides + closest, arm_file=arm_file)
+    else:
+        setup = load_setup(task, overrides=overrides, arm_file=arm_file)
     t0 = time.perf_counter()
     result = run_experiment(setup)
     return {**task_outcome(result), "targets_moved_mm": moved, "simulated_s": result.transitions[-1].end,

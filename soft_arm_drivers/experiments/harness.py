@@ -268,6 +268,18 @@ def check_targets(setup: Setup, accept_closest: bool = False) -> tuple[list, lis
     return [f"tasks.{task.name}.targets=[{flat}]"], notes
 
 
+def load_setup_at_closest(task: str, config_dir: str | None = None, overrides=(), arm_file: str | None = None,
+                          feedback: str = "mocap") -> tuple[Setup, list]:
+    """:func:`load_setup` with every target the controller's model cannot hold replaced by the
+    closest point it holds (``--accept-closest``): the setup and :func:`check_targets`' notes, one
+    per replaced target."""
+    setup = load_setup(task, config_dir, list(overrides), arm_file, feedback)
+    closest, notes = check_targets(setup, accept_closest=True)
+    if closest:
+        setup = load_setup(task, config_dir, list(overrides) + closest, arm_file, feedback)
+    return setup, notes
+
+
 def _reason(exc: TargetError) -> str:
     """The first reason of a refusal, for a one-line note."""
     text = str(exc)

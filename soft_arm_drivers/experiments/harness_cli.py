@@ -18,7 +18,7 @@ from dataclasses import asdict
 from soft_arm_control.clik import TargetError
 from soft_arm_model.parameters import ConfigError
 
-from .harness import (add_setup_arguments, check_targets, goal_warning, load_setup, run_experiment,
+from .harness import (add_setup_arguments, goal_warning, load_setup, load_setup_at_closest, run_experiment,
                       setup_overrides)
 from .metrics import format_table, format_tracking, to_json
 from .strike import format_strike
@@ -41,12 +41,10 @@ def main(argv=None) -> int:
             raise ConfigError("the identification experiment is a run of the graph: "
                               "soft-arm-experiment identification")
         if args.accept_closest:
-            closest, notes = check_targets(setup, accept_closest=True)
+            setup, notes = load_setup_at_closest(args.task, args.config, setup_overrides(args),
+                                                 args.arm_file, args.feedback)
             for note in notes:
                 print(f"soft-arm-harness: {note}", file=sys.stderr)
-            if closest:
-                setup = load_setup(args.task, args.config, setup_overrides(args) + closest, args.arm_file,
-                                   args.feedback)
     except (ConfigError, ValueError) as exc:          # TargetError is a ValueError
         print(f"soft-arm-harness: {exc}", file=sys.stderr)
         return 2
