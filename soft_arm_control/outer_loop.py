@@ -126,8 +126,9 @@ class GoalReport:
 
     @property
     def status(self) -> str:
-        """held (no feasible step: the reference stayed), constrained (the reference keeps moving
-        towards the closest feasible point), saturated (a track goal whose path needed tensions
+        """held (no feasible step: the reference stayed), unseen (no frame showed the task's markers
+        for longer than ``unseen_after``: no step, the reference held), constrained (the reference
+        keeps moving towards the closest feasible point), saturated (a track goal whose path needed tensions
         outside the limits), stalled (feasible steps, but the error stays above the tolerance),
         unreached (closed away from the target) or ok (a track goal, whose error is a tracking
         error, is never stalled or unreached)."""

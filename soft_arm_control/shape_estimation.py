@@ -61,6 +61,9 @@ RESTART_AFTER = 25             # updates in a row out of the domain, or at rest 
 
 ESTIMATOR_SCHEMA = {
     "rate": ("float", lambda v: 1 <= v <= 1000, "an update rate in [1, 1000] Hz"),
+    "max_time_step": ("float", lambda v: 0 < v <= 10,
+                      "a time in (0, 10] s: tendon/state stamps further apart, or going back, are a "
+                      "clock step (counted; the estimate advances by the states' period)"),
     "noise.process": ("float", lambda v: 0 < v <= 100,
                       "a random-walk intensity in (0, 100] (generalised force units per sqrt(s))"),
     "noise.shortening": ("float", lambda v: 0 < v <= 0.01, "a standard deviation in (0, 0.01] m"),
@@ -90,6 +93,7 @@ class EstimatorConfig:
     """The estimator's rate [Hz] and noise levels (see the module docstring for each; the values
     are ``config/estimator.yaml``'s, :func:`load_estimator_config`)."""
     rate: float
+    max_time_step: float
     process: float
     shortening: float
     balance: float

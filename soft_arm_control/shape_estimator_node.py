@@ -20,7 +20,11 @@ with that state's stamp:
 
 The online CLIK closes its loop on either topic by remapping its ``mocap/markers`` (``soft-arm-
 experiment --feedback fused|estimate``). A state whose stamp is no number, or any field no number,
-is counted and left out.
+is counted and left out. The estimate keeps its time from the states' stamps
+(:class:`~soft_arm_control.loop_clock.LoopClock`): a stamp more than ``estimator.max_time_step``
+ahead, or one that goes back, is a clock step, counted (``clock_steps`` on ``/diagnostics``) and
+taken as one period, so that a stepped clock neither stops the updates nor inflates the estimate's
+uncertainty. The messages keep the states' own stamps.
 """
 from __future__ import annotations
 
@@ -41,6 +45,7 @@ from soft_arm_ros.conversions import markers_of, ordered, pose_array, seconds_to
 from soft_arm_ros.parameters import NodeParameters
 from soft_arm_ros.runtime import run_node
 
+from .loop_clock import LoopClock
 from .shape_estimation import ESTIMATOR_SCHEMA, EstimatorConfig, ShapeEstimator, fused_markers
 
 REPORT_PERIOD = 1.0          # s of wall time between diagnostics
@@ -56,7 +61,8 @@ class ShapeEstimatorNode(Node):
         self.core = ShapeEstimator(self.model, self.config)
         self.names = self.model.tendon_names
         self.period = 1.0 / self.config.rate
-        self.next_update = -math.inf
+        self.clock = LoopClock(self.config.max_time_step)   # the estimate's time, from the states' stamps
+        self.next_update = -math.inf     # in that time [s]
         self.frame = None                # the latest frame's markers since the last update
         self.rejected = 0
         self.nis, self.used, self.gated = [], 0, 0
@@ -86,18 +92,22 @@ class ShapeEstimatorNode(Node):
     def on_state(self, msg: JointState):
         t = stamp_to_seconds(msg.header.stamp)
         try:
+            advance = self.clock.check(t)
             s, sd, u = (ordered(msg, field, self.names) for field in ("position", "velocity", "effort"))
-            if not (math.isfinite(t) and np.all(np.isfinite(s)) and np.all(np.isfinite(sd))
-                    and np.all(np.isfinite(u))):
-                raise ValueError("a stamp or a value that is no number")
+            if not (np.all(np.isfinite(s)) and np.all(np.isfinite(sd)) and np.all(np.isfinite(u))):
+                raise ValueError("a value that is no number")
         except ValueError as exc:
             self.rejected += 1
             self.get_logger().warning(f"state left out: {exc}", throttle_duration_sec=1.0)
             return
-        if t < self.next_update - 1e-9 and t >= self.next_update - 2 * self.period:
-            return                              # between updates (a stamp far off re-anchors)
-        self.next_update = t + self.period
-        report = self.core.update(t, s, sd, u, self.frame)
+        now = self.clock.commit(t, advance)
+        if advance.step is not None:
+            self.get_logger().warning(f"the states' clock stepped, the estimate goes on: "
+                                      f"{self.clock.describe()}", throttle_duration_sec=1.0)
+        if now < self.next_update - 1e-9:
+            return                              # between updates
+        self.next_update = now + self.period
+        report = self.core.update(now, s, sd, u, self.frame)
         estimate = self.core.estimate()
         if report.marker_nis is not None:
             self.nis += [v for v in report.marker_nis if np.isfinite(v)]
@@ -155,7 +165,8 @@ class ShapeEstimatorNode(Node):
                   "marker_nis_mean": float(np.mean(self.nis)) if self.nis else "",
                   "diverged": counts["diverged"], "out_of_domain": counts["out_of_domain"],
                   "restarts": counts["restarts"],
-                  "rejected": self.rejected, "stiffness_scale": round(stiffness, 4),
+                  "rejected": self.rejected, "clock_steps": self.clock.steps,
+                  "stiffness_scale": round(stiffness, 4),
                   "friction": [round(float(f), 4) for f in friction],
                   "tip_sigma_mm": round(1e3 * float(estimate.marker_sigma[-1]), 3)}
         status = DiagnosticStatus(level=level, name="shape_estimator", hardware_id="soft_arm",

@@ -45,16 +45,17 @@ def start_motive(spec, model, configuration_at: Callable[[float], np.ndarray]) -
     data = ArmData(model)
     marker_positions(model, configuration_at(time.time()), data)    # compiled before the stream
     rng = np.random.default_rng(p.mocap_seed)
-    occlusions = None if p.occlusion is None else Occlusions(p.occlusion, model.marker_X.size,
-                                                             1.0 / p.mocap_rate, [p.mocap_seed, 1])
+    occlusions = Occlusions.for_plant(p, model.marker_X.size)
+    started = time.time()
 
     def markers(t: float) -> np.ndarray:
         """On the NatNet thread: the plant at the exposure time ``t`` [s, system time]; the markers
-        the cameras do not see are NaN (the emulator flags them occluded, as Motive does)."""
+        the cameras do not see are NaN (the emulator flags them occluded, as Motive does). The
+        occlusion's blackout counts from the server's start."""
         true = marker_positions(model, configuration_at(t), data)
         out = p.as_mocap_reports(true) + rng.normal(0.0, p.mocap_noise, true.shape)
         if occlusions is not None:
-            out[~occlusions.of_arm(model, data)] = np.nan
+            out[~occlusions.of_arm(model, data, t - started)] = np.nan
         return out
 
     ids = {"rigid_body_ids" if mocap.source == "rigid_bodies" else "labeled_marker_ids": mocap.ids}

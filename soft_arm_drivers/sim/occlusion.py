@@ -48,11 +48,6 @@ class OcclusionConfig:
     burst_duration: float = 0.5
     blackout: tuple = (0.0, 0.0)
 
-    @property
-    def losses(self) -> bool:
-        """True when markers drop out at random (dropouts or bursts)."""
-        return self.dropout > 0 or any(f > 0 for f in self.burst_fraction)
-
 
 @njit(cache=True, nogil=True)
 def segment_distance(p, d, a, e) -> float:
@@ -170,8 +165,15 @@ class Occlusions:
         self.p_end = min(1.0, frame_period / config.burst_duration)
         self.p_start = np.minimum(1.0, fraction / np.maximum(1.0 - fraction, _EPS) * self.p_end)
         self.in_burst = self.rng.random(n_markers) < fraction          # the chain's stationary state
-        self.counts = {"geometry": np.zeros(n_markers, int), "dropout": np.zeros(n_markers, int),
-                       "burst": np.zeros(n_markers, int), "frames": 0}
+
+    @classmethod
+    def for_plant(cls, plant, n_markers: int) -> "Occlusions | None":
+        """The occlusions of a :class:`~.plant_config.PlantConfig`'s mocap (its ``occlusion``, frame
+        rate and seed; their own stream of the seed, apart from the markers' noise), None when
+        ``plant.mocap.occlusion`` is off."""
+        if plant.occlusion is None:
+            return None
+        return cls(plant.occlusion, n_markers, 1.0 / plant.mocap_rate, [plant.mocap_seed, 1])
 
     def visible(self, markers, marker_arcs=None, points=None, radii=None, arcs=None,
                 t: float | None = None) -> np.ndarray:
@@ -179,7 +181,6 @@ class Occlusions:
         :func:`cameras_seeing`); advances the random losses by one frame."""
         c = self.config
         if t is not None and c.blackout[0] <= t < c.blackout[1]:
-            self.counts["frames"] += 1
             return np.zeros(len(markers), bool)
         geometric = cameras_seeing(c, markers, marker_arcs, points, radii, arcs) >= c.min_cameras
         n = geometric.size
@@ -187,10 +188,6 @@ class Occlusions:
         if self.p_start.any() or self.in_burst.any():
             draw = self.rng.random(n)
             self.in_burst = np.where(self.in_burst, draw >= self.p_end, draw < self.p_start)
-        self.counts["frames"] += 1
-        self.counts["geometry"] += ~geometric
-        self.counts["dropout"] += dropped
-        self.counts["burst"] += self.in_burst
         return geometric & ~dropped & ~self.in_burst
 
     def of_arm(self, model, data, t: float | None = None) -> np.ndarray:

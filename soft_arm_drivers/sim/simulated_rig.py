@@ -153,8 +153,7 @@ class SimulatedRig:
         zero, _ = self.plant.tendons()
         self.encoders = Encoders(plant, zero, encoder_offset)
         self.rng = np.random.default_rng(plant.mocap_seed)
-        self.occlusions = None if plant.occlusion is None else Occlusions(
-            plant.occlusion, plant_model.marker_X.size, 1.0 / plant.mocap_rate, [plant.mocap_seed, 1])
+        self.occlusions = Occlusions.for_plant(plant, plant_model.marker_X.size)
         self.step_index = 0
         self._frame_period = 1.0 / plant.mocap_rate
         self._next_frame = 0
@@ -197,9 +196,9 @@ class SimulatedRig:
         return frame, delivered
 
     def visible(self, true_markers) -> np.ndarray:
-        """(n_markers,) bool: which of the plant's markers (at ``true_markers`` (n, 3) [m, arm_base],
-        the state sensed with markers) the cameras see in the frame exposed now; all without
-        occlusions."""
+        """(n_markers,) bool: which of the plant's markers the cameras see in the frame exposed now,
+        judged at the plant's workspace (the state just sensed with markers, ``true_markers`` (n, 3)
+        [m, arm_base] being its markers); all without occlusions."""
         if self.occlusions is None:
             return np.ones(len(true_markers), bool)
         return self.occlusions.of_arm(self.plant.model, self.plant.stepper.data, self.t)

@@ -81,3 +81,33 @@ def test_the_node_publishes_estimate_fused_tip_and_diagnostics():
         assert int(values["updates"]) > 50 and float(values["stiffness_scale"]) == pytest.approx(1.0, abs=0.1)
     finally:
         rclpy.try_shutdown()
+
+
+@pytest.mark.parametrize("jump", [1000.0, -5.0])
+def test_a_stepped_state_clock_is_counted_and_neither_stops_the_updates_nor_inflates_the_estimate(jump):
+    """The states' stamps jump by ``jump`` [s] halfway (NTP, another clock): the estimate goes on
+    at its rate, the step is counted, and the tip's uncertainty stays what it was (a 1000 s gap taken
+    as elapsed time would let the random walk grow by 1000 s)."""
+    import rclpy
+
+    from soft_arm_control.shape_estimator_node import ShapeEstimatorNode
+    from soft_arm_ros.conversions import joint_state
+
+    model = build_model()
+    u = np.array([0.5, 2.0, 1.5, 0.3])
+    s = model.rest_tendon_lengths - tendon_lengths(model, solve_equilibrium(model, u).q)
+    rclpy.init()
+    try:
+        node = ShapeEstimatorNode()
+        sigma = []
+        for k in range(400):                                # 0.8 s of states at 500 Hz
+            stamp = k * 0.002 + (jump if k >= 200 else 0.0)
+            node.on_state(joint_state(model.tendon_names, stamp, position=s, velocity=np.zeros(4), effort=u))
+            if k in (199, 201, 399):
+                sigma.append(float(node.core.estimate().marker_sigma[-1]))
+        assert node.clock.steps == 1 and node.rejected == 0
+        assert 195 <= node.core.counts["updates"] <= 205         # one per 4 ms of state time
+        assert sigma[1] < 1.1 * sigma[0] and sigma[2] < 1.1 * sigma[0], sigma
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown()

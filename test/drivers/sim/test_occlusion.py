@@ -1,6 +1,7 @@
 """The simulated mocap's occlusions: lines of sight against the arm's body, fields of view, random
 dropouts and bursts, their configuration, and the frames of the simulated rig."""
 import math
+import time
 
 import numpy as np
 import pytest
@@ -138,3 +139,31 @@ def test_the_rigs_frames_carry_nan_for_the_markers_not_seen_and_the_same_noise_o
     for fa, fb in zip(a, b):
         assert np.isnan(fa.markers[~fa.visible]).all()
         np.testing.assert_array_equal(fa.markers[fa.visible], fb.markers[fa.visible])
+
+
+def test_the_emulated_motive_server_applies_the_blackout_from_its_start():
+    """plant.mocap.occlusion.blackout on the emulated rig: seconds since the Motive server started;
+    inside it every marker is NaN (flagged occluded), after it the markers come back."""
+    from soft_arm_drivers.can.driver_config import load_driver_config
+    from soft_arm_drivers.can.loopback_bus import free_udp_ports
+    from soft_arm_drivers.mocap.bridge_config import load_mocap_config
+    from soft_arm_drivers.sim.emulated_hardware import HardwareSpec
+    from soft_arm_drivers.sim.emulated_motive import start_motive
+    from soft_arm_drivers.sim.emulated_rig import load_emulator_config, read_emulated_motors
+    arm = load_arm_config()
+    plant = load_plant_config(arm, overrides={"mocap.occlusion.blackout": [0.0, 30.0],
+                                              "mocap.occlusion.dropout": 0.0})
+    model = build_model(plant.plant_arm(arm))
+    q = solve_equilibrium(model, np.full(4, 0.5)).q
+    spec = HardwareSpec(load_driver_config(overrides=read_emulated_motors()), arm, plant,
+                        load_emulator_config(),
+                        load_mocap_config(overrides={"mocap.command_port": free_udp_ports(1)[0],
+                                                     "mocap.data_port": 0}))
+    emulator = start_motive(spec, model, lambda t: q)
+    try:
+        markers = emulator._markers                  # what the server streams at an exposure time
+        now = time.time()
+        assert np.isnan(markers(now)).all()
+        assert np.isfinite(markers(now + 31.0)).all()
+    finally:
+        emulator.close()
