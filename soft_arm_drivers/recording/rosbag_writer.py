@@ -555,7 +555,8 @@ def _read_metadata(directory: Path) -> dict | None:
 
 def _closed(file: BinaryIO) -> bool:
     """The file is an MCAP its writer closed: it starts with the magic and ends with a Footer
-    pointing to a summary, then the magic (the provisional tail's Footer points to none)."""
+    pointing to a summary, then the magic (the provisional tail's Footer points to none). Leaves
+    the file at its start."""
     size = file.seek(0, os.SEEK_END)
     if size < 2 * len(_MAGIC) + _FOOTER_RECORD:
         return False
@@ -565,6 +566,7 @@ def _closed(file: BinaryIO) -> bool:
     if tail[0] != Opcode.FOOTER or not tail.endswith(_MAGIC) or file.read(len(_MAGIC)) != _MAGIC:
         return False
     (summary_start,) = struct.unpack_from("<Q", tail, _RECORD_PREFIX.size)
+    file.seek(0)
     return summary_start != 0
 
 

@@ -481,6 +481,20 @@ def test_recover_leaves_a_closed_bag_unchanged(bag, tmp_path):
     assert {p.name: p.read_bytes() for p in directory.iterdir()} == before
 
 
+def test_a_closed_bag_opens_without_being_recovered(bag, tmp_path, monkeypatch):
+    """open_bag trusts a closed bag whose metadata.yaml counts what its summary does: nothing is
+    rewritten (every reader of a run's bag calls it)."""
+    directory = tmp_path / "run"
+    shutil.copytree(bag[0], directory)
+    before = {p.name: (p.read_bytes(), p.stat().st_mtime_ns) for p in directory.iterdir()}
+
+    def recover(_):
+        raise AssertionError("a closed bag was recovered")
+    monkeypatch.setattr(rosbag_writer, "recover", recover)
+    assert open_bag(directory) == len(bag[1])
+    assert {p.name: (p.read_bytes(), p.stat().st_mtime_ns) for p in directory.iterdir()} == before
+
+
 @pytest.mark.parametrize("compression", ["zstd", "lz4"])
 def test_compressed_chunks(tmp_path, compression):
     records = _write_bag(tmp_path / "packed", compression=compression)
