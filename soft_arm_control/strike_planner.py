@@ -32,6 +32,8 @@ from soft_arm_model import ImexStepper, OutOfDomainError, solve_equilibrium
 
 FIT_STEP = 2e-3           # s, the fit's time step
 PLAN_STEP = 1e-3          # s, the recorded plan's (the strike rehearsal's step)
+ENOUGH = 0.25             # a fit stops within this fraction of the plan's tolerance (the margin
+                          # for the recorded plan, at its finer step)
 
 
 @dataclass(frozen=True)
@@ -125,20 +127,38 @@ class StrikeShooter:
         return x, speed, (np.arange(last + 1) * self.timestep, u, np.array(s), np.array(sd))
 
 
+class _Reached(Exception):
+    """Raised out of the fit by the first levels whose miss is small enough."""
+
+    def __init__(self, levels: np.ndarray, miss: float):
+        super().__init__()
+        self.levels, self.miss = levels, miss
+
+
 def fit_levels(shooter: StrikeShooter, target, hold, duration: float, guess, bounds,
-               max_evaluations: int = 40) -> tuple[np.ndarray, float]:
+               max_evaluations: int = 40, enough: float = 0.0) -> tuple[np.ndarray, float]:
     """The levels (pieces, len(tendons)) [N] within ``bounds`` (lower, upper) [N] that bring the
-    task coordinates to ``target`` [m] at ``duration`` [s], from ``guess``; (levels, miss [m])."""
+    task coordinates to ``target`` [m] at ``duration`` [s], from ``guess``; (levels, miss [m]).
+    The fit ends at the first levels it tries that miss by at most ``enough`` [m] (0: when it
+    converges): a plan needs to be within its tolerance, not exact, and each of the fit's
+    iterations costs a simulation per level."""
     shape = np.shape(guess)
 
     def residual(z):
         x, _, _ = shooter.run(z.reshape(shape), hold, duration)
-        return x - target if np.all(np.isfinite(x)) else np.ones(target.size)
+        if not np.all(np.isfinite(x)):
+            return np.ones(target.size)
+        miss = float(np.linalg.norm(x - target))
+        if miss <= enough:
+            raise _Reached(z.reshape(shape).copy(), miss)
+        return x - target
 
-    sol = scipy.optimize.least_squares(residual, np.ravel(guess), bounds=bounds, diff_step=1e-3,
-                                       max_nfev=max_evaluations)
-    miss = float(np.linalg.norm(residual(sol.x)))
-    return sol.x.reshape(shape), miss
+    try:
+        sol = scipy.optimize.least_squares(residual, np.ravel(guess), bounds=bounds, diff_step=1e-3,
+                                           max_nfev=max_evaluations)
+        return sol.x.reshape(shape), float(np.linalg.norm(residual(sol.x)))
+    except _Reached as reached:
+        return reached.levels, reached.miss
 
 
 def plan_strike_move(model, control, space, tendons, goal, target, pieces: int = 3,
@@ -163,7 +183,8 @@ def plan_strike_move(model, control, space, tendons, goal, target, pieces: int =
     def whole(T):                   # a duration both the fit and the record take exactly
         return max(1, round(T / step)) * step
     lo, hi = whole(min_duration), whole(max_duration)
-    best, miss = fit_levels(fit, target, hold, hi, np.tile(hold, (pieces, 1)), bounds)
+    enough = ENOUGH * tolerance
+    best, miss = fit_levels(fit, target, hold, hi, np.tile(hold, (pieces, 1)), bounds, enough=enough)
     if miss > tolerance:
         raise ValueError(f"no tension profile within [{control.tension_min}, {control.tension_max}] N "
                          f"brings the task point to the target in {max_duration} s: the closest "
@@ -173,7 +194,7 @@ def plan_strike_move(model, control, space, tendons, goal, target, pieces: int =
         T = whole(0.5 * (lo + hi))
         if not lo < T < hi:
             break
-        levels, miss_T = fit_levels(fit, target, hold, T, best, bounds)
+        levels, miss_T = fit_levels(fit, target, hold, T, best, bounds, enough=enough)
         if miss_T <= tolerance:
             best, best_T, hi = levels, T, T
         else:
@@ -181,7 +202,7 @@ def plan_strike_move(model, control, space, tendons, goal, target, pieces: int =
     record = StrikeShooter(model, space, tendons, control.tension_min, control.rotor_mass, timestep,
                            control.tension_rate_limit)
     if timestep != step:
-        best, _ = fit_levels(record, target, hold, best_T, best, bounds, max_evaluations=10)
+        best, _ = fit_levels(record, target, hold, best_T, best, bounds, max_evaluations=10, enough=enough)
     x, speed, (t, u, s, sd) = record.run(best, hold, best_T, record=True)
     miss = float(np.linalg.norm(x - target))
     if not miss <= tolerance:

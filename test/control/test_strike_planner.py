@@ -8,7 +8,7 @@ import pytest
 
 from soft_arm_control.config import load_control_config, load_task_config
 from soft_arm_control.outer_loop import outer_loop_for
-from soft_arm_control.strike_planner import StrikeShooter, plan_strike_move
+from soft_arm_control.strike_planner import FIT_STEP, StrikeShooter, fit_levels, plan_strike_move
 from soft_arm_model import ImexStepper, build_model, load_arm_config, solve_equilibrium
 from soft_arm_model.parameters import default_config_dir
 
@@ -101,6 +101,32 @@ def test_a_rate_limit_bounds_every_change_of_the_profile(strike):
     plan = plan_strike_move(model, limited, task.space, task.tendons, goal, goal.x, bisections=1)
     assert np.abs(np.diff(plan.tensions, axis=0)).max() <= 20.0 * 1e-3 + 1e-12
     assert plan.miss <= 1e-3
+
+
+def test_the_fit_ends_at_the_first_levels_within_enough(strike):
+    """Every simulation the fit runs before its last misses by more than ``enough``; its last one
+    is within it, and the fit returns those levels (with ``enough`` 0 it goes on past them)."""
+    model, control, task, _, goal = strike
+    shooter = StrikeShooter(model, task.space, task.tendons, control.tension_min, control.rotor_mass,
+                            FIT_STEP)
+    misses, run = [], shooter.run
+
+    def counted(levels, hold, duration, record=False):
+        out = run(levels, hold, duration, record)
+        misses.append((np.linalg.norm(out[0] - goal.x), levels.copy()))
+        return out
+    shooter.run = counted
+    hold = np.asarray(goal.u_ff)
+    guess = np.tile(hold, (3, 1))
+    levels, miss = fit_levels(shooter, goal.x, hold, 0.3, guess, (control.tension_min, control.tension_max),
+                              enough=1e-3)
+    assert miss <= 1e-3 and miss == pytest.approx(misses[-1][0], abs=1e-12)
+    assert np.array_equal(levels, misses[-1][1])
+    assert all(m > 1e-3 for m, _ in misses[:-1])
+    stopped = len(misses)
+    misses.clear()
+    _, exact = fit_levels(shooter, goal.x, hold, 0.3, guess, (control.tension_min, control.tension_max))
+    assert exact < miss and len(misses) > stopped
 
 
 def test_a_target_out_of_reach_in_the_time_allowed_is_refused(strike):
