@@ -105,8 +105,9 @@ def _campaign(args, **kwargs):
 
 
 def test_ctrl_c_keeps_what_finished_and_the_restart_runs_only_the_rest(tmp_path):
-    moduli = "[1.2e5,1.3e5,1.4e5,1.5e5,1.6e5,1.7e5,1.8e5,1.9e5]"
-    # runs of 256 equilibria (some tenths of a second each): the signal lands while most still run
+    moduli = "[1.2e5,1.4e5,1.6e5,1.8e5]"
+    # runs of 256 equilibria (seconds each) on two workers: the signal lands at the first record,
+    # while the third and fourth run
     args = ["sweep", "--outcome", "workspace", "--levels", "0", "1", "2", "3",
             "--vary", f"arm.material.youngs_modulus={moduli}", "--workers", "2", "--output", str(tmp_path)]
     # a terminal's Ctrl-C goes to the whole process group: the command and its cluster's workers
@@ -119,13 +120,13 @@ def test_ctrl_c_keeps_what_finished_and_the_restart_runs_only_the_rest(tmp_path)
     assert proc.returncode == 130, err
     assert "interrupted; run the same command again" in err
     kept = engine.read_records(tmp_path)
-    assert 1 <= len(kept) < 8
+    assert 1 <= len(kept) < 4
     proc = _campaign(args)
     _, err = proc.communicate(timeout=300)
     assert proc.returncode == 0, err
-    assert f"8/8 runs recorded ({8 - len(kept)} now, {len(kept)} before), 0 failed" in err
+    assert f"4/4 runs recorded ({4 - len(kept)} now, {len(kept)} before), 0 failed" in err
     records = engine.read_records(tmp_path)
-    assert len(records) == 8 and len({r["key"] for r in records}) == 8
+    assert len(records) == 4 and len({r["key"] for r in records}) == 4
     assert [r["key"] for r in records[:len(kept)]] == [r["key"] for r in kept]
 
 
