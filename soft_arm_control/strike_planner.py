@@ -32,8 +32,9 @@ from soft_arm_model import ImexStepper, OutOfDomainError, solve_equilibrium
 
 FIT_STEP = 2e-3           # s, the fit's time step
 PLAN_STEP = 1e-3          # s, the recorded plan's (the strike rehearsal's step)
-ENOUGH = 0.25             # a fit stops within this fraction of the plan's tolerance (the margin
-                          # for the recorded plan, at its finer step)
+# a fit stops within this fraction of the plan's tolerance (the margin for the recorded plan, at
+# its finer step)
+ENOUGH = 0.25
 
 
 @dataclass(frozen=True)
