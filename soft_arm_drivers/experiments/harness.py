@@ -182,6 +182,32 @@ class RunResult:
     tracking: list = field(default_factory=list)
 
 
+def window_metrics(task, transitions: list, rec: Record, truth: bool = False) -> tuple[list, list]:
+    """The metrics of each of ``task``'s windows (``transitions``, :func:`run_experiment`'s) in the
+    record ``rec``: the step windows' (:func:`~.metrics.transition_metrics`) and the track windows'
+    (:func:`~.metrics.tracking_metrics`), of what the mocap measured or with ``truth`` of the
+    plant's true markers. ValueError for a window no frame of the mocap saw."""
+    phases = {ph.name: ph for ph in task.phases}
+    arrays = rec.arrays()
+    if truth:
+        arrays["x"] = arrays["x_true"]
+        arrays["tip"] = arrays["tip_true"]
+    rows, tracking = [], []
+    for w_index, tr in enumerate(transitions):
+        sel = arrays["window"] == w_index
+        if tr.mode == "track":
+            tracking.append(tracking_metrics(tr.phase, tr.target + 1, phases[tr.phase].trajectory,
+                                             arrays["t_mocap"][sel] - tr.start,
+                                             arrays["x_d"][sel] - arrays["x"][sel],
+                                             min(task.steady_time, 0.5 * (tr.end - tr.start))))
+            continue
+        rows.append(transition_metrics(tr.phase, tr.target + 1, arrays["t_mocap"][sel],
+                                       arrays["x_d"][sel] - arrays["x"][sel], arrays["tip"][sel],
+                                       arrays["tip_speed"][sel], task.steady_time,
+                                       tr.end - tr.start))
+    return rows, tracking
+
+
 def goal_warning(goal: dict) -> str:
     """One line saying what went wrong with a goal of :attr:`RunResult.goals` (status not ok)."""
     head = f"target {goal['target']} ({goal['mode']})"
@@ -319,7 +345,7 @@ def run_experiment(setup: Setup, progress=None, actuation_map: ActuationMap | No
     dt = pc.timestep
     inner_every = max(1, int(round(1.0 / (ctl.inner_rate * dt))))
     rec = Record()
-    transitions, rows = [], []
+    transitions = []
     tip_index = model.marker_X.size - 1
     tip_axes = [a for k, a in zip(task.space.markers, task.space.axes) if k == tip_index] or [0, 1, 2]
     space = task.space
@@ -396,23 +422,7 @@ def run_experiment(setup: Setup, progress=None, actuation_map: ActuationMap | No
     outer.finish()
     rec.theta = list(ctrl.actuation_map.batch(rec.shortening))
     rec.theta_ref = list(ctrl.actuation_map.batch(rec.shortening_ref))
-    arrays = rec.arrays()
-    if truth:
-        arrays["x"] = arrays["x_true"]
-        arrays["tip"] = arrays["tip_true"]
-    tracking = []
-    for w_index, tr in enumerate(transitions):
-        sel = arrays["window"] == w_index
-        if tr.mode == "track":
-            tracking.append(tracking_metrics(tr.phase, tr.target + 1, phases[tr.phase].trajectory,
-                                             arrays["t_mocap"][sel] - tr.start,
-                                             arrays["x_d"][sel] - arrays["x"][sel],
-                                             min(task.steady_time, 0.5 * (tr.end - tr.start))))
-            continue
-        rows.append(transition_metrics(tr.phase, tr.target + 1, arrays["t_mocap"][sel],
-                                       arrays["x_d"][sel] - arrays["x"][sel], arrays["tip"][sel],
-                                       arrays["tip_speed"][sel], task.steady_time,
-                                       tr.end - tr.start))
+    rows, tracking = window_metrics(task, transitions, rec, truth)
     stored = {k: outer.stored[outer.key(x)] for k, x in enumerate(task.targets)
               if outer.key(x) in outer.stored}
     strike = None

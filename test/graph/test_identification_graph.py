@@ -116,10 +116,14 @@ def test_the_identification_experiment_runs_one_process_per_node(tmp_path, monke
     log file, named with its process id, not this one's)."""
     monkeypatch.setenv("ROS_LOG_DIR", str(tmp_path / "log"))          # the node processes inherit it
     out = tmp_path / "procs"
+    # half the plateaus and steps of SHORT (27 s simulated): what is checked is where the nodes ran
+    shorter = SHORT + ["identification.hold=1.5", "identification.average=0.5",
+                       "identification.step.hold=0.5", "identification.chirp.duration=1.0"]
     assert experiment(["identification", "--processes", "--quiet", "--output", str(out)]
-                      + _sets(SHORT)) == 0
+                      + _sets(shorter)) == 0
     with open(out / "excitation.json", encoding="utf-8") as fh:
-        assert json.load(fh)["duration"] > 20
+        played = json.load(fh)
+    assert played["valid"] and played["duration"] == 27.0, played
     logs = node_logs(tmp_path / "log")
     nodes = ("simulator", "excitation", "recorder")
     assert all(len(logs.get(name, [])) == 1 for name in nodes), logs
