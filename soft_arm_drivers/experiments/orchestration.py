@@ -41,10 +41,11 @@ def _wait_for_graph(node, children, flowing: tuple = (), settle: float = 0.0,
     done), a recorder, messages arriving on the ``flowing``
     topics (names of ``TOPICS``: e.g. the controller answering the motors' state), and, with
     ``settle`` [s], no endpoint appearing or going for that long (discovery over). The probe
-    subscriptions then leave the graph, and it settles again: kept, they would cost this process
-    a callback per message for the whole run (tendon/command at the inner loop's rate and the mocap
-    frames: a quarter of a core on a 2-core lab PC, bench_emulated_rig.py). RuntimeError when a
-    node exits or after ``timeout`` [s]."""
+    subscriptions on the ``flowing`` topics leave the graph as soon as their messages have
+    arrived, before it settles: kept, they would cost this process a callback per message for the
+    whole run (tendon/command at the inner loop's rate and the mocap frames: a quarter of a core on
+    a 2-core lab PC, bench_emulated_rig.py), and their leaving is one more change of the graph.
+    RuntimeError when a node exits or after ``timeout`` [s]."""
     import rclpy
 
     from soft_arm_ros.contract import QOS, TOPICS, TYPES, message_class
@@ -67,7 +68,7 @@ def _wait_for_graph(node, children, flowing: tuple = (), settle: float = 0.0,
         now = _endpoints(node)
         if now != graph:
             graph, since = now, time.monotonic()
-        if not missing and time.monotonic() - since >= settle:
+        if not missing and (probes or time.monotonic() - since >= settle):
             break
         if time.monotonic() > deadline:
             raise RuntimeError(f"the graph is not up after {timeout:g} s: "
