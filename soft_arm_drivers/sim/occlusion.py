@@ -81,6 +81,7 @@ def _seeing(cameras, axes, cos_half, markers, ring_low, ring_high, points, capsu
     blocks but those whose arc span meets the marker's ring (``ring_low``, ``ring_high``)."""
     count = np.zeros(markers.shape[0], np.int64)
     sight = np.empty(3)
+    edges = points[1:] - points[:-1]                    # the capsules' axes, once per frame
     for c in range(cameras.shape[0]):
         for m in range(markers.shape[0]):
             norm = 0.0
@@ -96,8 +97,7 @@ def _seeing(cameras, axes, cos_half, markers, ring_low, ring_high, points, capsu
                 for k in range(points.shape[0] - 1):
                     if arcs[k + 1] > ring_low[m] and arcs[k] < ring_high[m]:
                         continue                        # the marker's own ring
-                    if segment_distance(cameras[c], sight, points[k],
-                                        points[k + 1] - points[k]) < capsule_radii[k]:
+                    if segment_distance(cameras[c], sight, points[k], edges[k]) < capsule_radii[k]:
                         clear = False
                         break
             if clear:
