@@ -105,8 +105,8 @@ def bench_triangle() -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         out = os.path.join(tmp, "run")
         t0 = time.perf_counter()
-        subprocess.run([sys.executable, "-m", "soft_arm_drivers.experiment", "triangle", "--output", out,
-                        "--quiet", "--json"], check=True, stdout=subprocess.DEVNULL)
+        subprocess.run([sys.executable, "-m", "soft_arm_drivers.experiments.experiment", "triangle",
+                        "--output", out, "--quiet", "--json"], check=True, stdout=subprocess.DEVNULL)
         wall = time.perf_counter() - t0
         with open(os.path.join(out, "metrics.json"), encoding="utf-8") as fh:
             graph = json.load(fh)

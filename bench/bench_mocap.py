@@ -190,11 +190,13 @@ def bench_core_latency(duration: float = 5.0) -> dict:
 def bench_ros_latency(duration: float = 5.0) -> dict:
     import rclpy
     from geometry_msgs.msg import PoseArray
+    from rclpy.lifecycle import TransitionCallbackReturn
     from rclpy.parameter import Parameter
 
     from soft_arm_drivers.mocap.mocap_bridge_node import MocapBridgeNode
     from soft_arm_ros.runtime import make_executor
 
+    SUCCESS = TransitionCallbackReturn.SUCCESS
     calibration = load_mocap_config().calibration
     with NatNetEmulator(lambda t: MARKERS, version="4.1", rate=RATE, layout="both", latency=0.0,
                         calibration=calibration) as emulator:
@@ -211,8 +213,12 @@ def bench_ros_latency(duration: float = 5.0) -> dict:
                 lambda msg: received.append((time.time(), stamp_to_seconds(msg.header.stamp))),
                 QOS["mocap/markers"])
             executor = make_executor()
+            executor.add_node(node)
             executor.add_node(listener)
             emulator.start()
+            # a managed node: configured (it connects), then activated (it publishes)
+            if node.trigger_configure() != SUCCESS or node.trigger_activate() != SUCCESS:
+                raise RuntimeError("the mocap bridge node did not come up (see its log)")
             start = time.monotonic()
             while time.monotonic() - start < duration + 1.0:
                 executor.spin_once(timeout_sec=0.05)
@@ -225,6 +231,8 @@ def bench_ros_latency(duration: float = 5.0) -> dict:
                 listener.destroy_node()
             rclpy.try_shutdown()
         exposures = sorted(e for e in map(emulator.exposure_time, range(1, 4097)) if e is not None)
+    if not received:
+        raise RuntimeError("no mocap/markers message arrived from the bridge node")
     latency = []
     first = received[0][0] if received else 0.0
     for arrival, stamp in received:

@@ -171,9 +171,11 @@ def plan_strike_move(model, control, space, tendons, goal, target, pieces: int =
     ClikPoint), whose equilibrium tensions start the fit and hold the arm after the move. The
     duration (a whole number of the fit's steps) is bisected ``bisections`` times between
     ``min_duration`` and ``max_duration`` [s]; the fit runs at :data:`FIT_STEP`, then the levels
-    of the shortest duration are refined at ``timestep`` [s], at which the plan is recorded.
-    Raises ValueError when even ``max_duration`` misses by more than ``tolerance`` [m], or when
-    the recorded plan does."""
+    of the shortest duration are refined at ``timestep`` [s], at which the plan is recorded. A
+    recorded plan that misses by more than ``tolerance`` [m] (the finer step moves the arm's end
+    point, and a refinement near the tension limits cannot always bring it back) gives way to the
+    next longer duration the bisection found within it. Raises ValueError when even
+    ``max_duration`` misses, or when no recorded plan is within ``tolerance``."""
     target = np.asarray(target, dtype=float)
     hold = np.clip(np.asarray(goal.u_ff, dtype=float), control.tension_min, control.tension_max)
     step = max(timestep, FIT_STEP)
@@ -190,26 +192,31 @@ def plan_strike_move(model, control, space, tendons, goal, target, pieces: int =
         raise ValueError(f"no tension profile within [{control.tension_min}, {control.tension_max}] N "
                          f"brings the task point to the target in {max_duration} s: the closest "
                          f"misses it by {miss * 1e3:.1f} mm")
-    best_T = hi
+    feasible = [(hi, best)]                   # durations within the tolerance, longest first
     for _ in range(bisections):
         T = whole(0.5 * (lo + hi))
         if not lo < T < hi:
             break
         levels, miss_T = fit_levels(fit, target, hold, T, best, bounds, enough=enough)
         if miss_T <= tolerance:
-            best, best_T, hi = levels, T, T
+            best, hi = levels, T
+            feasible.append((T, levels))
         else:
             lo = T
     record = StrikeShooter(model, space, tendons, control.tension_min, control.rotor_mass, timestep,
                            control.tension_rate_limit)
-    if timestep != step:
-        best, _ = fit_levels(record, target, hold, best_T, best, bounds, max_evaluations=10, enough=enough)
-    x, speed, (t, u, s, sd) = record.run(best, hold, best_T, record=True)
-    miss = float(np.linalg.norm(x - target))
-    if not miss <= tolerance:
-        raise ValueError(f"the planned move, recorded at {timestep} s steps, misses the target by "
-                         f"{miss * 1e3:.1f} mm (more than {tolerance * 1e3:.1f} mm)")
-    return StrikeProfile(best_T, t, u, s, sd, best, hold, miss, speed)
+    misses = []
+    for duration, levels in reversed(feasible):
+        if timestep != step:
+            levels, _ = fit_levels(record, target, hold, duration, levels, bounds, max_evaluations=10,
+                                   enough=enough)
+        x, speed, (t, u, s, sd) = record.run(levels, hold, duration, record=True)
+        miss = float(np.linalg.norm(x - target))
+        if miss <= tolerance:
+            return StrikeProfile(duration, t, u, s, sd, levels, hold, miss, speed)
+        misses.append(f"{miss * 1e3:.1f} mm in {duration:.3f} s")
+    raise ValueError(f"the planned move, recorded at {timestep} s steps, misses the target by more than "
+                     f"{tolerance * 1e3:.1f} mm at every duration the fit found: {', '.join(misses)}")
 
 
 def strike_move_for(model, control, task, goal) -> StrikeProfile | None:
