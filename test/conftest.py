@@ -34,7 +34,8 @@ SERIAL = ("drivers/sim/test_emulated_rig.py", "drivers/sim/test_emulated_hardwar
           "graph/test_nodes.py::test_ctrl_c_stops_the_experiment_and_keeps_the_bag",
           "graph/test_graph.py::test_processes_mode_runs_each_node_as_its_own_process",
           "graph/test_identification_graph.py::test_the_identification_experiment_runs_one_process_per_node",
-          "test_layering.py::test_controller_nodes_start_without_the_plant_file")
+          "test_layering.py::test_controller_nodes_start_without_the_plant_file",
+          "test_benches.py::test_the_mocap_bench_measures_through_the_bridge_node")
 
 
 def pytest_collection_modifyitems(config, items):
