@@ -56,14 +56,35 @@ class Clock:
         return self.t
 
 
-def _tip_errors(estimator, rig, poses, updates, clock):
+def _tip_errors(estimator, rig, poses, updates, clock, ends=None):
+    """The tip's error [m] after ``updates`` updates at rest under each pose's tensions; with a list
+    ``ends``, (the tip's error (3,) [m], its reported covariance (3, 3) [m^2]) of each appended."""
     errors = []
     for u in poses:
         s, sd, true = _hold(rig, u)
         for _ in range(updates):
             estimator.update(clock(), s, sd, u)
-        errors.append(np.linalg.norm(estimator.estimate().markers[-1] - true[-1]))
+        estimate = estimator.estimate()
+        errors.append(np.linalg.norm(estimate.markers[-1] - true[-1]))
+        if ends is not None:
+            ends.append((estimate.markers[-1] - true[-1], estimate.marker_covariance[-1]))
     return np.array(errors)
+
+
+# chi-square with 3 degrees of freedom: the 1 % and 99 % quantiles
+CHI2_3_01, CHI2_3_99 = 0.1148, 11.345
+
+
+@pytest.fixture(scope="module")
+def declared(arm, model):
+    """The tendons alone on the declared plant: ten poses held for 100 updates (0.4 s) each, twice;
+    of the second pass, the tip's error [m] at the end of each hold and (error, covariance) there."""
+    rig = _rig(arm, model)
+    estimator, clock = ShapeEstimator(model, CONFIG), Clock()
+    _tip_errors(estimator, rig, POSES, 100, clock)
+    ends = []
+    errors = _tip_errors(estimator, rig, POSES, 100, clock, ends)
+    return rig, estimator, errors, ends
 
 
 def test_with_the_model_as_the_plant_the_tendons_alone_give_the_shape(arm, model):
@@ -72,20 +93,33 @@ def test_with_the_model_as_the_plant_the_tendons_alone_give_the_shape(arm, model
     assert errors.max() < 3e-4, errors
 
 
-def test_on_the_declared_plant_the_tendons_alone_put_the_tip_within_3_mm(arm, model):
+def test_on_the_declared_plant_the_tendons_alone_put_the_tip_within_3_mm(model, declared):
     """The declared plant is 15 % stiffer with more friction: its equilibrium under the same
     tensions is centimetres from the model's. The shortenings and the estimated stiffness and
     friction bring the tip within 3 mm (median over ten poses, after one pass over them)."""
-    rig = _rig(arm, model)
-    estimator, clock = ShapeEstimator(model, CONFIG), Clock()
-    _tip_errors(estimator, rig, POSES, 100, clock)
-    errors = _tip_errors(estimator, rig, POSES, 100, clock)
+    rig, estimator, errors, _ = declared
     naive = [np.linalg.norm(marker_positions(model, solve_equilibrium(model, u).q)[-1]
                             - _hold(rig, u)[2][-1]) for u in POSES]
     assert np.median(errors) <= 3e-3 and errors.max() < 1e-2, errors
     assert np.median(naive) > 5 * np.median(errors)
     stiffness, friction = estimator.parameters
     assert 1.0 < stiffness < 1.3 and np.all((friction > 0.1) & (friction < 0.15))
+
+
+def test_held_at_rest_the_tendons_alone_report_an_honest_tip_uncertainty(declared):
+    """At the end of each hold the tip's NEES (its error squared in units of the covariance it
+    reports): the mean within the chi-square 1-99 % interval of one sample (3 for an exact
+    covariance), no pose beyond the 99 % bound. The same test refuses the covariance reported 100
+    times too small or too large."""
+    ends = declared[3]
+
+    def nees(scale):
+        return np.array([e @ np.linalg.solve(scale * P, e) for e, P in ends])
+
+    def honest(values):
+        return CHI2_3_01 <= values.mean() <= CHI2_3_99 and np.all(values <= CHI2_3_99)
+    assert honest(nees(1.0)), nees(1.0)
+    assert not honest(nees(0.01)) and not honest(nees(100.0))
 
 
 def test_with_the_markers_the_tip_stays_known_through_a_2_s_occlusion(arm, model):
