@@ -210,10 +210,13 @@ def plan_strike_move(model, control, space, tendons, goal, target, pieces: int =
         if timestep != step:
             levels, _ = fit_levels(record, target, hold, duration, levels, bounds, max_evaluations=10,
                                    enough=enough)
-        x, speed, (t, u, s, sd) = record.run(levels, hold, duration, record=True)
+        x, speed, samples = record.run(levels, hold, duration, record=True)
+        if samples is None:                   # the state left the model's domain
+            misses.append(f"out of the model's domain in {duration:.3f} s")
+            continue
         miss = float(np.linalg.norm(x - target))
         if miss <= tolerance:
-            return StrikeProfile(duration, t, u, s, sd, levels, hold, miss, speed)
+            return StrikeProfile(duration, *samples, levels, hold, miss, speed)
         misses.append(f"{miss * 1e3:.1f} mm in {duration:.3f} s")
     raise ValueError(f"the planned move, recorded at {timestep} s steps, misses the target by more than "
                      f"{tolerance * 1e3:.1f} mm at every duration the fit found: {', '.join(misses)}")

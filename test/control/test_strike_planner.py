@@ -129,22 +129,27 @@ def test_the_fit_ends_at_the_first_levels_within_enough(strike):
     assert exact < miss and len(misses) > stopped
 
 
-def _recorded_off_by(monkeypatch, offset: float, below: float):
+def _recorded_off_by(monkeypatch, offset, below: float):
     """The planner's recorded runs (``record=True``) shifted by ``offset`` [m] on every task
-    coordinate when shorter than ``below`` [s]: a finer step that moves the arm's end point."""
+    coordinate when shorter than ``below`` [s]: a finer step that moves the arm's end point
+    (``offset`` None: those runs leave the model's domain, as the shooter reports it)."""
     import soft_arm_control.strike_planner as planner
 
     class Shifted(StrikeShooter):
         def run(self, levels, hold, duration, record=False):
             x, speed, samples = super().run(levels, hold, duration, record)
-            return (x + offset if record and duration < below else x), speed, samples
+            if not (record and duration < below):
+                return x, speed, samples
+            if offset is None:
+                return np.full_like(x, np.nan), np.nan, None
+            return x + offset, speed, samples
     monkeypatch.setattr(planner, "StrikeShooter", Shifted)
 
 
 def test_a_recorded_plan_that_misses_gives_way_to_the_next_longer_duration(strike, monkeypatch):
     """The bisection finds 0.3 s and 0.5 s within the tolerance; recorded, 0.3 s misses by 20 mm (10
     mm on each of the four task coordinates), so the plan is the 0.5 s one, within it. Missing at
-    every duration, the plan is refused with each miss."""
+    every duration, or leaving the model's domain, the plan is refused with each miss."""
     model, control, task, _, goal = strike
     _recorded_off_by(monkeypatch, 0.01, 0.45)
     plan = plan_strike_move(model, control, task.space, task.tendons, goal, goal.x, bisections=1)
@@ -152,6 +157,10 @@ def test_a_recorded_plan_that_misses_gives_way_to_the_next_longer_duration(strik
     _recorded_off_by(monkeypatch, 0.01, 1.0)
     with pytest.raises(ValueError, match=r"at every duration the fit found: (19|20)\.\d mm in 0.300 s, "
                                          r"(19|20)\.\d mm in 0.500 s"):
+        plan_strike_move(model, control, task.space, task.tendons, goal, goal.x, bisections=1)
+    _recorded_off_by(monkeypatch, None, 1.0)                 # every recorded run out of the domain
+    with pytest.raises(ValueError, match="out of the model's domain in 0.300 s, out of the model's "
+                                         "domain in 0.500 s"):
         plan_strike_move(model, control, task.space, task.tendons, goal, goal.x, bisections=1)
 
 
