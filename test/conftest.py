@@ -186,3 +186,20 @@ def node_logs(log_dir) -> dict:
         for name in set(re.findall(r"^\[\w+\] \[[\d.]+\] \[([\w.]+)\]", path.read_text(), re.M)):
             out.setdefault(name, []).append(pid)
     return out
+
+
+# The normalised estimation error squared (NEES) of a 3-D position against the chi-square
+# distribution with 3 degrees of freedom: its 1 % and 99 % quantiles. Samples of one run are
+# correlated, so a run's mean is judged against the interval of one sample.
+CHI2_3_01, CHI2_3_99 = 0.1148, 11.345
+
+
+def nees_not_overconfident(nees) -> bool:
+    """The mean NEES at most the 99 % quantile, and no more than 2 % of the samples beyond it."""
+    nees = np.asarray(nees)
+    return nees.mean() <= CHI2_3_99 and np.mean(nees > CHI2_3_99) <= 0.02
+
+
+def nees_honest(nees) -> bool:
+    """Not overconfident, and the mean NEES at least the 1 % quantile (not overcautious either)."""
+    return CHI2_3_01 <= np.mean(nees) and nees_not_overconfident(nees)

@@ -5,6 +5,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from conftest import nees_honest
 from soft_arm_control.shape_estimation import (FRICTION_STEP, ShapeEstimator, fused_markers,
                                                load_estimator_config)
 from soft_arm_drivers.sim.plant_config import load_plant_config
@@ -71,10 +72,6 @@ def _tip_errors(estimator, rig, poses, updates, clock, ends=None):
     return np.array(errors)
 
 
-# chi-square with 3 degrees of freedom: the 1 % and 99 % quantiles
-CHI2_3_01, CHI2_3_99 = 0.1148, 11.345
-
-
 @pytest.fixture(scope="module")
 def declared(arm, model):
     """The tendons alone on the declared plant: ten poses held for 100 updates (0.4 s) each, twice;
@@ -109,17 +106,14 @@ def test_on_the_declared_plant_the_tendons_alone_put_the_tip_within_3_mm(model, 
 def test_held_at_rest_the_tendons_alone_report_an_honest_tip_uncertainty(declared):
     """At the end of each hold the tip's NEES (its error squared in units of the covariance it
     reports): the mean within the chi-square 1-99 % interval of one sample (3 for an exact
-    covariance), no pose beyond the 99 % bound. The same test refuses the covariance reported 100
-    times too small or too large."""
+    covariance), no pose beyond the 99 % bound (2 % of ten). The same test refuses the covariance
+    reported 100 times too small or too large."""
     ends = declared[3]
 
     def nees(scale):
         return np.array([e @ np.linalg.solve(scale * P, e) for e, P in ends])
-
-    def honest(values):
-        return CHI2_3_01 <= values.mean() <= CHI2_3_99 and np.all(values <= CHI2_3_99)
-    assert honest(nees(1.0)), nees(1.0)
-    assert not honest(nees(0.01)) and not honest(nees(100.0))
+    assert nees_honest(nees(1.0)), nees(1.0)
+    assert not nees_honest(nees(0.01)) and not nees_honest(nees(100.0))
 
 
 def test_with_the_markers_the_tip_stays_known_through_a_2_s_occlusion(arm, model):

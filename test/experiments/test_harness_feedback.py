@@ -4,6 +4,7 @@ only hold the precomputed reference; the estimate is recorded against the plant'
 import numpy as np
 import pytest
 
+from conftest import CHI2_3_99, nees_honest, nees_not_overconfident
 from soft_arm_drivers.experiments.harness import load_setup, run_experiment
 
 ONE_TARGET = ["tasks.coiling.phases=[upward]", "tasks.coiling.phase.upward.sequence=[3]",
@@ -34,27 +35,14 @@ def tip_nees(result, scale: float = 1.0) -> np.ndarray:
     return np.einsum("ki,kij,kj->k", error, np.linalg.inv(scale * rec["marker_covariance"][rest, -1]), error)
 
 
-# chi-square with 3 degrees of freedom: the 1 % and 99 % quantiles
-CHI2_3_01, CHI2_3_99 = 0.1148, 11.345
-
-
-def not_overconfident(nees: np.ndarray) -> bool:
-    """The run's mean NEES at most the chi-square 99 % quantile of one sample, and no more than 2 %
-    of the frames beyond it."""
-    return nees.mean() <= CHI2_3_99 and np.mean(nees > CHI2_3_99) <= 0.02
-
-
 def test_with_the_markers_the_tips_reported_uncertainty_is_within_its_chi_square_bounds(runs):
     """Fused with the markers the cameras still see, at rest over a closed-loop run: the tip's mean
     NEES within the chi-square 1-99 % interval of one sample (3 for an exact covariance), few frames
     beyond the 99 % bound; the same test refuses the covariance reported 100 times too small or
     too large."""
     nees = tip_nees(runs["fused"])
-
-    def honest(values):
-        return CHI2_3_01 <= values.mean() and not_overconfident(values)
-    assert nees.size > 50 and honest(nees), (nees.mean(), np.mean(nees > CHI2_3_99))
-    assert not honest(tip_nees(runs["fused"], 0.01)) and not honest(tip_nees(runs["fused"], 100.0))
+    assert nees.size > 50 and nees_honest(nees), (nees.mean(), np.mean(nees > CHI2_3_99))
+    assert not nees_honest(tip_nees(runs["fused"], 0.01)) and not nees_honest(tip_nees(runs["fused"], 100.0))
 
 
 def test_on_the_tendons_alone_the_tips_reported_uncertainty_bounds_its_error(runs):
@@ -62,8 +50,8 @@ def test_on_the_tendons_alone_the_tips_reported_uncertainty_bounds_its_error(run
     NEES at rest is not above its chi-square bound (it is far below: docs/concepts/sensing.md,
     consistency); the covariance reported 1000 times too small would be."""
     nees = tip_nees(runs["estimate"])
-    assert nees.size > 50 and not_overconfident(nees), (nees.mean(), np.mean(nees > CHI2_3_99))
-    assert not not_overconfident(tip_nees(runs["estimate"], 1e-3))
+    assert nees.size > 50 and nees_not_overconfident(nees), (nees.mean(), np.mean(nees > CHI2_3_99))
+    assert not nees_not_overconfident(tip_nees(runs["estimate"], 1e-3))
 
 
 def test_without_the_mocap_the_estimate_closes_the_loop_and_the_mocap_holds(runs):
