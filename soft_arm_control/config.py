@@ -20,8 +20,10 @@ from .input_shaping import SHAPERS
 from .pendulum_geometry import PendulumConfig
 from .trajectories import SHAPES, Trajectory
 from .task_space import AXES, TaskSpace
+from .trust_region import TRUST_SCHEMA, TrustConfig
 
 PHASE_MODES = ("clik", "replay", "precomputed", "online", "track")
+FEEDBACKS = ("mocap", "fused", "estimate")   # what the online CLIK closes its loop on
 SHAPED_MODES = ("clik", "replay", "precomputed")   # the goal modes that start with a reference step
 RATE_MODES = ("clik", "online", "track")           # the goal modes that move the reference online
 
@@ -84,6 +86,10 @@ CONTROL_SCHEMA = {
                         f"none or more of {list(RATE_MODES)}"),
     "clik.min_frequency": ("float", lambda v: 0 <= v <= 100,
                            "a frequency in [0, 100] Hz (0: no check)"),
+    "clik.feedback": ("str", lambda v: v in FEEDBACKS,
+                      f"one of {list(FEEDBACKS)}: what mocap/markers carries to the clik node (fused and "
+                      "estimate: the shape estimator's, judged by the trust region)"),
+    **TRUST_SCHEMA,
     "clik.shaping.shaper": ("str", lambda v: v in SHAPERS, f"one of {list(SHAPERS)}"),
     "clik.shaping.level": ("float", lambda v: 0 < v <= 1, "a vibration amplitude in (0, 1] m"),
     "clik.shaping.modes": ("strs", lambda v: len(v) >= 1 and set(v) <= set(SHAPED_MODES),
@@ -177,6 +183,8 @@ class ControlConfig:
     track_settle_time: float
     inner_loop_max_time_step: float = 0.1
     clik_max_time_step: float = 1.0
+    feedback: str = "mocap"
+    trust: TrustConfig | None = None
 
 
 def parse_control(v: dict, arm: ArmConfig) -> ControlConfig:
@@ -209,7 +217,7 @@ def parse_control(v: dict, arm: ArmConfig) -> ControlConfig:
         tuple(v["clik.shaping.modes"]), v["clik.track_feedforward"], v["clik.min_frequency"],
         tuple(v["clik.rate_modes"]), v["clik.track_dynamics"], v["clik.track_learning.gain"],
         v["clik.track_learning.harmonics"], v["clik.track_learning.settle_time"],
-        v["inner_loop.max_time_step"], v["clik.max_time_step"])
+        v["inner_loop.max_time_step"], v["clik.max_time_step"], v["clik.feedback"], TrustConfig.of(v))
 
 
 def load_control_config(arm: ArmConfig, path: str | None = None, overrides=None) -> ControlConfig:

@@ -48,9 +48,11 @@ from .input_shaping import ShapedStep, StepShaper
 from .strike_planner import StrikeProfile
 from .track_learning import HarmonicLearner
 from .trajectories import Trajectory
+from .trust_region import TrustRegion
 
 MODES = ("clik", "replay", "precomputed", "online", "track")
-STATUSES = ("ok", "constrained", "saturated", "stalled", "unreached", "unseen", "held")   # GoalReport.status
+STATUSES = ("ok", "constrained", "saturated", "stalled", "unreached", "unseen", "held",   # GoalReport.status
+            "untrusted")
 
 
 @dataclass
@@ -74,7 +76,11 @@ class GoalReport:
     error grew) and ``frozen_periods`` (the dynamic reference was clipped). ``unseen_frames``: frames
     on which an online step was due but the task's markers were not all seen (no step: the reference
     holds); ``unseen_time`` [s]: how long the current such stretch has lasted (0 once a step is
-    taken). A goal is *unseen* while that stretch is longer than one online period."""
+    taken). A goal is *unseen* while that stretch is longer than one online period. On an estimated
+    feedback (:class:`~soft_arm_control.trust_region.TrustRegion`): ``distrusts``, the times the
+    trust region refused the estimate and the reference returned to the goal's precomputed one (its
+    reason in ``distrust``), and ``untrusted_frames``, the frames on which an online step was due
+    but not taken for it; a goal is *untrusted* while it holds the precomputed reference so."""
     target: list
     mode: str
     reach_tolerance: float = 1e-3
@@ -91,6 +97,10 @@ class GoalReport:
     unseen_frames: int = 0
     unseen_time: float = 0.0
     unseen_after: float = 0.0
+    untrusted_frames: int = 0
+    distrusts: int = 0
+    distrust: str | None = None
+    holding: bool = False
     learner: HarmonicLearner | None = field(default=None, repr=False, compare=False)
     _progress_level: float = np.inf
 
@@ -126,14 +136,18 @@ class GoalReport:
 
     @property
     def status(self) -> str:
-        """held (no feasible step: the reference stayed), unseen (no frame showed the task's markers
-        for longer than ``unseen_after``: no step, the reference held), constrained (the reference
+        """held (no feasible step: the reference stayed), untrusted (the trust region refused the
+        estimate the online steps were taken on: the precomputed reference holds), unseen (no
+        frame showed the task's markers for longer than ``unseen_after``: no step, the reference
+        held), constrained (the reference
         keeps moving towards the closest feasible point), saturated (a track goal whose path needed tensions
         outside the limits), stalled (feasible steps, but the error stays above the tolerance),
         unreached (closed away from the target) or ok (a track goal, whose error is a tracking
         error, is never stalled or unreached)."""
         if self.held_steps:
             return "held"
+        if self.holding:
+            return "untrusted"
         if self.unseen_time > self.unseen_after:
             return "unseen"
         if self.infeasible_steps:
@@ -149,7 +163,8 @@ class GoalReport:
     def as_dict(self) -> dict:
         keys = ("target", "mode", "online_steps", "infeasible_steps", "held_steps", "closest_error",
                 "error", "stalled_steps", "saturated_steps", "closed", "shaped_mode", "learned_periods",
-                "backed_off_periods", "frozen_periods", "unseen_frames", "unseen_time")
+                "backed_off_periods", "frozen_periods", "unseen_frames", "unseen_time", "untrusted_frames",
+                "distrusts", "distrust")
         return {**{k: getattr(self, k) for k in keys}, "reached": self.reached, "status": self.status}
 
 
@@ -165,7 +180,11 @@ class OuterLoop:
     ``track_feedforward``: a track goal's trajectory velocity is the CLIK's feedforward;
     ``rate_modes``: the goal modes whose online steps set ``reference_rate``; ``track_dynamics``:
     a track goal's references balance the path's inertial and damping forces, with the rotors'
-    reflected mass ``rotor_mass`` [kg] on every tendon.
+    reflected mass ``rotor_mass`` [kg] on every tendon; ``trust``: the trust region of an estimated
+    feedback (None: the feedback is measured, every frame seen is stepped on). A frame it refuses
+    returns the reference to the goal's precomputed one (an online or track goal's: the reference
+    it started from), and the online steps resume after ``trust.config.recover`` seconds of frames
+    it accepts.
     """
 
     def __init__(self, clik, start: ClikPoint, switch_delay: float, rate: float,
@@ -173,7 +192,8 @@ class OuterLoop:
                  reach_tolerance: float = 1e-3, stall_time: float = 2.0,
                  shaper: StepShaper | None = None, shaped_modes=(), track_feedforward: bool = True,
                  rate_modes=("track",), track_dynamics: bool = False, rotor_mass: float = 0.0,
-                 track_learning: float = 0.0, track_harmonics: int = 3, track_settle_time: float = 0.0):
+                 track_learning: float = 0.0, track_harmonics: int = 3, track_settle_time: float = 0.0,
+                 trust: TrustRegion | None = None):
         self.clik = clik
         self.start = start
         self.reference = start
@@ -205,6 +225,9 @@ class OuterLoop:
         self._next_step = np.inf
         self._unseen_since = None       # frame time [s] since which the task's markers went unseen
         self._steps = 0
+        self.trust = trust
+        self._fallback = start           # what a refused estimate returns the reference to
+        self._trusted_since = None       # frame time [s] since which the trust region accepts, holding
 
     @staticmethod
     def key(x_d) -> tuple:
@@ -277,6 +300,10 @@ class OuterLoop:
                             unseen_after=self.period, learner=self.learner)
         self._unseen_since = None
         self.reports.append(report)
+        self._fallback = ref if ref is not None else current
+        self._trusted_since = None
+        if self.trust is not None:
+            self.trust.reset()
         settled = t
         self._planned, self._planned_from = move, t
         if ref is not None and move is None and self.shaper is not None and mode in self.shaped_modes:
@@ -373,6 +400,12 @@ class OuterLoop:
         self._unseen_since = None
         report.unseen_time = 0.0
         self._next_step = max(self._next_step + self.period, t + 0.5 * self.period)
+        if self.trust is not None:
+            allowed, returned = self._trusted(t, x_measured, report)
+            if returned:
+                return self.command
+            if not allowed:
+                return moved
         refresh = self._steps % self.jacobian_every == 0
         self._steps += 1
         path = None if self._trajectory is None else self.path_at(t)     # x_d + c, its rates
@@ -398,6 +431,34 @@ class OuterLoop:
             rate = (ref.shortening - self.command.shortening) / self.period
         return self._hand(ref, rate)
 
+    def _trusted(self, t: float, x_estimate, report: GoalReport) -> tuple[bool, bool]:
+        """(whether an online step may be taken on the estimate at t [s], whether the reference
+        returned to the goal's fallback now). A step may be taken when the trust region accepts the
+        frame and, after a refusal, has accepted every frame for ``recover`` seconds; a refusal
+        returns the reference to the fallback and holds it there (``report.holding``)."""
+        reason = self.trust.judge(t, x_estimate, self.reference.x)
+        if reason is not None:
+            report.untrusted_frames += 1
+            report.distrust = reason
+            self._trusted_since = None
+            if report.holding:
+                return False, False
+            report.holding = True
+            report.distrusts += 1
+            self.reference = self._fallback
+            self._hand(self._fallback)
+            self.trust.reset()
+            return False, True
+        if not report.holding:
+            return True, False
+        if self._trusted_since is None:
+            self._trusted_since = t
+        if t - self._trusted_since < self.trust.config.recover - 1e-9:
+            report.untrusted_frames += 1
+            return False, False
+        report.holding = False
+        return True, False
+
     def _learn(self, t: float, x_r, x_measured, followed: bool, clipped: bool = False):
         """Hand the track goal's learner the frame at t [s] (the reference path x_r, the measured
         coordinates [m]; ``followed``: the CLIK step was neither constrained nor held; ``clipped``:
@@ -422,7 +483,8 @@ def clik_for(model, control, task) -> Clik:
 
 def outer_loop_for(model, control, task) -> OuterLoop:
     """The outer loop the configuration describes for ``task`` (a TaskConfig), starting from the
-    hanging arm under the pretension."""
+    hanging arm under the pretension; on an estimated feedback (``control.feedback`` fused or
+    estimate) with the trust region of ``control.trust``."""
     clik = clik_for(model, control, task)
     start = clik.reference(solve_equilibrium(model, np.full(model.n_tendons, control.tension_min)).q)
     gains = [[getattr(control, name)[k] for k in task.tendons] for name in ("proportional", "derivative")]
@@ -432,4 +494,5 @@ def outer_loop_for(model, control, task) -> OuterLoop:
                      control.tolerance, control.reach_tolerance, control.stall_time, shaper,
                      control.shaped_modes, control.track_feedforward, control.rate_modes,
                      control.track_dynamics, control.rotor_mass, control.track_learning,
-                     control.track_harmonics, control.track_settle_time)
+                     control.track_harmonics, control.track_settle_time,
+                     None if control.feedback == "mocap" else TrustRegion(control.trust))

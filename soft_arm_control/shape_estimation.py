@@ -31,8 +31,14 @@ compliance so that soft modes may move more), and three kinds of measurement:
 The stiffness scale stays within :data:`STIFFNESS_BOUNDS` and the friction within
 :data:`FRICTION_BOUNDS`. An estimate that is lost (:data:`RESTART_AFTER` updates in a row out of the
 model's domain, or at rest with shortenings :data:`RESTART_NIS` normalised squares each away from
-what it predicts, or a stiffness the tendons can only explain beyond its bounds) starts again from
+what it predicts, or a stiffness the tendons can only explain at or beyond its bounds, moving or
+not) starts again from
 the equilibrium of the measured tensions (``restarts``).
+
+The estimator does not stand by an estimate (:attr:`ShapeEstimate.distrust`) whose stiffness the
+tendons push beyond its bounds, whose shortenings disagree with it by :data:`RESTART_NIS` each, or
+whose update left the model's domain; nor by a marker whose standard deviation exceeds
+``max_sigma`` (:meth:`ShapeEstimate.defended`). Such markers go to the online CLIK as unseen.
 
 The tendon and balance updates are iterated (``iterations`` Gauss-Newton steps of the iterated EKF,
 the balance being strongly nonlinear in bending). Everything is in SI units and arm_base. Each
@@ -51,13 +57,12 @@ from soft_arm_model.dynamics import STATICS, OutOfDomainError
 from soft_arm_model.parameters import default_config_dir, load_section
 from soft_arm_model.statics import residual_jacobian
 
-FEEDBACKS = ("mocap", "fused", "estimate")   # what the online CLIK closes its loop on
 FRICTION_STEP = 1e-3                          # the finite difference of dA/dmu
 MAX_PREDICTION = 0.3          # the largest predicted step of a coordinate, in compliance units
 STIFFNESS_BOUNDS = (0.5, 2.0)  # the arm's stiffness against the model's: what a cast arm can be
 FRICTION_BOUNDS = (0.0, 0.5)   # a tendon's friction coefficient
 RESTART_NIS = 25.0             # per shortening: the tendons disagree with the estimate by 5 sigma
-RESTART_AFTER = 25             # updates in a row out of the domain, or at rest and disagreeing
+RESTART_AFTER = 25             # updates in a row out of the domain, pinned, or at rest and disagreeing
 
 ESTIMATOR_SCHEMA = {
     "rate": ("float", lambda v: 1 <= v <= 1000, "an update rate in [1, 1000] Hz"),
@@ -85,6 +90,9 @@ ESTIMATOR_SCHEMA = {
     "gate": ("float", lambda v: 1 <= v <= 1000, "a chi-square threshold in [1, 1000] (3 degrees of freedom)"),
     "regate": ("int", lambda v: v >= 1, "a number of frames >= 1"),
     "iterations": ("int", lambda v: 1 <= v <= 10, "a number of Gauss-Newton steps in [1, 10]"),
+    "max_sigma": ("float", lambda v: 0 < v <= 1,
+                  "a standard deviation in (0, 1] m: a marker estimated less surely is no position "
+                  "(NaN on estimate/markers)"),
 }
 
 
@@ -108,6 +116,7 @@ class EstimatorConfig:
     rest_speed: float
     prior_stiffness: float
     prior_friction: float
+    max_sigma: float = 0.1
 
     @classmethod
     def of(cls, values: dict) -> "EstimatorConfig":
@@ -135,17 +144,30 @@ def fused_markers(mocap, estimate) -> np.ndarray:
 @dataclass(frozen=True)
 class ShapeEstimate:
     """The estimate at time ``t`` [s]: configuration q (n,) and its covariance (n, n), marker
-    positions (n_markers, 3) [m] in arm_base and their covariances (n_markers, 3, 3) [m^2]."""
+    positions (n_markers, 3) [m] in arm_base and their covariances (n_markers, 3, 3) [m^2];
+    ``distrust``: why the estimator does not stand by it (None: it does)."""
     t: float
     q: np.ndarray
     covariance: np.ndarray
     markers: np.ndarray
     marker_covariance: np.ndarray
+    distrust: str | None = None
 
     @property
     def marker_sigma(self) -> np.ndarray:
         """(n_markers,) [m]: the square root of the largest eigenvalue of each marker's covariance."""
         return np.sqrt(np.linalg.eigvalsh(self.marker_covariance)[:, -1])
+
+    def defended(self, max_sigma: float) -> np.ndarray:
+        """(n_markers, 3) [m]: the markers the estimator stands by, NaN rows for the others (all of
+        them under a ``distrust``; otherwise those whose standard deviation exceeds ``max_sigma``
+        [m]): what a consumer of positions, the online CLIK, may take as one."""
+        out = np.array(self.markers, dtype=float)
+        if self.distrust is not None:
+            out[:] = np.nan
+        else:
+            out[self.marker_sigma > max_sigma] = np.nan
+        return out
 
 
 @dataclass
@@ -186,6 +208,7 @@ class ShapeEstimator:
         self._rejected = np.zeros(model.marker_X.size, dtype=int)   # frames in a row out of the gate
         self._retaken = np.zeros(model.marker_X.size, dtype=bool)   # taken again, not yet back in it
         self._linear = None          # (dR/dq, A, u) of the last tendon update, for the prediction
+        self.distrust = None         # why the last update leaves the estimate undefended (None: it does not)
 
     @property
     def q(self) -> np.ndarray:
@@ -242,31 +265,41 @@ class ShapeEstimator:
                 self._marker_update(np.asarray(markers, dtype=float), report, sd)
             evaluate(self.model, self.data, self.q, level=STATICS, markers=True)    # in the domain
             at_rest = not sd.size or float(np.max(np.abs(sd))) <= c.rest_speed
-            pinned = self._clamp_parameters()
-            lost = shortening_nis > RESTART_NIS * s.size or pinned
-            self._bad = self._bad + 1 if at_rest and lost else 0
+            stiffness = self.z[self.model.n]
+            self._clamp_parameters()
+            pinned = not STIFFNESS_BOUNDS[0] < self.z[self.model.n] < STIFFNESS_BOUNDS[1]
+            disagree = shortening_nis > RESTART_NIS * s.size
+            # a stiffness on its bound is lost whether the arm moves or not (no cast arm is so);
+            # shortenings that disagree only at rest (a move outruns the static balance)
+            self._bad = self._bad + 1 if pinned or (at_rest and disagree) else 0
+            self.distrust = None
+            if pinned:
+                self.distrust = (f"the tendons need a stiffness {stiffness:.2f} times the model's, at or "
+                                 f"beyond what a cast arm can be {list(STIFFNESS_BOUNDS)}")
+            elif disagree:
+                self.distrust = (f"the shortenings disagree with the estimate (normalised square "
+                                 f"{shortening_nis:.0f} over {s.size} tendons)")
         except OutOfDomainError:                  # the update left the model's domain: not taken
             self.counts["out_of_domain"] += 1
             self.z, self.Pz, self._linear = saved
             self.Pz[np.diag_indices(self.model.n)] += (c.tension_change * self.scale) ** 2 * 1e-2
             self._bad += 1
+            self.distrust = "the update left the model's domain"
         if self._bad >= RESTART_AFTER:            # lost: start again from the tensions' equilibrium
             self.counts["restarts"] += 1
             self.z, self.Pz = (a.copy() for a in self._prior)
             self._linear, self._bad = None, 0
             self.start(t, u, s)
+            self.distrust = None
         self.counts["updates"] += 1
         return report
 
-    def _clamp_parameters(self) -> bool:
-        """The stiffness scale and friction coefficients into what a cast arm can have; True when the
-        stiffness had to be clipped (the tendons describe no such arm)."""
+    def _clamp_parameters(self):
+        """The stiffness scale and friction coefficients into what a cast arm can have."""
         n = self.model.n
-        pinned = not STIFFNESS_BOUNDS[0] <= self.z[n] <= STIFFNESS_BOUNDS[1]
         self.z[n] = np.clip(self.z[n], *STIFFNESS_BOUNDS)
         mu = np.array([t.friction for t in self.model.config.tendons])
         self.z[n + 1:] = np.clip(self.z[n + 1:], FRICTION_BOUNDS[0] - mu, FRICTION_BOUNDS[1] - mu)
-        return pinned
 
     def _predict(self, u):
         """Move q with the change of the tensions since the last update, along the model's static
@@ -290,7 +323,7 @@ class ShapeEstimator:
         H = self._marker_jacobians(d)
         cov = np.einsum("kin,nm,kjm->kij", H, self.P, H)
         return ShapeEstimate(self.t if self.t is not None else 0.0, self.q.copy(), self.P.copy(),
-                             d.marker_p.copy(), cov)
+                             d.marker_p.copy(), cov, self.distrust)
 
     # --- updates ---------------------------------------------------------------------------------
 

@@ -21,10 +21,10 @@ import numpy as np
 
 from soft_arm_control.actuation_map import ActuationMap
 from soft_arm_control.clik import TargetError
-from soft_arm_control.config import (IDENTIFICATION, ControlConfig, TaskConfig, load_control_config,
-                                     load_task_config)
+from soft_arm_control.config import (FEEDBACKS, IDENTIFICATION, ControlConfig, TaskConfig,
+                                     load_control_config, load_task_config)
 from soft_arm_control.outer_loop import OuterLoop, outer_loop_for
-from soft_arm_control.shape_estimation import (FEEDBACKS, EstimatorConfig, ShapeEstimator, fused_markers,
+from soft_arm_control.shape_estimation import (EstimatorConfig, ShapeEstimator, fused_markers,
                                                load_estimator_config)
 from soft_arm_control.strike_planner import strike_move_for
 from soft_arm_control.two_level import TwoLevelController
@@ -45,7 +45,7 @@ class Setup:
     """Everything a run needs: the controller's arm, controller, plant and task parameters (the
     identification experiment: no task, its ``excitation``), the shape estimator's parameters and
     what the online CLIK closes its loop on (``feedback``, one of
-    :data:`~soft_arm_control.shape_estimation.FEEDBACKS`)."""
+    :data:`~soft_arm_control.config.FEEDBACKS`)."""
     arm: ArmConfig
     control: ControlConfig
     plant: PlantConfig
@@ -76,7 +76,8 @@ def load_setup(task: str, config_dir: str | None = None, overrides=None,
         plant = with_bridge_calibration(replace(plant, drawing=drawing), os.path.join(d, "mocap.yaml"),
                                         calibration_overrides(arm_file))
     plant.plant_arm(arm)                  # a bad plant file is refused before anything runs
-    control = load_control_config(arm, os.path.join(d, "control.yaml"), groups["control"])
+    control = load_control_config(arm, os.path.join(d, "control.yaml"),
+                                  {**groups["control"], "clik.feedback": feedback})
     estimator = load_estimator_config(os.path.join(d, "estimator.yaml"), groups["estimator"])
     if task == IDENTIFICATION:
         return Setup(arm, control, plant, None, load_excitation(
@@ -396,10 +397,11 @@ def run_experiment(setup: Setup, progress=None, actuation_map: ActuationMap | No
                 rec.markers_estimated.append(estimated.markers)
                 rec.marker_covariance.append(estimated.marker_covariance)
                 rec.markers_seen.append(frame.visible)
+                defended = estimated.defended(estimator.config.max_sigma)
                 if setup.feedback == "fused":
-                    x_feedback = space.from_markers(fused_markers(latest, estimated.markers))
+                    x_feedback = space.from_markers(fused_markers(latest, defended))
                 elif setup.feedback == "estimate":
-                    x_feedback = space.from_markers(estimated.markers)
+                    x_feedback = space.from_markers(defended)
                 latest = None
             if setup.feedback == "mocap" and delivered:
                 x_feedback = space.from_markers(delivered[-1].markers)

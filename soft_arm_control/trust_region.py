@@ -1,0 +1,91 @@
+"""The online CLIK's trust region on an estimated feedback (ROS-free).
+
+Closing the CLIK on a shape estimate (``--feedback estimate|fused``) may improve on the precomputed
+reference, never make it worse. The CLIK predicts where each reference puts the arm at rest: the
+model's task coordinates at the reference, x_model(q_d). What the estimate then shows differs from
+it by the model's error at that pose, the *offset* o = x_hat - x_model(q_d): a few millimetres on
+an arm that is the model to 15 %, slowly varying with the pose, swinging while the arm swings.
+An estimate that has left the arm (another branch of the crossed tendons' equilibria, a bias
+walking away) shows itself in the offset:
+
+- **radius**: the offset, averaged over ``window``, is larger than any model error the lab expects
+  (``radius`` [m]): the estimate claims the arm is where the model cannot put it;
+- **drift**: the offset moves by more than ``drift`` [m] over ``window`` beyond what the arm's own
+  swing explains (the offset's peak-to-peak over the window before): a walking bias, or a loop
+  whose steps move the estimate the other way than they move the model (a branch on which the CLIK
+  runs away).
+
+:class:`TrustRegion` keeps the recent offsets and judges each frame; the outer loop returns to the
+precomputed reference when it refuses, and steps again only after ``recover`` seconds of frames it
+accepts. Times are the caller's [s], coordinates [m] in arm_base.
+"""
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+
+TRUST_SCHEMA = {
+    "clik.trust.radius": ("float", lambda v: 0 < v <= 1,
+                          "a task distance in (0, 1] m: the largest model error an estimate may show"),
+    "clik.trust.drift": ("float", lambda v: 0 < v <= 1,
+                         "a task distance in (0, 1] m: the largest unexplained move of the estimate's "
+                         "offset from the model over clik.trust.window"),
+    "clik.trust.window": ("float", lambda v: 0 < v <= 10, "a time in (0, 10] s"),
+    "clik.trust.recover": ("float", lambda v: 0 <= v <= 60,
+                           "a time in [0, 60] s of trusted frames before online steps resume"),
+}
+
+
+@dataclass(frozen=True)
+class TrustConfig:
+    """``radius`` [m], ``drift`` [m], ``window`` [s] and ``recover`` [s]: see the module docstring."""
+    radius: float
+    drift: float
+    window: float
+    recover: float
+
+    @classmethod
+    def of(cls, values: dict) -> "TrustConfig":
+        """From validated ``control`` values (:data:`TRUST_SCHEMA`'s keys)."""
+        return cls(*(float(values[f"clik.trust.{k}"]) for k in ("radius", "drift", "window", "recover")))
+
+
+class TrustRegion:
+    """Judges an estimated feedback frame by frame (:meth:`judge`); :meth:`reset` forgets the
+    offsets (a new goal, a reference that jumped)."""
+
+    def __init__(self, config: TrustConfig):
+        self.config = config
+        self._history: deque = deque()      # (t [s], offset [m]) over the last two windows
+
+    def reset(self):
+        self._history.clear()
+
+    def judge(self, t: float, x_estimate, x_model) -> str | None:
+        """Take the frame at t [s] (the estimate's task coordinates and the model's at the current
+        reference [m]); None when it is within the trust region, otherwise why not."""
+        c = self.config
+        offset = np.asarray(x_estimate, dtype=float) - np.asarray(x_model, dtype=float)
+        history = self._history
+        history.append((float(t), offset))
+        while history and history[0][0] < t - 2.0 * c.window - 1e-9:
+            history.popleft()
+        times = np.array([h[0] for h in history])
+        offsets = np.array([h[1] for h in history])
+        recent = offsets[times >= t - c.window - 1e-9]
+        mean = recent.mean(axis=0)
+        if np.linalg.norm(mean) > c.radius:
+            return (f"the estimate puts the task {np.linalg.norm(mean) * 1e3:.1f} mm from where the model "
+                    f"puts the reference (trust radius {c.radius * 1e3:.1f} mm): it has left the arm")
+        if times[0] > t - 2.0 * c.window + 1e-9:
+            return None                      # not yet two windows of offsets: no drift to judge
+        before = offsets[times < t - c.window - 1e-9]
+        swing = 2.0 * float(np.max(np.linalg.norm(before - before.mean(axis=0), axis=1)))
+        moved = float(np.linalg.norm(recent[-1] - recent[0]))
+        if moved > c.drift + swing:
+            return (f"the estimate moved {moved * 1e3:.1f} mm away from what the reference explains in "
+                    f"{c.window:.2f} s (allowed {c.drift * 1e3:.1f} mm + the arm's swing "
+                    f"{swing * 1e3:.1f} mm): a bias, or a loop the estimate does not follow")
+        return None
