@@ -79,7 +79,7 @@ class GoalReport:
     taken). A goal is *unseen* while that stretch is longer than one online period. On an estimated
     feedback (:class:`~soft_arm_control.trust_region.TrustRegion`): ``distrusts``, the times the
     trust region refused the estimate and the reference returned to the goal's precomputed one (its
-    reason in ``distrust``), and ``untrusted_frames``, the frames on which an online step was due
+    reason in ``distrust``, the frame time [s] of the last in ``distrust_time``), and ``untrusted_frames``, the frames on which an online step was due
     but not taken for it; a goal is *untrusted* while it holds the precomputed reference so."""
     target: list
     mode: str
@@ -100,6 +100,7 @@ class GoalReport:
     untrusted_frames: int = 0
     distrusts: int = 0
     distrust: str | None = None
+    distrust_time: float | None = None
     holding: bool = False
     learner: HarmonicLearner | None = field(default=None, repr=False, compare=False)
     _progress_level: float = np.inf
@@ -164,7 +165,7 @@ class GoalReport:
         keys = ("target", "mode", "online_steps", "infeasible_steps", "held_steps", "closest_error",
                 "error", "stalled_steps", "saturated_steps", "closed", "shaped_mode", "learned_periods",
                 "backed_off_periods", "frozen_periods", "unseen_frames", "unseen_time", "untrusted_frames",
-                "distrusts", "distrust")
+                "distrusts", "distrust", "distrust_time")
         return {**{k: getattr(self, k) for k in keys}, "reached": self.reached, "status": self.status}
 
 
@@ -445,6 +446,7 @@ class OuterLoop:
                 return False, False
             report.holding = True
             report.distrusts += 1
+            report.distrust_time = t
             self.reference = self._fallback
             self._hand(self._fallback)
             self.trust.reset()
@@ -495,4 +497,5 @@ def outer_loop_for(model, control, task) -> OuterLoop:
                      control.shaped_modes, control.track_feedforward, control.rate_modes,
                      control.track_dynamics, control.rotor_mass, control.track_learning,
                      control.track_harmonics, control.track_settle_time,
-                     None if control.feedback == "mocap" else TrustRegion(control.trust))
+                     TrustRegion(control.trust) if control.feedback != "mocap" and control.trust.enabled
+                     else None)

@@ -10,10 +10,10 @@ walking away) shows itself in the offset:
 
 - **radius**: the offset, averaged over ``window``, is larger than any model error the lab expects
   (``radius`` [m]): the estimate claims the arm is where the model cannot put it;
-- **drift**: the offset moves by more than ``drift`` [m] over ``window`` beyond what the arm's own
-  swing explains (the offset's peak-to-peak over the window before): a walking bias, or a loop
-  whose steps move the estimate the other way than they move the model (a branch on which the CLIK
-  runs away).
+- **drift**: the offset, in means over quarter windows, moves by more than ``drift`` [m] across
+  ``window`` beyond what the arm's own swing explains (the peak-to-peak of those means over the
+  two windows before, about their straight line): a walking bias, or a loop whose steps move the estimate the other way than they
+  move the model (a branch on which the CLIK runs away).
 
 :class:`TrustRegion` keeps the recent offsets and judges each frame; the outer loop returns to the
 precomputed reference when it refuses, and steps again only after ``recover`` seconds of frames it
@@ -27,6 +27,8 @@ from dataclasses import dataclass
 import numpy as np
 
 TRUST_SCHEMA = {
+    "clik.trust.enabled": ("bool", None, "true or false (false: every estimate is stepped on, as a "
+                           "measurement would be)"),
     "clik.trust.radius": ("float", lambda v: 0 < v <= 1,
                           "a task distance in (0, 1] m: the largest model error an estimate may show"),
     "clik.trust.drift": ("float", lambda v: 0 < v <= 1,
@@ -40,16 +42,19 @@ TRUST_SCHEMA = {
 
 @dataclass(frozen=True)
 class TrustConfig:
-    """``radius`` [m], ``drift`` [m], ``window`` [s] and ``recover`` [s]: see the module docstring."""
+    """``radius`` [m], ``drift`` [m], ``window`` [s] and ``recover`` [s]: see the module docstring;
+    ``enabled``: the outer loop judges an estimated feedback with them."""
     radius: float
     drift: float
     window: float
     recover: float
+    enabled: bool = True
 
     @classmethod
     def of(cls, values: dict) -> "TrustConfig":
         """From validated ``control`` values (:data:`TRUST_SCHEMA`'s keys)."""
-        return cls(*(float(values[f"clik.trust.{k}"]) for k in ("radius", "drift", "window", "recover")))
+        return cls(*(float(values[f"clik.trust.{k}"]) for k in ("radius", "drift", "window", "recover")),
+                   bool(values["clik.trust.enabled"]))
 
 
 class TrustRegion:
@@ -58,7 +63,7 @@ class TrustRegion:
 
     def __init__(self, config: TrustConfig):
         self.config = config
-        self._history: deque = deque()      # (t [s], offset [m]) over the last two windows
+        self._history: deque = deque()      # (t [s], offset [m]) over the last three windows
 
     def reset(self):
         self._history.clear()
@@ -70,7 +75,7 @@ class TrustRegion:
         offset = np.asarray(x_estimate, dtype=float) - np.asarray(x_model, dtype=float)
         history = self._history
         history.append((float(t), offset))
-        while history and history[0][0] < t - 2.0 * c.window - 1e-9:
+        while history and history[0][0] < t - 3.0 * c.window - 1e-9:
             history.popleft()
         times = np.array([h[0] for h in history])
         offsets = np.array([h[1] for h in history])
@@ -79,13 +84,24 @@ class TrustRegion:
         if np.linalg.norm(mean) > c.radius:
             return (f"the estimate puts the task {np.linalg.norm(mean) * 1e3:.1f} mm from where the model "
                     f"puts the reference (trust radius {c.radius * 1e3:.1f} mm): it has left the arm")
-        if times[0] > t - 2.0 * c.window + 1e-9:
-            return None                      # not yet two windows of offsets: no drift to judge
-        before = offsets[times < t - c.window - 1e-9]
-        swing = 2.0 * float(np.max(np.linalg.norm(before - before.mean(axis=0), axis=1)))
-        moved = float(np.linalg.norm(recent[-1] - recent[0]))
+        if times[0] > t - 3.0 * c.window + 1e-9:
+            return None                      # not yet three windows of offsets: no drift to judge
+        # the offset in quarter-window means (the frames' noise averaged out), oldest first: the two
+        # windows before this one (a period of the arm's slowest swing, 0.8 s), then this one
+        edges = t - 3.0 * c.window + 0.25 * c.window * np.arange(13)
+        edges[-1] += 1e-9
+        index = np.digitize(times, edges) - 1
+        means = np.array([offsets[index == k].mean(axis=0) for k in range(12) if np.any(index == k)])
+        if len(means) < 12:
+            return None                      # a gap in the frames: nothing to compare
+        # the swing: the peak-to-peak of the windows before about their straight line (a walk of
+        # the offset is no swing, or a steady walk would excuse itself)
+        k = np.arange(8.0) - 3.5
+        before = means[:8] - means[:8].mean(axis=0) - np.outer(k, k @ means[:8] / (k @ k))
+        swing = max(float(np.linalg.norm(a - b)) for a in before for b in before)
+        moved = float(np.linalg.norm(means[11] - means[8]))
         if moved > c.drift + swing:
             return (f"the estimate moved {moved * 1e3:.1f} mm away from what the reference explains in "
-                    f"{c.window:.2f} s (allowed {c.drift * 1e3:.1f} mm + the arm's swing "
+                    f"{0.75 * c.window:.2f} s (allowed {c.drift * 1e3:.1f} mm + the arm's swing "
                     f"{swing * 1e3:.1f} mm): a bias, or a loop the estimate does not follow")
         return None

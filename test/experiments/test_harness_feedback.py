@@ -1,14 +1,21 @@
 """The closed loop on the shape estimate (ROS-free harness): with the mocap gone from the start, the
 online CLIK on the tendon-only estimate brings the tip to its target, where on the mocap it can
-only hold the precomputed reference; the estimate is recorded against the plant's truth."""
+only hold the precomputed reference; the estimate is recorded against the plant's truth. An
+estimate that leaves the arm is caught by the trust region, and the reference returns to the
+precomputed one: closing the loop on the estimate never ends worse than holding it."""
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
 from conftest import CHI2_3_99, nees_honest, nees_not_overconfident
-from soft_arm_drivers.experiments.harness import load_setup, run_experiment
+from soft_arm_control.shape_estimation import ShapeEstimator
+from soft_arm_drivers.experiments import harness
+from soft_arm_drivers.experiments.harness import load_setup, precompute_targets, run_experiment
 
 ONE_TARGET = ["tasks.coiling.phases=[upward]", "tasks.coiling.phase.upward.sequence=[3]",
               "tasks.coiling.phase.upward.window=6.0"]
+HELD_MARGIN = 1e-3          # m: an estimate the trust region refused ends within the hold's error + this
 MOCAP_LOST = ["plant.mocap.occlusion.blackout=[0.0, 1.0e6]"]
 
 
@@ -71,3 +78,71 @@ def test_the_measured_metrics_of_a_run_the_mocap_never_saw_are_an_error():
     setup = load_setup("coiling", overrides=ONE_TARGET + MOCAP_LOST + short)
     with pytest.raises(ValueError, match="frames saw the task's markers"):
         run_experiment(setup)
+
+
+def blind_outcome_is_safe(blind, held) -> bool:
+    """The blind run reached its target (1.5 mm), or its trust region returned the reference to the
+    precomputed one and says so, ending no more than HELD_MARGIN worse than holding it (``held``:
+    the same target on the mocap without a marker: the precomputed reference, no step)."""
+    goal = blind.goals[0]
+    if blind.metrics[0].final_error <= 1.5e-3:
+        return True
+    return goal["distrusts"] > 0 and blind.metrics[0].final_error <= held.metrics[0].final_error + HELD_MARGIN
+
+
+@pytest.mark.parametrize("target", [1, 2])
+def test_blind_coiling_reaches_its_target_or_holds_the_precomputed_reference(target, runs):
+    one = ONE_TARGET[:1] + [f"tasks.coiling.phase.upward.sequence=[{target}]"] + ONE_TARGET[2:]
+    blind, held = (run_experiment(load_setup("coiling", overrides=one + MOCAP_LOST, feedback=fb), truth=True)
+                   for fb in ("estimate", "mocap"))
+    assert blind_outcome_is_safe(blind, held), (blind.metrics[0].final_error, blind.goals[0])
+    assert blind.goals[0]["status"] != "constrained"
+
+
+def test_blind_coiling_on_target_3_reaches_it_or_holds_the_precomputed_reference(runs):
+    assert blind_outcome_is_safe(runs["estimate"], runs["mocap"]), runs["estimate"].goals[0]
+
+
+class WalkingEstimate(ShapeEstimator):
+    """The estimator, with a bias on every marker growing at ``RATE`` along arm_base x from
+    ``START`` [s] on: an estimate that walks away from the arm."""
+    START, RATE = 7.0, np.array([0.005, 0.0, 0.0])
+
+    def estimate(self):
+        out = super().estimate()
+        return replace(out, markers=out.markers + self.RATE * max(0.0, out.t - self.START))
+
+
+@pytest.fixture(scope="module")
+def walking(runs):
+    """Target 3 without a marker on the walking estimate, with the trust region and without; the
+    walk starts when the online CLIK has brought the arm to rest (its swing below 0.3 mm)."""
+    longer = ["tasks.coiling.phase.upward.window=10.0"]
+    patch = pytest.MonkeyPatch()
+    patch.setattr(harness, "ShapeEstimator", WalkingEstimate)
+    try:
+        return {on: run_experiment(load_setup("coiling", overrides=ONE_TARGET + MOCAP_LOST + longer + [
+            f"control.clik.trust.enabled={str(on).lower()}"], feedback="estimate"), truth=True)
+            for on in (True, False)}
+    finally:
+        patch.undo()
+
+
+def test_an_estimate_walking_away_is_refused_within_half_a_second_and_the_precomputed_reference_holds(
+        walking, runs):
+    guarded = walking[True]
+    goal = guarded.goals[0]
+    assert goal["status"] == "untrusted" and goal["distrusts"] == 1, goal
+    assert WalkingEstimate.START < goal["distrust_time"] <= WalkingEstimate.START + 0.5, goal
+    assert "moved" in goal["distrust"], goal["distrust"]
+    setup = load_setup("coiling", overrides=ONE_TARGET, feedback="estimate")
+    precomputed = precompute_targets(harness.outer_loop_for(harness.build_model(setup.arm), setup.control,
+                                                            setup.task), setup.control, setup.task)[2]
+    np.testing.assert_array_equal(guarded.stored[2].q, precomputed.q)
+    assert guarded.metrics[0].final_error <= runs["mocap"].metrics[0].final_error + HELD_MARGIN
+
+
+def test_without_the_trust_region_the_walking_estimate_drags_the_arm_away(walking, runs):
+    unguarded = walking[False]
+    assert unguarded.goals[0]["distrusts"] == 0
+    assert unguarded.metrics[0].final_error > runs["mocap"].metrics[0].final_error + HELD_MARGIN
