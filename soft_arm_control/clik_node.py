@@ -56,7 +56,7 @@ REPORT_PERIOD = 1.0     # s: the current goal's report on /diagnostics at least 
 LEVELS = {"ok": DiagnosticStatus.OK, "constrained": DiagnosticStatus.WARN,
           "saturated": DiagnosticStatus.WARN, "stalled": DiagnosticStatus.WARN,
           "unreached": DiagnosticStatus.WARN, "unseen": DiagnosticStatus.WARN,
-          "held": DiagnosticStatus.ERROR}
+          "held": DiagnosticStatus.ERROR, "untrusted": DiagnosticStatus.WARN}
 MESSAGES = {"ok": "target feasible",
             "constrained": "target infeasible for the model: moving to the closest feasible point",
             "saturated": "the path is too fast for the tendons: its dynamic feedforward exceeds the "
@@ -65,7 +65,8 @@ MESSAGES = {"ok": "target feasible",
                        "(out of reach, or a load the model lacks)",
             "unreached": "the goal ended away from its target",
             "unseen": "the task's markers are not seen: no online step, the reference holds",
-            "held": "no feasible step: the last reference is held"}
+            "held": "no feasible step: the last reference is held",
+            "untrusted": "the estimate fed back left the trust region: the precomputed reference holds"}
 
 
 class ClikNode(Node):
@@ -203,6 +204,8 @@ class ClikNode(Node):
         index = len(self.outer.reports) - 1 if index is None else index
         report = self.outer.reports[index]
         level, message = LEVELS[report.status], MESSAGES[report.status]
+        if report.status == "untrusted":           # say why: the trust region's reason
+            message = f"{message} ({report.distrust})"
         status = DiagnosticStatus(level=level, name="clik", hardware_id="soft_arm", message=message)
         d = {"goal": index, **report.as_dict(), "frames_dropped": self.frames.dropped,
              "frames_rejected": self.rejected_frames, "clock_steps": self.frame_clock.steps}

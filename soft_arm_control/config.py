@@ -20,7 +20,7 @@ from .input_shaping import SHAPERS
 from .pendulum_geometry import PendulumConfig
 from .trajectories import SHAPES, Trajectory
 from .task_space import AXES, TaskSpace
-from .trust_region import TRUST_SCHEMA, TrustConfig
+from .trust_region import TrustConfig
 
 PHASE_MODES = ("clik", "replay", "precomputed", "online", "track")
 FEEDBACKS = ("mocap", "fused", "estimate")   # what the online CLIK closes its loop on
@@ -89,7 +89,16 @@ CONTROL_SCHEMA = {
     "clik.feedback": ("str", lambda v: v in FEEDBACKS,
                       f"one of {list(FEEDBACKS)}: what mocap/markers carries to the clik node (fused and "
                       "estimate: the shape estimator's, judged by the trust region)"),
-    **TRUST_SCHEMA,
+    "clik.trust.enabled": ("bool", None, "true or false (false: every estimate is stepped on, as a "
+                           "measurement would be)"),
+    "clik.trust.radius": ("float", lambda v: 0 < v <= 1,
+                          "a task distance in (0, 1] m: the largest model error an estimate may show"),
+    "clik.trust.drift": ("float", lambda v: 0 < v <= 1,
+                         "a task distance in (0, 1] m: the largest unexplained move of the estimate's "
+                         "offset from the model over clik.trust.window"),
+    "clik.trust.window": ("float", lambda v: 0 < v <= 10, "a time in (0, 10] s"),
+    "clik.trust.recover": ("float", lambda v: 0 <= v <= 60,
+                           "a time in [0, 60] s of trusted frames before online steps resume"),
     "clik.shaping.shaper": ("str", lambda v: v in SHAPERS, f"one of {list(SHAPERS)}"),
     "clik.shaping.level": ("float", lambda v: 0 < v <= 1, "a vibration amplitude in (0, 1] m"),
     "clik.shaping.modes": ("strs", lambda v: len(v) >= 1 and set(v) <= set(SHAPED_MODES),

@@ -79,8 +79,9 @@ class GoalReport:
     taken). A goal is *unseen* while that stretch is longer than one online period. On an estimated
     feedback (:class:`~soft_arm_control.trust_region.TrustRegion`): ``distrusts``, the times the
     trust region refused the estimate and the reference returned to the goal's precomputed one (its
-    reason in ``distrust``, the frame time [s] of the last in ``distrust_time``), and ``untrusted_frames``, the frames on which an online step was due
-    but not taken for it; a goal is *untrusted* while it holds the precomputed reference so."""
+    reason in ``distrust``, the frame time [s] of the last in ``distrust_time``), and
+    ``untrusted_frames``, the frames on which an online step was due but not taken for it; a goal is
+    *untrusted* while it holds the precomputed reference so."""
     target: list
     mode: str
     reach_tolerance: float = 1e-3

@@ -12,8 +12,8 @@ walking away) shows itself in the offset:
   (``radius`` [m]): the estimate claims the arm is where the model cannot put it;
 - **drift**: the offset, in means over quarter windows, moves by more than ``drift`` [m] across
   ``window`` beyond what the arm's own swing explains (the peak-to-peak of those means over the
-  two windows before, about their straight line): a walking bias, or a loop whose steps move the estimate the other way than they
-  move the model (a branch on which the CLIK runs away).
+  two windows before, about their straight line): a walking bias, or a loop whose steps move the
+  estimate the other way than they move the model (a branch on which the CLIK runs away).
 
 :class:`TrustRegion` keeps the recent offsets and judges each frame; the outer loop returns to the
 precomputed reference when it refuses, and steps again only after ``recover`` seconds of frames it
@@ -25,19 +25,6 @@ from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
-
-TRUST_SCHEMA = {
-    "clik.trust.enabled": ("bool", None, "true or false (false: every estimate is stepped on, as a "
-                           "measurement would be)"),
-    "clik.trust.radius": ("float", lambda v: 0 < v <= 1,
-                          "a task distance in (0, 1] m: the largest model error an estimate may show"),
-    "clik.trust.drift": ("float", lambda v: 0 < v <= 1,
-                         "a task distance in (0, 1] m: the largest unexplained move of the estimate's "
-                         "offset from the model over clik.trust.window"),
-    "clik.trust.window": ("float", lambda v: 0 < v <= 10, "a time in (0, 10] s"),
-    "clik.trust.recover": ("float", lambda v: 0 <= v <= 60,
-                           "a time in [0, 60] s of trusted frames before online steps resume"),
-}
 
 
 @dataclass(frozen=True)
@@ -52,7 +39,7 @@ class TrustConfig:
 
     @classmethod
     def of(cls, values: dict) -> "TrustConfig":
-        """From validated ``control`` values (:data:`TRUST_SCHEMA`'s keys)."""
+        """From validated ``control`` values (``clik.trust.*``)."""
         return cls(*(float(values[f"clik.trust.{k}"]) for k in ("radius", "drift", "window", "recover")),
                    bool(values["clik.trust.enabled"]))
 

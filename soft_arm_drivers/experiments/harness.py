@@ -225,6 +225,11 @@ def goal_warning(goal: dict) -> str:
                 f"for the last {goal['stalled_steps']} of {goal['online_steps']} online steps, although "
                 f"every step was feasible for the model (out of the arm's reach, or a load the model "
                 f"lacks); {closest}")
+    if goal["status"] == "untrusted":
+        return (f"{head} held its precomputed reference: the trust region refused the estimate fed back "
+                f"{goal['distrusts']} time(s), the last at {goal['distrust_time']:.2f} s "
+                f"({goal['distrust']}); "
+                f"{goal['untrusted_frames']} frames without an online step; {closest}")
     return (f"{head} is infeasible for the model from where the online CLIK got: "
             f"{goal['infeasible_steps']} of {goal['online_steps']} steps projected onto the tension "
             f"limits, {goal['held_steps']} held; {closest}")
