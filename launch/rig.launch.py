@@ -57,7 +57,8 @@ def generate_launch_description():
                     condition=IfCondition(PythonExpression(["'", feedback, "' != 'mocap'"])))]
     for name in NODES:
         options = dict(package="soft_arm", executable=name, name=name, output="screen",
-                       parameters=params + [task] + ([start[name]] if name in start else []),
+                       parameters=params + [task] + ([start[name]] if name in start else [])
+                       + ([{"control.clik.feedback": feedback}] if name == "clik" else []),
                        prefix="chrt -f 20" if name in REALTIME else None,
                        remappings=[("mocap/markers", topic)] if name == "clik" else [])
         if name not in MANAGED:

@@ -2,7 +2,8 @@
 ``ros2 launch soft_arm sim.launch.py task:=triangle [feedback:=fused]``). Every node reads the
 package's parameter files; ``soft-arm-experiment`` starts the same graph without ``launch``.
 ``feedback`` (mocap, fused or estimate): what the clik closes its loop on; other than mocap, the
-shape estimator joins the graph and the clik's ``mocap/markers`` is remapped onto its topic."""
+shape estimator joins the graph, the clik's ``mocap/markers`` is remapped onto its topic and its
+``control.clik.feedback`` set (the trust region judges the estimate)."""
 import os
 
 from ament_index_python.packages import get_package_share_directory
@@ -32,7 +33,8 @@ def generate_launch_description():
         [DeclareLaunchArgument("task", default_value="triangle"),
          DeclareLaunchArgument("feedback", default_value="mocap", choices=list(FEEDBACK))]
         + [Node(package="soft_arm", executable=name, name=name, output="screen",
-                parameters=params + [task, {"use_sim_time": name in SIM_TIME_NODES}],
+                parameters=params + [task, {"use_sim_time": name in SIM_TIME_NODES}]
+                + ([{"control.clik.feedback": feedback}] if name == "clik" else []),
                 remappings=[("mocap/markers", topic)] if name == "clik" else []) for name in NODES]
         + [Node(package="soft_arm", executable="shape_estimator", name="shape_estimator", output="screen",
                 parameters=params, condition=IfCondition(PythonExpression(["'", feedback, "' != 'mocap'"])))])

@@ -6,7 +6,9 @@ Subscribes ``tendon/state`` (shortenings [m], rates [m/s], applied tensions [N])
 estimate with the latest state and the latest frame since the last update, and publishes, stamped
 with that state's stamp:
 
-- ``estimate/markers`` (PoseArray, the layout of ``mocap/markers``): the estimate of every marker;
+- ``estimate/markers`` (PoseArray, the layout of ``mocap/markers``): the estimate of every marker
+  the estimator stands by, the others invalid (NaN: the estimate is lost, or the marker's standard
+  deviation exceeds ``estimator.max_sigma``; :meth:`~.shape_estimation.ShapeEstimate.defended`);
 - ``fused/markers`` (the same layout): the frame's markers where the mocap saw them, the estimate's
   elsewhere (the estimate's alone when no frame came since the last update);
 - ``estimate/tip`` (PoseWithCovarianceStamped): the tip and its position covariance [m^2];
@@ -14,9 +16,10 @@ with that state's stamp:
 - once a second of wall time ``/diagnostics`` (status ``shape_estimator``, from the first update):
   markers used and gated, the
   innovations' mean normalised squares, divergences, updates left out of the model's domain,
-  restarts, the estimated stiffness scale and friction coefficients, the tip's standard deviation.
-  WARN when a marker diverged, an update was left out or the estimate restarted since the last
-  report.
+  restarts, the updates whose markers went out invalid (``undefended``, with the last reason), the
+  estimated stiffness scale and friction coefficients, the tip's standard deviation.
+  WARN when a marker diverged, an update was left out, the estimate restarted or was not stood by
+  since the last report.
 
 The online CLIK closes its loop on either topic by remapping its ``mocap/markers`` (``soft-arm-
 experiment --feedback fused|estimate``). A state whose stamp is no number, or any field no number,
@@ -66,6 +69,7 @@ class ShapeEstimatorNode(Node):
         self.frame = None                # the latest frame's markers since the last update
         self.rejected = 0
         self.nis, self.used, self.gated = [], 0, 0
+        self.undefended, self.distrust = 0, None      # updates with invalid markers, the last reason
         self._reported_counts = dict(self.core.counts)
         self._reported_at = -math.inf
         self.estimate_pub = self.create_publisher(PoseArray, TOPICS["estimate"], QOS["estimate/markers"])
@@ -113,8 +117,13 @@ class ShapeEstimatorNode(Node):
             self.nis += [v for v in report.marker_nis if np.isfinite(v)]
         self.used += len(report.used)
         self.gated += len(report.gated)
-        self.estimate_pub.publish(pose_array(estimate.markers, t))
-        self.fused_pub.publish(pose_array(fused_markers(self.frame, estimate.markers), t))
+        defended = estimate.defended(self.config.max_sigma)
+        if not np.all(np.isfinite(defended)):
+            self.undefended += 1
+            self.distrust = (estimate.distrust
+                             or f"a marker's standard deviation above {self.config.max_sigma} m")
+        self.estimate_pub.publish(pose_array(defended, t))
+        self.fused_pub.publish(pose_array(fused_markers(self.frame, defended), t))
         self.tip_pub.publish(self._tip(estimate, t))
         self.shape_pub.publish(self._shape(t))
         self.frame = None
@@ -157,14 +166,18 @@ class ShapeEstimatorNode(Node):
         counts = self.core.counts
         new = {k: counts[k] - self._reported_counts[k] for k in ("diverged", "out_of_domain", "restarts")}
         stiffness, friction = self.core.parameters
-        level = DiagnosticStatus.WARN if any(new.values()) else DiagnosticStatus.OK
-        message = "estimating" if not any(new.values()) else (
+        warn = any(new.values()) or self.undefended
+        level = DiagnosticStatus.WARN if warn else DiagnosticStatus.OK
+        message = "estimating" if not warn else (
             f"{new['diverged']} marker divergences, {new['out_of_domain']} updates left out of the "
-            f"model's domain, {new['restarts']} restarts (the estimate was lost) since the last report")
+            f"model's domain, {new['restarts']} restarts (the estimate was lost), {self.undefended} "
+            "updates with markers not stood by since the last report"
+            + (f" (last: {self.distrust})" if self.distrust else ""))
         values = {"updates": counts["updates"], "markers_used": self.used, "markers_gated": self.gated,
                   "marker_nis_mean": float(np.mean(self.nis)) if self.nis else "",
                   "diverged": counts["diverged"], "out_of_domain": counts["out_of_domain"],
-                  "restarts": counts["restarts"],
+                  "restarts": counts["restarts"], "undefended": self.undefended,
+                  "distrust": self.distrust or "",
                   "rejected": self.rejected, "clock_steps": self.clock.steps,
                   "stiffness_scale": round(stiffness, 4),
                   "friction": [round(float(f), 4) for f in friction],
@@ -176,6 +189,7 @@ class ShapeEstimatorNode(Node):
         seconds_to_stamp(msg.header.stamp, stamp)
         self.diagnostics_pub.publish(msg)
         self.nis, self.used, self.gated = [], 0, 0
+        self.undefended, self.distrust = 0, None
         self._reported_counts = dict(counts)
         self._reported_at = time.monotonic()
 

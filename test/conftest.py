@@ -38,13 +38,48 @@ SERIAL = ("drivers/sim/test_emulated_rig.py", "drivers/sim/test_emulated_hardwar
           "test_benches.py::test_the_mocap_bench_measures_through_the_bridge_node")
 
 
+# Tests that assert a closed-loop figure (an error, an RMS, targets reached, a NEES): `test/variants`
+# runs them on other arithmetics and on perturbed twins of the plant, where each must hold as well.
+FIGURES = ("experiments/test_harness.py", "experiments/test_harness_feedback.py",
+           "control/test_shape_estimation.py", "graph/test_graph.py", "graph/test_feedback_graph.py")
+
+
 def pytest_collection_modifyitems(config, items):
-    """Mark the tests of :data:`SERIAL` ``serial``."""
+    """Mark the tests of :data:`SERIAL` ``serial`` and those of :data:`FIGURES` ``figure``."""
     root = os.path.dirname(os.path.abspath(__file__))
     for item in items:
         path = os.path.relpath(str(item.fspath), root)
         if path in SERIAL or f"{path}::{item.originalname}" in SERIAL:
             item.add_marker(pytest.mark.serial)
+        if path in FIGURES or f"{path}::{item.originalname}" in FIGURES:
+            item.add_marker(pytest.mark.figure)
+
+
+# SOFT_ARM_TWIN=k (1, 2, 3; `test/variants`): every plant this process simulates is a twin of the
+# configured one, its physical differences from the controller's arm scaled by 1 +- 1e-6 and its
+# mocap drawn from another seed. A figure that holds on the plant and not on its twins was luck.
+TWIN = int(os.environ.get("SOFT_ARM_TWIN", "0") or 0)
+if TWIN:
+    from dataclasses import replace as _replace
+
+    from soft_arm_drivers.sim import plant_config as _plant_config
+
+    _parse_plant = _plant_config.parse_plant
+
+    def _twin_of(value, rng):
+        if isinstance(value, float):
+            return value * (1.0 + 1e-6 * rng.choice((-1.0, 1.0)))
+        if isinstance(value, (list, tuple)) and value and all(isinstance(v, float) for v in value):
+            return type(value)(_twin_of(v, rng) for v in value)
+        return value
+
+    def _parse_twin(values, arm):
+        plant = _parse_plant(values, arm)
+        rng = np.random.default_rng(TWIN)
+        return _replace(plant, arm_values={k: _twin_of(v, rng) for k, v in sorted(plant.arm_values.items())},
+                        mocap_seed=plant.mocap_seed + 1000 * TWIN)
+
+    _plant_config.parse_plant = _parse_twin
 
 
 from soft_arm_model import build_model, load_arm_config  # noqa: E402

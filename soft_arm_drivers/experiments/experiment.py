@@ -37,7 +37,7 @@ from .metrics import Summary, TrackingMetrics, TransitionMetrics, format_table, 
 from .strike import PLANNED_ON_THE_GRAPH, format_strike
 from .harness import add_setup_arguments, check_targets, load_setup, setup_overrides
 from .excitation import Excitation
-from .orchestration import STOP, feedback_remap, request_stop, roles, run_emulated_hardware, run_processes
+from .orchestration import STOP, feedback_arguments, request_stop, roles, run_emulated_hardware, run_processes
 from .writable import writable_directory
 
 NAMESPACES = ("arm", "control", "plant", "tasks", "graph", "identification", "estimator")
@@ -90,7 +90,7 @@ def run_composed(ros_args: list, out: dict, progress=None, config_dir: str | Non
 
     ``node_args``: extra command-line arguments per node name (e.g. remaps:
     ``{"simulator": ["--ros-args", "-r", "__ns:=/hw"]}``); ``feedback``: what the clik closes its
-    loop on (:func:`~.orchestration.feedback_remap`).
+    loop on (:func:`~.orchestration.feedback_arguments`).
     """
     import rclpy
     from rclpy.parameter import Parameter
@@ -116,8 +116,8 @@ def run_composed(ros_args: list, out: dict, progress=None, config_dir: str | Non
     nodes, executor = [], None
     try:
         node_args = dict(node_args or {})
-        if feedback_remap(feedback):
-            node_args["clik"] = (node_args.get("clik") or ["--ros-args"]) + feedback_remap(feedback)
+        if feedback_arguments(feedback):
+            node_args["clik"] = (node_args.get("clik") or ["--ros-args"]) + feedback_arguments(feedback)
 
         def options(name):
             return {"start_parameter_services": False, "cli_args": node_args.get(name)}

@@ -240,10 +240,14 @@ def roles(task: str, feedback: str = "mocap") -> tuple:
     return controller, runner
 
 
-def feedback_remap(feedback: str) -> list:
-    """The clik's remapping (arguments after ``--ros-args``) that closes its loop on ``feedback``."""
+def feedback_arguments(feedback: str) -> list:
+    """The clik's arguments (after ``--ros-args``) that close its loop on ``feedback``: the remapping
+    of its mocap/markers, and ``control.clik.feedback``, which puts an estimate under the trust
+    region (:mod:`soft_arm_control.trust_region`)."""
     topic = FEEDBACK_TOPICS[feedback]
-    return [] if topic is None else ["-r", f"mocap/markers:={topic}"]
+    if topic is None:
+        return []
+    return ["-r", f"mocap/markers:={topic}", "-p", f"control.clik.feedback:={feedback}"]
 
 
 def run_processes(ros_args: list, out: dict, task: str = "", feedback: str = "mocap") -> dict:
@@ -260,7 +264,7 @@ def run_processes(ros_args: list, out: dict, task: str = "", feedback: str = "mo
     children = _Children(ros_args, {
         "recorder": ["-p", f"output:={out['bag']}", "-p", "use_sim_time:=true"],
         runner: ["-p", f"output:={out['metrics']}", "-p", "wait_for_start:=true"],
-        "clik": feedback_remap(feedback)})
+        "clik": feedback_arguments(feedback)})
     start = time.monotonic()
     with _orchestrating(children) as node:
         begin = node.create_client(Trigger, f"/{runner}/start")
@@ -322,7 +326,7 @@ def run_emulated_hardware(ros_args: list, out: dict, duration: float,
               "long enough for the motor driver's watchdog to trip", file=sys.stderr)
     controller, runner = roles(task, feedback)
     children = _Children(ros_args, {
-        "clik": feedback_remap(feedback),
+        "clik": feedback_arguments(feedback),
         "recorder": ["-p", f"output:={out['bag']}"],
         runner: ["-p", f"output:={out['metrics']}", "-p", "wait_for_start:=true"],
         # the one node whose commands the driver takes: the inner loop, or the excitation

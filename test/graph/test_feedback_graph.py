@@ -6,7 +6,7 @@ import json
 import pytest
 
 from soft_arm_drivers.experiments.experiment import _ros_arguments, run_composed
-from soft_arm_drivers.experiments.orchestration import FEEDBACK_TOPICS, feedback_remap, roles
+from soft_arm_drivers.experiments.orchestration import FEEDBACK_TOPICS, feedback_arguments, roles
 from soft_arm_ros.contract import TOPICS
 
 ONE_TARGET = ["tasks.coiling.phases=[upward]", "tasks.coiling.phase.upward.sequence=[3]",
@@ -29,8 +29,9 @@ def test_the_feedback_topics_are_the_contracts_and_add_the_estimator():
     assert FEEDBACK_TOPICS["fused"] == TOPICS["fused"] and FEEDBACK_TOPICS["estimate"] == TOPICS["estimate"]
     assert roles("coiling", "fused")[0] == ("inner_loop", "clik", "shape_estimator")
     assert roles("coiling")[0] == ("inner_loop", "clik") and roles("identification", "fused")[0] == ()
-    assert feedback_remap("estimate") == ["-r", "mocap/markers:=estimate/markers"]
-    assert feedback_remap("mocap") == []
+    assert feedback_arguments("estimate") == ["-r", "mocap/markers:=estimate/markers",
+                                              "-p", "control.clik.feedback:=estimate"]
+    assert feedback_arguments("mocap") == []
 
 
 @pytest.mark.parametrize("feedback", ["mocap", "fused"])
