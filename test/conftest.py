@@ -2,6 +2,7 @@
 import os
 import pathlib
 import re
+import select
 import signal
 import subprocess
 import time
@@ -131,13 +132,16 @@ def wait_for_output(proc, text: str, timeout: float = 60.0) -> str:
     seen = []
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
+        # never a read that blocks past the deadline: a silent process fails the wait on time
+        if not select.select([proc.stdout], [], [], max(0.0, deadline - time.monotonic()))[0]:
+            break
         line = proc.stdout.readline()
         if not line and proc.poll() is not None:
             break
         seen.append(line)
         if text in line:
             return "".join(seen)
-    raise AssertionError(f"{text!r} not seen; output:\n{''.join(seen)}")
+    raise AssertionError(f"{text!r} not seen within {timeout:g} s; output:\n{''.join(seen)}")
 
 
 @contextmanager

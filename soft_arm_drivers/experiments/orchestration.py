@@ -34,18 +34,29 @@ def request_stop(signum, frame):
     STOP.set()
 
 
+# s: how long each wait of a bring-up may take before it stops the run, naming what it still waits
+# for (a node's set-up, discovery, the first messages); the tests that watch a bring-up wait longer
+BRINGUP_TIMEOUT = 60.0
+# s: the run's own endpoints unchanged this long before the motors are enabled (their discovery over)
+GRAPH_SETTLE = 2.0
+
+
 def _wait_for_graph(node, children, flowing: tuple = (), settle: float = 0.0,
-                    timeout: float = 120.0, published: tuple = ("command", "reference", "state", "markers")):
+                    timeout: float = BRINGUP_TIMEOUT,
+                    published: tuple = ("command", "reference", "state", "markers")):
     """Until the graph is wired: a publisher on each of the ``published`` topics (names of
     ``TOPICS``: by default the controller's and the plant's; a node creates them once its set-up is
     done), a recorder, messages arriving on the ``flowing``
     topics (names of ``TOPICS``: e.g. the controller answering the motors' state), and, with
-    ``settle`` [s], no endpoint appearing or going for that long (discovery over). The probe
+    ``settle`` [s], no endpoint of the run's own nodes appearing or going for that long (their
+    discovery over; other nodes on the domain, a ``ros2 topic echo`` or an RViz coming and going,
+    are not waited for). The probe
     subscriptions on the ``flowing`` topics leave the graph as soon as their messages have
     arrived, before it settles: kept, they would cost this process a callback per message for the
     whole run (tendon/command at the inner loop's rate and the mocap frames: a quarter of a core on
     a 2-core lab PC, bench_emulated_rig.py), and their leaving is one more change of the graph.
-    RuntimeError when a node exits or after ``timeout`` [s]."""
+    RuntimeError when a node exits or after ``timeout`` [s], naming what is still missing or which
+    node's endpoints kept changing."""
     import rclpy
 
     from soft_arm_ros.contract import QOS, TOPICS, TYPES, message_class
@@ -58,35 +69,47 @@ def _wait_for_graph(node, children, flowing: tuple = (), settle: float = 0.0,
             message_class(TYPES[topic]), topic,
             lambda msg, topic=topic: counts.__setitem__(topic, counts[topic] + 1), QOS[topic]))
     deadline = time.monotonic() + timeout
-    graph, since = None, time.monotonic()
+    graph, since, changed = None, time.monotonic(), []
+    names = children.node_names()
     while not STOP.is_set():
         children.check()
         missing = [t for t in topics if node.count_publishers(t) == 0]
         missing += [f"{t} (no messages yet)" for t, n in counts.items() if n < 10]
         if "recorder" not in node.get_node_names():
             missing.append("the recorder")
-        now = _endpoints(node)
+        now = _endpoints(node, names)
         if now != graph:
+            if graph is not None:
+                changed = sorted(set(now.items()) ^ set(graph.items()))
             graph, since = now, time.monotonic()
         if not missing and (probes or time.monotonic() - since >= settle):
             break
         if time.monotonic() > deadline:
-            raise RuntimeError(f"the graph is not up after {timeout:g} s: "
-                               + (f"nothing on {missing}" if missing else "its endpoints keep changing"))
+            raise RuntimeError(
+                f"the graph is not up after {timeout:g} s: " + (
+                    f"nothing on {missing}" if missing else
+                    f"the endpoints of {sorted({name for name, _ in changed})} keep changing "
+                    f"(last {time.monotonic() - since:.1f} s ago; {settle:g} s without a change wanted)"))
         rclpy.spin_once(node, timeout_sec=0.05)
     else:
         return
     if probes:
         for probe in probes:
             node.destroy_subscription(probe)
-        _wait_for_graph(node, children, settle=settle, timeout=settle + 30.0, published=published)
+        _wait_for_graph(node, children, settle=settle, timeout=min(timeout, settle + 30.0),
+                        published=published)
 
 
-def _endpoints(node) -> tuple:
-    """The graph's nodes, and its topics with their publisher and subscriber counts."""
-    return (tuple(sorted(node.get_node_names_and_namespaces())),
-            tuple((topic, node.count_publishers(topic), node.count_subscribers(topic))
-                  for topic, _ in sorted(node.get_topic_names_and_types())))
+def _endpoints(node, names) -> dict:
+    """{node name: its publishers, subscriptions and services} of the run's own nodes ``names`` as
+    this process has discovered them (the domain's other nodes are left out)."""
+    out = {}
+    for name, namespace in node.get_node_names_and_namespaces():
+        if name in names:
+            out[name] = tuple(tuple(sorted(t for t, _ in query(name, namespace))) for query in (
+                node.get_publisher_names_and_types_by_node, node.get_subscriber_names_and_types_by_node,
+                node.get_service_names_and_types_by_node))
+    return out
 
 
 def _call(node, client, request, timeout: float = 10.0):
@@ -106,7 +129,7 @@ def _call(node, client, request, timeout: float = 10.0):
     return response
 
 
-def _wait_for_services(node, children, clients, timeout: float = 120.0):
+def _wait_for_services(node, children, clients, timeout: float = BRINGUP_TIMEOUT):
     """Until every client's server is discovered (a node's set-up done); RuntimeError when a node
     exits or after ``timeout`` [s]."""
     import rclpy
@@ -133,6 +156,10 @@ def _change_state(node, client, label: str, timeout: float = 10.0):
                            f"(see that node's log)") from None
 
 
+# the nodes of a process whose console script is not named after its one node
+_PROCESS_NODES = {"emulated_rig": ("motor_driver",)}
+
+
 class _Children:
     """The node processes of one run (the console scripts' modules with the run's arguments), on
     loopback; ``realtime``: the SCHED_FIFO priorities of the processes that have one (their CPUs
@@ -144,6 +171,10 @@ class _Children:
         self.niceness = niceness
         self.env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
         self.procs: dict = {}
+
+    def node_names(self) -> set:
+        """The names of the nodes the started processes run (the emulated rig's: motor_driver)."""
+        return {node for name in self.procs for node in _PROCESS_NODES.get(name, (name,))}
 
     def start(self, name: str):
         """Start a node in a process group of its own (setsid: a Ctrl-C in the terminal reaches
@@ -341,9 +372,11 @@ def run_emulated_hardware(ros_args: list, out: dict, duration: float,
     enabled_at = math.inf                  # system time [s] from which a fault counts
     start = time.monotonic()
 
+    settling = {}                          # s: the drivers' set-up to the wired, settled graph, to the enable
+
     def facts():
         return {"wall_s": time.monotonic() - start, "emulated_hardware": True, "realtime": fifo,
-                "driver_faults": faults}
+                "driver_faults": faults, **settling}
 
     driving = False                        # the task runs on active motors
 
@@ -372,21 +405,29 @@ def run_emulated_hardware(ros_args: list, out: dict, duration: float,
         begin = node.create_client(Trigger, f"/{runner}/start")
         for name in ("recorder", "emulated_rig", "mocap_bridge", *controller, runner):
             children.start(name)
-        _wait_for_services(node, children, (zero, driver, bridge, begin))
+        # the whole bring-up within BRINGUP_TIMEOUT, each wait naming what it still waits for
+        deadline = time.monotonic() + BRINGUP_TIMEOUT
+
+        def left() -> float:
+            return max(1.0, deadline - time.monotonic())
+        _wait_for_services(node, children, (zero, driver, bridge, begin), timeout=left())
         if STOP.is_set():
             return facts()
         for client, label in ((driver, "configure"), (bridge, "configure"), (bridge, "activate")):
-            _change_state(node, client, label)
-        _wait_for_graph(node, children, ("command", "markers"), settle=2.0,
+            _change_state(node, client, label, timeout=min(10.0, left()))
+        drivers_up = time.monotonic()
+        _wait_for_graph(node, children, ("command", "markers"), settle=GRAPH_SETTLE, timeout=left(),
                         published=("command", "reference", "state", "markers")
                         if controller else ("command", "state", "markers"))
+        settling["graph_settled_s"] = round(time.monotonic() - drivers_up, 3)
         if STOP.is_set():
             return facts()
         children.go_realtime()
-        _call(node, zero, Trigger.Request())
+        _call(node, zero, Trigger.Request(), timeout=min(10.0, left()))
         try:
-            _change_state(node, driver, "activate")
+            _change_state(node, driver, "activate", timeout=min(10.0, left()))
             enabled_at = time.time()
+            settling["motors_enabled_s"] = round(time.monotonic() - drivers_up, 3)
             driving = True
             _call(node, begin, Trigger.Request())
             deadline = time.monotonic() + duration + 60.0

@@ -22,6 +22,7 @@ from soft_arm_drivers.can.driver_config import load_driver_config
 from soft_arm_drivers.experiments.experiment import _ros_arguments, main, run_composed
 from soft_arm_drivers.experiments.figures import read_series
 from soft_arm_drivers.experiments.identify_cli import write_identified_arm
+from soft_arm_drivers.experiments.orchestration import BRINGUP_TIMEOUT, GRAPH_SETTLE
 from soft_arm_drivers.mocap.bridge_config import load_mocap_config
 from soft_arm_drivers.sim.emulated_rig import load_emulator_config, read_emulated_motors
 from soft_arm_model import build_model, load_arm_config, marker_positions, solve_equilibrium, tendon_lengths
@@ -104,6 +105,7 @@ def test_closed_loop_through_the_emulated_hardware_reaches_the_target_like_the_s
     with open(out / "metrics.json", encoding="utf-8") as fh:
         hil = json.load(fh)
     assert hil["run"]["emulated_hardware"] and hil["run"]["driver_faults"] == []
+    assert hil["run"]["motors_enabled_s"] <= GRAPH_SETTLE + 5.0, hil["run"]
 
     sim_dir = tmp_path / "sim"
     sim_dir.mkdir()
@@ -133,6 +135,46 @@ def test_closed_loop_through_the_emulated_hardware_reaches_the_target_like_the_s
     assert 0.85 / MOCAP_RATE < np.median(np.diff(markers)) < 1.2 / MOCAP_RATE
     assert len(series["tendon/command"]) > 0.8 * len(state)
     assert before < state[0] and state[-1] < after and before < markers[0] and markers[-1] < after
+
+
+# Another process on the domain that every 0.5 s creates a node subscribed to tendon/state and
+# destroys the one before (a `ros2 topic echo` started and stopped, RViz restarting), for at most
+# argv[1] seconds
+CHURN = """
+import sys, time
+import rclpy
+from sensor_msgs.msg import JointState
+rclpy.init()
+end, k, last = time.monotonic() + float(sys.argv[1]), 0, None
+while time.monotonic() < end:
+    node = rclpy.create_node(f"visitor_{k}")
+    node.create_subscription(JointState, "/tendon/state", lambda msg: None, 10)
+    if last is not None:
+        last.destroy_node()
+    last, k = node, k + 1
+    time.sleep(0.5)
+rclpy.shutdown()
+"""
+
+
+def test_the_rig_comes_up_on_a_domain_where_other_nodes_come_and_go(tmp_path, config_dir):
+    """The bring-up waits for the run's own nodes to settle, not the domain's: with another process
+    creating and destroying a node every 0.5 s, the motors are enabled within the settle time + 5 s
+    of the drivers' set-up."""
+    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    churn = subprocess.Popen([sys.executable, "-c", CHURN, str(2 * BRINGUP_TIMEOUT)], env=env)
+    try:
+        out = tmp_path / "run"
+        sets = [a for s in ONE_TARGET for a in ("--set", s)]
+        assert main(["coiling", "--emulated-hardware", "--quiet", "--config", config_dir, "--output",
+                     str(out)] + sets) == 0
+        assert churn.poll() is None                 # it churned the whole bring-up
+    finally:
+        churn.terminate()
+        churn.wait(timeout=30)
+    with open(out / "metrics.json", encoding="utf-8") as fh:
+        run = json.load(fh)["run"]
+    assert run["driver_faults"] == [] and run["motors_enabled_s"] <= GRAPH_SETTLE + 5.0, run
 
 
 def _experiment(config_dir, out, *options) -> subprocess.Popen:
