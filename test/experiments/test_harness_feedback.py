@@ -146,3 +146,20 @@ def test_without_the_trust_region_the_walking_estimate_drags_the_arm_away(walkin
     unguarded = walking[False]
     assert unguarded.goals[0]["distrusts"] == 0
     assert unguarded.metrics[0].final_error > runs["mocap"].metrics[0].final_error + HELD_MARGIN
+
+
+@pytest.fixture(scope="module")
+def blind_triangle():
+    """The triangle's three vertices from the hanging arm (its approach phase), every marker hidden:
+    on the tendon-only estimate, and on the mocap (which holds the precomputed references)."""
+    approach = ["tasks.triangle.phases=[approach]"]
+    return {fb: run_experiment(load_setup("triangle", overrides=approach + MOCAP_LOST, feedback=fb),
+                               truth=True) for fb in ("estimate", "mocap")}
+
+
+def test_the_blind_triangle_reaches_every_vertex_or_holds_its_precomputed_reference(blind_triangle):
+    blind, held = blind_triangle["estimate"], blind_triangle["mocap"]
+    for k, (row, goal, hold) in enumerate(zip(blind.metrics, blind.goals, held.metrics)):
+        held_safely = goal["distrusts"] > 0 and row.final_error <= hold.final_error + HELD_MARGIN
+        safe = row.final_error <= 1.5e-3 or held_safely
+        assert safe and goal["status"] != "constrained", (k + 1, row.final_error, goal)
