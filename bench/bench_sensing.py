@@ -6,6 +6,11 @@ feedback (mocap, fused, estimate) under four mocap scenarios; prints tables, wri
                                   [--output bench/results/sensing.json]
     python bench/bench_sensing.py --draws 10 [--tasks triangle] [--output bench/results/sensing_draws.json]
 
+With ``--draws``, each blind run (no marker, the loop on the estimate) is printed beside the same run
+holding the precomputed references (``hold``: on the mocap, without a marker): ``worse`` is the
+largest amount [mm] by which a transition's final error on the estimate exceeds the hold's, and
+``refused`` counts the trust region's refusals.
+
 Scenarios (``plant.mocap.occlusion``): *clean*, no occlusion; *realistic*, the declared plant's
 (the cameras' lines of sight against the arm's body, 1 % dropouts); *heavy*, realistic with the
 tip marker lost 30 % of the time in 0.5 s bursts; *lost*, realistic until the end of the first
@@ -115,12 +120,21 @@ def run_spec(spec: dict) -> dict:
 def _blind(task: str, overrides: list, arm_file=None) -> dict:
     """``task`` without a marker, closed on the estimate, with the controller's (and estimator's)
     model of ``arm_file`` (None: arm.yaml); targets its model cannot hold moved to the closest it
-    can (``--accept-closest``)."""
+    can (``--accept-closest``). Beside it, ``hold``: the same run on the mocap, which without a
+    marker takes no online step and holds the precomputed references (what closing the loop on the
+    estimate must never be worse than); ``finals`` [m], each transition's final error on the truth,
+    and ``distrusts``, the trust region's refusals."""
     from soft_arm_drivers.experiments.harness import load_setup_at_closest, run_experiment
-    setup, moved = load_setup_at_closest(task, overrides=overrides + SCENARIOS["blind"], arm_file=arm_file,
-                                         feedback="estimate")
-    return {**_figures(run_experiment(setup, estimate=True, truth=True), lambda t: t >= 1.0),
-            "targets_moved": len(moved)}
+    runs = {}
+    for feedback in ("estimate", "mocap"):
+        setup, moved = load_setup_at_closest(task, overrides=overrides + SCENARIOS["blind"],
+                                             arm_file=arm_file, feedback=feedback)
+        runs[feedback] = run_experiment(setup, estimate=True, truth=True)
+    blind, hold = runs["estimate"], runs["mocap"]
+    return {**_figures(blind, lambda t: t >= 1.0), "targets_moved": len(moved),
+            "finals": [m.final_error for m in blind.metrics],
+            "distrusts": sum(g["distrusts"] for g in blind.goals),
+            "hold": {"rms_error": hold.summary.rms_error, "finals": [m.final_error for m in hold.metrics]}}
 
 
 def run_draw(spec: dict) -> dict:
@@ -202,14 +216,16 @@ def main(argv=None) -> int:
 def _draws(args) -> int:
     specs = [{"seed": seed, "task": args.tasks[0]} for seed in range(args.draws)]
     rows = map_runs(f"{os.path.abspath(__file__)}:run_draw", specs, workers=args.workers)
-    print(f"{'seed':>4} {'model':10} {'RMS mm':>7} {'mm band':>8} {'tip est. rest mm (median/p95/max)':>34} "
-          f"{'NEES rest':>9}")
+    print(f"{'seed':>4} {'model':10} {'RMS mm':>7} {'hold mm':>7} {'worse':>6} {'refused':>7} "
+          f"{'mm band':>8} {'tip est. rest mm (median/p95/max)':>34} {'NEES rest':>9}")
     for r in rows:
         for which in ("model", "identified"):
             f = r[which]
             nees = "-" if f["tip_nees_rest_mean"] is None else f"{f['tip_nees_rest_mean']:.2f}"
-            print(f"{r['seed']:>4} {which:10} {1e3 * f['rms_error']:7.3f} "
-                  f"{f['reached_mm']:>3}/{f['transitions']:<4} "
+            worse = max(b - h for b, h in zip(f["finals"], f["hold"]["finals"]))
+            hold = f["hold"]["rms_error"]
+            print(f"{r['seed']:>4} {which:10} {1e3 * f['rms_error']:7.3f} {1e3 * hold:7.3f} "
+                  f"{1e3 * worse:6.2f} {f['distrusts']:>7} {f['reached_mm']:>3}/{f['transitions']:<4} "
                   f"{_tip(f['estimate_at_rest'], True):>34} {nees:>9}")
     worst = {which: max(r[which]["estimate_at_rest"]["median"][-1] for r in rows)
              for which in ("model", "identified")}
