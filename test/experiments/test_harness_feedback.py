@@ -8,7 +8,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from conftest import CHI2_3_99, nees_honest, nees_not_overconfident
+from conftest import CHI2_3_99, nees_bounded, nees_not_overconfident
 from soft_arm_control.shape_estimation import ShapeEstimator
 from soft_arm_drivers.experiments import harness
 from soft_arm_drivers.experiments.harness import load_setup, precompute_targets, run_experiment
@@ -42,14 +42,15 @@ def tip_nees(result, scale: float = 1.0) -> np.ndarray:
     return np.einsum("ki,kij,kj->k", error, np.linalg.inv(scale * rec["marker_covariance"][rest, -1]), error)
 
 
-def test_with_the_markers_the_tips_reported_uncertainty_is_within_its_chi_square_bounds(runs):
+def test_with_the_markers_the_tips_reported_uncertainty_bounds_its_error(runs):
     """Fused with the markers the cameras still see, at rest over a closed-loop run: the tip's mean
-    NEES within the chi-square 1-99 % interval of one sample (3 for an exact covariance), few frames
+    NEES within the chi-square 1-99 % interval of one sample (3 for an exact covariance; a bound,
+    not a test of honesty: conftest.nees_bounded), few frames
     beyond the 99 % bound; the same test refuses the covariance reported 100 times too small or
     too large."""
     nees = tip_nees(runs["fused"])
-    assert nees.size > 50 and nees_honest(nees), (nees.mean(), np.mean(nees > CHI2_3_99))
-    assert not nees_honest(tip_nees(runs["fused"], 0.01)) and not nees_honest(tip_nees(runs["fused"], 100.0))
+    assert nees.size > 50 and nees_bounded(nees), (nees.mean(), np.mean(nees > CHI2_3_99))
+    assert not nees_bounded(tip_nees(runs["fused"], 0.01)) and not nees_bounded(tip_nees(runs["fused"], 100.0))
 
 
 def test_on_the_tendons_alone_the_tips_reported_uncertainty_bounds_its_error(runs):
