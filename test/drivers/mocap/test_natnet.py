@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings, strategies as st
 
-from soft_arm_drivers.mocap.natnet import (AnalogData, ConnectRequest, FrameFilter, FrameOfData,
+from soft_arm_drivers.mocap.natnet import (ITEM_LIMITS, AnalogData, ConnectRequest, FrameFilter, FrameOfData,
                                            LabeledMarker, MarkerSet, MessageId, NatNetParseError, RigidBody,
                                            ServerInfo, Skeleton, Version, build_connect_request,
                                            build_frame_of_data, build_packet, build_request,
@@ -497,28 +497,47 @@ def test_every_truncation_is_refused_by_the_scan_too(version):
             scan_frame_of_data(packet(7, data[4:end]), version)
 
 
-def _device_frame(channels, samples=0):
-    """A 4.1 frame: one device of ``channels`` channels of ``samples`` samples each."""
-    return FrameOfData(frame_number=1, devices=(AnalogData(7, ((0.0,) * samples,) * channels),))
+_ORIGIN = (0.0, 0.0, 0.0)
+_BODY = RigidBody(1, _ORIGIN, (0.0, 0.0, 0.0, 1.0))
+# A frame with ``count`` items of each kind of ITEM_LIMITS, and how many the parsed frame holds
+FRAMES_OF = {
+    "marker set": (lambda n: FrameOfData(1, marker_sets=(MarkerSet("m"),) * n),
+                   lambda f: len(f.marker_sets)),
+    "marker set marker": (lambda n: FrameOfData(1, marker_sets=(MarkerSet("m", (_ORIGIN,) * n),)),
+                          lambda f: len(f.marker_sets[0].markers)),
+    "unlabelled marker": (lambda n: FrameOfData(1, unlabeled_markers=(_ORIGIN,) * n),
+                          lambda f: len(f.unlabeled_markers)),
+    "rigid body": (lambda n: FrameOfData(1, rigid_bodies=(_BODY,) * n), lambda f: len(f.rigid_bodies)),
+    "skeleton": (lambda n: FrameOfData(1, skeletons=(Skeleton(1),) * n), lambda f: len(f.skeletons)),
+    "skeleton rigid body": (lambda n: FrameOfData(1, skeletons=(Skeleton(1, (_BODY,) * n),)),
+                            lambda f: len(f.skeletons[0].rigid_bodies)),
+    "labelled marker": (lambda n: FrameOfData(1, labeled_markers=(LabeledMarker(1, _ORIGIN),) * n),
+                        lambda f: len(f.labeled_markers)),
+    "force plate": (lambda n: FrameOfData(1, force_plates=(AnalogData(1),) * n),
+                    lambda f: len(f.force_plates)),
+    "device": (lambda n: FrameOfData(1, devices=(AnalogData(1),) * n), lambda f: len(f.devices)),
+    "analog channel": (lambda n: FrameOfData(1, devices=(AnalogData(1, ((),) * n),)),
+                       lambda f: len(f.devices[0].channels)),
+    "analog sample": (lambda n: FrameOfData(1, devices=(AnalogData(1, ((0.0,) * n,)),)),
+                      lambda f: len(f.devices[0].channels[0])),
+}
 
 
-@pytest.mark.parametrize("frame, message", [
-    (_device_frame(16000), "analog channel count 16000 is above the 32"),
-    (_device_frame(1, 31), "analog sample count 31 is above the 30"),
-    (FrameOfData(frame_number=1, devices=tuple(AnalogData(k) for k in range(33))), "device count 33"),
-    (FrameOfData(frame_number=1, labeled_markers=(LabeledMarker(1, (0.0, 0.0, 0.0)),) * 1001),
-     "labelled marker count 1001"),
-    (FrameOfData(frame_number=1, marker_sets=(MarkerSet("m", ((0.0, 0.0, 0.0),) * 201),)),
-     "marker set marker count 201"),
-    (FrameOfData(frame_number=1, skeletons=(Skeleton(1, (RigidBody(1, (0, 0, 0), (0, 0, 0, 1)),) * 201),)),
-     "skeleton rigid body count 201"),
-])
+def test_every_item_limit_has_a_frame():
+    assert set(FRAMES_OF) == set(ITEM_LIMITS)
+
+
+@pytest.mark.parametrize("what", sorted(ITEM_LIMITS))
 @pytest.mark.parametrize("version", [Version(3, 1), Version(4, 1)], ids=str)
-def test_a_frame_beyond_what_motive_sends_is_malformed(frame, message, version):
-    data = build_frame_of_data(version, frame)
+def test_a_frame_beyond_what_motive_sends_is_malformed(what, version):
+    """Each item limit of NatNetTypes.h: a frame at the limit is read whole by both readers, one
+    item more is refused by both with the cap's message."""
+    limit = ITEM_LIMITS[what]
+    frame_of, count_of = FRAMES_OF[what]
+    at_limit = build_frame_of_data(version, frame_of(limit))
+    assert count_of(parse_frame_of_data(at_limit, version)) == limit
+    scan_frame_of_data(at_limit, version)
+    beyond = build_frame_of_data(version, frame_of(limit + 1))
     for read in (parse_frame_of_data, scan_frame_of_data):
-        with pytest.raises(NatNetParseError, match=message):
-            read(data, version)
-    limit = replace(frame, devices=frame.devices[:32]) if len(frame.devices) > 32 else None
-    if limit is not None:
-        assert len(scan_frame_of_data(build_frame_of_data(version, limit), version).rigid_bodies) == 0
+        with pytest.raises(NatNetParseError, match=f"{what} count {limit + 1} is above the {limit} "):
+            read(beyond, version)
