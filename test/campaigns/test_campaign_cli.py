@@ -81,6 +81,12 @@ def test_a_robustness_campaign_runs_the_task_on_the_draws_of_its_seeds(tmp_path)
     result = record["result"]
     assert result["simulated_s"] == pytest.approx(2.0) and result["transitions"] == 1
     assert isinstance(result["plant_holds"], bool) and len(result["plant_margins"]) == 3
+    # the recorded result is the same run done serially on the drawn plant, and the plant matters:
+    # another draw's gives another result
+    other = dict(record["spec"], draw=13, plant=draw_plant(13, load_tolerances()))
+    serial, elsewhere = _serially("robustness", [record["spec"], other])
+    assert _without_times(serial) == _without_times(result)
+    assert elsewhere["rms_mm"] != result["rms_mm"]
     summary = json.loads((tmp_path / "summary.json").read_text())
     figure = summary["groups"]["triangle, all draws"]["figures"]["rms_mm"]
     assert figure["median"] == figure["worst"] == pytest.approx(result["rms_mm"])
