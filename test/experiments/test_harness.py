@@ -126,31 +126,30 @@ def test_sugar_payload_is_unmodelled_but_the_online_loop_copes():
     assert all(r.final_error < 1e-3 for r in result.metrics)
 
 
-@pytest.mark.parametrize("plant, reached", [
+@pytest.mark.parametrize("plant", [
     # softer than the model, tendons misplaced; stiffer, misplaced the other way, finer basis
-    (["plant.youngs_modulus_scale=0.9", "plant.viscosity_scale=1.2",
-      "plant.tendon.offset_fraction=[0.58,0.62,0.6,0.61]",
-      "plant.tendon.start_angle_error=[0.03,-0.03,0.02,-0.02]"], [True, False, False]),
-    (["plant.youngs_modulus_scale=1.15", "plant.viscosity_scale=0.8",
-      "plant.tendon.offset_fraction=[0.62,0.58,0.61,0.59]",
-      "plant.tendon.end_angle_error=[-0.03,0.03,-0.02,0.02]", "plant.discretisation.legendre_order=[4,0]"],
-     [True, True, True]),
+    ["plant.youngs_modulus_scale=0.9", "plant.viscosity_scale=1.2",
+     "plant.tendon.offset_fraction=[0.58,0.62,0.6,0.61]",
+     "plant.tendon.start_angle_error=[0.03,-0.03,0.02,-0.02]"],
+    ["plant.youngs_modulus_scale=1.15", "plant.viscosity_scale=0.8",
+     "plant.tendon.offset_fraction=[0.62,0.58,0.61,0.59]",
+     "plant.tendon.end_angle_error=[-0.03,0.03,-0.02,0.02]", "plant.discretisation.legendre_order=[4,0]"],
 ], ids=["softer", "stiffer"])
-def test_every_triangle_target_is_reached_on_structurally_different_plants(plant, reached):
+def test_every_triangle_vertex_ends_within_5_mm_on_structurally_different_plants_and_says_if_reached(plant):
     """The unchanged controller on arms that differ from its model in stiffness, damping, tendon
-    geometry and strain basis: each triangle vertex within 5 mm at the end of its CLIK window.
+    geometry and strain basis: each triangle vertex within 5 mm at the end of its CLIK window (not
+    every one within the 1 mm reach tolerance: the softer arm ends vertices 2 and 3 at 1.1-1.2 mm).
     On both arms every goal has online steps projected onto the tension limits and says
-    constrained (never held: the reference kept moving); the softer arm ends vertices 2 and 3
-    just beyond the 1 mm reach tolerance (1.1-1.2 mm), and their reports say they were not
-    reached."""
+    constrained (never held: the reference kept moving), and each goal's report says it was
+    reached exactly when its last measured error is within the reach tolerance."""
     setup = load_setup("triangle", overrides=["tasks.triangle.phases=[approach]"] + plant)
     result = run_experiment(setup)
     assert [r.final_error < 5e-3 for r in result.metrics] == [True] * 3, result.metrics
     goals = result.goals
     assert [g["status"] for g in goals] == ["constrained"] * 3, goals
-    assert [g["reached"] for g in goals] == reached, goals
     for goal in goals:
         assert goal["closed"] and goal["held_steps"] == 0 and goal["infeasible_steps"] > 0, goal
+        assert goal["reached"] == (goal["error"] <= setup.control.reach_tolerance), goal
 
 
 @pytest.mark.parametrize("timing", ["planned", "rehearsed"])
