@@ -10,10 +10,11 @@ walking away) shows itself in the offset:
 
 - **radius**: the offset, averaged over ``window``, is larger than any model error the lab expects
   (``radius`` [m]): the estimate claims the arm is where the model cannot put it;
-- **drift**: the offset, in means over quarter windows, moves by more than ``drift`` [m] across
-  ``window`` beyond what the arm's own swing explains (the peak-to-peak of those means over the
-  two windows before, about their straight line): a walking bias, or a loop whose steps move the
-  estimate the other way than they move the model (a branch on which the CLIK runs away).
+- **drift**: the offset, in means over quarter windows, leaves the straight line of the two windows
+  before (carried on to now) by more than ``drift`` [m] beyond what the arm's own swing explains
+  (half the peak-to-peak of those means about their line), or that line itself moves by more than
+  ``drift`` + the swing over a ``window``: a walking bias, or a loop whose steps move the estimate
+  the other way than they move the model (a branch on which the CLIK runs away).
 
 :class:`TrustRegion` keeps the recent offsets and judges each frame; the outer loop returns to the
 precomputed reference when it refuses, and steps again only after ``recover`` seconds of frames it
@@ -81,14 +82,23 @@ class TrustRegion:
         means = np.array([offsets[index == k].mean(axis=0) for k in range(12) if np.any(index == k)])
         if len(means) < 12:
             return None                      # a gap in the frames: nothing to compare
-        # the swing: the peak-to-peak of the windows before about their straight line (a walk of
-        # the offset is no swing, or a steady walk would excuse itself)
+        # the second before as a straight line (the offset's slow trend) and the swing about it
+        # (its peak-to-peak: a walk of the offset is no swing, or a steady walk would excuse itself)
         k = np.arange(8.0) - 3.5
-        before = means[:8] - means[:8].mean(axis=0) - np.outer(k, k @ means[:8] / (k @ k))
-        swing = max(float(np.linalg.norm(a - b)) for a in before for b in before)
-        moved = float(np.linalg.norm(means[11] - means[8]))
+        slope = k @ means[:8] / (k @ k)                   # per quarter window
+        before = means[:8] - means[:8].mean(axis=0) - np.outer(k, slope)
+        # half its peak-to-peak: how far a swing takes the offset off its line
+        swing = 0.5 * max(float(np.linalg.norm(a - b)) for a in before for b in before)
+        # the latest quarter window against that line carried on to it: a walk that starts
+        moved = float(np.linalg.norm(means[11] - means[:8].mean(axis=0) - 7.5 * slope))
         if moved > c.drift + swing:
-            return (f"the estimate moved {moved * 1e3:.1f} mm away from what the reference explains in "
-                    f"{0.75 * c.window:.2f} s (allowed {c.drift * 1e3:.1f} mm + the arm's swing "
-                    f"{swing * 1e3:.1f} mm): a bias, or a loop the estimate does not follow")
+            return (f"the estimate moved {moved * 1e3:.1f} mm away from what the reference explains "
+                    f"(allowed {c.drift * 1e3:.1f} mm + the arm's swing {swing * 1e3:.1f} mm): a bias, "
+                    "or a loop the estimate does not follow")
+        # a steady walk: the line itself moving more than the drift over a window
+        walked = float(np.linalg.norm(4.0 * slope))
+        if walked > c.drift + swing:
+            return (f"the estimate walks {walked / c.window * 1e3:.1f} mm/s away from what the reference "
+                    f"explains (allowed {c.drift * 1e3:.1f} mm + the arm's swing {swing * 1e3:.1f} mm "
+                    f"over {c.window:.2f} s): a bias, or a loop the estimate does not follow")
         return None

@@ -136,7 +136,7 @@ def test_an_estimate_walking_away_is_refused_within_half_a_second_and_the_precom
     goal = guarded.goals[0]
     assert goal["status"] == "untrusted" and goal["distrusts"] == 1, goal
     assert WalkingEstimate.START < goal["distrust_time"] <= WalkingEstimate.START + 0.5, goal
-    assert "moved" in goal["distrust"], goal["distrust"]
+    assert "a bias" in goal["distrust"], goal["distrust"]
     setup = load_setup("coiling", overrides=ONE_TARGET, feedback="estimate")
     precomputed = precompute_targets(harness.outer_loop_for(harness.build_model(setup.arm), setup.control,
                                                             setup.task), setup.control, setup.task)[2]
