@@ -42,11 +42,16 @@ def test_every_schema_of_the_code_is_in_the_reference():
 
 
 def test_every_key_is_rendered_with_what_it_allows():
-    page = soft_arm_reference.parameters_page()
+    """Each key's row of the parameters page holds its own kind and what it allows, beside it."""
+    rows = {line.split(" | ")[0]: line for line in soft_arm_reference.parameters_page().splitlines()
+            if line.startswith("| `")}
     for namespace, location, _, _ in soft_arm_reference.SCHEMAS:
-        for key, (_, _, allowed) in soft_arm_reference._load(location).items():
+        for key, (kind, _, allowed) in soft_arm_reference._load(location).items():
             name = f"{namespace}.{key}" if namespace else key
-            assert f"`{name}`" in page and allowed.replace("|", "\\|") in page
+            row = rows.get(f"| `{name}`")
+            assert row is not None, name
+            expected = f"| `{name}` | {kind} | {soft_arm_reference._cell(allowed)} | "
+            assert row.startswith(expected), (name, row)
 
 
 def test_a_key_without_a_description_stops_the_reference(monkeypatch):

@@ -4,6 +4,7 @@ diagnostics; rig.yaml through ROS's own parameter parser; a bad parameter; SIGTE
 out of motor mode."""
 import itertools
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -450,9 +451,9 @@ def _activated_driver_process(context, node_name: str, inject: str = "") -> subp
 
 
 def _motors_were_left_safe(out: str):
-    modes = [line for line in out.splitlines() if line.startswith("motor modes")]
-    assert modes[-2:] == ["motor modes [True, True, True, True]",
-                          "motor modes [False, False, False, False]"], out
+    # the node's log lines (stderr, merged) may fall inside one of the script's printed lines
+    modes = re.findall(r"motor modes (?:\[(?:INFO|WARN|ERROR)\][^\n]*\n)*(\[(?:True|False)[^\]]*\])", out)
+    assert modes[-2:] == ["[True, True, True, True]", "[False, False, False, False]"], out
     assert "torques [0.0, 0.0, 0.0, 0.0]" in out
 
 

@@ -101,14 +101,18 @@ def test_node_publishes_the_arms_markers_in_arm_base(ros, plant):
             bridge.destroy_node()
             listener.destroy_node()
     assert len(got["markers"]) >= 50 and len(got["tip"]) >= 50 and got["diagnostics"]
-    stamps = []
+    stamps, ages = [], []
     for received, msg in got["markers"]:
         assert msg.header.frame_id == FRAME and len(msg.poses) == len(truth)
         np.testing.assert_allclose(markers_of(msg), truth, atol=1e-6)   # base to tip, arm_base
         assert all(p.orientation.w == 1.0 for p in msg.poses)
         stamp = stamp_to_seconds(msg.header.stamp)
-        assert 0.003 <= received - stamp < 0.1            # mid-exposure, before the message arrived
+        assert 0.003 <= received - stamp                  # mid-exposure, before the message arrived
         stamps.append(stamp)
+        ages.append(received - stamp)
+    # and not long before: the typical age (this process's own stalls on a loaded machine queue a
+    # burst of frames, each as late as the stall, whatever the bridge stamped)
+    assert np.median(ages) < 0.1, np.percentile(ages, [50, 90, 100])
     assert np.all(np.diff(stamps) > 0)
     assert np.median(np.diff(stamps)) == pytest.approx(1 / 240, rel=0.2)
     tips = {stamp_to_seconds(m.header.stamp): m for _, m in got["tip"]}
