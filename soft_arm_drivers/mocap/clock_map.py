@@ -83,8 +83,9 @@ class ClockMap:
             return False
         self.jumps += 1
         self._samples.clear()
-        for sample in self._held:
+        for sample in self._held[-self.confirm:]:     # the agreeing samples, not an outlier before them
             self._add(*sample)
+        self.outliers += len(self._held) - self.confirm
         self._held.clear()
         return True
 
