@@ -299,16 +299,14 @@ def test_a_driver_deactivated_from_elsewhere_ends_the_run_as_no_result(tmp_path,
     out = tmp_path / "run"
     proc = _experiment(config_dir, out, "--quiet")
     with killed_on_exit(proc):
-        # the operator's node discovers the driver's service during the bring-up (a loaded
-        # machine's discovery can take longer than the task), and deactivates 1 s into the task
+        seen = wait_for_output(proc, "[motor_driver]: activated", timeout=120)
         operator = rclpy.create_node("operator", context=context)
         executor = SingleThreadedExecutor(context=context)
         executor.add_node(operator)
         try:
-            client = operator.create_client(ChangeState, "/motor_driver/change_state")
-            seen = wait_for_output(proc, "[motor_driver]: activated", timeout=120)
-            spin_until(executor, client.service_is_ready, 30.0, unless_ended=proc)
             time.sleep(1.0)
+            client = operator.create_client(ChangeState, "/motor_driver/change_state")
+            spin_until(executor, client.service_is_ready, 30.0, unless_ended=proc)
             deactivated = False
             if client.service_is_ready():
                 future = client.call_async(ChangeState.Request(transition=Transition(label="deactivate")))
