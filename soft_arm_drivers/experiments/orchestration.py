@@ -112,18 +112,22 @@ def _endpoints(node, names) -> dict:
     return out
 
 
-def _call(node, client, request, timeout: float = 10.0):
-    """Call a service through ``client`` and return its response; RuntimeError if it is not there
-    or does not answer, or if it answers ``success = False``."""
+class _NoAnswer(RuntimeError):
+    """A service was found but its answer did not come in time."""
+
+
+def _call(node, client, request, timeout: float = 10.0, checked: bool = True):
+    """Call a service through ``client`` and return its response; RuntimeError if it is not there,
+    :class:`_NoAnswer` if it does not answer, or (``checked``) if it answers ``success = False``."""
     import rclpy
     if not client.wait_for_service(timeout_sec=timeout):
         raise RuntimeError(f"service {client.srv_name} is not available")
     future = client.call_async(request)
     rclpy.spin_until_future_complete(node, future, timeout_sec=timeout)
     if not future.done() or future.result() is None:
-        raise RuntimeError(f"service {client.srv_name} did not answer within {timeout:g} s")
+        raise _NoAnswer(f"service {client.srv_name} did not answer within {timeout:g} s")
     response = future.result()
-    if not response.success:
+    if checked and not response.success:
         raise RuntimeError(f"{client.srv_name} refused" + (f": {response.message}"
                                                            if getattr(response, "message", "") else ""))
     return response
@@ -155,27 +159,25 @@ def _change_state(node, client, label: str, timeout: float = 10.0):
     [s] is checked against the node's state (``get_state``): a response lost in discovery (the
     server answered before it knew the client) is no failure when the node is in the transition's
     goal state."""
-    import rclpy
     from lifecycle_msgs.msg import Transition
     from lifecycle_msgs.srv import GetState
     name = client.srv_name.rsplit('/', 2)[-2]
     request = client.srv_type.Request(transition=Transition(label=label))
     try:
         _call(node, client, request, timeout)
+    except _NoAnswer as exc:
+        getter = node.create_client(GetState, client.srv_name.replace("change_state", "get_state"))
+        try:
+            state = _call(node, getter, GetState.Request(), timeout, checked=False).current_state.label
+        except RuntimeError:
+            state = None
+        finally:
+            node.destroy_client(getter)
+        if state != _GOAL_STATES.get(label):
+            raise RuntimeError(f"{label} of {name} failed: {exc} (see that node's log)") from None
+        print(f"soft-arm-experiment: {label} of {name}: no answer within {timeout:g} s, but {name} is "
+              f"{state}: going on", file=sys.stderr)
     except RuntimeError as exc:
-        if "did not answer" in str(exc):
-            getter = node.create_client(GetState, client.srv_name.replace("change_state", "get_state"))
-            try:
-                if getter.wait_for_service(timeout_sec=timeout):
-                    future = getter.call_async(GetState.Request())
-                    rclpy.spin_until_future_complete(node, future, timeout_sec=timeout)
-                    if future.done() and future.result() is not None \
-                            and future.result().current_state.label == _GOAL_STATES.get(label):
-                        print(f"soft-arm-experiment: {label} of {name}: no answer within {timeout:g} s, "
-                              f"but {name} is {_GOAL_STATES[label]}: going on", file=sys.stderr)
-                        return
-            finally:
-                node.destroy_client(getter)
         raise RuntimeError(f"{label} of {name} failed: {exc} (see that node's log)") from None
 
 
