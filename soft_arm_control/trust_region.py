@@ -65,8 +65,8 @@ class TrustRegion:
         history.append((float(t), offset))
         while history and history[0][0] < t - 3.0 * c.window - 1e-9:
             history.popleft()
-        times = np.array([h[0] for h in history])
-        offsets = np.array([h[1] for h in history])
+        times = np.fromiter((h[0] for h in history), float, len(history))
+        offsets = np.stack([h[1] for h in history])
         recent = offsets[times >= t - c.window - 1e-9]
         mean = recent.mean(axis=0)
         if np.linalg.norm(mean) > c.radius:
@@ -79,16 +79,19 @@ class TrustRegion:
         edges = t - 3.0 * c.window + 0.25 * c.window * np.arange(13)
         edges[-1] += 1e-9
         index = np.digitize(times, edges) - 1
-        means = np.array([offsets[index == k].mean(axis=0) for k in range(12) if np.any(index == k)])
-        if len(means) < 12:
+        inside = (index >= 0) & (index < 12)
+        counts = np.bincount(index[inside], minlength=12)
+        if np.any(counts == 0):
             return None                      # a gap in the frames: nothing to compare
+        means = np.stack([np.bincount(index[inside], offsets[inside, j], minlength=12)
+                          for j in range(offsets.shape[1])], axis=1) / counts[:, None]
         # the second before as a straight line (the offset's slow trend) and the swing about it
         # (its peak-to-peak: a walk of the offset is no swing, or a steady walk would excuse itself)
         k = np.arange(8.0) - 3.5
         slope = k @ means[:8] / (k @ k)                   # per quarter window
         before = means[:8] - means[:8].mean(axis=0) - np.outer(k, slope)
         # half its peak-to-peak: how far a swing takes the offset off its line
-        swing = 0.5 * max(float(np.linalg.norm(a - b)) for a in before for b in before)
+        swing = 0.5 * float(np.sqrt(np.max(np.sum((before[:, None] - before[None]) ** 2, axis=2))))
         # the latest quarter window against that line carried on to it: a walk that starts
         moved = float(np.linalg.norm(means[11] - means[:8].mean(axis=0) - 7.5 * slope))
         if moved > c.drift + swing:
