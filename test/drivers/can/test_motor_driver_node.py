@@ -106,6 +106,10 @@ class SpringTendons:
         self.m, self.k, self.c, self.dt = mass, stiffness, damping, dt
         self.s, self.sd = np.zeros(n), np.zeros(n)
         self.stepper = type("Stepper", (), {"dt": dt})()
+        self.peak = 0.0           # N: the largest tension any step applied since the last reset
+
+    def reset_peak(self):
+        self.peak = 0.0
 
     @property
     def q(self):
@@ -116,6 +120,7 @@ class SpringTendons:
 
     def step(self, tensions):
         """Semi-implicit Euler: tension [N] shortens the tendon against the spring [m]."""
+        self.peak = max(self.peak, float(np.max(tensions)))
         self.sd += self.dt * (np.asarray(tensions) - self.k * self.s - self.c * self.sd) / self.m
         self.s += self.dt * self.sd
 
@@ -522,19 +527,29 @@ def test_a_stray_publisher_on_tendon_command_is_refused_named_and_latches_a_faul
     stray = rclpy.create_node("stray", context=context)
     publisher = stray.create_publisher(JointState, "tendon/command", QOS["tendon/command"])
     executor.add_node(stray)
-    applied = []
+    emulator.plant.reset_peak()            # every tension the motors apply, step by step: first
+    end = time.monotonic() + 0.3           # the harness's 1 N alone,
+    while time.monotonic() < end:
+        executor.spin_once(timeout_sec=0.005)
+    alone = emulator.plant.peak
+    emulator.plant.reset_peak()            # then with the stray
     try:
         def strayed():
             publisher.publish(joint_state(NAMES, time.time(), effort=[4.5] * 4))
-            applied.append(emulator.tensions.max())
             return node.driver.fault is not None
         spin_until(executor, strayed)
         assert node.driver.fault.startswith("foreign publisher") and "/stray" in node.driver.fault
+        # the stray keeps publishing after the fault: none of its messages, those in flight at the
+        # fault included, reaches the motors
         spin_until(executor, lambda: node.lifecycle_state == "inactive"
                    and values(harness)["command_source"] == "foreign")
+        end = time.monotonic() + 0.5
+        while time.monotonic() < end:
+            publisher.publish(joint_state(NAMES, time.time(), effort=[4.5] * 4))
+            executor.spin_once(timeout_sec=0.01)
         assert "/stray" in values(harness)["command_publishers"]
         assert harness.driver_status().level == DiagnosticStatus.ERROR
-        assert max(applied) < 1.5                                            # never the stray's 4.5 N
+        assert emulator.plant.peak <= alone + 0.05, (emulator.plant.peak, alone)    # never the stray's 4.5 N
         # the emulated motors take the zero-torque frames from their own thread: within 0.5 s
         spin_until(executor, lambda: emulator.tensions.max() < 0.05, timeout=0.5)
         assert not change(executor, harness, "activate")                     # refused while it is there
