@@ -3,8 +3,11 @@
 Subscribes ``task/goal`` (soft_arm_interfaces/TaskGoal: the target task coordinates [m] in
 ``arm_base``, taken by their labels, and the mode: clik (default), replay, precomputed, online, or
 track: the trajectory of the goal's phase from the target, see :mod:`soft_arm_control.outer_loop`)
-and ``mocap/markers``; publishes ``tendon/reference`` (position: reference shortenings [m] of all
-tendons; effort: feedforward tensions [N], the pretension on the tendons the task does not use) and
+and ``mocap/markers`` (on an estimated feedback, ``control.clik.feedback`` fused or estimate,
+also ``fused/tip`` or ``estimate/tip``, whose covariance says how much of the error the estimate
+shows an online step may take: :mod:`soft_arm_control.trust_region`); publishes
+``tendon/reference`` (position: reference shortenings [m] of all tendons; effort: feedforward
+tensions [N], the pretension on the tendons the task does not use) and
 ``arm/configuration_reference`` (soft_arm_interfaces/ConfigurationReference: q_d, the goal it
 answers, the goal's target now and the model's task coordinates at q_d [m]). A bad goal (another
 frame, coordinates not the task's), an infeasible or a fragile one (one too near a fold of
@@ -29,7 +32,9 @@ import math
 import sys
 import time
 
-from geometry_msgs.msg import PoseArray
+import numpy as np
+
+from geometry_msgs.msg import PoseArray, PoseWithCovarianceStamped
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
@@ -56,7 +61,8 @@ REPORT_PERIOD = 1.0     # s: the current goal's report on /diagnostics at least 
 LEVELS = {"ok": DiagnosticStatus.OK, "constrained": DiagnosticStatus.WARN,
           "saturated": DiagnosticStatus.WARN, "stalled": DiagnosticStatus.WARN,
           "unreached": DiagnosticStatus.WARN, "unseen": DiagnosticStatus.WARN,
-          "held": DiagnosticStatus.ERROR, "untrusted": DiagnosticStatus.WARN}
+          "held": DiagnosticStatus.ERROR, "untrusted": DiagnosticStatus.WARN,
+          "uncertain": DiagnosticStatus.WARN}
 MESSAGES = {"ok": "target feasible",
             "constrained": "target infeasible for the model: moving to the closest feasible point",
             "saturated": "the path is too fast for the tendons: its dynamic feedforward exceeds the "
@@ -66,7 +72,9 @@ MESSAGES = {"ok": "target feasible",
             "unreached": "the goal ended away from its target",
             "unseen": "the task's markers are not seen: no online step, the reference holds",
             "held": "no feasible step: the last reference is held",
-            "untrusted": "the estimate fed back left the trust region: the precomputed reference holds"}
+            "untrusted": "the estimate fed back left the trust region: the precomputed reference holds",
+            "uncertain": "the estimate's uncertainty explains the error it shows: no online step, "
+                         "the reference holds"}
 
 
 class ClikNode(Node):
@@ -95,6 +103,10 @@ class ClikNode(Node):
         self.frames = BacklogGuard()
         self._drop_warned, self._drop_warned_at = 0, -math.inf   # frames dropped, monotonic time [s]
         self.create_subscription(PoseArray, TOPICS["markers"], self.on_frame, QOS["mocap/markers"])
+        self.tip = None                 # (stamp [s], position covariance (3, 3) [m^2]) of the estimate's tip
+        if self.outer.trust is not None:     # an estimate fed back: its uncertainty with it
+            topic = TOPICS["fused_tip" if self.control.feedback == "fused" else "estimate_tip"]
+            self.create_subscription(PoseWithCovarianceStamped, topic, self.on_tip, QOS[topic])
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self._reported = None                 # (goal index, status) last published
         self._reported_stamp = -math.inf      # frame time [s] of the current goal's last report
@@ -175,12 +187,27 @@ class ClikNode(Node):
             self.get_logger().warning(f"mocap frame with {markers.shape[0]} markers, expected "
                                       f"{self.model.marker_X.size}", throttle_duration_sec=1.0)
             return
-        ref = self.outer.frame(self.now, self.task.space.from_markers(markers))
+        ref = self.outer.frame(self.now, self.task.space.from_markers(markers), self._sigma())
         if ref is not None:
             self.publish(ref)
         if self.outer.reports and ((len(self.outer.reports), self.outer.reports[-1].status) != self._reported
                                    or self.now >= self._reported_stamp + REPORT_PERIOD):
             self.publish_diagnostics()        # at once when a goal turns infeasible; once a second
+
+    def on_tip(self, msg: PoseWithCovarianceStamped):
+        self.tip = (stamp_to_seconds(msg.header.stamp),
+                    np.array(msg.pose.covariance, dtype=float).reshape(6, 6)[:3, :3])
+
+    def _sigma(self):
+        """The task coordinates' standard deviations [m] on an estimated feedback: the fed-back
+        tip's (:meth:`~soft_arm_control.task_space.TaskSpace.tip_sigma`), stamped within a trust
+        window of the frame; None otherwise (no step is taken on an estimate without them)."""
+        if self.tip is None or self.outer.trust is None:
+            return None
+        stamp, covariance = self.tip
+        if not abs(stamp - self.stamp) <= self.outer.trust.config.window:
+            return None
+        return self.task.space.tip_sigma(covariance)
 
     def _heartbeat(self):
         """The current goal's report when the frames have not given one for a second of wall time

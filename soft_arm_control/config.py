@@ -99,6 +99,9 @@ CONTROL_SCHEMA = {
     "clik.trust.window": ("float", lambda v: 0 < v <= 10, "a time in (0, 10] s"),
     "clik.trust.recover": ("float", lambda v: 0 <= v <= 60,
                            "a time in [0, 60] s of trusted frames before online steps resume"),
+    "clik.trust.confidence": ("float", lambda v: 0 <= v <= 10,
+                              "a number of standard deviations in [0, 10]: the bias an estimate may "
+                              "carry on each task coordinate (0: its offset is taken whole)"),
     "clik.shaping.shaper": ("str", lambda v: v in SHAPERS, f"one of {list(SHAPERS)}"),
     "clik.shaping.level": ("float", lambda v: 0 < v <= 1, "a vibration amplitude in (0, 1] m"),
     "clik.shaping.modes": ("strs", lambda v: len(v) >= 1 and set(v) <= set(SHAPED_MODES),

@@ -52,7 +52,7 @@ from .trust_region import TrustRegion
 
 MODES = ("clik", "replay", "precomputed", "online", "track")
 STATUSES = ("ok", "constrained", "saturated", "stalled", "unreached", "unseen", "held",   # GoalReport.status
-            "untrusted")
+            "untrusted", "uncertain")
 
 
 @dataclass
@@ -81,7 +81,12 @@ class GoalReport:
     trust region refused the estimate and the reference returned to the goal's precomputed one (its
     reason in ``distrust``, the frame time [s] of the last in ``distrust_time``), and
     ``untrusted_frames``, the frames on which an online step was due but not taken for it; a goal is
-    *untrusted* while it holds the precomputed reference so."""
+    *untrusted* while it holds the precomputed reference so. ``fraction``: the part of the
+    estimated error the last online step took (1 on a measurement; less on an estimate whose
+    uncertainty explains some of it, :meth:`~soft_arm_control.trust_region.TrustRegion.fraction`),
+    ``uncertain_frames``: the steps that took less than all of it; a goal is *uncertain* while its
+    last step took none (the estimate cannot tell the remaining error from its own: the reference
+    holds)."""
     target: list
     mode: str
     reach_tolerance: float = 1e-3
@@ -103,14 +108,18 @@ class GoalReport:
     distrust: str | None = None
     distrust_time: float | None = None
     holding: bool = False
+    fraction: float = 1.0
+    uncertain_frames: int = 0
     learner: HarmonicLearner | None = field(default=None, repr=False, compare=False)
     _progress_level: float = np.inf
 
-    def add(self, step: ClikStep):
+    def add(self, step: ClikStep, error=None):
+        """Count an online ``step``; ``error`` [m]: the measured task error it was taken on (None:
+        the step's own, all of which it took)."""
         self.online_steps += 1
         self.infeasible_steps += step.constrained
         self.held_steps += step.held
-        self.error = float(np.linalg.norm(step.error))
+        self.error = float(np.linalg.norm(step.error if error is None else error))
         self.closest_error = self.error if self.closest_error is None else min(self.closest_error,
                                                                                self.error)
         if self.error <= self.reach_tolerance or self.error < 0.9 * self._progress_level:
@@ -139,7 +148,8 @@ class GoalReport:
     @property
     def status(self) -> str:
         """held (no feasible step: the reference stayed), untrusted (the trust region refused the
-        estimate the online steps were taken on: the precomputed reference holds), unseen (no
+        estimate the online steps were taken on: the precomputed reference holds), uncertain (the
+        estimate's uncertainty explains the error it shows: no step, the reference holds), unseen (no
         frame showed the task's markers for longer than ``unseen_after``: no step, the reference
         held), constrained (the reference
         keeps moving towards the closest feasible point), saturated (a track goal whose path needed tensions
@@ -150,6 +160,8 @@ class GoalReport:
             return "held"
         if self.holding:
             return "untrusted"
+        if self.fraction == 0.0:
+            return "uncertain"
         if self.unseen_time > self.unseen_after:
             return "unseen"
         if self.infeasible_steps:
@@ -166,7 +178,7 @@ class GoalReport:
         keys = ("target", "mode", "online_steps", "infeasible_steps", "held_steps", "closest_error",
                 "error", "stalled_steps", "saturated_steps", "closed", "shaped_mode", "learned_periods",
                 "backed_off_periods", "frozen_periods", "unseen_frames", "unseen_time", "untrusted_frames",
-                "distrusts", "distrust", "distrust_time")
+                "distrusts", "distrust", "distrust_time", "fraction", "uncertain_frames")
         return {**{k: getattr(self, k) for k in keys}, "reached": self.reached, "status": self.status}
 
 
@@ -376,10 +388,11 @@ class OuterLoop:
         if self.reports:
             self.reports[-1].closed = True
 
-    def frame(self, t: float, x_measured) -> ClikPoint | None:
-        """A mocap frame delivered at time t [s] with the measured task coordinates [m]; returns
-        the new reference when it changed: a fraction of a shaped step was given, or an online step
-        was taken (None otherwise)."""
+    def frame(self, t: float, x_measured, sigma=None) -> ClikPoint | None:
+        """A mocap frame delivered at time t [s] with the measured task coordinates [m] (on an
+        estimated feedback, ``sigma``: their standard deviations [m], without which no step is
+        taken on it); returns the new reference when it changed: a fraction of a shaped step was
+        given, or an online step was taken (None otherwise)."""
         if self._planned is not None:
             return self._follow_plan(t)
         moved = None
@@ -413,8 +426,14 @@ class OuterLoop:
         path = None if self._trajectory is None else self.path_at(t)     # x_d + c, its rates
         x_d = self._x_d if path is None else path[0]
         xd_dot = path[1] if path is not None and self.track_feedforward else None
-        ref, step = self.clik.step(self.reference.q, x_d, self.period, x_measured, refresh, xd_dot)
-        self.reports[-1].add(step)
+        error = x_d - np.asarray(x_measured, dtype=float)
+        x_step = x_measured
+        if self.trust is not None:        # the part of the error the estimate's uncertainty leaves
+            fraction = report.fraction = self.trust.fraction(error, sigma)
+            report.uncertain_frames += fraction < 1.0
+            x_step = x_d - fraction * error
+        ref, step = self.clik.step(self.reference.q, x_d, self.period, x_step, refresh, xd_dot)
+        self.reports[-1].add(step, error)
         self.last_step = step
         if ref is None:
             if self.learner is not None:

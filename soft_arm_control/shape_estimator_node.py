@@ -12,6 +12,9 @@ with that state's stamp:
 - ``fused/markers`` (the same layout): the frame's markers where the mocap saw them, the estimate's
   elsewhere (the estimate's alone when no frame came since the last update);
 - ``estimate/tip`` (PoseWithCovarianceStamped): the tip and its position covariance [m^2];
+- ``fused/tip`` (the same): the tip of ``fused/markers``, with a zero covariance where the mocap saw
+  it (a measurement) and the estimate's elsewhere: what the online CLIK on ``fused/markers`` reads
+  its uncertainty from (:mod:`soft_arm_control.trust_region`);
 - ``estimate/shape`` (MarkerArray): the estimated backbone, for RViz;
 - once a second of wall time ``/diagnostics`` (status ``shape_estimator``, from the first update):
   markers used and gated, the
@@ -49,7 +52,7 @@ from soft_arm_ros.parameters import NodeParameters
 from soft_arm_ros.runtime import run_node
 
 from .loop_clock import LoopClock
-from .shape_estimation import ESTIMATOR_SCHEMA, EstimatorConfig, ShapeEstimator, fused_markers
+from .shape_estimation import ESTIMATOR_SCHEMA, EstimatorConfig, ShapeEstimator, fused_markers, fused_tip
 
 REPORT_PERIOD = 1.0          # s of wall time between diagnostics
 
@@ -76,6 +79,8 @@ class ShapeEstimatorNode(Node):
         self.fused_pub = self.create_publisher(PoseArray, TOPICS["fused"], QOS["fused/markers"])
         self.tip_pub = self.create_publisher(PoseWithCovarianceStamped, TOPICS["estimate_tip"],
                                              QOS["estimate/tip"])
+        self.fused_tip_pub = self.create_publisher(PoseWithCovarianceStamped, TOPICS["fused_tip"],
+                                                   QOS["fused/tip"])
         self.shape_pub = self.create_publisher(MarkerArray, TOPICS["estimate_shape"], QOS["estimate/shape"])
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.create_subscription(PoseArray, TOPICS["markers"], self.on_markers, QOS["mocap/markers"])
@@ -124,7 +129,8 @@ class ShapeEstimatorNode(Node):
                              or f"a marker's standard deviation above {self.config.max_sigma} m")
         self.estimate_pub.publish(pose_array(defended, t))
         self.fused_pub.publish(pose_array(fused_markers(self.frame, defended), t))
-        self.tip_pub.publish(self._tip(estimate, t))
+        self.tip_pub.publish(tip_message(estimate.markers[-1], estimate.marker_covariance[-1], t))
+        self.fused_tip_pub.publish(tip_message(*fused_tip(self.frame, estimate), t))
         self.shape_pub.publish(self._shape(t))
         self.frame = None
         self._last = (t, estimate)
@@ -135,19 +141,6 @@ class ShapeEstimatorNode(Node):
         """The diagnostics when the states have not given them for a second of wall time."""
         if self._last is not None and time.monotonic() >= self._reported_at + REPORT_PERIOD:
             self.publish_diagnostics(*self._last)
-
-    def _tip(self, estimate, t: float) -> PoseWithCovarianceStamped:
-        msg = PoseWithCovarianceStamped()
-        msg.header.frame_id = FRAME
-        seconds_to_stamp(msg.header.stamp, t)
-        p = estimate.markers[-1]
-        msg.pose.pose.position.x, msg.pose.pose.position.y, msg.pose.pose.position.z = (float(v) for v in p)
-        msg.pose.pose.orientation.w = 1.0
-        covariance = np.zeros((6, 6))
-        covariance[:3, :3] = estimate.marker_covariance[-1]
-        covariance[3:, 3:] = np.eye(3) * 1e6            # the orientation is not estimated
-        msg.pose.covariance = covariance.ravel().tolist()
-        return msg
 
     def _shape(self, t: float) -> MarkerArray:
         m = Marker()
@@ -192,6 +185,22 @@ class ShapeEstimatorNode(Node):
         self.undefended, self.distrust = 0, None
         self._reported_counts = dict(counts)
         self._reported_at = time.monotonic()
+
+
+def tip_message(position, covariance, t: float) -> PoseWithCovarianceStamped:
+    """A tip position [m] in arm_base with its covariance (3, 3) [m^2], stamped t [s]; the
+    orientation is not estimated (identity, variance 1e6)."""
+    msg = PoseWithCovarianceStamped()
+    msg.header.frame_id = FRAME
+    seconds_to_stamp(msg.header.stamp, t)
+    point = msg.pose.pose.position
+    point.x, point.y, point.z = (float(v) for v in position)
+    msg.pose.pose.orientation.w = 1.0
+    full = np.zeros((6, 6))
+    full[:3, :3] = covariance
+    full[3:, 3:] = np.eye(3) * 1e6
+    msg.pose.covariance = full.ravel().tolist()
+    return msg
 
 
 def main(args=None) -> int:

@@ -48,6 +48,14 @@ class TaskSpace:
         markers = np.asarray(markers, dtype=float)
         return markers[list(self.markers), list(self.axes)].copy()
 
+    def tip_sigma(self, tip_covariance) -> np.ndarray:
+        """(m,) [m]: each coordinate's standard deviation read from the tip's position covariance
+        (3, 3) [m^2] along its axis, for the markers nearer the base too (on an arm hanging from
+        its base the tip is the least certain marker: the tip's bounds theirs). A covariance that is
+        no number gives NaN."""
+        variance = np.diagonal(np.asarray(tip_covariance, dtype=float))[list(self.axes)]
+        return np.sqrt(np.where(variance >= 0.0, variance, np.nan))
+
     def evaluate(self, model: ArmModel, q, data: ArmData | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Task coordinates x(q) [m] and their Jacobian dx/dq (m, n) from the model."""
         data = evaluate(model, data or ArmData(model), q, level=KINEMATICS, markers=True)

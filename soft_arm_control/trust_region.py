@@ -16,6 +16,17 @@ walking away) shows itself in the offset:
   ``drift`` + the swing over a ``window``: a walking bias, or a loop whose steps move the estimate
   the other way than they move the model (a branch on which the CLIK runs away).
 
+A steady bias inside the radius shows itself in nothing the tendons measure: on an arm whose tendons
+run a few per cent off their modelled paths the tendon-only estimate is 20 mm off at rest, three
+times the precomputed reference's own error there. What the estimate can defend is what its
+uncertainty says. With sigma_i the standard deviation of task coordinate i and ``confidence`` the
+bound gamma on each coordinate's bias (|b_i| <= gamma sigma_i), the true error is the estimated
+error e = x_d - x_hat plus that bias, which adds at most B = gamma sum_i |e_i| sigma_i along e. A
+step that takes a fraction alpha of e ends no further from the target than no step, whatever the
+bias, if alpha <= 2 (1 - B / |e|^2): :meth:`TrustRegion.fraction` is that alpha, clipped to [0, 1].
+The online CLIK steps on alpha e: not on an error the estimate's uncertainty explains (within about
+gamma sigma: the reference holds, the goal is *uncertain*), on all of one beyond twice that.
+
 :class:`TrustRegion` keeps the recent offsets and judges each frame; the outer loop returns to the
 precomputed reference when it refuses, and steps again only after ``recover`` seconds of frames it
 accepts. Times are the caller's [s], coordinates [m] in arm_base.
@@ -30,18 +41,21 @@ import numpy as np
 
 @dataclass(frozen=True)
 class TrustConfig:
-    """``radius`` [m], ``drift`` [m], ``window`` [s] and ``recover`` [s]: see the module docstring;
-    ``enabled``: the outer loop judges an estimated feedback with them."""
+    """``radius`` [m], ``drift`` [m], ``window`` [s], ``recover`` [s] and ``confidence`` (standard
+    deviations): see the module docstring; ``enabled``: the outer loop judges an estimated feedback
+    with them."""
     radius: float
     drift: float
     window: float
     recover: float
+    confidence: float = 2.0
     enabled: bool = True
 
     @classmethod
     def of(cls, values: dict) -> "TrustConfig":
         """From validated ``control`` values (``clik.trust.*``)."""
-        return cls(*(float(values[f"clik.trust.{k}"]) for k in ("radius", "drift", "window", "recover")),
+        return cls(*(float(values[f"clik.trust.{k}"])
+                     for k in ("radius", "drift", "window", "recover", "confidence")),
                    bool(values["clik.trust.enabled"]))
 
 
@@ -55,6 +69,18 @@ class TrustRegion:
 
     def reset(self):
         self._history.clear()
+
+    def fraction(self, error, sigma) -> float:
+        """The fraction alpha in [0, 1] of the estimated task ``error`` [m] (target less estimate)
+        that a step may take, given the standard deviations ``sigma`` [m] of the estimate's task
+        coordinates (module docstring; 0 without ``sigma`` or with one that is no number: nothing
+        is defended)."""
+        if sigma is None:
+            return 0.0
+        sigma = np.asarray(sigma, dtype=float)
+        if not np.all(np.isfinite(sigma)):
+            return 0.0
+        return defensible_fraction(error, sigma, self.config.confidence)
 
     def judge(self, t: float, x_estimate, x_model) -> str | None:
         """Take the frame at t [s] (the estimate's task coordinates and the model's at the current
@@ -105,3 +131,16 @@ class TrustRegion:
                     f"explains (allowed {c.drift * 1e3:.1f} mm + the arm's swing {swing * 1e3:.1f} mm "
                     f"over {c.window:.2f} s): a bias, or a loop the estimate does not follow")
         return None
+
+
+def defensible_fraction(error, sigma, confidence: float) -> float:
+    """alpha = 2 (1 - B / |e|^2) clipped to [0, 1], B = ``confidence`` sum_i |e_i| sigma_i: the
+    largest fraction of the estimated ``error`` e [m] a step may take and end no further from the
+    target than without it, whatever bias within ``confidence`` standard deviations ``sigma`` [m]
+    per coordinate the estimate carries (module docstring). 0 for a zero error."""
+    o = np.asarray(error, dtype=float)
+    square = float(o @ o)
+    if square == 0.0:
+        return 0.0
+    bound = confidence * float(np.abs(o) @ np.asarray(sigma, dtype=float))
+    return float(np.clip(2.0 * (1.0 - bound / square), 0.0, 1.0))

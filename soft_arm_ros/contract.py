@@ -25,7 +25,7 @@ TOPICS = {
     "configuration": "arm/configuration_reference", "shape": "arm/shape", "clock": "/clock",
     "ball": "mocap/pendulum", "release": "pendulum/release",
     "estimate": "estimate/markers", "fused": "fused/markers", "estimate_tip": "estimate/tip",
-    "estimate_shape": "estimate/shape",
+    "fused_tip": "fused/tip", "estimate_shape": "estimate/shape",
 }
 TYPES = {
     "tendon/command": "sensor_msgs/msg/JointState", "tendon/state": "sensor_msgs/msg/JointState",
@@ -37,6 +37,7 @@ TYPES = {
     "/diagnostics": "diagnostic_msgs/msg/DiagnosticArray",
     "estimate/markers": "geometry_msgs/msg/PoseArray", "fused/markers": "geometry_msgs/msg/PoseArray",
     "estimate/tip": "geometry_msgs/msg/PoseWithCovarianceStamped",
+    "fused/tip": "geometry_msgs/msg/PoseWithCovarianceStamped",
     "estimate/shape": "visualization_msgs/msg/MarkerArray",
 }
 STREAM = QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT,
@@ -55,7 +56,7 @@ QOS = {"tendon/command": STREAM, "tendon/state": STREAM, "mocap/markers": STREAM
        "arm/shape": VISUAL, "/clock": STREAM, "tendon/reference": RELIABLE, "task/goal": RELIABLE,
        "arm/configuration_reference": RELIABLE, "mocap/pendulum": STREAM, "pendulum/release": RELIABLE,
        "/diagnostics": EVENTS, "estimate/markers": STREAM, "fused/markers": STREAM, "estimate/tip": STREAM,
-       "estimate/shape": VISUAL}
+       "fused/tip": STREAM, "estimate/shape": VISUAL}
 
 
 def message_class(type_name: str):

@@ -24,7 +24,7 @@ from soft_arm_control.clik import TargetError
 from soft_arm_control.config import (FEEDBACKS, IDENTIFICATION, ControlConfig, TaskConfig,
                                      load_control_config, load_task_config)
 from soft_arm_control.outer_loop import OuterLoop, outer_loop_for
-from soft_arm_control.shape_estimation import (EstimatorConfig, ShapeEstimator, fused_markers,
+from soft_arm_control.shape_estimation import (EstimatorConfig, ShapeEstimator, fused_markers, fused_tip,
                                                load_estimator_config)
 from soft_arm_control.strike_planner import strike_move_for
 from soft_arm_control.two_level import TwoLevelController
@@ -230,6 +230,11 @@ def goal_warning(goal: dict) -> str:
                 f"{goal['distrusts']} time(s), the last at {goal['distrust_time']:.2f} s "
                 f"({goal['distrust']}); "
                 f"{goal['untrusted_frames']} frames without an online step; {closest}")
+    if goal["status"] == "uncertain":
+        return (f"{head} held its reference: the estimated error, {goal['error'] * 1e3:.2f} mm at the "
+                f"end, is within what the estimate's own uncertainty explains (clik.trust.confidence "
+                f"standard deviations); {goal['uncertain_frames']} of {goal['online_steps']} online "
+                f"steps took less than all of it")
     return (f"{head} is infeasible for the model from where the online CLIK got: "
             f"{goal['infeasible_steps']} of {goal['online_steps']} steps projected onto the tension "
             f"limits, {goal['held_steps']} held; {closest}")
@@ -393,7 +398,7 @@ def run_experiment(setup: Setup, progress=None, actuation_map: ActuationMap | No
                     balls.append((frame.stamp, frame.ball, frame.markers))
             if delivered:
                 latest = delivered[-1].markers
-            x_feedback = None
+            x_feedback = sigma = None
             if estimator is not None and frame is not None:
                 s, sd = rig.tendons()
                 estimator.update(t, s, sd, rig.tension, latest)
@@ -405,13 +410,15 @@ def run_experiment(setup: Setup, progress=None, actuation_map: ActuationMap | No
                 defended = estimated.defended(estimator.config.max_sigma)
                 if setup.feedback == "fused":
                     x_feedback = space.from_markers(fused_markers(latest, defended))
+                    sigma = space.tip_sigma(fused_tip(latest, estimated)[1])
                 elif setup.feedback == "estimate":
                     x_feedback = space.from_markers(defended)
+                    sigma = space.tip_sigma(estimated.marker_covariance[-1])
                 latest = None
             if setup.feedback == "mocap" and delivered:
                 x_feedback = space.from_markers(delivered[-1].markers)
             if x_feedback is not None:
-                ref = outer.frame(t, x_feedback)
+                ref = outer.frame(t, x_feedback, sigma)
                 if ref is not None:
                     ctrl.reference = ref
             if rig.step_index % inner_every == 0:

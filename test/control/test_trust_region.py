@@ -4,7 +4,7 @@ estimate that leaves the arm (an offset beyond the radius) or walks away from it
 import numpy as np
 import pytest
 
-from soft_arm_control.trust_region import TrustConfig, TrustRegion
+from soft_arm_control.trust_region import TrustConfig, TrustRegion, defensible_fraction
 
 RATE = 240.0
 CONFIG = TrustConfig(radius=0.04, drift=0.001, window=0.5, recover=2.0)
@@ -67,3 +67,32 @@ def test_reset_forgets_the_offsets():
     region.reset()
     # a jump of the offset right after a reset (the reference returned) is judged on its own
     assert region.judge(1.0, X_MODEL + MODEL_ERROR + 0.01, X_MODEL) is None
+
+
+def test_a_step_on_the_defended_fraction_never_ends_further_from_the_target_whatever_the_bias():
+    """For an estimated error e and any bias b with |b_i| <= confidence sigma_i (the true error
+    e + b), a step that moves the task by alpha e leaves a true error no larger than before; the
+    bound is tight: a larger fraction has a bias that makes it worse."""
+    rng = np.random.default_rng(0)
+    for _ in range(2000):
+        m = int(rng.integers(1, 5))
+        e, sigma = rng.normal(0.0, 0.01, m), rng.uniform(0.0, 0.01, m)
+        alpha = defensible_fraction(e, sigma, 2.0)
+        worst = -2.0 * sigma * np.sign(e)                  # the bias most against the step
+        for b in [worst, *rng.uniform(-2.0 * sigma, 2.0 * sigma, (20, m))]:
+            assert np.linalg.norm(e + b - alpha * e) <= np.linalg.norm(e + b) + 1e-15
+        if 0.0 < alpha < 1.0:
+            assert np.linalg.norm(e + worst - 1.01 * alpha * e) > np.linalg.norm(e + worst)
+
+
+def test_the_defended_fraction_is_none_within_the_uncertainty_and_all_beyond_twice_it():
+    e = np.array([0.003, 0.004])                                  # 5 mm
+    assert defensible_fraction(e, [0.0025, 0.0025], 1.0) == pytest.approx(0.6)   # B: 17.5 of 25 mm^2
+    assert defensible_fraction(e, [0.001, 0.001], 2.0) == pytest.approx(2 * (1 - 2 * 7e-6 / 25e-6))
+    assert defensible_fraction(e, [0.004, 0.004], 2.0) == 0.0     # within its uncertainty: no step
+    assert defensible_fraction(e, [0.0005, 0.0005], 2.0) == 1.0   # beyond twice it: all of it
+    assert defensible_fraction(np.zeros(2), [0.001, 0.001], 2.0) == 0.0
+    assert defensible_fraction(e, [0.004, 0.004], 0.0) == 1.0     # confidence 0: taken whole
+    region = TrustRegion(CONFIG)
+    assert region.fraction(e, None) == 0.0 and region.fraction(e, [np.nan, 0.001]) == 0.0
+    assert region.fraction(e, [0.0005, 0.0005]) == 1.0

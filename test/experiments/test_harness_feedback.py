@@ -1,8 +1,11 @@
-"""The closed loop on the shape estimate (ROS-free harness): with the mocap gone from the start, the
-online CLIK on the tendon-only estimate brings the tip to its target, where on the mocap it can
-only hold the precomputed reference; the estimate is recorded against the plant's truth. An
-estimate that leaves the arm is caught by the trust region, and the reference returns to the
-precomputed one: closing the loop on the estimate never ends worse than holding it."""
+"""The closed loop on the shape estimate (ROS-free harness), the estimate recorded against the
+plant's truth. With markers seen (fused) the online CLIK closes its loop on it; with the mocap gone
+from the start the tendon-only estimate is uncertain by centimetres, more than the error it shows,
+and the CLIK holds the precomputed reference and says so, as it does on the mocap: on an arm whose
+tendons run off their modelled paths, where that estimate is 20 mm off, stepping on it would end
+three times further away. An estimate that leaves the arm is caught by the trust region, and the
+reference returns to the precomputed one: closing the loop on the estimate never ends worse than
+holding it."""
 from dataclasses import replace
 
 import numpy as np
@@ -63,16 +66,29 @@ def test_on_the_tendons_alone_the_tips_reported_uncertainty_bounds_its_error(run
     assert not nees_not_overconfident(tip_nees(runs["estimate"], 1e-3))
 
 
-def test_without_the_mocap_the_estimate_closes_the_loop_and_the_mocap_holds(runs):
+def test_without_the_mocap_the_uncertain_estimate_holds_the_reference_and_says_so(runs):
     mocap, estimate = runs["mocap"], runs["estimate"]
     assert mocap.goals[0]["status"] == "unseen" and mocap.goals[0]["online_steps"] == 0
-    assert estimate.goals[0]["online_steps"] > 500 and estimate.goals[0]["unseen_frames"] == 0
-    assert estimate.metrics[0].final_error < 1.5e-3
-    assert estimate.metrics[0].final_error < 0.3 * mocap.metrics[0].final_error
+    goal = estimate.goals[0]
+    assert goal["online_steps"] > 500 and goal["unseen_frames"] == 0
+    assert goal["status"] == "uncertain" and goal["fraction"] == 0.0, goal
+    assert "within what the estimate's own uncertainty explains" in harness.goal_warning(goal)
+    # the estimate's error at the end: what it showed was within its 2 sigma, and the reference held
     rec = estimate.record.arrays()
+    sigma = np.sqrt(np.diagonal(rec["marker_covariance"][-1, -1])[[0, 2]])
+    assert goal["error"] < 2.0 * np.sum(sigma), (goal["error"], sigma)
+    assert abs(estimate.metrics[0].final_error - mocap.metrics[0].final_error) < 0.2e-3
     assert not rec["markers_seen"].any()
     error = np.linalg.norm(rec["markers_estimated"][-1] - rec["markers_true"][-1], axis=1)
     assert error[-1] < 3e-3
+
+
+def test_with_markers_seen_the_fused_estimate_is_sure_and_closes_the_loop(runs):
+    """The tip seen (a measurement) or estimated from the markers seen: the steps take all of the
+    error but while the tip is hidden after the switch; the arm ends within 1.5 mm."""
+    goal, row = runs["fused"].goals[0], runs["fused"].metrics[0]
+    assert goal["fraction"] == 1.0 and goal["uncertain_frames"] < 0.25 * goal["online_steps"], goal
+    assert row.final_error < 1.5e-3
 
 
 def test_the_measured_metrics_of_a_run_the_mocap_never_saw_are_an_error():
@@ -83,13 +99,15 @@ def test_the_measured_metrics_of_a_run_the_mocap_never_saw_are_an_error():
 
 
 def blind_outcome_is_safe(blind, held) -> bool:
-    """The blind run reached its target (1.5 mm), or its trust region returned the reference to the
-    precomputed one and says so, ending no more than HELD_MARGIN worse than holding it (``held``:
-    the same target on the mocap without a marker: the precomputed reference, no step)."""
+    """The blind run reached its target (1.5 mm), or it held its reference and says so (the trust
+    region returned it to the precomputed one, or the estimate was too uncertain to step on),
+    ending no more than HELD_MARGIN worse than holding it (``held``: the same target on the mocap
+    without a marker: the precomputed reference, no step)."""
     goal = blind.goals[0]
     if blind.metrics[0].final_error <= 1.5e-3:
         return True
-    return goal["distrusts"] > 0 and blind.metrics[0].final_error <= held.metrics[0].final_error + HELD_MARGIN
+    said = goal["distrusts"] > 0 or goal["status"] == "uncertain"
+    return said and blind.metrics[0].final_error <= held.metrics[0].final_error + HELD_MARGIN
 
 
 @pytest.mark.parametrize("target", [1, 2])
@@ -103,6 +121,20 @@ def test_blind_coiling_reaches_its_target_or_holds_the_precomputed_reference(tar
 
 def test_blind_coiling_on_target_3_reaches_it_or_holds_the_precomputed_reference(runs):
     assert blind_outcome_is_safe(runs["estimate"], runs["mocap"]), runs["estimate"].goals[0]
+
+
+# a softer arm whose tendons run off their modelled paths: its tendon-only estimate is 20 mm off at
+# rest, the precomputed reference 6.7 mm (stepped on, the estimate ended 18 mm away)
+OFF_PATH = ["plant.youngs_modulus_scale=0.9", "plant.viscosity_scale=1.2",
+            "plant.tendon.offset_fraction=[0.58,0.62,0.6,0.61]",
+            "plant.tendon.start_angle_error=[0.03,-0.03,0.02,-0.02]"]
+
+
+def test_on_an_arm_whose_tendons_run_off_their_paths_the_blind_loop_ends_no_worse_than_holding():
+    blind, held = (run_experiment(load_setup("coiling", overrides=ONE_TARGET + MOCAP_LOST + OFF_PATH,
+                                             feedback=fb), truth=True) for fb in ("estimate", "mocap"))
+    assert blind_outcome_is_safe(blind, held), (blind.metrics[0].final_error, held.metrics[0].final_error,
+                                                blind.goals[0])
 
 
 class WalkingEstimate(ShapeEstimator):
@@ -162,6 +194,7 @@ def blind_triangle():
 def test_the_blind_triangle_reaches_every_vertex_or_holds_its_precomputed_reference(blind_triangle):
     blind, held = blind_triangle["estimate"], blind_triangle["mocap"]
     for k, (row, goal, hold) in enumerate(zip(blind.metrics, blind.goals, held.metrics)):
-        held_safely = goal["distrusts"] > 0 and row.final_error <= hold.final_error + HELD_MARGIN
+        said = goal["distrusts"] > 0 or goal["status"] == "uncertain"
+        held_safely = said and row.final_error <= hold.final_error + HELD_MARGIN
         safe = row.final_error <= 1.5e-3 or held_safely
         assert safe and goal["status"] != "constrained", (k + 1, row.final_error, goal)

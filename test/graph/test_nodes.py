@@ -239,7 +239,7 @@ def test_a_slow_clik_takes_a_goal_at_once_and_drops_the_frames_it_cannot_keep_up
         node = ClikNode(parameter_overrides=[Parameter("graph.task", value="coiling")])
         taken, steps, reports = [], [], []
 
-        def slow_step(t, x):
+        def slow_step(t, x, sigma=None):
             time.sleep(0.0125)
             steps.append(t)
 
@@ -520,6 +520,40 @@ def test_clik_node_keeps_stepping_through_a_clock_step_of_the_frames(jump):
         assert stepped >= len(after) - 2, (stepped, len(after))
         assert node.frame_clock.steps == (2 if jump > 0 else 1)
         assert stamp_to_seconds(sent[-1].header.stamp) == pytest.approx(after[-1], abs=1e-6)
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown()
+
+
+@pytest.mark.parametrize("variance, stepped", [(None, False), (1e-4, False), (0.0, True)])
+def test_on_an_estimate_the_clik_node_steps_only_on_what_the_tip_covariance_defends(variance, stepped):
+    """The clik node on ``control.clik.feedback: estimate``, an online goal 10 mm off the hanging
+    arm: without an estimate/tip message, or with the tip's 10 mm standard deviation, no online step
+    moves the reference (the goal is uncertain); with a zero covariance (a measurement) it steps."""
+    import rclpy
+
+    from soft_arm_control.shape_estimator_node import tip_message
+    from soft_arm_model import marker_positions, solve_equilibrium
+    from soft_arm_ros.conversions import pose_array
+    rclpy.init()
+    try:
+        sent = []
+        node = _clik("coiling", sent, **{"control.clik.feedback": "estimate"})
+        hanging = marker_positions(node.model, solve_equilibrium(node.model, [0.05] * 4).q)
+        x = node.task.space.from_markers(hanging)
+        node.on_markers(pose_array(hanging, 100.0))
+        node.on_goal(_goal(x + np.array([0.01, 0.0]), "online"))
+        first = np.array(node.outer.reference.shortening)
+        for k in range(1, 120):
+            t = 100.0 + k / 240.0
+            if variance is not None:
+                node.on_tip(tip_message(hanging[-1], np.eye(3) * variance, t))
+            node.on_markers(pose_array(hanging, t))
+        goal = node.outer.reports[-1]
+        moved = float(np.max(np.abs(np.array(node.outer.reference.shortening) - first)))
+        assert (moved > 1e-4) == stepped, moved
+        assert goal.online_steps > 20 and (goal.status == "uncertain") != stepped, goal.status
+        assert goal.fraction == (1.0 if stepped else 0.0)
         node.destroy_node()
     finally:
         rclpy.try_shutdown()
