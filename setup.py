@@ -35,8 +35,9 @@ setup(
         "ros-jazzy-rmw-fastrtps-cpp==8.4.3",
     ],
     extras_require={
+        # PyElastica: the model bench's comparison, whose timing a test checks
         "test": ["pytest>=8", "pytest-xdist>=3.5", "hypothesis>=6", "rosbags==0.11.9", "flake8>=7",
-                 "sphinx>=8", "myst-parser>=4", "furo>=2024.8.6"],
+                 "sphinx>=8", "myst-parser>=4", "furo>=2024.8.6", "pyelastica==1.0.0"],
         "bench": ["pyelastica==1.0.0"],
     },
     zip_safe=True,
