@@ -9,7 +9,7 @@ Each configuration runs the same draws (seeds ``seed .. seed + draws - 1``) in a
 both do the same work. Throughput: runs per hour of wall time, from the first submission to the
 last record. Overhead per run: the time a worker spends between the end of one run and the start of
 its next (scheduling, transfer of the specification and the result) plus the writing of the record
-(:func:`soft_arm_drivers.campaigns.engine.overheads`), against the median run's own time. The
+(:func:`soft_arm_experiments.campaigns.engine.overheads`), against the median run's own time. The
 1,000-draw estimate divides the draws' runs by the two-worker throughput per worker, on this
 machine and on ten like it (a Dask cluster of their cores: runs are independent, the scheduler
 sends a few hundred bytes per run).
@@ -22,11 +22,11 @@ import tempfile
 
 import numpy as np
 
-from soft_arm_drivers.campaigns.engine import run_campaign
-from soft_arm_drivers.campaigns.plants import draw_plant, load_tolerances
+from soft_arm_experiments.campaigns.engine import run_campaign
+from soft_arm_experiments.campaigns.plants import draw_plant, load_tolerances
 from timing import results_path, write_results
 
-FUNCTION = "soft_arm_drivers.campaigns.runs:robustness"
+FUNCTION = "soft_arm_experiments.campaigns.runs:robustness"
 
 
 def measure(specs: list, workers: int) -> dict:

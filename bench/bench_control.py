@@ -27,8 +27,8 @@ from soft_arm_control.clik import equilibrium_seeds
 from soft_arm_control.shape_estimation import ShapeEstimator
 from soft_arm_control.track_learning import HarmonicLearner
 from soft_arm_control.two_level import TwoLevelController
-from soft_arm_drivers.experiments.harness import load_setup, run_experiment
-from soft_arm_drivers.experiments.metrics import format_table, to_json
+from soft_arm_experiments.harness import load_setup, run_experiment
+from soft_arm_experiments.metrics import format_table, to_json
 from soft_arm_model import build_model, marker_positions, solve_equilibrium, tendon_lengths
 
 from timing import best_of, results_path, write_results

@@ -6,7 +6,7 @@ Prints three tables and writes JSON.
                                   [--sizes 0.01 0.015] [--workers 2] [--output bench/results/dynamic.json]
 
 Every figure is one ``soft-arm-harness TASK --json`` run, each a process of its own, the runs shared
-out by the campaign engine (Dask, ``--workers`` at a time; ``soft_arm_drivers.campaigns.engine``):
+out by the campaign engine (Dask, ``--workers`` at a time; ``soft_arm_experiments.campaigns.engine``):
 - pendulum, ``--runs`` times with ``plant.mocap.seed`` 0, 1, ... (the mocap noise differs): struck
   or not, the impact time after the release, the ball's speed before and after, and the equivalent
   task velocity of the strike, the tip's displacement to the strike target over the time from the
@@ -32,7 +32,7 @@ import sys
 
 import numpy as np
 
-from soft_arm_drivers.campaigns.engine import map_runs
+from soft_arm_experiments.campaigns.engine import map_runs
 from timing import results_path, run_harness, write_results
 
 PAPER = {"strike_time": 0.35, "strike_velocity": 1.48}     # s after the release, m/s
@@ -134,7 +134,7 @@ def _run(job):
 
 
 def run_spec(spec: dict):
-    """One job on a campaign worker (:func:`soft_arm_drivers.campaigns.engine.map_runs`)."""
+    """One job on a campaign worker (:func:`soft_arm_experiments.campaigns.engine.map_runs`)."""
     return _run(spec["job"])
 
 
@@ -149,7 +149,7 @@ def main(argv=None) -> int:
                         help="local Dask workers (default: the number of cores)")
     parser.add_argument("--output", default=results_path("dynamic.json"))
     args = parser.parse_args(argv)
-    from soft_arm_drivers.experiments.harness import load_setup
+    from soft_arm_experiments.harness import load_setup
     track = load_setup("tracking").task
     sizes = args.sizes or [next(ph.trajectory.size for ph in track.phases if ph.name == "circle_fast"), 0.015]
     jobs = ([("pendulum", (k,)) for k in range(args.runs)]

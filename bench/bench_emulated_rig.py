@@ -45,8 +45,8 @@ import yaml
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 
-from soft_arm_drivers.experiments.figures import read_series
-from soft_arm_drivers.experiments.harness import load_setup
+from soft_arm_experiments.figures import read_series
+from soft_arm_experiments.harness import load_setup
 
 from timing import results_path, write_results
 
@@ -291,7 +291,7 @@ def one_run(task: str, sets: list, duration: float, probes=None) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         run, log = os.path.join(tmp, "run"), os.path.join(tmp, "log")
         with open(log, "w", encoding="utf-8") as fh:
-            proc = subprocess.Popen([sys.executable, "-m", "soft_arm_drivers.experiments.experiment", task,
+            proc = subprocess.Popen([sys.executable, "-m", "soft_arm_experiments.experiment", task,
                                      "--emulated-hardware", "--quiet", "--output", run]
                                     + [a for s in sets for a in ("--set", s)],
                                     stdout=fh, stderr=subprocess.STDOUT, env=env)

@@ -28,7 +28,7 @@ os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
 import rclpy  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
 
-from soft_arm_drivers.experiments.harness import load_setup, run_experiment  # noqa: E402
+from soft_arm_experiments.harness import load_setup, run_experiment  # noqa: E402
 from soft_arm_model.parameters import default_config_dir  # noqa: E402
 from soft_arm_ros.contract import QOS  # noqa: E402
 from soft_arm_ros.conversions import joint_state, seconds_to_stamp  # noqa: E402
@@ -105,7 +105,7 @@ def bench_triangle() -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         out = os.path.join(tmp, "run")
         t0 = time.perf_counter()
-        subprocess.run([sys.executable, "-m", "soft_arm_drivers.experiments.experiment", "triangle",
+        subprocess.run([sys.executable, "-m", "soft_arm_experiments.experiment", "triangle",
                         "--output", out, "--quiet", "--json"], check=True, stdout=subprocess.DEVNULL)
         wall = time.perf_counter() - t0
         with open(os.path.join(out, "metrics.json"), encoding="utf-8") as fh:

@@ -36,7 +36,7 @@ import time
 
 import numpy as np
 
-from soft_arm_drivers.campaigns.engine import map_runs
+from soft_arm_experiments.campaigns.engine import map_runs
 from timing import results_path, write_results
 
 REST_SPEED = 0.005        # m/s: the true tip slower than this is at rest
@@ -54,7 +54,7 @@ SCENARIOS = {
 def _sets(task: str, scenario: str) -> list:
     if scenario != "lost":
         return SCENARIOS[scenario]
-    from soft_arm_drivers.experiments.harness import load_setup, schedule
+    from soft_arm_experiments.harness import load_setup, schedule
     first = schedule(load_setup(task).task)[0][3]
     return [f"plant.mocap.occlusion.blackout=[{first}, 1.0e6]"]
 
@@ -73,8 +73,8 @@ def _errors(rec: dict, select) -> dict:
 def _measured(task, result) -> dict:
     """The run's figures as the mocap measured them (the README's and Table 1's kind, the markers'
     noise in them), or why there are none (a window the mocap never saw)."""
-    from soft_arm_drivers.experiments.harness import window_metrics
-    from soft_arm_drivers.experiments.metrics import summarise
+    from soft_arm_experiments.harness import window_metrics
+    from soft_arm_experiments.metrics import summarise
     try:
         s = summarise(window_metrics(task, result.transitions, result.record)[0])
     except ValueError as exc:
@@ -107,7 +107,7 @@ def _figures(result, after) -> dict:
 
 def run_spec(spec: dict) -> dict:
     """One run on a campaign worker: the closed loop and the estimate's figures."""
-    from soft_arm_drivers.experiments.harness import load_setup, run_experiment
+    from soft_arm_experiments.harness import load_setup, run_experiment
     t0 = time.perf_counter()
     setup = load_setup(spec["task"], overrides=spec["sets"], feedback=spec["feedback"])
     result = run_experiment(setup, estimate=True, truth=True)
@@ -124,7 +124,7 @@ def _blind(task: str, overrides: list, arm_file=None) -> dict:
     marker takes no online step and holds the precomputed references (what closing the loop on the
     estimate must never be worse than); ``finals`` [m], each transition's final error on the truth,
     and ``distrusts``, the trust region's refusals."""
-    from soft_arm_drivers.experiments.harness import load_setup_at_closest, run_experiment
+    from soft_arm_experiments.harness import load_setup_at_closest, run_experiment
     runs = {}
     for feedback in ("estimate", "mocap"):
         setup, moved = load_setup_at_closest(task, overrides=overrides + SCENARIOS["blind"],
@@ -143,11 +143,11 @@ def run_draw(spec: dict) -> dict:
     ``task`` blind (the tendons alone) with the controller's model and with the identified arm."""
     import tempfile
 
-    from soft_arm_drivers.campaigns.plants import draw_frame, draw_plant, load_tolerances, plant_overrides
-    from soft_arm_drivers.experiments.excitation import Excitation, load_identification, parse_fit
-    from soft_arm_drivers.experiments.harness import load_setup
-    from soft_arm_drivers.experiments.identification_run import simulate_recording
-    from soft_arm_drivers.experiments.identify_cli import composed_calibration, identify, write_identified_arm
+    from soft_arm_experiments.campaigns.plants import draw_frame, draw_plant, load_tolerances, plant_overrides
+    from soft_arm_experiments.excitation import Excitation, load_identification, parse_fit
+    from soft_arm_experiments.harness import load_setup
+    from soft_arm_experiments.identification_run import simulate_recording
+    from soft_arm_experiments.identify_cli import composed_calibration, identify, write_identified_arm
     from soft_arm_drivers.mocap.bridge_config import load_mocap_config
     t0 = time.perf_counter()
     tolerances = load_tolerances()
@@ -190,7 +190,7 @@ def main(argv=None) -> int:
     if args.draws:
         return _draws(args)
     args.output = args.output or results_path("sensing.json")
-    from soft_arm_drivers.experiments.harness import load_setup, schedule
+    from soft_arm_experiments.harness import load_setup, schedule
     specs = []
     for task, scenario, feedback in itertools.product(args.tasks, args.scenarios, args.feedbacks):
         lost_at = schedule(load_setup(task).task)[0][3]

@@ -28,7 +28,7 @@ import time
 
 import numpy as np
 
-from soft_arm_drivers.campaigns.engine import map_runs
+from soft_arm_experiments.campaigns.engine import map_runs
 from timing import results_path, write_results
 
 PAPER_VELOCITY = 1.48      # m/s, the paper's equivalent task velocity of the strike
@@ -39,7 +39,7 @@ def plan(job) -> dict:
     rotor_mass, tension_max, pieces = job
     from soft_arm_control.outer_loop import outer_loop_for
     from soft_arm_control.strike_planner import plan_strike_move
-    from soft_arm_drivers.experiments.harness import load_setup, precompute_targets, schedule
+    from soft_arm_experiments.harness import load_setup, precompute_targets, schedule
     from soft_arm_model import build_model
     setup = load_setup("pendulum")
     model = build_model(setup.arm)
@@ -60,7 +60,7 @@ def plan(job) -> dict:
 
 
 def run_spec(spec: dict):
-    """One job on a campaign worker (:func:`soft_arm_drivers.campaigns.engine.map_runs`)."""
+    """One job on a campaign worker (:func:`soft_arm_experiments.campaigns.engine.map_runs`)."""
     return plan(spec["job"])
 
 

@@ -7,7 +7,7 @@ import time
 
 import numpy as np
 
-from soft_arm_drivers.campaigns import report as campaign_report
+from soft_arm_experiments.campaigns import report as campaign_report
 
 
 def best_of(fn, repeats: int = 7, inner: int = 500) -> float:
@@ -39,6 +39,6 @@ def write_results(path: str, results: dict):
 def run_harness(task: str, sets=(), *args: str) -> subprocess.CompletedProcess:
     """``soft-arm-harness TASK --json --quiet`` in a process of its own, with ``--set`` for each of
     ``sets`` (``ns.key=value``) and further command-line ``args``; stdout and stderr captured."""
-    command = [sys.executable, "-m", "soft_arm_drivers.experiments.harness_cli", task, "--json", "--quiet"]
+    command = [sys.executable, "-m", "soft_arm_experiments.harness_cli", task, "--json", "--quiet"]
     command += [a for s in sets for a in ("--set", s)] + list(args)
     return subprocess.run(command, capture_output=True, text=True)

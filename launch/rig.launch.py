@@ -31,7 +31,7 @@ from lifecycle_msgs.msg import Transition
 
 PARAMETER_FILES = ["arm.yaml", "control.yaml", "plant.yaml", "tasks.yaml", "graph.yaml", "rig.yaml",
                    "mocap.yaml", "estimator.yaml"]
-# the clik's mocap/markers per feedback (soft_arm_drivers.experiments.orchestration.FEEDBACK_TOPICS)
+# the clik's mocap/markers per feedback (soft_arm_experiments.orchestration.FEEDBACK_TOPICS)
 FEEDBACK = {"mocap": "mocap/markers", "fused": "fused/markers", "estimate": "estimate/markers"}
 NODES = ["motor_driver", "mocap_bridge", "inner_loop", "clik", "task_runner", "recorder"]
 REALTIME = {"motor_driver", "mocap_bridge", "inner_loop"}

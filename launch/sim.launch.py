@@ -14,7 +14,7 @@ from launch.substitutions import LaunchConfiguration, PythonExpression
 from launch_ros.actions import Node
 
 PARAMETER_FILES = ["arm.yaml", "control.yaml", "plant.yaml", "tasks.yaml", "graph.yaml", "estimator.yaml"]
-# the clik's mocap/markers per feedback (soft_arm_drivers.experiments.orchestration.FEEDBACK_TOPICS)
+# the clik's mocap/markers per feedback (soft_arm_experiments.orchestration.FEEDBACK_TOPICS)
 FEEDBACK = {"mocap": "mocap/markers", "fused": "fused/markers", "estimate": "estimate/markers"}
 NODES = ["simulator", "inner_loop", "clik", "task_runner", "recorder"]
 # Nodes on the simulator's /clock (use_sim_time): the recorder, whose log times are the clock's.

@@ -20,10 +20,11 @@ A steady bias inside the radius shows itself in nothing the tendons measure: on 
 run a few per cent off their modelled paths the tendon-only estimate is 20 mm off at rest, three
 times the precomputed reference's own error there. What the estimate can defend is what its
 uncertainty says. With sigma_i the standard deviation of task coordinate i and ``confidence`` the
-bound gamma on each coordinate's bias (|b_i| <= gamma sigma_i), the true error is the estimated
-error e = x_d - x_hat plus that bias, which adds at most B = gamma sum_i |e_i| sigma_i along e. A
-step that takes a fraction alpha of e ends no further from the target than no step, whatever the
-bias, if alpha <= 2 (1 - B / |e|^2): :meth:`TrustRegion.fraction` is that alpha, clipped to [0, 1].
+bound gamma on each coordinate's bias (``abs(b_i) <= gamma sigma_i``), the true error is the
+estimated error ``e = x_d - x_hat`` plus that bias, which adds at most
+``B = gamma sum_i abs(e_i) sigma_i`` along e. A step that takes a fraction alpha of e ends no
+further from the target than no step, whatever the bias, if ``alpha <= 2 (1 - B / norm(e)^2)``:
+:meth:`TrustRegion.fraction` is that alpha, clipped to [0, 1].
 The online CLIK steps on alpha e: not on an error the estimate's uncertainty explains (within about
 gamma sigma: the reference holds, the goal is *uncertain*), on all of one beyond twice that.
 
@@ -134,8 +135,8 @@ class TrustRegion:
 
 
 def defensible_fraction(error, sigma, confidence: float) -> float:
-    """alpha = 2 (1 - B / |e|^2) clipped to [0, 1], B = ``confidence`` sum_i |e_i| sigma_i: the
-    largest fraction of the estimated ``error`` e [m] a step may take and end no further from the
+    """``alpha = 2 (1 - B / norm(e)^2)`` clipped to [0, 1], ``B = confidence sum_i abs(e_i) sigma_i``:
+    the largest fraction of the estimated ``error`` e [m] a step may take and end no further from the
     target than without it, whatever bias within ``confidence`` standard deviations ``sigma`` [m]
     per coordinate the estimate carries (module docstring). 0 for a zero error."""
     o = np.asarray(error, dtype=float)

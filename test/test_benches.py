@@ -29,7 +29,7 @@ def _modules_run(path: pathlib.Path) -> list:
 
 def test_the_scripts_run_modules():
     """The check below has something to check: the graph bench runs the experiment and a node."""
-    assert {"soft_arm_drivers.experiments.experiment", "soft_arm_control.inner_loop_node"} <= set(
+    assert {"soft_arm_experiments.experiment", "soft_arm_control.inner_loop_node"} <= set(
         _modules_run(BENCH / "bench_graph.py"))
 
 

@@ -54,7 +54,7 @@ def test_the_model_command_names_the_bad_file(capsys, bad_file):
 
 
 def test_the_experiment_refuses_a_bad_arm_or_plant_file_before_anything_runs(capsys, bad_file, tmp_path):
-    from soft_arm_drivers.experiments.experiment import main
+    from soft_arm_experiments.experiment import main
     for flag in ("--arm-file", "--plant-file"):
         _refused(capsys, lambda: main(["triangle", flag, bad_file, "--output", str(tmp_path / "run")]),
                  bad_file)
@@ -64,7 +64,7 @@ def test_the_experiment_refuses_a_bad_arm_or_plant_file_before_anything_runs(cap
 @pytest.mark.parametrize("name", ["arm", "control", "plant", "tasks"])
 def test_the_harness_and_targets_name_a_bad_file_of_the_config_directory(capsys, tmp_path, name):
     from soft_arm_control.targets_cli import main as targets
-    from soft_arm_drivers.experiments.harness_cli import main as harness
+    from soft_arm_experiments.harness_cli import main as harness
     config = tmp_path / "config"
     shutil.copytree(default_config_dir(), config)
     for text in BAD_FILES.values():
@@ -76,7 +76,7 @@ def test_the_harness_and_targets_name_a_bad_file_of_the_config_directory(capsys,
 
 
 def test_identify_names_a_bad_arm_file_and_what_is_not_a_bag(capsys, bad_file, tmp_path):
-    from soft_arm_drivers.experiments.identify_cli import main
+    from soft_arm_experiments.identify_cli import main
     _refused(capsys, lambda: main([str(tmp_path), "--arm-file", bad_file]), bad_file)
     for bag in (tmp_path, tmp_path / "nothing", bad_file):
         _refused(capsys, lambda: main([str(bag)]), str(bag))
@@ -108,20 +108,20 @@ def test_a_value_where_a_namespace_belongs_is_refused_by_the_node(capfd):
 
 
 def test_flags_that_contradict_each_other_are_refused(capsys, tmp_path):
-    from soft_arm_drivers.experiments.experiment import main
+    from soft_arm_experiments.experiment import main
     _refused(capsys, lambda: main(["triangle", "--processes", "--emulated-hardware",
                                    "--output", str(tmp_path / "run")]),
              "--emulated-hardware: not allowed with argument --processes")
 
 
 def test_an_output_that_cannot_be_written_is_refused_before_the_graph_starts(capsys):
-    from soft_arm_drivers.experiments.experiment import main
+    from soft_arm_experiments.experiment import main
     _refused(capsys, lambda: main(["coiling", "--output", "/proc/forbidden/x", "--quiet"]),
              "--output /proc/forbidden/x: cannot write there")
 
 
 def test_no_markers_and_targets_beyond_reach_are_refused_before_anything_moves(capsys, tmp_path):
-    from soft_arm_drivers.experiments.experiment import main
+    from soft_arm_experiments.experiment import main
     from soft_arm_model.cli import main as model
     _refused(capsys, lambda: model(["summary", "--set", "arm.markers.positions=[]"]),
              "arm.markers.positions = [] is not valid")
@@ -132,14 +132,14 @@ def test_no_markers_and_targets_beyond_reach_are_refused_before_anything_moves(c
 
 
 def test_the_campaign_command_names_a_bad_tolerance_file(capsys, bad_file, tmp_path):
-    from soft_arm_drivers.campaigns.cli import main
+    from soft_arm_experiments.campaigns.cli import main
     _refused(capsys, lambda: main(["robustness", "--tolerances", bad_file, "--output", str(tmp_path / "c")]),
              bad_file)
     assert not (tmp_path / "c").exists()
 
 
 def test_the_campaign_command_refuses_a_folder_without_bags(capsys, tmp_path):
-    from soft_arm_drivers.campaigns.cli import main
+    from soft_arm_experiments.campaigns.cli import main
     (tmp_path / "bags" / "not_a_bag").mkdir(parents=True)
     _refused(capsys, lambda: main(["identification", "--bags", str(tmp_path / "bags"), "--output",
                                    str(tmp_path / "c")]), "no bag folder")

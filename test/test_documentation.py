@@ -13,7 +13,7 @@ sys.path.insert(0, str(ROOT / "docs" / "_ext"))
 
 import soft_arm_reference  # noqa: E402
 
-PACKAGES = ("soft_arm_model", "soft_arm_ros", "soft_arm_control", "soft_arm_drivers")
+PACKAGES = ("soft_arm_model", "soft_arm_ros", "soft_arm_control", "soft_arm_drivers", "soft_arm_experiments")
 
 
 def _schemas_in_the_code() -> set:

@@ -1,8 +1,10 @@
-"""The packages are layered one way: soft_arm_model < soft_arm_ros < soft_arm_control < soft_arm_drivers.
+"""The packages are layered one way: soft_arm_model < soft_arm_ros < soft_arm_control < soft_arm_drivers
+< soft_arm_experiments.
 
 The model is physics and knows nothing of ROS; the ROS plumbing knows nothing of the controller or
 the drivers; the controller knows nothing of the simulated rig, the hardware drivers, recording or
-the experiments, and never reads the simulated plant's parameters (``plant.yaml``).
+the experiments, and never reads the simulated plant's parameters (``plant.yaml``); the drivers and
+their stand-ins know nothing of the experiments and campaigns run on them.
 """
 import ast
 import os
@@ -14,12 +16,14 @@ import sys
 import pytest
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
-PACKAGES = ("soft_arm_model", "soft_arm_ros", "soft_arm_control", "soft_arm_drivers")
+PACKAGES = ("soft_arm_model", "soft_arm_ros", "soft_arm_control", "soft_arm_drivers", "soft_arm_experiments")
 # what each package must not import (itself or anything below it)
 FORBIDDEN = {
-    "soft_arm_model": ("soft_arm_ros", "soft_arm_control", "soft_arm_drivers", "rclpy"),
-    "soft_arm_ros": ("soft_arm_control", "soft_arm_drivers"),
-    "soft_arm_control": ("soft_arm_drivers",),
+    "soft_arm_model": ("soft_arm_ros", "soft_arm_control", "soft_arm_drivers", "soft_arm_experiments",
+                       "rclpy"),
+    "soft_arm_ros": ("soft_arm_control", "soft_arm_drivers", "soft_arm_experiments"),
+    "soft_arm_control": ("soft_arm_drivers", "soft_arm_experiments"),
+    "soft_arm_drivers": ("soft_arm_experiments",),
 }
 
 
@@ -42,14 +46,19 @@ def imported_modules(source: str, module: str) -> set:
     return found
 
 
+def forbidden(source: str, module: str) -> list:
+    """The names ``source`` (the text of ``module``) imports from a layer above its package's."""
+    package = module.split(".", 1)[0]
+    return sorted(name for name in imported_modules(source, module)
+                  if any(name == f or name.startswith(f + ".") for f in FORBIDDEN.get(package, ())))
+
+
 def violations(package: str) -> list:
     """(module, imported name) pairs of ``package`` that break its layer."""
     out = []
     for path in sorted((ROOT / package).rglob("*.py")):
         module = ".".join(path.relative_to(ROOT).with_suffix("").parts)
-        for name in imported_modules(path.read_text(), module):
-            if any(name == f or name.startswith(f + ".") for f in FORBIDDEN[package]):
-                out.append((module, name))
+        out += [(module, name) for name in forbidden(path.read_text(), module)]
     return out
 
 
@@ -59,6 +68,16 @@ def test_the_checker_sees_relative_and_nested_imports():
     assert "soft_arm_control.drivers.sim.plant" in names
     assert "soft_arm_control.sub.clik" in names
     assert "rclpy.node" in names
+
+
+@pytest.mark.parametrize("module", ["soft_arm_drivers.sim.plant", "soft_arm_control.clik",
+                                    "soft_arm_model.statics"])
+def test_an_import_of_the_experiments_from_below_is_refused(module):
+    source = ("from soft_arm_experiments.harness import run_experiment\n"
+              "import soft_arm_experiments.campaigns\n")
+    assert forbidden(source, module) == ["soft_arm_experiments.campaigns", "soft_arm_experiments.harness",
+                                         "soft_arm_experiments.harness.run_experiment"]
+    assert forbidden("from soft_arm_drivers.sim import plant\n", "soft_arm_experiments.harness") == []
 
 
 @pytest.mark.parametrize("package", sorted(FORBIDDEN))

@@ -28,6 +28,7 @@ ROSDEP = {
     "sphinx": None,                                # the documentation's build (docs/): pip, with
     "myst-parser": None,                           # MyST and the theme, which have no rosdep key;
     "furo": None,                                  # rosdoc2 brings its own on a ROS build farm
+    "pyelastica": None,                            # the model bench's comparison: pip, no rosdep key
 }
 INTERFACE = re.compile(r"^(\w+_(?:msgs|srvs|interfaces))(?:\.|$)")
 ROS_PYTHON = re.compile(r"^(launch_ros|launch|ament_index_python|rclpy)(?:\.|$)")

@@ -7,7 +7,7 @@ import pytest
 
 from soft_arm_control.config import CONTROL_SCHEMA, TASK_SCHEMA
 from soft_arm_drivers.can.driver_config import SCHEMA as DRIVER_SCHEMA
-from soft_arm_drivers.experiments.excitation import SCHEMA as EXCITATION_SCHEMA
+from soft_arm_experiments.excitation import SCHEMA as EXCITATION_SCHEMA
 from soft_arm_drivers.mocap.bridge_config import MOCAP_SCHEMA
 from soft_arm_drivers.sim.emulated_rig import SCHEMA as EMULATOR_SCHEMA
 from soft_arm_drivers.sim.plant_config import PLANT_SCHEMA

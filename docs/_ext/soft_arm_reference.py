@@ -37,11 +37,11 @@ SCHEMAS = [
     ("tasks", "soft_arm_control.config:TASK_SCHEMA", "tasks.yaml", ""),
     ("plant", "soft_arm_drivers.sim.plant_config:PLANT_SCHEMA", "plant.yaml", ""),
     ("graph", "soft_arm_ros.parameters:GRAPH_SCHEMA", "graph.yaml", ""),
-    ("identification", "soft_arm_drivers.experiments.excitation:SCHEMA", "identification.yaml", ""),
+    ("identification", "soft_arm_experiments.excitation:SCHEMA", "identification.yaml", ""),
     ("rig.motors", "soft_arm_drivers.can.driver_config:SCHEMA", "rig.yaml", ""),
     ("rig", "soft_arm_drivers.mocap.bridge_config:MOCAP_SCHEMA", "mocap.yaml", ""),
     ("rig.emulator", "soft_arm_drivers.sim.emulated_rig:SCHEMA", "emulator.yaml", ""),
-    ("campaign.tolerances", "soft_arm_drivers.campaigns.plants:SCHEMA", "campaign.yaml", ""),
+    ("campaign.tolerances", "soft_arm_experiments.campaigns.plants:SCHEMA", "campaign.yaml", ""),
     ("estimator", "soft_arm_control.shape_estimation:ESTIMATOR_SCHEMA", "estimator.yaml", ""),
     ("", "soft_arm_ros.parameters:RUN_SCHEMA", None, ""),
 ]
@@ -212,13 +212,13 @@ def _node_section(name, module, node, managed) -> list:
 
 
 COMMANDS = [
-    ("soft-arm-experiment", "soft_arm_drivers.experiments.experiment", []),
-    ("soft-arm-harness", "soft_arm_drivers.experiments.harness_cli", []),
+    ("soft-arm-experiment", "soft_arm_experiments.experiment", []),
+    ("soft-arm-harness", "soft_arm_experiments.harness_cli", []),
     ("soft-arm-model", "soft_arm_model.cli", ["summary", "equilibrium", "workspace"]),
     ("soft-arm-targets", "soft_arm_control.targets_cli", []),
-    ("soft-arm-identify", "soft_arm_drivers.experiments.identify_cli", []),
-    ("soft-arm-campaign", "soft_arm_drivers.campaigns.cli", ["robustness", "identification", "sweep"]),
-    ("soft-arm-warmup", "soft_arm_drivers.warmup", []),
+    ("soft-arm-identify", "soft_arm_experiments.identify_cli", []),
+    ("soft-arm-campaign", "soft_arm_experiments.campaigns.cli", ["robustness", "identification", "sweep"]),
+    ("soft-arm-warmup", "soft_arm_experiments.warmup", []),
 ]
 
 
@@ -251,7 +251,8 @@ def cli_page() -> str:
 PACKAGES = (("soft_arm_model", "the model: geometry, kinematics, statics, dynamics, identification"),
             ("soft_arm_control", "the controller: collocated coordinates, P-satI-D+, CLIK, nodes"),
             ("soft_arm_ros", "the ROS plumbing every node shares"),
-            ("soft_arm_drivers", "around the controller: motors, mocap, simulator, recorder, experiments"))
+            ("soft_arm_drivers", "the rig's hardware and its stand-ins: motors, mocap, simulator, recorder"),
+            ("soft_arm_experiments", "the lab's work: experiments, identification runs, campaigns"))
 
 
 def api_page() -> str:

@@ -252,7 +252,7 @@ class RecorderNode(Node):
 
     def _receiver(self, topic: _Topic):
         """The subscription's callback, for an executor that delivers to it directly (the composed
-        graph's :class:`~soft_arm_drivers.experiments.lockstep.WaveExecutor`, whose time is the
+        graph's :class:`~soft_arm_experiments.lockstep.WaveExecutor`, whose time is the
         simulator's): hold the message, logged at the node clock's time."""
         def receive(data: bytes, info: dict):
             log_time = self.get_clock().now().nanoseconds if self._sim_time else info["received_timestamp"]

@@ -8,7 +8,7 @@ which reads the arm's configurations from the motors' shared
 :class:`~.configuration_history.ConfigurationHistory`. It runs under the normal scheduling policy
 whatever its parent's (the cameras' frames are stamped with their exposure times, so a frame sent
 late is still right), and so takes nothing from the real-time budget of the CPU that steps the
-plant (:mod:`soft_arm_drivers.experiments.realtime`). It ends when its standard input closes: when
+plant (:mod:`soft_arm_experiments.realtime`). It ends when its standard input closes: when
 the hardware's process closes it or dies.
 """
 from __future__ import annotations

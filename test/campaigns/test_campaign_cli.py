@@ -11,8 +11,8 @@ from pathlib import Path
 
 import pytest
 
-from soft_arm_drivers.campaigns import cli, engine
-from soft_arm_drivers.campaigns.plants import STRUCTURAL_PLANT, draw_plant, load_tolerances
+from soft_arm_experiments.campaigns import cli, engine
+from soft_arm_experiments.campaigns.plants import STRUCTURAL_PLANT, draw_plant, load_tolerances
 
 # a triangle cut to its first vertex, 2 s: a real closed-loop run of about a second
 SHORT_TRIANGLE = ["tasks.triangle.phases=[approach]", "tasks.triangle.phase.approach.sequence=[1]",
@@ -38,7 +38,7 @@ def _serially(name: str, specs: list) -> list:
     as a Dask worker has (more threads sum the products of the larger solves in another order: the
     last digits differ)."""
     env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS="1")
-    code = ("import json, sys\nfrom soft_arm_drivers.campaigns import runs\n"
+    code = ("import json, sys\nfrom soft_arm_experiments.campaigns import runs\n"
             f"print(json.dumps([runs.{name}(s) for s in json.load(sys.stdin)]))")
     proc = subprocess.run([sys.executable, "-c", code], input=json.dumps(specs), capture_output=True,
                           text=True, env=env, timeout=600)
@@ -106,7 +106,7 @@ def test_draws_are_their_seeds_own_whatever_else_the_campaign_holds():
 
 def _campaign(args, **kwargs):
     env = dict(os.environ, PYTHONUNBUFFERED="1")
-    return subprocess.Popen([sys.executable, "-m", "soft_arm_drivers.campaigns.cli"] + args, env=env,
+    return subprocess.Popen([sys.executable, "-m", "soft_arm_experiments.campaigns.cli"] + args, env=env,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **kwargs)
 
 

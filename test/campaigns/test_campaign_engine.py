@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from soft_arm_drivers.campaigns import engine
+from soft_arm_experiments.campaigns import engine
 
 FUNCTIONS = Path(__file__).with_name("campaign_functions.py")
 

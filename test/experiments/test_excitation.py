@@ -3,7 +3,7 @@ order of segments, and identification.yaml refused with the key named when it is
 import numpy as np
 import pytest
 
-from soft_arm_drivers.experiments.excitation import (Excitation, load_excitation, load_identification,
+from soft_arm_experiments.excitation import (Excitation, load_excitation, load_identification,
                                                      parse_fit)
 from soft_arm_model.parameters import ConfigError
 

@@ -3,8 +3,8 @@ import json
 
 import pytest
 
-from soft_arm_drivers.experiments.harness import load_setup, run_experiment
-from soft_arm_drivers.experiments.harness_cli import main as harness_main
+from soft_arm_experiments.harness import load_setup, run_experiment
+from soft_arm_experiments.harness_cli import main as harness_main
 from soft_arm_model.parameters import ConfigError
 
 

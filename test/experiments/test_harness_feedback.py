@@ -13,8 +13,8 @@ import pytest
 
 from conftest import CHI2_3_99, nees_bounded, nees_not_overconfident
 from soft_arm_control.shape_estimation import ShapeEstimator
-from soft_arm_drivers.experiments import harness
-from soft_arm_drivers.experiments.harness import load_setup, precompute_targets, run_experiment
+from soft_arm_experiments import harness
+from soft_arm_experiments.harness import load_setup, precompute_targets, run_experiment
 
 ONE_TARGET = ["tasks.coiling.phases=[upward]", "tasks.coiling.phase.upward.sequence=[3]",
               "tasks.coiling.phase.upward.window=6.0"]

@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from soft_arm_drivers.experiments.excitation import Excitation, load_identification, parse_fit
-from soft_arm_drivers.experiments.harness import load_setup
-from soft_arm_drivers.experiments.identification_run import simulate_recording
-from soft_arm_drivers.experiments.identify_cli import identify
+from soft_arm_experiments.excitation import Excitation, load_identification, parse_fit
+from soft_arm_experiments.harness import load_setup
+from soft_arm_experiments.identification_run import simulate_recording
+from soft_arm_experiments.identify_cli import identify
 from soft_arm_model.identification import IdentificationError
 
 # the controller's own arm as the plant (its discretisation, friction, geometry, viscosity)

@@ -5,7 +5,7 @@ from types import SimpleNamespace
 
 import pytest
 
-from soft_arm_drivers.experiments import orchestration
+from soft_arm_experiments import orchestration
 
 
 class _Node:

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from soft_arm_control.trajectories import Trajectory
-from soft_arm_drivers.experiments.metrics import (format_table, format_tracking, measured_speed,
+from soft_arm_experiments.metrics import (format_table, format_tracking, measured_speed,
                                                   settling_time, summarise, to_json, tracking_metrics,
                                                   transition_metrics)
 

@@ -3,7 +3,7 @@ them are left out, never read as positions; a window with none seen is an error.
 import numpy as np
 import pytest
 
-from soft_arm_drivers.experiments.metrics import measured_speed, tracking_metrics, transition_metrics
+from soft_arm_experiments.metrics import measured_speed, tracking_metrics, transition_metrics
 from soft_arm_control.trajectories import Trajectory
 
 

@@ -8,8 +8,8 @@ import time
 
 import pytest
 
-from soft_arm_drivers.experiments import realtime
-from soft_arm_drivers.experiments.orchestration import _REALTIME, _Children
+from soft_arm_experiments import realtime
+from soft_arm_experiments.orchestration import _REALTIME, _Children
 
 # a node stand-in: a thread of its own and a child process, both waiting
 NODE = """

@@ -3,9 +3,9 @@ first goal, the release time) and the strike measured from the ball's and the ar
 import numpy as np
 import pytest
 
-from soft_arm_drivers.experiments.harness import load_setup
-from soft_arm_drivers.experiments.strike import StrikePlan, free_swing, strike_plan_for
-from soft_arm_drivers.experiments.task_runner import RELEASE_LEAD, TaskRunner
+from soft_arm_experiments.harness import load_setup
+from soft_arm_experiments.strike import StrikePlan, free_swing, strike_plan_for
+from soft_arm_experiments.task_runner import RELEASE_LEAD, TaskRunner
 
 FRAME = 1 / 240
 

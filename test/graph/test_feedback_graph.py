@@ -5,8 +5,8 @@ import json
 
 import pytest
 
-from soft_arm_drivers.experiments.experiment import _ros_arguments, run_composed
-from soft_arm_drivers.experiments.orchestration import FEEDBACK_TOPICS, feedback_arguments, roles
+from soft_arm_experiments.experiment import _ros_arguments, run_composed
+from soft_arm_experiments.orchestration import FEEDBACK_TOPICS, feedback_arguments, roles
 from soft_arm_ros.contract import TOPICS
 
 ONE_TARGET = ["tasks.coiling.phases=[upward]", "tasks.coiling.phase.upward.sequence=[3]",

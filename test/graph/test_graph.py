@@ -10,8 +10,8 @@ from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 
 from conftest import node_logs
-from soft_arm_drivers.experiments.experiment import _ros_arguments, run_composed
-from soft_arm_drivers.experiments.harness import load_setup, run_experiment
+from soft_arm_experiments.experiment import _ros_arguments, run_composed
+from soft_arm_experiments.harness import load_setup, run_experiment
 from soft_arm_ros.contract import TYPES
 
 ONE_TARGET = ["tasks.coiling.phases=[upward]", "tasks.coiling.phase.upward.sequence=[3]",
@@ -149,7 +149,7 @@ def test_the_simulator_can_be_swapped_by_remapping(tmp_path):
 def test_processes_mode_runs_each_node_as_its_own_process(tmp_path, monkeypatch):
     """Each node logs from a process of its own (its own ROS log file, named with its process id,
     not this one's), and the run reaches the target and draws the figures."""
-    from soft_arm_drivers.experiments.experiment import main
+    from soft_arm_experiments.experiment import main
     monkeypatch.setenv("ROS_LOG_DIR", str(tmp_path / "log"))          # the node processes inherit it
     out = tmp_path / "procs"
     code = main(["coiling", "--processes", "--quiet", "--output", str(out), "--set",
@@ -173,7 +173,7 @@ def test_a_node_that_fails_mid_run_leaves_an_invalid_result(tmp_path, monkeypatc
     """The composed inner loop raises on its 300th state: the run ends with status 1, the bag is
     kept and readable, metrics.json says invalid and why, and no table is printed."""
     from soft_arm_control.inner_loop_node import InnerLoopNode
-    from soft_arm_drivers.experiments.experiment import main
+    from soft_arm_experiments.experiment import main
     on_state, calls = InnerLoopNode.on_state, []
 
     def failing(self, msg):
@@ -200,7 +200,7 @@ def test_the_pendulum_strike_on_the_graph_matches_the_harness(tmp_path, capsys):
     measures the strike from the mocap topics: struck within two frames of the harness's measured
     impact; the ball and the release are in the bag; the strike's figure is drawn. A planned strike
     is refused before anything starts, with the reason."""
-    from soft_arm_drivers.experiments.experiment import main
+    from soft_arm_experiments.experiment import main
     out = tmp_path / "pendulum"
     assert main(["pendulum", "--quiet", "--output", str(out)]) == 0
     assert "measured: struck" in capsys.readouterr().out
@@ -223,7 +223,7 @@ def test_the_pendulum_strike_on_the_graph_matches_the_harness(tmp_path, capsys):
 def test_tracking_on_the_graph_matches_the_harness(tmp_path):
     """A track goal crosses the graph with its phase: the clik node follows that phase's
     trajectory, the task runner measures the tracking error against it, as the harness does."""
-    from soft_arm_drivers.experiments.experiment import main
+    from soft_arm_experiments.experiment import main
     sets = ["tasks.tracking.phases=[approach, circle_fast]", "tasks.tracking.phase.approach.window=4.0"]
     out = tmp_path / "tracking"
     assert main(["tracking", "--quiet", "--output", str(out)] + [a for s in sets for a in ("--set", s)]) == 0
@@ -240,7 +240,7 @@ def test_the_clik_node_learns_a_fast_path_and_reports_it(tmp_path):
     mocap frames it gets (control.clik.track_learning), the error of the window's last period is
     a few millimetres (unlearned: about 11), and the node's report of the goal counts the periods
     it learned from."""
-    from soft_arm_drivers.experiments.experiment import main
+    from soft_arm_experiments.experiment import main
     period = 2 * 3.141592653589793 * 0.015 / 0.2
     sets = ["tasks.tracking.phases=[approach, circle_fast]", "tasks.tracking.phase.approach.window=4.0",
             "tasks.tracking.phase.circle_fast.trajectory.size=0.015",

@@ -7,8 +7,8 @@ import pathlib
 import pytest
 
 from conftest import node_logs
-from soft_arm_drivers.experiments.experiment import main as experiment
-from soft_arm_drivers.experiments.identify_cli import main as identify
+from soft_arm_experiments.experiment import main as experiment
+from soft_arm_experiments.identify_cli import main as identify
 from soft_arm_drivers.mocap.bridge_config import load_mocap_config
 from soft_arm_model import load_arm_config
 from soft_arm_model.parameters import read_parameters
@@ -90,8 +90,8 @@ def test_a_bag_whose_run_is_marked_invalid_is_refused(short_run, tmp_path, capsy
 def test_a_campaign_fits_every_bag_of_a_folder_and_records_the_one_refused(short_run, tmp_path):
     """``soft-arm-campaign identification --bags``: the run's folder, and a copy marked invalid."""
     import shutil
-    from soft_arm_drivers.campaigns.cli import main as campaign
-    from soft_arm_drivers.campaigns.engine import read_records
+    from soft_arm_experiments.campaigns.cli import main as campaign
+    from soft_arm_experiments.campaigns.engine import read_records
     bags = tmp_path / "bags"
     shutil.copytree(short_run, bags / "good")
     shutil.copytree(short_run, bags / "faulted")
@@ -134,7 +134,7 @@ def test_the_identification_experiment_runs_one_process_per_node(tmp_path, monke
 def test_calibrate_identifies_then_reruns_the_task_with_the_identified_arm(tmp_path):
     """One command: the experiment, the fit and a (short) triangle whose controller's model is the
     identified arm, while the plant stays plant.yaml over arm.yaml (written beside the run)."""
-    from soft_arm_drivers.experiments.harness import load_setup
+    from soft_arm_experiments.harness import load_setup
     short_triangle = ["tasks.triangle.phases=[approach]", "tasks.triangle.phase.approach.window=3.0",
                       "tasks.triangle.phase.approach.sequence=[1]", "control.clik.switch_delay=1.0"]
     out = tmp_path / "calibrate"

@@ -14,7 +14,7 @@ import pytest
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 
-from soft_arm_drivers.experiments.orchestration import node_module
+from soft_arm_experiments.orchestration import node_module
 from soft_arm_model.parameters import default_config_dir
 
 from conftest import killed_on_exit, stop, wait_for_output
@@ -376,7 +376,7 @@ def test_task_runner_waits_for_start_and_stays_up_after_the_last_window(tmp_path
     from rclpy.parameter import Parameter
     from std_srvs.srv import Trigger
 
-    from soft_arm_drivers.experiments.task_runner_node import TaskRunnerNode
+    from soft_arm_experiments.task_runner_node import TaskRunnerNode
     from soft_arm_ros.conversions import pose_array
     out = tmp_path / "metrics.json"
     rclpy.init()
@@ -425,7 +425,7 @@ def test_emulated_rig_refuses_what_is_not_an_emulation(param, message):
 def test_ctrl_c_stops_the_experiment_and_keeps_the_bag(tmp_path):
     env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYTHONUNBUFFERED="1")
     out = tmp_path / "run"
-    proc = subprocess.Popen([sys.executable, "-m", "soft_arm_drivers.experiments.experiment", "triangle",
+    proc = subprocess.Popen([sys.executable, "-m", "soft_arm_experiments.experiment", "triangle",
                              "--output", str(out)], stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True, env=env)
     with killed_on_exit(proc):

@@ -19,7 +19,7 @@ from soft_arm_interfaces.msg import ConfigurationReference, TaskGoal
 
 from conftest import killed_on_exit, spin_until, wait_for_output
 from soft_arm_control.outer_loop import MODES
-from soft_arm_drivers.experiments.figures import read_series
+from soft_arm_experiments.figures import read_series
 from soft_arm_drivers.recording.message_definitions import message_definition, type_description_hash
 from soft_arm_drivers.recording.recorder_node import RecorderNode
 from soft_arm_ros.contract import QOS, TOPICS, TYPES

@@ -166,7 +166,7 @@ def test_data_that_cannot_determine_the_fit_is_refused(paper_model):
 
 
 def test_an_identified_arm_is_written_as_a_description_every_entry_point_takes(paper_model, tmp_path):
-    from soft_arm_drivers.experiments.harness import load_setup
+    from soft_arm_experiments.harness import load_setup
     from soft_arm_model.config import write_arm_file
     truth = _different(paper_model.config)
     path = str(tmp_path / "identified.yaml")

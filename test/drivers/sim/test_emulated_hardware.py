@@ -15,7 +15,7 @@ import pytest
 from soft_arm_drivers.can.driver_config import load_driver_config
 from soft_arm_drivers.can.loopback_bus import INTERFACE, LoopbackBus, free_udp_ports
 from soft_arm_drivers.can.motor_driver import MotorDriver
-from soft_arm_drivers.experiments import realtime
+from soft_arm_experiments import realtime
 from soft_arm_drivers.mocap.bridge_config import load_mocap_config
 from soft_arm_drivers.mocap.natnet import MessageId, build_connect_request, parse_packet
 from soft_arm_drivers.sim.emulated_hardware import HardwareProcess, HardwareSpec

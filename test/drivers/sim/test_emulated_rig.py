@@ -19,10 +19,10 @@ from lifecycle_msgs.srv import ChangeState
 from rclpy.executors import SingleThreadedExecutor
 
 from soft_arm_drivers.can.driver_config import load_driver_config
-from soft_arm_drivers.experiments.experiment import _ros_arguments, main, run_composed
-from soft_arm_drivers.experiments.figures import read_series
-from soft_arm_drivers.experiments.identify_cli import write_identified_arm
-from soft_arm_drivers.experiments.orchestration import BRINGUP_TIMEOUT, GRAPH_SETTLE
+from soft_arm_experiments.experiment import _ros_arguments, main, run_composed
+from soft_arm_experiments.figures import read_series
+from soft_arm_experiments.identify_cli import write_identified_arm
+from soft_arm_experiments.orchestration import BRINGUP_TIMEOUT, GRAPH_SETTLE
 from soft_arm_drivers.mocap.bridge_config import load_mocap_config
 from soft_arm_drivers.sim.emulated_rig import load_emulator_config, read_emulated_motors
 from soft_arm_model import build_model, load_arm_config, marker_positions, solve_equilibrium, tendon_lengths
@@ -182,7 +182,7 @@ def _experiment(config_dir, out, *options) -> subprocess.Popen:
     to a pipe), with the parameter files of ``config_dir``, its results in ``out``."""
     env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYTHONUNBUFFERED="1")
     sets = [a for s in ONE_TARGET for a in ("--set", s)]
-    return subprocess.Popen([sys.executable, "-m", "soft_arm_drivers.experiments.experiment", "coiling",
+    return subprocess.Popen([sys.executable, "-m", "soft_arm_experiments.experiment", "coiling",
                              "--emulated-hardware", "--config", config_dir, *options, "--output", str(out)]
                             + sets,
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)

@@ -134,7 +134,7 @@ def test_hertz_stiffness_grows_with_the_modulus_and_the_radii():
 
 def _rig(pendulum):
     """The simulated rig of plant.yaml with ``pendulum``, its arm hanging under the pretension."""
-    from soft_arm_drivers.experiments.harness import load_setup
+    from soft_arm_experiments.harness import load_setup
     from soft_arm_drivers.sim.simulated_rig import SimulatedRig
     from soft_arm_model import build_model
     setup = load_setup("pendulum")

@@ -7,8 +7,8 @@ import shutil
 import numpy as np
 import pytest
 
-from soft_arm_drivers.experiments.harness import load_setup, run_experiment
-from soft_arm_drivers.experiments.harness_cli import main as harness_main
+from soft_arm_experiments.harness import load_setup, run_experiment
+from soft_arm_experiments.harness_cli import main as harness_main
 from soft_arm_drivers.sim.plant_config import load_plant_config
 from soft_arm_model import build_model, load_arm_config
 from soft_arm_model.parameters import ConfigError, default_config_dir
@@ -94,7 +94,7 @@ FRAME_ERROR = ["plant.mocap.frame_error.rotation_deg=[0.0, 1.2, 1.6]",
 def _identified_arm_file(path, arm, registration=None):
     """An arm file as soft-arm-identify writes it: the arm, and the mocap calibration composed of
     ``registration`` after mocap.yaml's (none: no calibration in the file)."""
-    from soft_arm_drivers.experiments.identify_cli import composed_calibration, write_identified_arm
+    from soft_arm_experiments.identify_cli import composed_calibration, write_identified_arm
     from soft_arm_drivers.mocap.bridge_config import load_mocap_config
     from soft_arm_model.config import write_arm_file
     if registration is None:

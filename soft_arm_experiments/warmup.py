@@ -33,7 +33,7 @@ def _model():
 
 
 def _controller_and_plant():
-    from soft_arm_drivers.experiments.harness import load_setup, run_experiment
+    from soft_arm_experiments.harness import load_setup, run_experiment
     run_experiment(load_setup("coiling", overrides=SHORT_RUN))
 
 

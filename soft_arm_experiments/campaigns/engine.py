@@ -81,7 +81,7 @@ class WarmUp(WorkerPlugin):
     name = "soft-arm-warm-up"
 
     def setup(self, worker):
-        from soft_arm_drivers.warmup import STEPS
+        from soft_arm_experiments.warmup import STEPS
         for _, step in STEPS:
             step()
 

@@ -102,7 +102,7 @@ def plant_holds(task: str, overrides: list) -> dict:
     plant's own model, its margin [N] from the tension limits and its stability under the inner loop
     (:func:`soft_arm_control.target_margin.check_arm`). A target it cannot hold no controller reaches."""
     from soft_arm_control.target_margin import check_arm, is_robust
-    from soft_arm_drivers.experiments.harness import load_setup
+    from soft_arm_experiments.harness import load_setup
     setup = load_setup(task, overrides=overrides)
     if setup.task is None:
         raise ConfigError(f"{task} has no targets to hold")

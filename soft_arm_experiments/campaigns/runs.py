@@ -24,7 +24,7 @@ from .plants import plant_holds, plant_overrides
 
 
 def task_outcome(result) -> dict:
-    """A task run's figures (:class:`~soft_arm_drivers.experiments.harness.RunResult`): steady-state
+    """A task run's figures (:class:`~soft_arm_experiments.harness.RunResult`): steady-state
     RMS task error [mm], transitions in the mm band, mm- and cm-band task velocities [m/s], the
     online CLIK's infeasible steps, each goal's status, the track windows' RMS, maximum and
     last-period RMS [mm], and the pendulum's strike."""
@@ -47,7 +47,7 @@ def run_task(task: str, overrides: list, arm_file: str | None = None, accept_clo
     """``task`` on the simulated rig with ``overrides`` (``ns.key=value``), as ``soft-arm-harness``
     runs it: :func:`task_outcome`, the run's wall time [s] and, with ``accept_closest``, how far
     [mm] the targets the controller's model cannot hold were moved."""
-    from soft_arm_drivers.experiments.harness import load_setup, load_setup_at_closest, run_experiment
+    from soft_arm_experiments.harness import load_setup, load_setup_at_closest, run_experiment
     moved = []
     if accept_closest:
         setup, notes = load_setup_at_closest(task, overrides=overrides, arm_file=arm_file)
@@ -83,8 +83,8 @@ def identification(spec: dict) -> dict:
 def identify_bag(bag: str, sets=()) -> dict:
     """The fit of one recorded identification experiment: every estimate with its standard error and
     uncertainty, the tip residual RMS [mm] and the fit's wall time [s]."""
-    from soft_arm_drivers.experiments.excitation import load_identification, parse_fit
-    from soft_arm_drivers.experiments.identify_cli import identify, read_recording
+    from soft_arm_experiments.excitation import load_identification, parse_fit
+    from soft_arm_experiments.identify_cli import identify, read_recording
     from soft_arm_model import load_arm_config
     from soft_arm_model.parameters import default_config_dir, split_overrides
     groups = split_overrides(list(sets), ("arm", "identification"))
@@ -106,10 +106,10 @@ def identify_plant(plant: dict, sets=()) -> dict:
     worst of the E, friction, offset and angle errors is."""
     from scipy.spatial.transform import Rotation
 
-    from soft_arm_drivers.experiments.excitation import Excitation, load_identification, parse_fit
-    from soft_arm_drivers.experiments.harness import load_setup
-    from soft_arm_drivers.experiments.identification_run import simulate_recording
-    from soft_arm_drivers.experiments.identify_cli import composed_calibration, identify
+    from soft_arm_experiments.excitation import Excitation, load_identification, parse_fit
+    from soft_arm_experiments.harness import load_setup
+    from soft_arm_experiments.identification_run import simulate_recording
+    from soft_arm_experiments.identify_cli import composed_calibration, identify
     from soft_arm_drivers.mocap.bridge_config import load_mocap_config
 
     overrides = plant_overrides(plant) + list(sets)
@@ -175,7 +175,7 @@ def true_registration(plant: dict):
 def _triangle_with(arm, calibration, overrides: list) -> dict:
     """The triangle on the plant of ``overrides`` with ``arm`` and its mocap ``calibration`` as the
     controller's model (``--arm-file``, ``--accept-closest``); an error string when it cannot run."""
-    from soft_arm_drivers.experiments.identify_cli import write_identified_arm
+    from soft_arm_experiments.identify_cli import write_identified_arm
     from soft_arm_model.parameters import ConfigError
     with tempfile.TemporaryDirectory() as tmp:
         path = os.path.join(tmp, "arm.yaml")

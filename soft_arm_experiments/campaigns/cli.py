@@ -26,16 +26,16 @@ from pathlib import Path
 
 import numpy as np
 
-from soft_arm_drivers.experiments.writable import writable_directory
+from soft_arm_experiments.writable import writable_directory
 from soft_arm_model.parameters import ConfigError
 
 from . import engine
 from .plants import STRUCTURAL_FRAME, STRUCTURAL_PLANT, draw_frame, draw_plant, load_tolerances
 from .report import write_report
 
-FUNCTIONS = {"robustness": "soft_arm_drivers.campaigns.runs:robustness",
-             "identification": "soft_arm_drivers.campaigns.runs:identification",
-             "sweep": "soft_arm_drivers.campaigns.runs:sweep"}
+FUNCTIONS = {"robustness": "soft_arm_experiments.campaigns.runs:robustness",
+             "identification": "soft_arm_experiments.campaigns.runs:identification",
+             "sweep": "soft_arm_experiments.campaigns.runs:sweep"}
 
 
 def robustness_specs(args) -> list:
@@ -127,13 +127,13 @@ def _pair(item: str, option: str) -> tuple:
 
 def check_specs(specs: list):
     """Load every run's configuration before anything runs: ConfigError naming the key."""
-    from soft_arm_drivers.experiments.harness import load_setup
+    from soft_arm_experiments.harness import load_setup
     from soft_arm_model import load_arm_config
     from soft_arm_model.parameters import default_config_dir, split_overrides
     seen = set()
     for spec in specs:
         if "bag" in spec:
-            from soft_arm_drivers.experiments.excitation import load_identification
+            from soft_arm_experiments.excitation import load_identification
             groups = split_overrides(list(spec["sets"]), ("arm", "identification"))
             load_arm_config(os.path.join(default_config_dir(), "arm.yaml"), groups["arm"])
             load_identification(overrides=groups["identification"])

@@ -18,7 +18,7 @@ from .excitation import Excitation
 
 def simulate_recording(setup, excitation: Excitation) -> Recording:
     """Play ``excitation`` on the simulated rig of ``setup``
-    (:class:`~soft_arm_drivers.experiments.harness.Setup`): the arm starts hanging under
+    (:class:`~soft_arm_experiments.harness.Setup`): the arm starts hanging under
     ``control.tension_min`` with the encoders zeroed there (as the simulator node starts it)."""
     plant, control = setup.plant, setup.control
     model = build_model(setup.arm)
