@@ -15,7 +15,7 @@ setup(
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),
-        (f"share/{PACKAGE}/config", glob("config/*.yaml")),
+        (f"share/{PACKAGE}/config", glob("config/*.yaml") + ["config/foxglove_layout.json"]),
         (f"share/{PACKAGE}/launch", glob("launch/*.launch.py")),
     ],
     python_requires=">=3.10",
@@ -27,6 +27,8 @@ setup(
         "matplotlib>=3.8",
         "python-can>=4.3",
         "mcap==1.6.0",
+        # the live view (live_view node): a Foxglove WebSocket server from Python
+        "foxglove-sdk==0.30.3",
         # soft-arm-campaign: runs on Dask distributed; bokeh serves its dashboard
         "dask[distributed]>=2024.8",
         "bokeh>=3.1",
@@ -38,7 +40,8 @@ setup(
     extras_require={
         # PyElastica: the model bench's comparison, whose timing a test checks
         "test": ["pytest>=8", "pytest-xdist>=3.5", "hypothesis>=6", "rosbags==0.11.9", "flake8>=7",
-                 "sphinx>=8", "myst-parser>=4", "furo>=2024.8.6", "pyelastica==1.0.0"],
+                 "sphinx>=8", "myst-parser>=4", "furo>=2024.8.6", "pyelastica==1.0.0", "websockets>=13",
+                 "protobuf>=5"],
         "bench": ["pyelastica==1.0.0"],
     },
     zip_safe=True,
@@ -62,6 +65,7 @@ setup(
             "shape_estimator = soft_arm_control.shape_estimator_node:main",
             "task_runner = soft_arm_experiments.task_runner_node:main",
             "excitation = soft_arm_experiments.excitation_node:main",
+            "live_view = soft_arm_experiments.live_view_node:main",
             "mocap_bridge = soft_arm_drivers.mocap.mocap_bridge_node:main",
             "emulated_rig = soft_arm_drivers.sim.emulated_rig:main",
             "motor_driver = soft_arm_drivers.can.motor_driver_node:main",

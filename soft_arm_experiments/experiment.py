@@ -17,6 +17,9 @@ or an unreachable target exits with status 2; a node that dies or a run that can
 ``soft-arm-experiment calibrate [--rerun TASK]`` closes the loop: the identification experiment,
 soft-arm-identify on its bag, then the task (default: triangle) with the identified arm as the
 controller's model, each in the same way (``--processes``, ``--emulated-hardware``, ``--set``).
+
+``--live [HOST:]PORT`` serves the run to the Foxglove app while it runs (the live_view node in a
+process of its own, :mod:`.live_launch`) and writes the same view into ``view.mcap`` of the run.
 """
 from __future__ import annotations
 
@@ -36,6 +39,7 @@ from soft_arm_model.parameters import ConfigError, default_config_dir
 from .metrics import Summary, TrackingMetrics, TransitionMetrics, format_table, format_tracking
 from .strike import PLANNED_ON_THE_GRAPH, format_strike
 from .harness import add_setup_arguments, check_targets, load_setup, setup_overrides
+from .live_launch import live_view, parse_address
 from .excitation import Excitation
 from .orchestration import STOP, feedback_arguments, request_stop, roles, run_emulated_hardware, run_processes
 from .writable import writable_directory
@@ -228,6 +232,9 @@ def main(argv=None) -> int:
     add_setup_arguments(parser)
     parser.add_argument("--json", action="store_true", help="print the metrics as JSON")
     parser.add_argument("--quiet", action="store_true", help="no progress line (composed runs print one)")
+    parser.add_argument("--live", metavar="[HOST:]PORT",
+                        help="serve the run to the Foxglove app on this address (live_view node; HOST "
+                             "127.0.0.1 unless given)")
     args = parser.parse_args(argv)
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     if args.task == CALIBRATE:
@@ -250,6 +257,8 @@ def main(argv=None) -> int:
             raise ConfigError(f"the emulated rig has no pendulum: run {args.task} on the simulator "
                               "(without --emulated-hardware)")
         ros_args = _ros_arguments(args.task, args.sets, args.config, args.arm_file)
+        if args.live is not None:
+            parse_address(args.live)
     except (ConfigError, ValueError) as exc:          # TargetError is a ValueError
         print(f"soft-arm-experiment: {exc}", file=sys.stderr)
         return 2
@@ -275,7 +284,11 @@ def main(argv=None) -> int:
     STOP.clear()
     previous = {sig: signal.signal(sig, request_stop) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
-        return _run(args, setup, ros_args, out)
+        with live_view(args.live, ros_args, os.path.join(run_dir, "view.mcap")) as address:
+            if address is not None:
+                print(f"soft-arm-experiment: live view on {address} (Foxglove app: Open connection, "
+                      "Foxglove WebSocket; layout config/foxglove_layout.json)", file=sys.stderr)
+            return _run(args, setup, ros_args, out)
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)

@@ -29,6 +29,9 @@ ROSDEP = {
     "myst-parser": None,                           # MyST and the theme, which have no rosdep key;
     "furo": None,                                  # rosdoc2 brings its own on a ROS build farm
     "pyelastica": None,                            # the model bench's comparison: pip, no rosdep key
+    "foxglove-sdk": None,                          # the live view's server: pip, no rosdep key
+    "websockets": None,                            # the live view's test client: pip
+    "protobuf": ("test_depend", "python3-protobuf"),
 }
 INTERFACE = re.compile(r"^(\w+_(?:msgs|srvs|interfaces))(?:\.|$)")
 ROS_PYTHON = re.compile(r"^(launch_ros|launch|ament_index_python|rclpy)(?:\.|$)")

@@ -1,0 +1,206 @@
+"""The live_view node on real rclpy beside the simulator (wall-clock mode), read by a Foxglove
+WebSocket client of the test's own (127.0.0.1 only; subprotocol foxglove.sdk.v1, the Foxglove
+SDK's name for the WebSocket protocol that was foxglove.websocket.v1, which it refuses): the
+channels are advertised with their schemas, the scene's arm ends at the simulator's tip, a client
+that never reads costs the graph nothing, and a server beyond loopback must be asked for."""
+import base64
+import json
+import struct
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from foxglove_wire import cylinder_ends, decoder
+
+SUBPROTOCOL = "foxglove.sdk.v1"
+
+
+@pytest.fixture
+def graph():
+    """The simulator (wall clock) and the live view (a free port) spinning in a thread."""
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.parameter import Parameter
+
+    from soft_arm_drivers.sim.simulator_node import SimulatorNode
+    from soft_arm_experiments.live_view_node import LiveViewNode
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    sim = SimulatorNode(context=context, parameter_overrides=[
+        Parameter("graph.simulator.mode", value="realtime"), Parameter("graph.task", value="coiling")])
+    view = LiveViewNode(context=context, parameter_overrides=[Parameter("view.port", value=0)])
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(sim)
+    executor.add_node(view)
+    stop = threading.Event()
+
+    def spin():
+        while not stop.is_set():
+            executor.spin_once(timeout_sec=0.01)
+
+    thread = threading.Thread(target=spin, daemon=True)
+    thread.start()
+    try:
+        yield sim, view
+    finally:
+        stop.set()
+        thread.join(timeout=10)
+        view.close()
+        executor.shutdown()
+        view.destroy_node()
+        sim.destroy_node()
+        rclpy.try_shutdown(context=context)
+
+
+def connect(port: int):
+    from websockets.sync.client import connect as ws_connect
+    return ws_connect(f"ws://127.0.0.1:{port}", subprotocols=[SUBPROTOCOL], open_timeout=10)
+
+
+def advertised(ws, topics, timeout: float = 10.0) -> dict:
+    """topic -> channel of the server's advertisements, once every one of ``topics`` is there."""
+    channels, deadline = {}, time.monotonic() + timeout
+    while not set(topics) <= set(channels):
+        message = ws.recv(timeout=max(0.01, deadline - time.monotonic()))
+        if isinstance(message, str):
+            op = json.loads(message)
+            if op.get("op") == "advertise":
+                channels.update({c["topic"]: c for c in op["channels"]})
+    return channels
+
+
+def messages_of(ws, subscription: int, count: int, timeout: float = 10.0) -> list:
+    """The payloads of the next ``count`` message-data frames of ``subscription``."""
+    out, deadline = [], time.monotonic() + timeout
+    while len(out) < count:
+        message = ws.recv(timeout=max(0.01, deadline - time.monotonic()))
+        if isinstance(message, bytes) and message[0] == 0x01:
+            sub, _ = struct.unpack_from("<IQ", message, 1)
+            if sub == subscription:
+                out.append(message[13:])
+    return out
+
+
+def test_a_viewer_gets_the_channels_and_a_scene_whose_arm_ends_at_the_simulator_s_tip(graph):
+    sim, view = graph
+    with connect(view.server.port) as ws:
+        assert ws.subprotocol == SUBPROTOCOL
+        channels = advertised(ws, ["/view/scene", "/view/tendons", "/view/task", "/view/diagnostics"])
+        scene_channel = channels["/view/scene"]
+        assert scene_channel["schemaName"] == "foxglove.SceneUpdate"
+        assert scene_channel["encoding"] == "protobuf"
+        assert channels["/view/tendons"]["encoding"] == "json"
+        ws.send(json.dumps({"op": "subscribe", "subscriptions": [
+            {"id": 1, "channelId": scene_channel["id"]},
+            {"id": 2, "channelId": channels["/view/tendons"]["id"]}]}))
+        decode = decoder(scene_channel["schemaName"], base64.b64decode(scene_channel["schema"]))
+        for payload in messages_of(ws, 1, 5):
+            scene = decode(payload)
+            arm = [e for e in scene.entities if e.id == "arm"]
+            if arm:
+                break
+        assert arm, [e.id for e in scene.entities]
+        _, end = cylinder_ends(arm[0].cylinders[-1])
+        tip = sim.rig.plant.stepper.data.p[-1]          # the arm hangs still: its tip now
+        assert np.linalg.norm(end - tip) < 1e-3, (end, tip)
+        mocap = [e for e in scene.entities if e.id == "mocap"]
+        unseen = [k for k in {kv.key: kv.value for kv in mocap[0].metadata}["unseen"].split(",") if k]
+        assert len(mocap[0].spheres) + len(unseen) == 4
+        tendons = json.loads(messages_of(ws, 2, 1)[0])
+        assert len(tendons["tension"]) == 4 and tendons["tension"][0] == pytest.approx(0.05)
+
+
+def test_a_viewer_that_never_reads_does_not_slow_the_graph(graph):
+    """3 s with no viewer, then 3 s with one subscribed to everything that reads nothing: the
+    simulator keeps as much of the wall clock, the node keeps publishing at its rate, and the
+    process does not grow by the messages the viewer did not take (the server drops them)."""
+    import resource
+    sim, view = graph
+
+    def rates(seconds: float) -> tuple:
+        t0, published0, wall0 = sim.rig.t, view.published, time.monotonic()
+        time.sleep(seconds)
+        wall = time.monotonic() - wall0
+        return (sim.rig.t - t0) / wall, (view.published - published0) / wall
+
+    alone = rates(3.0)
+    with connect(view.server.port) as ws:
+        channels = advertised(ws, ["/view/scene", "/view/tendons"])
+        ws.send(json.dumps({"op": "subscribe", "subscriptions": [
+            {"id": k, "channelId": c["id"]} for k, c in enumerate(channels.values())]}))
+        before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+        watched = rates(3.0)
+        grown = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before
+    assert watched[0] > 0.85 * alone[0], (alone, watched)          # simulated s per wall s
+    assert watched[1] > 0.85 * alone[1] and watched[1] > 20.0, (alone, watched)   # scenes per s
+    assert grown < 50_000, grown                                     # kB
+
+
+def test_the_node_refuses_an_address_beyond_loopback_by_default():
+    import rclpy
+    from rclpy.parameter import Parameter
+
+    from soft_arm_experiments.live_view_node import LiveViewNode
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    try:
+        with pytest.raises(ValueError, match="view.remote"):     # refused before anything binds
+            LiveViewNode(context=context, parameter_overrides=[
+                Parameter("view.host", value="0.0.0.0"), Parameter("view.port", value=0)])
+    finally:
+        rclpy.try_shutdown(context=context)
+
+
+def test_soft_arm_experiment_live_serves_the_run_and_writes_the_same_view(tmp_path):
+    """``soft-arm-experiment coiling --live 127.0.0.1:PORT``: a viewer connecting while it runs gets
+    a scene with the arm and the markers; the run ends as without it, and its view.mcap holds the
+    scene and the series for the layout to open afterwards."""
+    import os
+    import socket
+    import subprocess
+    import sys
+
+    from mcap.reader import make_reader
+
+    with socket.socket() as s:                    # a TCP port of 127.0.0.1 free a moment ago
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    run = tmp_path / "run"
+    sets = ["tasks.coiling.phases=[upward]", "tasks.coiling.phase.upward.sequence=[1]",
+            "tasks.coiling.phase.upward.window=4.0"]
+    command = [sys.executable, "-m", "soft_arm_experiments.experiment", "coiling", "--quiet", "--json",
+               "--output", str(run), "--live", f"127.0.0.1:{port}"] + [a for s in sets for a in ("--set", s)]
+    started = time.monotonic()
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                               env=dict(os.environ))
+    try:
+        deadline, ws = time.monotonic() + 120.0, None
+        while ws is None and time.monotonic() < deadline and process.poll() is None:
+            try:
+                ws = connect(port)
+            except OSError:
+                time.sleep(0.2)
+        assert ws is not None, process.communicate(timeout=120)
+        with ws:
+            channels = advertised(ws, ["/view/scene"], timeout=60.0)
+            ws.send(json.dumps({"op": "subscribe", "subscriptions": [
+                {"id": 7, "channelId": channels["/view/scene"]["id"]}]}))
+            decode = decoder("foxglove.SceneUpdate", base64.b64decode(channels["/view/scene"]["schema"]))
+            ids, first = set(), None
+            while not {"arm", "mocap"} <= ids:
+                scene = decode(messages_of(ws, 7, 1, timeout=60.0)[0])
+                ids |= {e.id for e in scene.entities if e.cylinders or e.spheres}
+                first = first or time.monotonic() - started
+        out, err = process.communicate(timeout=600)
+    finally:
+        if process.poll() is None:
+            process.kill()
+    assert process.returncode == 0, err[-3000:]
+    assert "live view on ws://127.0.0.1:" in err
+    assert json.loads(out)["summary"]["transitions"] == 1
+    with open(run / "view.mcap", "rb") as fh:
+        topics = {channel.topic for _, channel, _ in make_reader(fh).iter_messages()}
+    assert {"/view/scene", "/view/tendons"} <= topics, topics
+    print(f"first scene with the arm {first:.1f} s after the command")
