@@ -43,6 +43,7 @@ SCHEMAS = [
     ("rig.emulator", "soft_arm_drivers.sim.emulated_rig:SCHEMA", "emulator.yaml", ""),
     ("campaign.tolerances", "soft_arm_experiments.campaigns.plants:SCHEMA", "campaign.yaml", ""),
     ("estimator", "soft_arm_control.shape_estimation:ESTIMATOR_SCHEMA", "estimator.yaml", ""),
+    ("view", "soft_arm_experiments.live_view:VIEW_SCHEMA", "view.yaml", ""),
     ("", "soft_arm_ros.parameters:RUN_SCHEMA", None, ""),
 ]
 # nodes that write a file (parameter ``output``): built with one in a scratch folder
@@ -165,6 +166,8 @@ def nodes_page() -> str:
                         "`rig.emulator.*` and the `rig.mocap.*` of the emulated server.", ""]
                 continue
             outputs = [Parameter("output", value=str(scratch / name))] if name in WRITERS else []
+            if name == "live_view":                  # any free port: another view may be running
+                outputs = [Parameter("view.port", value=0)]
             node = cls(context=context, parameter_overrides=outputs)
             try:
                 out += _node_section(name, module, node, isinstance(node, LifecycleNode))
