@@ -326,7 +326,7 @@ def _reason(exc: TargetError) -> str:
 
 
 def run_experiment(setup: Setup, progress=None, actuation_map: ActuationMap | None = None,
-                   estimate: bool = False, truth: bool = False) -> RunResult:
+                   estimate: bool = False, truth: bool = False, observer=None) -> RunResult:
     """Run the task's protocol on the simulated rig and compute the paper's metrics.
 
     ``progress(t, t_end)`` is called about once per simulated second. The shape estimator runs at
@@ -335,7 +335,9 @@ def run_experiment(setup: Setup, progress=None, actuation_map: ActuationMap | No
     ``estimate`` asks for it (its estimate is then in the record); with fused or estimate
     feedback the online CLIK takes its task coordinates from it at each update instead of from
     the delivered frames. The metrics are of what the mocap measured, or with ``truth`` of the
-    plant's true markers (a run whose mocap is lost has no measured figures).
+    plant's true markers (a run whose mocap is lost has no measured figures). ``observer(t, rig,
+    frame, estimate, x_d, reference)`` is called at every mocap exposure (``estimate`` None without
+    the estimator; ``x_d`` the target now [m], ``reference`` the inner loop's): the live view's.
     """
     ctl, task, pc = setup.control, setup.task, setup.plant
     model = build_model(setup.arm)
@@ -398,7 +400,7 @@ def run_experiment(setup: Setup, progress=None, actuation_map: ActuationMap | No
                     balls.append((frame.stamp, frame.ball, frame.markers))
             if delivered:
                 latest = delivered[-1].markers
-            x_feedback = sigma = None
+            x_feedback = sigma = estimated = None
             if estimator is not None and frame is not None:
                 s, sd = rig.tendons()
                 estimator.update(t, s, sd, rig.tension, latest)
@@ -415,6 +417,8 @@ def run_experiment(setup: Setup, progress=None, actuation_map: ActuationMap | No
                     x_feedback = space.from_markers(defended)
                     sigma = space.tip_sigma(estimated.marker_covariance[-1])
                 latest = None
+            if observer is not None and frame is not None:
+                observer(t, rig, frame, estimated, rec.x_d[-1], ctrl.reference)
             if setup.feedback == "mocap" and delivered:
                 x_feedback = space.from_markers(delivered[-1].markers)
             if x_feedback is not None:

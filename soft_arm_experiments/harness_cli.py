@@ -5,7 +5,8 @@ the package's), applies repeated ``--set namespace.key=value`` overrides (namesp
 plant, tasks), runs the protocol and prints the per-transition table and the paper-style summary
 (``--json``: the metrics as JSON on stdout). Errors in the configuration or an unreachable target
 exit with status 2 and a message; nothing is simulated then. The message names the closest point the
-model reaches within the tension limits; ``--accept-closest`` runs the task with it.
+model reaches within the tension limits; ``--accept-closest`` runs the task with it. ``--live
+[HOST:]PORT`` serves the run to the Foxglove app while it runs (:class:`~.live_launch.HarnessView`).
 """
 from __future__ import annotations
 
@@ -20,6 +21,7 @@ from soft_arm_model.parameters import ConfigError
 
 from .harness import (add_setup_arguments, goal_warning, load_setup, load_setup_at_closest, run_experiment,
                       setup_overrides)
+from .live_launch import HarnessView
 from .metrics import format_table, format_tracking, to_json
 from .strike import format_strike
 
@@ -34,6 +36,9 @@ def main(argv=None) -> int:
     add_setup_arguments(parser)
     parser.add_argument("--json", action="store_true", help="print the metrics as JSON")
     parser.add_argument("--quiet", action="store_true", help="no progress line on stderr")
+    parser.add_argument("--live", metavar="[HOST:]PORT",
+                        help="serve the run to the Foxglove app on this address while it runs (HOST "
+                             "127.0.0.1 unless given)")
     args = parser.parse_args(argv)
     try:
         setup = load_setup(args.task, args.config, setup_overrides(args), args.arm_file, args.feedback)
@@ -48,12 +53,24 @@ def main(argv=None) -> int:
     except (ConfigError, ValueError) as exc:          # TargetError is a ValueError
         print(f"soft-arm-harness: {exc}", file=sys.stderr)
         return 2
+    live = None
+    if args.live is not None:
+        try:
+            live = HarnessView(args.live, setup.arm, setup.task.space.labels())
+        except (ValueError, RuntimeError) as exc:
+            print(f"soft-arm-harness: --live {args.live}: {exc}", file=sys.stderr)
+            return 2
+        print(f"soft-arm-harness: live view on {live.address} (Foxglove app: Open connection, "
+              "Foxglove WebSocket; layout config/foxglove_layout.json)", file=sys.stderr)
     start = time.perf_counter()
     try:
-        result = run_experiment(setup, None if args.quiet else _progress)
+        result = run_experiment(setup, None if args.quiet else _progress, observer=live)
     except TargetError as exc:
         print(f"\nsoft-arm-harness: {exc}", file=sys.stderr)
         return 2
+    finally:
+        if live is not None:
+            live.close()
     wall = time.perf_counter() - start
     if not args.quiet:
         print(file=sys.stderr)

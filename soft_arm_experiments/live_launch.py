@@ -1,5 +1,7 @@
-"""``--live [HOST:]PORT``: the live_view node started beside a run, in a process of its own, so that
-a viewer costs the run's nodes nothing but the messages they already publish."""
+"""``--live [HOST:]PORT``: the live view of a run. Beside the graph (``soft-arm-experiment``) the
+live_view node in a process of its own, so that a viewer costs the run's nodes nothing but the
+messages they already publish; in the ROS-free harness (``soft-arm-harness``) a
+:class:`HarnessView` fed at every mocap exposure."""
 from __future__ import annotations
 
 import contextlib
@@ -7,8 +9,9 @@ import os
 import signal
 import subprocess
 import sys
+import time
 
-from .live_view import check_bind
+from .live_view import LiveServer, LiveView, check_bind
 
 
 def parse_address(text: str) -> tuple[str, int]:
@@ -53,3 +56,49 @@ def live_view(address: str | None, ros_args: list, record: str = ""):
             except subprocess.TimeoutExpired:
                 os.killpg(process.pid, signal.SIGKILL)
                 process.wait()
+
+
+class HarnessView:
+    """The harness's observer (:func:`~.harness.run_experiment`) serving the live view on
+    ``address`` ([HOST:]PORT): the plant's backbone, the mocap's markers, the estimate, the target and
+    the tendons, published at most ``rate`` times per second of wall time (the harness runs faster
+    than real time: a viewer sees it fast-forward). ``labels``: the task's coordinates'."""
+
+    def __init__(self, address: str, arm, labels, rate: float = 30.0):
+        host, port = parse_address(address)
+        remote = True
+        try:
+            check_bind(host, False)
+            remote = False
+        except ValueError:
+            pass
+        self.server = LiveServer(host, port, remote)
+        self.view = LiveView(arm.geometry.base_radius, arm.geometry.tip_radius)
+        self.labels, self.period, self.next = list(labels), 1.0 / rate, 0.0
+
+    @property
+    def address(self) -> str:
+        return self.server.address
+
+    def __call__(self, t, rig, frame, estimate, x_d, reference):
+        view = self.view
+        view.take_backbone(t, rig.plant.stepper.data.p)
+        view.take_mocap(t, frame.markers)
+        if estimate is not None:
+            view.take_estimate(t, estimate.markers, estimate.marker_covariance[-1])
+        view.take_target(self.labels, x_d)
+        now = time.monotonic()
+        if now < self.next:
+            return
+        self.next = now + self.period
+        s, sd = rig.tendons()
+        task = [float(frame.markers[int(label.split(".")[0][6:]) - 1, "xyz".index(label[-1])])
+                for label in self.labels]
+        self.server.publish(view, {
+            "tendons": {"t": t, "shortening": s.tolist(), "rate": sd.tolist(),
+                        "tension": list(map(float, rig.tension)), "reference": reference.shortening.tolist()},
+            "task": {"t": t, "labels": self.labels, "target": [float(v) for v in x_d], "measured": task,
+                     "error": [m - d for m, d in zip(task, x_d)]}})
+
+    def close(self):
+        self.server.close()

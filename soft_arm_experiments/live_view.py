@@ -20,6 +20,9 @@ The scene (``/view/scene``, foxglove.SceneUpdate), one entity each:
 The series (JSON): ``/view/tendons`` (shortening [m], rate [m/s], tension [N], reference shortening
 [m] per tendon), ``/view/task`` (target, measured coordinates and their error [m]), and
 ``/view/diagnostics`` (each status's level, message and values).
+
+:class:`LiveServer` serves them (the Foxglove SDK's WebSocket server, and an MCAP file if asked):
+the node's and ``soft-arm-harness --live``'s.
 """
 from __future__ import annotations
 
@@ -146,6 +149,63 @@ def ellipsoid(center, covariance, color=(0.1, 0.6, 0.9, 0.35)):
     return SpherePrimitive(pose=_pose(center, _quaternion_of(vectors)),
                            size=Vector3(x=float(size[0]), y=float(size[1]), z=float(size[2])),
                            color=Color(r=color[0], g=color[1], b=color[2], a=color[3]))
+
+
+SERIES = ("tendons", "task", "diagnostics")
+
+
+def json_safe(value):
+    """``value`` with every number that is no finite float (NaN, infinity) as None: JSON has none."""
+    if isinstance(value, dict):
+        return {k: json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(v) for v in value]
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+class LiveServer:
+    """A Foxglove WebSocket server on ``host``:``port`` (0: a free one; :attr:`address` says which),
+    checked by :func:`check_bind` with ``remote``, dropping a viewer's oldest messages beyond
+    ``backlog``; with ``record``, the same channels into that MCAP file too. :meth:`publish` sends
+    a scene and the series; :meth:`close` stops both."""
+
+    def __init__(self, host: str, port: int, remote: bool = False, backlog: int = 64, record: str = ""):
+        import foxglove
+        from foxglove.channels import SceneUpdateChannel
+        check_bind(host, remote)
+        self.context = foxglove.Context()
+        self.server = foxglove.start_server(name="soft_arm", host=host, port=port, context=self.context,
+                                            message_backlog_size=backlog)
+        self.recording = foxglove.open_mcap(record, allow_overwrite=True, context=self.context) \
+            if record else None
+        self.scene_channel = SceneUpdateChannel("/view/scene", context=self.context)
+        self.series = {name: foxglove.Channel(f"/view/{name}", context=self.context) for name in SERIES}
+        self.address = f"ws://{host}:{self.server.port}"
+        self.published = 0
+
+    @property
+    def port(self) -> int:
+        return self.server.port
+
+    def publish(self, view: "LiveView", series: dict):
+        """The scene of ``view`` and the ``series`` (name -> JSON-able value), to whoever listens
+        (nothing is built when no one does)."""
+        import time
+        now = time.time_ns()
+        if self.scene_channel.has_sinks():
+            self.scene_channel.log(view.scene(), log_time=now)
+        for name, channel in self.series.items():
+            value = series.get(name)
+            if value is not None and channel.has_sinks():
+                channel.log(json_safe(value), log_time=now)
+        self.published += 1
+
+    def close(self):
+        self.server.stop()
+        if self.recording is not None:
+            self.recording.close()
 
 
 class LiveView:

@@ -34,7 +34,7 @@ from soft_arm_ros.conversions import markers_of, stamp_to_seconds
 from soft_arm_ros.parameters import NodeParameters
 from soft_arm_ros.runtime import run_node
 
-from .live_view import VIEW_SCHEMA, LiveView, check_bind
+from .live_view import VIEW_SCHEMA, LiveServer, LiveView
 
 SHAPE_FRESH = 1.0       # s (wall): arm/shape this recent is the backbone; otherwise estimate/shape
 
@@ -43,25 +43,14 @@ class LiveViewNode(Node):
     def __init__(self, config_dir: str | None = None, **node_options):
         super().__init__("live_view", allow_undeclared_parameters=True,
                          automatically_declare_parameters_from_overrides=True, **node_options)
-        import foxglove
-        from foxglove.channels import SceneUpdateChannel
         params = NodeParameters(self, config_dir)
         view = params.section("view", VIEW_SCHEMA)
-        check_bind(view["host"], view["remote"])
         geometry = params.arm.geometry
         self.view = LiveView(geometry.base_radius, geometry.tip_radius, view["trail"])
-        self.foxglove = foxglove.Context()
-        self.server = foxglove.start_server(name="soft_arm", host=view["host"], port=view["port"],
-                                            context=self.foxglove, message_backlog_size=view["backlog"])
-        self.recording = None
-        if view["record"]:                # the same channels into a file the layout opens afterwards
-            self.recording = foxglove.open_mcap(view["record"], allow_overwrite=True, context=self.foxglove)
-        self.scene_channel = SceneUpdateChannel("/view/scene", context=self.foxglove)
-        self.series = {name: foxglove.Channel(f"/view/{name}", context=self.foxglove)
-                       for name in ("tendons", "task", "diagnostics")}
+        self.live = LiveServer(view["host"], view["port"], view["remote"], view["backlog"], view["record"])
+        self.server, self.address = self.live.server, self.live.address
         self.latest = {}                 # series name -> the latest value, logged at the view's rate
         self.shape_at = -np.inf          # monotonic time [s] of the last arm/shape
-        self.address = f"ws://{view['host']}:{self.server.port}"
         subscribe = self.create_subscription
         subscribe(MarkerArray, TOPICS["shape"], self.on_shape, QOS["arm/shape"])
         subscribe(MarkerArray, TOPICS["estimate_shape"], self.on_estimate_shape, QOS["estimate/shape"])
@@ -74,7 +63,6 @@ class LiveViewNode(Node):
         subscribe(JointState, TOPICS["reference"], self.on_tendon_reference, QOS["tendon/reference"])
         subscribe(DiagnosticArray, "/diagnostics", self.on_diagnostics, 10)
         self.create_timer(1.0 / view["rate"], self.publish)
-        self.published = 0
         self.get_logger().info(f"live view on {self.address} (open it in the Foxglove app)")
 
     def on_shape(self, msg: MarkerArray):
@@ -131,31 +119,15 @@ class LiveViewNode(Node):
                                "error": [None if not np.isfinite(v) else v for v in error]}
 
     def publish(self):
-        """The scene and the latest of each series, to whoever is connected (nothing when no one is)."""
-        now = time.time_ns()
-        if self.scene_channel.has_sinks():
-            self.scene_channel.log(self.view.scene(), log_time=now)
-        for name, channel in self.series.items():
-            value = self.latest.get(name)
-            if value is not None and channel.has_sinks():
-                channel.log(json_safe(value), log_time=now)
-        self.published += 1
+        """The scene and the latest of each series, to whoever is connected."""
+        self.live.publish(self.view, self.latest)
+
+    @property
+    def published(self) -> int:
+        return self.live.published
 
     def close(self):
-        self.server.stop()
-        if self.recording is not None:
-            self.recording.close()
-
-
-def json_safe(value):
-    """``value`` with every number that is no finite float (NaN, infinity) as None: JSON has none."""
-    if isinstance(value, dict):
-        return {k: json_safe(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [json_safe(v) for v in value]
-    if isinstance(value, float) and not np.isfinite(value):
-        return None
-    return value
+        self.live.close()
 
 
 def main(args=None) -> int:

@@ -153,10 +153,11 @@ def test_the_node_refuses_an_address_beyond_loopback_by_default():
         rclpy.try_shutdown(context=context)
 
 
-def test_soft_arm_experiment_live_serves_the_run_and_writes_the_same_view(tmp_path):
-    """``soft-arm-experiment coiling --live 127.0.0.1:PORT``: a viewer connecting while it runs gets
-    a scene with the arm and the markers; the run ends as without it, and its view.mcap holds the
-    scene and the series for the layout to open afterwards."""
+@pytest.mark.parametrize("module", ["soft_arm_experiments.experiment", "soft_arm_experiments.harness_cli"])
+def test_a_run_with_live_serves_itself_to_a_viewer(tmp_path, module):
+    """``soft-arm-experiment coiling --live 127.0.0.1:PORT`` (and ``soft-arm-harness``): a viewer
+    connecting while it runs gets a scene with the arm and the markers; the run ends as without it,
+    and the experiment's view.mcap holds the scene and the series for the layout to open after."""
     import os
     import socket
     import subprocess
@@ -170,8 +171,9 @@ def test_soft_arm_experiment_live_serves_the_run_and_writes_the_same_view(tmp_pa
     run = tmp_path / "run"
     sets = ["tasks.coiling.phases=[upward]", "tasks.coiling.phase.upward.sequence=[1]",
             "tasks.coiling.phase.upward.window=4.0"]
-    command = [sys.executable, "-m", "soft_arm_experiments.experiment", "coiling", "--quiet", "--json",
-               "--output", str(run), "--live", f"127.0.0.1:{port}"] + [a for s in sets for a in ("--set", s)]
+    experiment = module.endswith("experiment")
+    command = [sys.executable, "-m", module, "coiling", "--quiet", "--json", "--live", f"127.0.0.1:{port}"] \
+        + (["--output", str(run)] if experiment else []) + [a for s in sets for a in ("--set", s)]
     started = time.monotonic()
     process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                                env=dict(os.environ))
@@ -200,7 +202,9 @@ def test_soft_arm_experiment_live_serves_the_run_and_writes_the_same_view(tmp_pa
     assert process.returncode == 0, err[-3000:]
     assert "live view on ws://127.0.0.1:" in err
     assert json.loads(out)["summary"]["transitions"] == 1
+    print(f"first scene with the arm {first:.1f} s after the command")
+    if not experiment:
+        return
     with open(run / "view.mcap", "rb") as fh:
         topics = {channel.topic for _, channel, _ in make_reader(fh).iter_messages()}
     assert {"/view/scene", "/view/tendons"} <= topics, topics
-    print(f"first scene with the arm {first:.1f} s after the command")
