@@ -1,6 +1,7 @@
 """Benchmark of the closed loop through the emulated hardware. Prints a table, writes JSON.
 
-    python bench/bench_emulated_rig.py [--task coiling] [--runs 1] [--load 0] [--set ns.key=value ...]
+    python bench/bench_emulated_rig.py [--task coiling] [--runs 1] [--load 0] [--live]
+        [--set ns.key=value ...]
         [--output bench/results/emulated_rig.json]
 
 Runs ``soft-arm-experiment <task> --emulated-hardware`` (each node its own process, real time)
@@ -23,6 +24,7 @@ dropped), the
 recorder's messages, their rate and its lost-message count; then over the runs: the valid ones, the
 worst RMS and mm band, the cm-band velocity spread. ``--load N`` runs N other CPU-bound processes
 beside the runs (a lab PC's other work: single-threaded 200x200 matrix products, normal policy).
+``--live`` runs each with its live view and a viewer reading it (the live view's cost to the graph).
 ``--probe`` runs a stall probe on each CPU (SCHED_FIFO 99, pinned, waking every 1 ms, like
 cyclictest) and reports, per run and CPU, the wake-ups later than :data:`STALL_MS` from the enable
 to the run's end, each with the time the host's hypervisor took from that CPU around it (``steal``
@@ -36,7 +38,9 @@ import json
 import os
 import subprocess
 import sys
+import socket
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -283,18 +287,29 @@ def start_load(n: int) -> list:
     return [_spawn("_burn()") for _ in range(n)]
 
 
-def one_run(task: str, sets: list, duration: float, probes=None) -> dict:
+def _free_tcp_port() -> int:
+    """A TCP port of 127.0.0.1 free a moment ago."""
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+def one_run(task: str, sets: list, duration: float, probes=None, live: bool = False) -> dict:
     """One ``soft-arm-experiment <task> --emulated-hardware`` run: its metrics (``valid`` false when
     the driver faulted), CPU share per node, the state and mocap periods, the driver's timing and,
-    with ``probes`` (:func:`start_probes`), the stalls of each CPU from the enable to the end."""
+    with ``probes`` (:func:`start_probes`), the stalls of each CPU from the enable to the end; with
+    ``live``, the run's live view (``--live``) with a viewer reading everything from the enable on."""
     env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYTHONUNBUFFERED="1")
     with tempfile.TemporaryDirectory() as tmp:
         run, log = os.path.join(tmp, "run"), os.path.join(tmp, "log")
         with open(log, "w", encoding="utf-8") as fh:
+            port = _free_tcp_port() if live else None
             proc = subprocess.Popen([sys.executable, "-m", "soft_arm_experiments.experiment", task,
                                      "--emulated-hardware", "--quiet", "--output", run]
-                                    + [a for s in sets for a in ("--set", s)],
+                                    + [a for s in sets for a in ("--set", s)]
+                                    + (["--live", f"127.0.0.1:{port}"] if live else []),
                                     stdout=fh, stderr=subprocess.STDOUT, env=env)
+        viewer = None                                 # (stop, counts) of the live view's viewer
         try:
             while "[motor_driver]: activated" not in open(log, encoding="utf-8").read():
                 if proc.poll() is not None:
@@ -302,11 +317,17 @@ def one_run(task: str, sets: list, duration: float, probes=None) -> dict:
                                        + open(log, encoding="utf-8").read())
                 time.sleep(0.1)
             enabled = time.monotonic()
+            if live:                                  # a viewer reading everything from the enable on
+                from bench_live_view import _viewer
+                viewer = (threading.Event(), {})
+                threading.Thread(target=_viewer, args=(port, True, *viewer), daemon=True).start()
             nodes = {"soft-arm-experiment": proc.pid, **_nodes(proc.pid)}    # the orchestrator too
             samples = _sample_cpu(proc, nodes, time.monotonic() + max(duration - 2.0, 1.0), log)
             status = proc.wait(timeout=duration + 120)
             ended = time.monotonic()
         finally:
+            if viewer is not None:
+                viewer[0].set()
             if proc.poll() is None:
                 proc.kill()
         metrics_path = os.path.join(run, "metrics.json")
@@ -324,7 +345,8 @@ def one_run(task: str, sets: list, duration: float, probes=None) -> dict:
             "state_period": _periods([t for t, _ in series["tendon/state"]]),
             "mocap_period": _periods([t for t, _ in series["mocap/markers"]]),
             "driver_timing": _driver_timing(series), "goal_latency": goals, "recording": recording,
-            "stalls": _stalls(probes, enabled, ended) if probes else None}
+            "stalls": _stalls(probes, enabled, ended) if probes else None,
+            "live_view_messages": viewer[1].get("messages", 0) if live else None}
 
 
 def _speed(v) -> str:
@@ -350,6 +372,8 @@ def main():
     parser.add_argument("--load", type=int, default=0,
                         help="CPU-bound processes of other work beside the runs")
     parser.add_argument("--probe", action="store_true", help="a stall probe on each CPU (see above)")
+    parser.add_argument("--live", action="store_true",
+                        help="each run with its live view (--live) and a viewer reading it")
     parser.add_argument("--set", dest="sets", action="append", default=[], metavar="NS.KEY=VALUE")
     parser.add_argument("--output", default=results_path("emulated_rig.json"))
     args = parser.parse_args()
@@ -360,7 +384,7 @@ def main():
         probes = start_probes(tmp) if args.probe else {}
         try:
             for k in range(args.runs):
-                runs.append(_report(k, one_run(args.task, args.sets, duration, probes)))
+                runs.append(_report(k, one_run(args.task, args.sets, duration, probes, args.live)))
         finally:
             for p in load + [p for p, _ in probes.values()]:
                 p.kill()
