@@ -42,7 +42,6 @@ setup(
         "test": ["pytest>=8", "pytest-xdist>=3.5", "hypothesis>=6", "rosbags==0.11.9", "flake8>=7",
                  "sphinx>=8", "myst-parser>=4", "furo>=2024.8.6", "pyelastica==1.0.0", "websockets>=13",
                  "protobuf>=5"],
-        "bench": ["pyelastica==1.0.0"],
     },
     zip_safe=True,
     maintainer="soft_arm maintainers",
