@@ -38,7 +38,8 @@ setup(
         "ros-jazzy-rmw-fastrtps-cpp==8.4.3",
     ],
     extras_require={
-        # PyElastica: the model bench's comparison, whose timing a test checks
+        # PyElastica: the model bench's comparison, whose timing a test checks; websockets and
+        # protobuf: the live view's test client, which decodes the scene as the Foxglove app does
         "test": ["pytest>=8", "pytest-xdist>=3.5", "hypothesis>=6", "rosbags==0.11.9", "flake8>=7",
                  "sphinx>=8", "myst-parser>=4", "furo>=2024.8.6", "pyelastica==1.0.0", "websockets>=13",
                  "protobuf>=5"],
