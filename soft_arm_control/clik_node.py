@@ -4,8 +4,8 @@ Subscribes ``task/goal`` (soft_arm_interfaces/TaskGoal: the target task coordina
 ``arm_base``, taken by their labels, and the mode: clik (default), replay, precomputed, online, or
 track: the trajectory of the goal's phase from the target, see :mod:`soft_arm_control.outer_loop`)
 and ``mocap/markers`` (on an estimated feedback, ``control.clik.feedback`` fused or estimate,
-also ``fused/tip`` or ``estimate/tip``, whose covariance says how much of the error the estimate
-shows an online step may take: :mod:`soft_arm_control.trust_region`); publishes
+also ``fused/tip``, whose covariance, zero where the mocap saw the tip, says how much of the error
+the estimate shows an online step may take: :mod:`soft_arm_control.trust_region`); publishes
 ``tendon/reference`` (position: reference shortenings [m] of all tendons; effort: feedforward
 tensions [N], the pretension on the tendons the task does not use) and
 ``arm/configuration_reference`` (soft_arm_interfaces/ConfigurationReference: q_d, the goal it
@@ -105,8 +105,9 @@ class ClikNode(Node):
         self.create_subscription(PoseArray, TOPICS["markers"], self.on_frame, QOS["mocap/markers"])
         self.tip = None                 # (stamp [s], position covariance (3, 3) [m^2]) of the estimate's tip
         if self.outer.trust is not None:     # an estimate fed back: its uncertainty with it
-            topic = TOPICS["fused_tip" if self.control.feedback == "fused" else "estimate_tip"]
-            self.create_subscription(PoseWithCovarianceStamped, topic, self.on_tip, QOS[topic])
+            # the fused tip's: none where the mocap saw the tip, the estimate's elsewhere
+            self.create_subscription(PoseWithCovarianceStamped, TOPICS["fused_tip"], self.on_tip,
+                                     QOS["fused/tip"])
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self._reported = None                 # (goal index, status) last published
         self._reported_stamp = -math.inf      # frame time [s] of the current goal's last report

@@ -84,9 +84,9 @@ class GoalReport:
     *untrusted* while it holds the precomputed reference so. ``fraction``: the part of the
     estimated error the last online step took (1 on a measurement; less on an estimate whose
     uncertainty explains some of it, :meth:`~soft_arm_control.trust_region.TrustRegion.fraction`),
-    ``uncertain_frames``: the steps that took less than all of it; a goal is *uncertain* while its
-    last step took none (the estimate cannot tell the remaining error from its own: the reference
-    holds)."""
+    ``uncertain_frames``: the frames whose step took less than all of it, or none (no step is taken
+    then, and ``error`` is the estimated error); a goal is *uncertain* while its last frame took none
+    (the estimate cannot tell the remaining error from its own: the reference holds)."""
     target: list
     mode: str
     reach_tolerance: float = 1e-3
@@ -431,6 +431,9 @@ class OuterLoop:
         if self.trust is not None:        # the part of the error the estimate's uncertainty leaves
             fraction = report.fraction = self.trust.fraction(error, sigma)
             report.uncertain_frames += fraction < 1.0
+            if fraction == 0.0:           # none: no step, the reference holds (as on an unseen frame)
+                report.error = float(np.linalg.norm(error))
+                return moved
             x_step = x_d - fraction * error
         ref, step = self.clik.step(self.reference.q, x_d, self.period, x_step, refresh, xd_dot)
         self.reports[-1].add(step, error)

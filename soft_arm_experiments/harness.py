@@ -212,7 +212,8 @@ def window_metrics(task, transitions: list, rec: Record, truth: bool = False) ->
 def goal_warning(goal: dict) -> str:
     """One line saying what went wrong with a goal of :attr:`RunResult.goals` (status not ok)."""
     head = f"target {goal['target']} ({goal['mode']})"
-    closest = f"closest measured error {goal['closest_error'] * 1e3:.2f} mm"
+    closest = ("no online step was taken" if goal["closest_error"] is None
+               else f"closest measured error {goal['closest_error'] * 1e3:.2f} mm")
     if goal["status"] == "unreached":
         return (f"{head} not reached: the last measured error was {goal['error'] * 1e3:.2f} mm when the "
                 f"window ended; {closest}")
@@ -233,8 +234,8 @@ def goal_warning(goal: dict) -> str:
     if goal["status"] == "uncertain":
         return (f"{head} held its reference: the estimated error, {goal['error'] * 1e3:.2f} mm at the "
                 f"end, is within what the estimate's own uncertainty explains (clik.trust.confidence "
-                f"standard deviations); {goal['uncertain_frames']} of {goal['online_steps']} online "
-                f"steps took less than all of it")
+                f"standard deviations); on {goal['uncertain_frames']} frames the step took less than all "
+                f"of it or none, {goal['online_steps']} online steps")
     return (f"{head} is infeasible for the model from where the online CLIK got: "
             f"{goal['infeasible_steps']} of {goal['online_steps']} steps projected onto the tension "
             f"limits, {goal['held_steps']} held; {closest}")
@@ -410,12 +411,13 @@ def run_experiment(setup: Setup, progress=None, actuation_map: ActuationMap | No
                 rec.marker_covariance.append(estimated.marker_covariance)
                 rec.markers_seen.append(frame.visible)
                 defended = estimated.defended(estimator.config.max_sigma)
+                # the fused tip's uncertainty for either: none where the mocap saw the tip (the
+                # estimate is then held to a measurement), the estimate's elsewhere
+                sigma = space.tip_sigma(fused_tip(latest, estimated)[1])
                 if setup.feedback == "fused":
                     x_feedback = space.from_markers(fused_markers(latest, defended))
-                    sigma = space.tip_sigma(fused_tip(latest, estimated)[1])
                 elif setup.feedback == "estimate":
                     x_feedback = space.from_markers(defended)
-                    sigma = space.tip_sigma(estimated.marker_covariance[-1])
                 latest = None
             if observer is not None and frame is not None:
                 observer(t, rig, frame, estimated, rec.x_d[-1], ctrl.reference)

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from soft_arm_experiments.excitation import (Excitation, load_excitation, load_identification,
-                                                     parse_fit)
+                                             parse_fit)
 from soft_arm_model.parameters import ConfigError
 
 

@@ -4,8 +4,8 @@ import pytest
 
 from soft_arm_control.trajectories import Trajectory
 from soft_arm_experiments.metrics import (format_table, format_tracking, measured_speed,
-                                                  settling_time, summarise, to_json, tracking_metrics,
-                                                  transition_metrics)
+                                          settling_time, summarise, to_json, tracking_metrics,
+                                          transition_metrics)
 
 
 def _decay(t, amplitude, rate):

@@ -528,8 +528,8 @@ def test_clik_node_keeps_stepping_through_a_clock_step_of_the_frames(jump):
 @pytest.mark.parametrize("variance, stepped", [(None, False), (1e-4, False), (0.0, True)])
 def test_on_an_estimate_the_clik_node_steps_only_on_what_the_tip_covariance_defends(variance, stepped):
     """The clik node on ``control.clik.feedback: estimate``, an online goal 10 mm off the hanging
-    arm: without an estimate/tip message, or with the tip's 10 mm standard deviation, no online step
-    moves the reference (the goal is uncertain); with a zero covariance (a measurement) it steps."""
+    arm: without a fused/tip message, or with the tip's 10 mm standard deviation, no online step is
+    taken (the goal is uncertain); with a zero covariance (the mocap saw the tip) it steps."""
     import rclpy
 
     from soft_arm_control.shape_estimator_node import tip_message
@@ -552,7 +552,8 @@ def test_on_an_estimate_the_clik_node_steps_only_on_what_the_tip_covariance_defe
         goal = node.outer.reports[-1]
         moved = float(np.max(np.abs(np.array(node.outer.reference.shortening) - first)))
         assert (moved > 1e-4) == stepped, moved
-        assert goal.online_steps > 20 and (goal.status == "uncertain") != stepped, goal.status
+        assert (goal.online_steps > 20) == stepped and (goal.uncertain_frames > 20) != stepped
+        assert (goal.status == "uncertain") != stepped, goal.status
         assert goal.fraction == (1.0 if stepped else 0.0)
         node.destroy_node()
     finally:
