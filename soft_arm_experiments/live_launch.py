@@ -92,13 +92,10 @@ class HarnessView:
             return
         self.next = now + self.period
         s, sd = rig.tendons()
-        task = [float(frame.markers[int(label.split(".")[0][6:]) - 1, "xyz".index(label[-1])])
-                for label in self.labels]
         self.server.publish(view, {
             "tendons": {"t": t, "shortening": s.tolist(), "rate": sd.tolist(),
                         "tension": list(map(float, rig.tension)), "reference": reference.shortening.tolist()},
-            "task": {"t": t, "labels": self.labels, "target": [float(v) for v in x_d], "measured": task,
-                     "error": [m - d for m, d in zip(task, x_d)]}})
+            "task": view.task()})
 
     def close(self):
         self.server.close()

@@ -244,6 +244,17 @@ class LiveView:
     def take_target(self, labels, values):
         self.target = (list(labels), np.asarray(values, dtype=float))
 
+    def task(self) -> dict | None:
+        """The task series now: the target, the coordinates the mocap measured and their error [m]
+        (None: no target or no frame yet; an unseen coordinate is NaN)."""
+        if self.target is None or self.mocap is None:
+            return None
+        labels, target = self.target
+        measured = [float(self.mocap[int(label.split(".")[0][6:]) - 1, AXES.index(label[-1])])
+                    for label in labels]
+        return {"t": self.t, "labels": labels, "target": target.tolist(), "measured": measured,
+                "error": [m - d for m, d in zip(measured, target)]}
+
     def target_points(self) -> np.ndarray:
         """(k, 3) [m]: one point per marker the target names; the axes it leaves free from where the
         mocap (else the estimate) last placed that marker (none without either)."""

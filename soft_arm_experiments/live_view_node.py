@@ -78,7 +78,7 @@ class LiveViewNode(Node):
 
     def on_markers(self, msg: PoseArray):
         self.view.take_mocap(stamp_to_seconds(msg.header.stamp), markers_of(msg))
-        self._task()
+        self.latest["task"] = self.view.task()
 
     def on_estimate(self, msg: PoseArray):
         self.view.take_estimate(stamp_to_seconds(msg.header.stamp), markers_of(msg))
@@ -105,18 +105,6 @@ class LiveViewNode(Node):
                                      if isinstance(status.level, bytes) else int(status.level),
                                      "message": status.message,
                                      "values": {kv.key: kv.value for kv in status.values}}
-
-    def _task(self):
-        """The target, the measured coordinates and their error [m], when both are known."""
-        if self.view.target is None or self.view.mocap is None:
-            return
-        labels, target = self.view.target
-        measured = [float(self.view.mocap[int(label.split(".")[0][6:]) - 1, "xyz".index(label[-1])])
-                    for label in labels]
-        error = [m - d for m, d in zip(measured, target)]
-        self.latest["task"] = {"t": self.view.t, "labels": labels, "target": target.tolist(),
-                               "measured": [None if not np.isfinite(v) else v for v in measured],
-                               "error": [None if not np.isfinite(v) else v for v in error]}
 
     def publish(self):
         """The scene and the latest of each series, to whoever is connected."""

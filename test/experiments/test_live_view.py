@@ -112,3 +112,13 @@ def test_the_layout_shows_only_what_the_live_view_serves():
         for path in config.get("paths", []):
             topic, field = re.match(r"^(/view/\w+)\.(\w+)\[\d\]$", path["value"]).groups()
             assert field in fields[topic], (name, path)
+
+
+def test_the_task_series_is_the_target_less_what_the_mocap_measured():
+    view = LiveView(0.02, 0.01)
+    assert view.task() is None
+    view.take_target(["marker2.x", "marker1.z"], [0.05, -0.1])
+    view.take_mocap(1.0, [[0.0, 0.0, -0.12], [np.nan] * 3])
+    task = view.task()
+    assert task["labels"] == ["marker2.x", "marker1.z"] and task["target"] == [0.05, -0.1]
+    assert np.isnan(task["measured"][0]) and task["error"][1] == pytest.approx(-0.02)
