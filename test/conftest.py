@@ -36,7 +36,9 @@ SERIAL = ("drivers/sim/test_emulated_rig.py", "drivers/sim/test_emulated_hardwar
           "graph/test_graph.py::test_processes_mode_runs_each_node_as_its_own_process",
           "graph/test_identification_graph.py::test_the_identification_experiment_runs_one_process_per_node",
           "test_layering.py::test_controller_nodes_start_without_the_plant_file",
-          "test_benches.py::test_the_mocap_bench_measures_through_the_bridge_node")
+          "test_benches.py::test_the_mocap_bench_measures_through_the_bridge_node",
+          "graph/test_live_view_node.py::test_a_viewer_that_never_reads_does_not_slow_the_graph",
+          "test_benches.py::test_the_pyelastica_timing_leaves_its_compilation_out")
 
 
 # Tests that assert a closed-loop figure (an error, an RMS, targets reached, a NEES): `test/variants`
