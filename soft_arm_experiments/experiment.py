@@ -39,7 +39,7 @@ from soft_arm_model.parameters import ConfigError, default_config_dir
 from .metrics import Summary, TrackingMetrics, TransitionMetrics, format_table, format_tracking
 from .strike import PLANNED_ON_THE_GRAPH, format_strike
 from .harness import add_setup_arguments, check_targets, load_setup, setup_overrides
-from .live_launch import live_view, parse_address
+from .live_launch import add_live_argument, live_view, parse_address
 from .excitation import Excitation
 from .orchestration import STOP, feedback_arguments, request_stop, roles, run_emulated_hardware, run_processes
 from .writable import writable_directory
@@ -232,9 +232,7 @@ def main(argv=None) -> int:
     add_setup_arguments(parser)
     parser.add_argument("--json", action="store_true", help="print the metrics as JSON")
     parser.add_argument("--quiet", action="store_true", help="no progress line (composed runs print one)")
-    parser.add_argument("--live", metavar="[HOST:]PORT",
-                        help="serve the run to the Foxglove app on this address (live_view node; HOST "
-                             "127.0.0.1 unless given)")
+    add_live_argument(parser, "the live_view node beside the run")
     args = parser.parse_args(argv)
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     if args.task == CALIBRATE:

@@ -21,7 +21,7 @@ from soft_arm_model.parameters import ConfigError
 
 from .harness import (add_setup_arguments, goal_warning, load_setup, load_setup_at_closest, run_experiment,
                       setup_overrides)
-from .live_launch import HarnessView
+from .live_launch import HarnessView, add_live_argument
 from .metrics import format_table, format_tracking, to_json
 from .strike import format_strike
 
@@ -36,9 +36,7 @@ def main(argv=None) -> int:
     add_setup_arguments(parser)
     parser.add_argument("--json", action="store_true", help="print the metrics as JSON")
     parser.add_argument("--quiet", action="store_true", help="no progress line on stderr")
-    parser.add_argument("--live", metavar="[HOST:]PORT",
-                        help="serve the run to the Foxglove app on this address while it runs (HOST "
-                             "127.0.0.1 unless given)")
+    add_live_argument(parser, "while the harness runs")
     args = parser.parse_args(argv)
     try:
         setup = load_setup(args.task, args.config, setup_overrides(args), args.arm_file, args.feedback)

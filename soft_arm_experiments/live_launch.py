@@ -11,7 +11,14 @@ import subprocess
 import sys
 import time
 
-from .live_view import LiveServer, LiveView, check_bind
+from .live_view import LiveServer, LiveView, is_loopback
+
+
+def add_live_argument(parser, what: str):
+    """``--live [HOST:]PORT`` on ``parser``; ``what``: how the command serves the view."""
+    parser.add_argument("--live", metavar="[HOST:]PORT",
+                        help=f"serve the run to the Foxglove app on this address ({what}; HOST 127.0.0.1 "
+                             "unless given)")
 
 
 def parse_address(text: str) -> tuple[str, int]:
@@ -27,11 +34,7 @@ def live_arguments(host: str, port: int, record: str = "") -> list:
     """The live_view node's ``--ros-args`` for ``host``:``port`` and the MCAP file ``record`` (empty:
     none): an address beyond loopback, asked for on the command line, sets ``view.remote``."""
     out = ["-p", f"view.host:={host}", "-p", f"view.port:={port}", "-p", f"view.record:={record}"]
-    try:
-        check_bind(host, False)
-    except ValueError:
-        out += ["-p", "view.remote:=true"]
-    return out
+    return out if is_loopback(host) else out + ["-p", "view.remote:=true"]
 
 
 @contextlib.contextmanager
@@ -66,13 +69,7 @@ class HarnessView:
 
     def __init__(self, address: str, arm, labels, rate: float = 30.0):
         host, port = parse_address(address)
-        remote = True
-        try:
-            check_bind(host, False)
-            remote = False
-        except ValueError:
-            pass
-        self.server = LiveServer(host, port, remote)
+        self.server = LiveServer(host, port, remote=not is_loopback(host))   # asked for on the command line
         self.view = LiveView(arm.geometry.base_radius, arm.geometry.tip_radius)
         self.labels, self.period, self.next = list(labels), 1.0 / rate, 0.0
 

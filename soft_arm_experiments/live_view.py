@@ -48,18 +48,20 @@ VIEW_SCHEMA = {
 }
 
 
-def check_bind(host: str, remote: bool):
-    """ValueError unless ``host`` is a loopback address (or ``localhost``) or ``remote`` allows
-    another: a viewer's server reachable from the network is asked for, never a default."""
-    if remote:
-        return
+def is_loopback(host: str) -> bool:
+    """Whether ``host`` is a loopback address (or ``localhost``): reachable from this computer only."""
     if host == "localhost":
-        return
+        return True
     try:
-        loopback = ipaddress.ip_address(host).is_loopback
+        return ipaddress.ip_address(host).is_loopback
     except ValueError:
-        loopback = False
-    if not loopback:
+        return False
+
+
+def check_bind(host: str, remote: bool):
+    """ValueError unless ``host`` is a loopback address (:func:`is_loopback`) or ``remote`` allows
+    another: a viewer's server reachable from the network is asked for, never a default."""
+    if not remote and not is_loopback(host):
         raise ValueError(f"view.host {host!r} is not a loopback address: set view.remote to true to serve "
                          "the live view beyond this computer")
 

@@ -48,7 +48,6 @@ class LiveViewNode(Node):
         geometry = params.arm.geometry
         self.view = LiveView(geometry.base_radius, geometry.tip_radius, view["trail"])
         self.live = LiveServer(view["host"], view["port"], view["remote"], view["backlog"], view["record"])
-        self.server, self.address = self.live.server, self.live.address
         self.latest = {}                 # series name -> the latest value, logged at the view's rate
         self.shape_at = -np.inf          # monotonic time [s] of the last arm/shape
         subscribe = self.create_subscription
@@ -63,7 +62,7 @@ class LiveViewNode(Node):
         subscribe(JointState, TOPICS["reference"], self.on_tendon_reference, QOS["tendon/reference"])
         subscribe(DiagnosticArray, "/diagnostics", self.on_diagnostics, 10)
         self.create_timer(1.0 / view["rate"], self.publish)
-        self.get_logger().info(f"live view on {self.address} (open it in the Foxglove app)")
+        self.get_logger().info(f"live view on {self.live.address} (open it in the Foxglove app)")
 
     def on_shape(self, msg: MarkerArray):
         if msg.markers:

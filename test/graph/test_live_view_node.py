@@ -85,7 +85,7 @@ def messages_of(ws, subscription: int, count: int, timeout: float = 10.0) -> lis
 
 def test_a_viewer_gets_the_channels_and_a_scene_whose_arm_ends_at_the_simulator_s_tip(graph):
     sim, view = graph
-    with connect(view.server.port) as ws:
+    with connect(view.live.port) as ws:
         assert ws.subprotocol == SUBPROTOCOL
         channels = advertised(ws, ["/view/scene", "/view/tendons", "/view/task", "/view/diagnostics"])
         scene_channel = channels["/view/scene"]
@@ -126,7 +126,7 @@ def test_a_viewer_that_never_reads_does_not_slow_the_graph(graph):
         return (sim.rig.t - t0) / wall, (view.published - published0) / wall
 
     alone = rates(3.0)
-    with connect(view.server.port) as ws:
+    with connect(view.live.port) as ws:
         channels = advertised(ws, ["/view/scene", "/view/tendons"])
         ws.send(json.dumps({"op": "subscribe", "subscriptions": [
             {"id": k, "channelId": c["id"]} for k, c in enumerate(channels.values())]}))
