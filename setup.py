@@ -39,10 +39,11 @@ setup(
     ],
     extras_require={
         # PyElastica: the model bench's comparison, whose timing a test checks; websockets and
-        # protobuf: the live view's test client, which decodes the scene as the Foxglove app does
+        # protobuf: the live view's test client, which decodes the scene as the Foxglove app does;
+        # threadpoolctl: a test repeats a campaign worker's run with the worker's one BLAS thread
         "test": ["pytest>=8", "pytest-xdist>=3.5", "hypothesis>=6", "rosbags==0.11.9", "flake8>=7",
                  "sphinx>=8", "myst-parser>=4", "furo>=2024.8.6", "pyelastica==1.0.0", "websockets>=13",
-                 "protobuf>=5"],
+                 "protobuf>=5", "threadpoolctl>=3"],
     },
     zip_safe=True,
     maintainer="soft_arm maintainers",

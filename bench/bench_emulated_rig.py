@@ -1,6 +1,6 @@
 """Benchmark of the closed loop through the emulated hardware. Prints a table, writes JSON.
 
-    python bench/bench_emulated_rig.py [--task coiling] [--runs 1] [--load 0] [--live]
+    python bench/bench_emulated_rig.py [--task coiling] [--runs 1] [--load 0] [--live [reading|stalled]]
         [--set ns.key=value ...]
         [--output bench/results/emulated_rig.json]
 
@@ -24,7 +24,10 @@ dropped), the
 recorder's messages, their rate and its lost-message count; then over the runs: the valid ones, the
 worst RMS and mm band, the cm-band velocity spread. ``--load N`` runs N other CPU-bound processes
 beside the runs (a lab PC's other work: single-threaded 200x200 matrix products, normal policy).
-``--live`` runs each with its live view and a viewer reading it (the live view's cost to the graph).
+``--live`` runs each with its live view and a viewer reading it (the live view's cost to the graph;
+``--live stalled``: a viewer that subscribes to everything and never reads), and reports the live
+view's CPU share as ``live_view_node``, the messages the viewer read and the scheduling policy of the
+live view's threads (its middleware's, ``dds.*``, apart).
 ``--probe`` runs a stall probe on each CPU (SCHED_FIFO 99, pinned, waking every 1 ms, like
 cyclictest) and reports, per run and CPU, the wake-ups later than :data:`STALL_MS` from the enable
 to the run's end, each with the time the host's hypervisor took from that CPU around it (``steal``
@@ -294,11 +297,34 @@ def _free_tcp_port() -> int:
         return sock.getsockname()[1]
 
 
-def one_run(task: str, sets: list, duration: float, probes=None, live: bool = False) -> dict:
+POLICIES = {getattr(os, name): name for name in ("SCHED_OTHER", "SCHED_BATCH", "SCHED_IDLE", "SCHED_FIFO",
+                                                 "SCHED_RR") if hasattr(os, name)}
+
+
+def _thread_policies(pid: int) -> dict:
+    """How the threads of process ``pid`` are scheduled: for its middleware threads (``dds``, named
+    ``dds.*``) and the others, policy (with the FIFO priority or the niceness) -> threads."""
+    out = {}
+    for tid in map(int, os.listdir(f"/proc/{pid}/task")):
+        try:
+            with open(f"/proc/{pid}/task/{tid}/comm", encoding="utf-8") as fh:
+                group = "dds" if fh.read().startswith("dds.") else "other"
+            policy = os.sched_getscheduler(tid)
+            fifo = policy in (os.SCHED_FIFO, os.SCHED_RR)
+            level = os.sched_getparam(tid).sched_priority if fifo else os.getpriority(os.PRIO_PROCESS, tid)
+        except OSError:
+            continue                                  # ended meanwhile
+        name = f"{POLICIES.get(policy, policy)} {level}"
+        out.setdefault(group, {})[name] = out.get(group, {}).get(name, 0) + 1
+    return out
+
+
+def one_run(task: str, sets: list, duration: float, probes=None, live: str | None = None) -> dict:
     """One ``soft-arm-experiment <task> --emulated-hardware`` run: its metrics (``valid`` false when
     the driver faulted), CPU share per node, the state and mocap periods, the driver's timing and,
     with ``probes`` (:func:`start_probes`), the stalls of each CPU from the enable to the end; with
-    ``live``, the run's live view (``--live``) with a viewer reading everything from the enable on."""
+    ``live``, the run's live view (``--live``) with a viewer subscribed to everything from the enable
+    on, reading it all (``"reading"``) or nothing (``"stalled"``)."""
     env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYTHONUNBUFFERED="1")
     with tempfile.TemporaryDirectory() as tmp:
         run, log = os.path.join(tmp, "run"), os.path.join(tmp, "log")
@@ -317,11 +343,12 @@ def one_run(task: str, sets: list, duration: float, probes=None, live: bool = Fa
                                        + open(log, encoding="utf-8").read())
                 time.sleep(0.1)
             enabled = time.monotonic()
-            if live:                                  # a viewer reading everything from the enable on
+            if live:                                  # a viewer subscribed to everything from the enable on
                 from bench_live_view import _viewer
                 viewer = (threading.Event(), {})
-                threading.Thread(target=_viewer, args=(port, True, *viewer), daemon=True).start()
+                threading.Thread(target=_viewer, args=(port, live == "reading", *viewer), daemon=True).start()
             nodes = {"soft-arm-experiment": proc.pid, **_nodes(proc.pid)}    # the orchestrator too
+            policies = _thread_policies(nodes["live_view_node"]) if "live_view_node" in nodes else None
             samples = _sample_cpu(proc, nodes, time.monotonic() + max(duration - 2.0, 1.0), log)
             status = proc.wait(timeout=duration + 120)
             ended = time.monotonic()
@@ -346,7 +373,9 @@ def one_run(task: str, sets: list, duration: float, probes=None, live: bool = Fa
             "mocap_period": _periods([t for t, _ in series["mocap/markers"]]),
             "driver_timing": _driver_timing(series), "goal_latency": goals, "recording": recording,
             "stalls": _stalls(probes, enabled, ended) if probes else None,
-            "live_view_messages": viewer[1].get("messages", 0) if live else None}
+            "live": live, "live_view_messages": viewer[1].get("messages", 0) if live else None,
+            "live_viewer_closed_s": viewer[1]["closed"] - enabled if live and "closed" in viewer[1] else None,
+            "live_view_policies": policies}
 
 
 def _speed(v) -> str:
@@ -372,8 +401,9 @@ def main():
     parser.add_argument("--load", type=int, default=0,
                         help="CPU-bound processes of other work beside the runs")
     parser.add_argument("--probe", action="store_true", help="a stall probe on each CPU (see above)")
-    parser.add_argument("--live", action="store_true",
-                        help="each run with its live view (--live) and a viewer reading it")
+    parser.add_argument("--live", nargs="?", const="reading", choices=("reading", "stalled"),
+                        help="each run with its live view (--live) and a viewer reading it (stalled: "
+                             "one subscribed that never reads)")
     parser.add_argument("--set", dest="sets", action="append", default=[], metavar="NS.KEY=VALUE")
     parser.add_argument("--output", default=results_path("emulated_rig.json"))
     args = parser.parse_args()
@@ -397,7 +427,7 @@ def main():
                  f"{total['transitions']}, cm-band velocity spread (max/min) "
                  + ("-" if v is None else f"{v:.2f}"))
     print(line)
-    write_results(args.output, {"task": args.task, "sets": args.sets, "load": args.load,
+    write_results(args.output, {"task": args.task, "sets": args.sets, "load": args.load, "live": args.live,
                                 "duration_s": duration, "runs": runs, "spread": total})
 
 
@@ -440,6 +470,12 @@ def _report(k: int, r: dict) -> dict:
     g = r["goal_latency"]
     print(f"  clik: {g['answered']}/{g['goals']} goals answered, goal to reference p50 {g['p50_ms']:.1f} ms, "
           f"max {g['max_ms']:.1f} ms; {g['frames_dropped']} mocap frames dropped")
+    if r["live"]:
+        cpu_view = r["cpu_share"].get("live_view_node", float("nan"))
+        closed = r["live_viewer_closed_s"]
+        print(f"  live view ({r['live']} viewer): {cpu_view:.3f} cores, {r['live_view_messages']} messages "
+              f"read; threads {r['live_view_policies']}"
+              + ("" if closed is None else f"; the viewer's connection closed {closed:.1f} s in"))
     rec = r["recording"]
     print(f"  recorder: {rec['messages']} messages, {rec['rate_per_s']:.0f} messages/s, {rec['lost']} lost"
           + (f" ({rec['lost_by_topic']})" if rec["lost"] else ""))

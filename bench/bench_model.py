@@ -8,8 +8,11 @@ Measures, on one core:
 - building the model (the discretisation: basis, quadrature, constant matrices) at each of them;
 - one frame's visibility in the simulated mocap (plant.yaml's cameras, the arm's body blocking
   the lines of sight to its four markers);
-- static equilibrium from rest to 5 N on tendons 1 and 3;
-- simulation real-time factor at 1 ms IMEX steps, 10 s with a tendon step;
+- static equilibrium from rest to 5 N on tendons 1 and 3, and the static balance's tangent at it,
+  each with the analytic tangent and with the finite-difference oracle (n + 1 evaluations, the
+  solver's before), side by side in the same run;
+- simulation real-time factor at 1 ms IMEX steps, 10 s with a tendon step; at 20 DOF also with the
+  plant's rotors, and their term (the tendons' rate bias) alone;
 - peak memory of the model process (before PyElastica is imported);
 - the tip error against the exact tendon-load solution by Legendre order, with and without a division
   break at the tendon end;
@@ -30,9 +33,10 @@ from timing import best_of, results_path, write_results
 
 from soft_arm_model import (ArmData, build_model, load_arm_config, marker_positions, simulate,
                             solve_equilibrium, tip_frame)
-from soft_arm_model import kernels
+from soft_arm_model import kernels, statics
 from soft_arm_model.model import R_BASE
 from soft_arm_model.references import kirchhoff_cantilever_tip, tendon_load_tip
+from soft_arm_drivers.sim.plant_config import load_plant_config
 
 ORDERS = {12: [1, 0], 16: [2, 0], 20: [3, 0], 24: [4, 0]}  # Legendre orders per division
 
@@ -75,29 +79,68 @@ def bench_visibility() -> float:
     return 1e6 * best_of(lambda: occlusions.of_arm(m, d), inner=1000)
 
 
+def _best_solve(solve, repeats=7):
+    solve()
+    best, eq = np.inf, None
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        eq = solve()
+        best = min(best, time.perf_counter() - t0)
+    return best, eq
+
+
 def bench_statics(dof):
+    """Static equilibrium 0 -> 5 N on tendons 1 and 3, and the static balance's tangent at it:
+    the analytic one (what the solver uses) beside the finite-difference oracle (n + 1
+    evaluations, what it used before), each alone and in the whole solve, in the same run."""
     m = _model(dof)
     u = np.array([5.0, 0.0, 5.0, 0.0])
-    solve_equilibrium(m, u)
-    best, eq = np.inf, None
-    for _ in range(7):
-        t0 = time.perf_counter()
-        eq = solve_equilibrium(m, u)
-        best = min(best, time.perf_counter() - t0)
+    best, eq = _best_solve(lambda: solve_equilibrium(m, u))
+    oracle = statics._Problem(m, ArmData(m), True, oracle=True)
+    best_fd, eq_fd = _best_solve(lambda: statics._solve(oracle, u, None, None, 1e-10, 25, 1.0 / 4096))
+    analytic = statics._Problem(m, ArmData(m), True)
+    jac_us = 1e6 * best_of(lambda: analytic.linearise(eq.q, u), inner=200)
+    jac_fd_us = 1e6 * best_of(lambda: oracle.linearise(eq.q, u), inner=20)
     return {"dof": dof, "ms": 1e3 * best, "newton_iterations": eq.iterations,
-            "load_steps": eq.load_steps, "tip_m": tip_frame(m, eq.q).p.tolist()}
+            "load_steps": eq.load_steps, "tip_m": tip_frame(m, eq.q).p.tolist(),
+            "finite_difference_ms": 1e3 * best_fd, "finite_difference_newton_iterations": eq_fd.iterations,
+            "speed_ratio_solve": best_fd / best,
+            "tip_difference_m": float(np.linalg.norm(tip_frame(m, eq.q).p - tip_frame(m, eq_fd.q).p)),
+            "jacobian_us": jac_us, "finite_difference_jacobian_us": jac_fd_us,
+            "speed_ratio_jacobian": jac_fd_us / jac_us}
 
 
-def bench_simulation(dof, duration=10.0):
+def bench_simulation(dof, duration=10.0, rotor_mass=None):
+    """10 s of a tension step at 1 ms steps; ``rotor_mass`` [kg] per tendon as the plant has them
+    (their term is the tendons' rate bias, :func:`kernels.tendon_rate_bias`), or none."""
     m = _model(dof)
     q0 = solve_equilibrium(m, np.zeros(4)).q
     step = np.array([5.0, 0.0, 5.0, 0.0])
-    simulate(m, q0, np.zeros(m.n), lambda t: step, 0.01)
+    simulate(m, q0, np.zeros(m.n), lambda t: step, 0.01, rotor_mass=rotor_mass)
     t0 = time.perf_counter()
-    tr = simulate(m, q0, np.zeros(m.n), lambda t: step if t >= 1.0 else np.zeros(4), duration)
+    tr = simulate(m, q0, np.zeros(m.n), lambda t: step if t >= 1.0 else np.zeros(4), duration,
+                  rotor_mass=rotor_mass)
     wall = time.perf_counter() - t0
     return {"dof": dof, "dt_s": 1e-3, "simulated_s": duration, "wall_s": wall,
-            "real_time_factor": duration / wall, "final_tip_m": tip_frame(m, tr.q[-1]).p.tolist()}
+            "real_time_factor": duration / wall, "final_tip_m": tip_frame(m, tr.q[-1]).p.tolist(),
+            "rotor_mass_kg": None if rotor_mass is None else list(rotor_mass)}
+
+
+def bench_rotor_term(dof=20, repeats=20000):
+    """The tendons' rate bias (dA0/dt)^T qd at a moving state [us]: the rotors' share of a step."""
+    m = _model(dof)
+    d = ArmData(m)
+    q = solve_equilibrium(m, np.array([5.0, 0.0, 5.0, 0.0])).q
+    qd = np.random.default_rng(0).normal(0.0, 0.3, m.n)
+    kernels.evaluate(*m.kernel_args, q, qd, 1, False, *d.kernel_args)
+    a, out = m.kernel_args, np.zeros(m.n_tendons)
+    best = float("inf")
+    for _ in range(5):
+        t0 = time.perf_counter()
+        for _ in range(repeats):
+            kernels.tendon_rate_bias(a[0], a[1], d.xi, qd, a[12], a[13], a[15], out)
+        best = min(best, (time.perf_counter() - t0) / repeats * 1e6)
+    return best
 
 
 def bench_convergence(u=(0.0, 0.0, 2.0, 0.0)):
@@ -273,6 +316,9 @@ def main(argv=None):
     res["mocap_visibility_us"] = bench_visibility()
     res["statics"] = {dof: bench_statics(dof) for dof in (16, 20)}
     res["simulation"] = {dof: bench_simulation(dof) for dof in (16, 20)}
+    rotor = load_plant_config(load_arm_config()).rotor_mass
+    res["simulation_with_rotors"] = bench_simulation(20, rotor_mass=[rotor] * 4)
+    res["rotor_term_us"] = bench_rotor_term()
     res["peak_memory_mb_model"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     res["convergence"] = bench_convergence()
     res["cantilever"] = bench_cantilever(elastica=not args.skip_elastica)
@@ -286,10 +332,19 @@ def main(argv=None):
           + ", ".join(f"{dof} DOF {ms:.1f}" for dof, ms in res["build_ms"].items()))
     print(f"simulated mocap, one frame's visibility (self-occlusion): {res['mocap_visibility_us']:.1f} us")
     for dof, r in res["statics"].items():
-        print(f"static equilibrium 0 -> 5 N on tendons 1 and 3, {dof} DOF: {r['ms']:.1f} ms "
-              f"[<= 20 ms] ({r['newton_iterations']} Newton iterations, {r['load_steps']} load steps)")
+        print(f"static equilibrium 0 -> 5 N on tendons 1 and 3, {dof} DOF: {r['ms']:.2f} ms "
+              f"[<= 1.5 ms @20] ({r['newton_iterations']} Newton iterations, {r['load_steps']} load steps); "
+              f"with the finite-difference tangent {r['finite_difference_ms']:.2f} ms "
+              f"({r['finite_difference_newton_iterations']} iterations): {r['speed_ratio_solve']:.1f}x, "
+              f"tips {1e9 * r['tip_difference_m']:.2g} nm apart")
+        print(f"  static tangent dR/dq at it: analytic {r['jacobian_us']:.1f} us, finite differences "
+              f"{r['finite_difference_jacobian_us']:.1f} us: {r['speed_ratio_jacobian']:.1f}x")
     for dof, r in res["simulation"].items():
-        print(f"simulation 1 ms steps, 10 s, {dof} DOF: real-time factor {r['real_time_factor']:.1f} [>= 20]")
+        print(f"simulation 1 ms steps, 10 s, {dof} DOF: real-time factor {r['real_time_factor']:.1f} "
+              + ("[>= 60]" if dof == 20 else ""))
+    r = res["simulation_with_rotors"]
+    print(f"  with the plant's rotors ({r['rotor_mass_kg'][0]:g} kg per tendon), 20 DOF: real-time factor "
+          f"{r['real_time_factor']:.1f}; their term, the tendons' rate bias: {res['rotor_term_us']:.2f} us")
     print(f"peak memory of the model process: {res['peak_memory_mb_model']:.0f} MB [< 300 MB]")
     print("tip error against the exact tendon-load solution (2 N on tendon 3, no gravity):")
     for r in res["convergence"]:

@@ -118,8 +118,8 @@ class Clik:
         q = np.asarray(q, dtype=float)
         if self._at is None or not np.array_equal(q, self._at):
             self._at = None
-            evaluate_collocated(self.cm, self.cd, q)
-            self._x, self._Jx = self.task.evaluate(self.cm.model, q, self.cd.arm)
+            evaluate_collocated(self.cm, self.cd, q, markers=True)
+            self._x, self._Jx = self.task.read(self.cm.model, self.cd.arm)
             self._at = q.copy()
         return self._x
 

@@ -20,10 +20,10 @@ on sim time and on the rig alike; the stamps are checked as they enter
 a clock step (a stamp more than ``control.clik.max_time_step`` ahead, or one that goes back)
 advances the CLIK's time by one frame period, counted (``clock_steps`` on ``/diagnostics``) and
 logged, so that no stamp can hold the CLIK's steps off. Messages are stamped with the latest frame's
-own stamp. A frame the executor queued behind the last one is dropped (a CLIK step that
+own stamp. A frame that arrived while the last one was processed is dropped (a CLIK step that
 outlasts the frame period on a loaded computer would otherwise queue the frames, and the goals and
-timers behind them, for seconds: :mod:`soft_arm_ros.backlog`); the count is on ``/diagnostics``
-(``frames_dropped``) and in a warning.
+timers behind them, for seconds: :mod:`soft_arm_ros.backlog`); its time is taken, the count is on
+``/diagnostics`` (``frames_dropped``) and in a warning.
 """
 from __future__ import annotations
 
@@ -36,12 +36,13 @@ import numpy as np
 
 from geometry_msgs.msg import PoseArray, PoseWithCovarianceStamped
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rclpy.exceptions import InvalidHandle
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from soft_arm_interfaces.msg import ConfigurationReference, TaskGoal
 
 from soft_arm_model import build_model
-from soft_arm_ros.backlog import BacklogGuard
+from soft_arm_ros.backlog import Backlog
 from soft_arm_ros.contract import QOS, TOPICS
 from soft_arm_ros.conversions import (configuration_reference, goal_of, joint_state, markers_of,
                                       seconds_to_stamp, stamp_to_seconds)
@@ -70,11 +71,12 @@ MESSAGES = {"ok": "target feasible",
             "stalled": "target not reached: the error does not fall although every step is feasible "
                        "(out of reach, or a load the model lacks)",
             "unreached": "the goal ended away from its target",
-            "unseen": "the task's markers are not seen: no online step, the reference holds",
+            "unseen": "the task's markers are not seen: no correcting step (the reference holds, a "
+                      "path's goes on along it)",
             "held": "no feasible step: the last reference is held",
             "untrusted": "the estimate fed back left the trust region: the precomputed reference holds",
-            "uncertain": "the estimate's uncertainty explains the error it shows: no online step, "
-                         "the reference holds"}
+            "uncertain": "the estimate's uncertainty explains the error it shows: no correcting "
+                         "step (the reference holds, a path's goes on along it)"}
 
 
 class ClikNode(Node):
@@ -100,9 +102,10 @@ class ClikNode(Node):
         self.q_pub = self.create_publisher(ConfigurationReference, TOPICS["configuration"],
                                            QOS["arm/configuration_reference"])
         self.create_subscription(TaskGoal, TOPICS["goal"], self.on_goal, QOS["task/goal"])
-        self.frames = BacklogGuard()
+        self.frames = Backlog()
         self._drop_warned, self._drop_warned_at = 0, -math.inf   # frames dropped, monotonic time [s]
-        self.create_subscription(PoseArray, TOPICS["markers"], self.on_frame, QOS["mocap/markers"])
+        self._frame_sub = self.create_subscription(PoseArray, TOPICS["markers"], self.on_frame,
+                                                   QOS["mocap/markers"])
         self.tip = None                 # (stamp [s], position covariance (3, 3) [m^2]) of the estimate's tip
         if self.outer.trust is not None:     # an estimate fed back: its uncertainty with it
             # the fused tip's: none where the mocap saw the tip, the estimate's elsewhere
@@ -150,19 +153,29 @@ class ClikNode(Node):
             self.publish_diagnostics(len(self.outer.reports) - 2)     # the closed one, final
 
     def on_frame(self, msg: PoseArray):
-        """A mocap frame: processed (:meth:`on_markers`) unless the executor queued it behind the
-        last one (module docstring); its time is taken either way."""
-        if self.frames.admit(time.monotonic_ns()):
-            self.on_markers(msg)
-        else:
-            self._take_time(msg)
-        self.frames.done(time.monotonic_ns())
+        """A mocap frame: processed (:meth:`on_markers`); then the frames that arrived meanwhile
+        are dropped, their time taken (module docstring)."""
+        self.on_markers(msg)
+        self.frames.processed_one()
+        late = self.frames.drain(self._take_frame)
+        if late is not None:
+            self._take_time(late)
         if self.frames.dropped > self._drop_warned and time.monotonic() >= self._drop_warned_at + 5.0:
             # throttled here: rclpy's throttle inspects the caller's frame on every call
             self._drop_warned, self._drop_warned_at = self.frames.dropped, time.monotonic()
             self.get_logger().warning(
                 f"the CLIK falls behind the mocap frames: {self.frames.dropped} of "
                 f"{self.frames.dropped + self.frames.processed} dropped so far")
+
+    def _take_frame(self) -> PoseArray | None:
+        """The next frame the subscription holds, taken past the executor (None: it holds none)."""
+        sub = self._frame_sub
+        try:
+            with sub.handle:
+                taken = sub.handle.take_message(sub.msg_type, sub.raw)
+        except InvalidHandle:             # the node is being destroyed: nothing more to take
+            return None
+        return None if taken is None else taken[0]
 
     def _take_time(self, msg: PoseArray) -> bool:
         """The frame's stamp into the CLIK's time (:attr:`now`); False, the frame dropped, when the

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.linalg
 
-from soft_arm_model import ArmData, ArmModel, actuation_matrix, evaluate, residual_jacobian
+from soft_arm_model import ArmData, ArmModel, actuation_matrix, evaluate, residual_jacobian, tangent_at
 from soft_arm_model.dynamics import STATICS, mass_matrix
 
 
@@ -123,11 +123,13 @@ class CollocatedData:
         return self.J_h_inv.T @ rhs
 
 
-def evaluate_collocated(cm: CollocatedModel, cd: CollocatedData, q) -> CollocatedData:
-    """Fill ``cd`` at q (see :class:`CollocatedData`). Raises OutOfDomainError outside the domain,
-    and ValueError when J_h is singular (the selector does not complement B^T at q)."""
+def evaluate_collocated(cm: CollocatedModel, cd: CollocatedData, q, markers: bool = False) -> CollocatedData:
+    """Fill ``cd`` at q (see :class:`CollocatedData`; ``cd.arm`` with the markers if ``markers``).
+    Raises OutOfDomainError outside the domain, and ValueError when J_h is singular (the selector
+    does not complement B^T at q)."""
     q = np.ascontiguousarray(q, dtype=float)
-    arm = evaluate(cm.model, cd.arm, q, level=STATICS)
+    cd.q[:] = np.nan            # until cd.arm holds q: a failed evaluation leaves no q to trust
+    arm = evaluate(cm.model, cd.arm, q, level=STATICS, markers=markers)
     A = arm.A if cm.friction else arm.A0
     cd.q[:] = q
     cd.B[:] = -A[:, list(cm.active)]
@@ -161,9 +163,10 @@ def effective_stiffness(cm: CollocatedModel, cd: CollocatedData) -> np.ndarray:
 
     It is the tangent of the static residual at the tensions u_eq = G_theta_a(q), so that
     ``dG_theta/dq = J_h^-T H_eff``; the tendon part is the tension-induced geometric stiffness.
+    It reads ``cd.arm`` as the last successful :func:`evaluate_collocated` left it at ``cd.q``
+    (NaN after a failed one).
     """
-    _, H = residual_jacobian(cm.model, cd.q, full_tensions(cm, cd.u_eq), friction=cm.friction)
-    return H
+    return tangent_at(cm.model, cd.arm, cd.q, full_tensions(cm, cd.u_eq), friction=cm.friction)
 
 
 def held_stiffness(cm: CollocatedModel, q, u_active, proportional) -> np.ndarray:

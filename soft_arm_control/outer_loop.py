@@ -68,25 +68,27 @@ class GoalReport:
     arm does not go where the model says it should (a target out of the arm's reach, an
     unmodelled load) although every step was feasible. A goal ``closed`` (the next one arrived, or
     the experiment ended) with its last error above the tolerance and nothing else to report is
-    *unreached*. ``saturated_steps``: online steps of a track goal whose dynamic reference needed
+    *unreached*. ``saturated_steps``: steps of a track goal whose dynamic reference needed
     feedforward tensions outside the limits (the path asks more force than the tendons give: the
     inner loop clips it, and the arm falls behind). ``learner``: a track goal's
     :class:`~soft_arm_control.track_learning.HarmonicLearner` (None: not learned), whose counts the
     report gives: ``learned_periods``, ``backed_off_periods`` (the CLIK could not follow, or the
     error grew) and ``frozen_periods`` (the dynamic reference was clipped). ``unseen_frames``: frames
     on which an online step was due but the task's markers were not all seen (no step: the reference
-    holds); ``unseen_time`` [s]: how long the current such stretch has lasted (0 once a step is
-    taken). A goal is *unseen* while that stretch is longer than one online period. On an estimated
-    feedback (:class:`~soft_arm_control.trust_region.TrustRegion`): ``distrusts``, the times the
+    holds; a track goal's goes on along its path on the feedforward); ``unseen_time`` [s]: how
+    long the current such stretch has lasted (0 once a step is taken). A goal is *unseen* while
+    that stretch is longer than one online period. On an estimated feedback
+    (:class:`~soft_arm_control.trust_region.TrustRegion`): ``distrusts``, the times the
     trust region refused the estimate and the reference returned to the goal's precomputed one (its
     reason in ``distrust``, the frame time [s] of the last in ``distrust_time``), and
     ``untrusted_frames``, the frames on which an online step was due but not taken for it; a goal is
     *untrusted* while it holds the precomputed reference so. ``fraction``: the part of the
     estimated error the last online step took (1 on a measurement; less on an estimate whose
     uncertainty explains some of it, :meth:`~soft_arm_control.trust_region.TrustRegion.fraction`),
-    ``uncertain_frames``: the frames whose step took less than all of it, or none (no step is taken
-    then, and ``error`` is the estimated error); a goal is *uncertain* while its last frame took none
-    (the estimate cannot tell the remaining error from its own: the reference holds)."""
+    ``uncertain_frames``: the frames whose step took less than all of it, or none (no correcting
+    step is taken then, and ``error`` is the estimated error); a goal is *uncertain* while its last
+    frame took none (the estimate cannot tell the remaining error from its own: the reference holds,
+    a track goal's goes on along its path)."""
     target: list
     mode: str
     reach_tolerance: float = 1e-3
@@ -149,9 +151,9 @@ class GoalReport:
     def status(self) -> str:
         """held (no feasible step: the reference stayed), untrusted (the trust region refused the
         estimate the online steps were taken on: the precomputed reference holds), uncertain (the
-        estimate's uncertainty explains the error it shows: no step, the reference holds), unseen (no
-        frame showed the task's markers for longer than ``unseen_after``: no step, the reference
-        held), constrained (the reference
+        estimate's uncertainty explains the error it shows: no correcting step), unseen (no frame
+        showed the task's markers for longer than ``unseen_after``: no correcting step; the
+        reference holds, a track goal's goes on along its path), constrained (the reference
         keeps moving towards the closest feasible point), saturated (a track goal whose path needed tensions
         outside the limits), stalled (feasible steps, but the error stays above the tolerance),
         unreached (closed away from the target) or ok (a track goal, whose error is a tracking
@@ -186,7 +188,8 @@ class OuterLoop:
     """Reference generator around a :class:`~soft_arm_control.clik.Clik`.
 
     ``start``: the reference at start-up (the hanging arm); ``switch_delay`` [s]; ``rate`` [Hz] of
-    the online steps; ``jacobian_every``: online steps per recomputation of Z; ``seed_levels``
+    the online steps; ``jacobian_every``: online steps per recomputation of Z (a track goal's path
+    turns it at every step: recomputed at every one); ``seed_levels``
     [N]: tensions of the seed equilibria tried when a precomputation from ``start`` fails;
     ``tolerance`` [m]: precomputation tolerance; ``reach_tolerance`` [m] and ``stall_time`` [s]: when
     a goal counts as reached, and as stalled (:class:`GoalReport`); ``shaper`` and ``shaped_modes``:
@@ -392,7 +395,8 @@ class OuterLoop:
         """A mocap frame delivered at time t [s] with the measured task coordinates [m] (on an
         estimated feedback, ``sigma``: their standard deviations [m], without which no step is
         taken on it); returns the new reference when it changed: a fraction of a shaped step was
-        given, or an online step was taken (None otherwise)."""
+        given, or an online step was taken (a track goal's, also one along its path; None
+        otherwise)."""
         if self._planned is not None:
             return self._follow_plan(t)
         moved = None
@@ -411,17 +415,29 @@ class OuterLoop:
             if self._unseen_since is None:
                 self._unseen_since = t
             report.unseen_time = t - self._unseen_since
-            return moved
+            if self._trajectory is None or report.holding:
+                return moved
+            self._next_step = max(self._next_step + self.period, t + 0.5 * self.period)
+            return self._along_path(self.path_at(t)) or moved
         self._unseen_since = None
         report.unseen_time = 0.0
         self._next_step = max(self._next_step + self.period, t + 0.5 * self.period)
-        if self.trust is not None:
+        # a frame the mocap measured (zero sigma: the fused tip was seen) needs no trust, and it
+        # re-anchors the estimate: the offsets before it are not the ones the estimate goes on to
+        # show (it relaxes from the measurement to its own), so the judge starts afresh after it
+        measured = sigma is not None and not np.any(np.asarray(sigma, dtype=float))
+        if self.trust is not None and measured:
+            report.holding, self._trusted_since = False, None     # stepping on a measurement holds nothing
+            self.trust.reset()
+        elif self.trust is not None:
             allowed, returned = self._trusted(t, x_measured, report)
             if returned:
                 return self.command
             if not allowed:
                 return moved
-        refresh = self._steps % self.jacobian_every == 0
+        # a track goal's path turns the Jacobian at every step: a held one's error, summed along the
+        # path, is a drift the error term balances with a steady offset (drift / task_gain)
+        refresh = self._trajectory is not None or self._steps % self.jacobian_every == 0
         self._steps += 1
         path = None if self._trajectory is None else self.path_at(t)     # x_d + c, its rates
         x_d = self._x_d if path is None else path[0]
@@ -431,9 +447,9 @@ class OuterLoop:
         if self.trust is not None:        # the part of the error the estimate's uncertainty leaves
             fraction = report.fraction = self.trust.fraction(error, sigma)
             report.uncertain_frames += fraction < 1.0
-            if fraction == 0.0:           # none: no step, the reference holds (as on an unseen frame)
+            if fraction == 0.0:           # none: no correction (as on an unseen frame)
                 report.error = float(np.linalg.norm(error))
-                return moved
+                return moved if path is None else self._along_path(path) or moved
             x_step = x_d - fraction * error
         ref, step = self.clik.step(self.reference.q, x_d, self.period, x_step, refresh, xd_dot)
         self.reports[-1].add(step, error)
@@ -442,18 +458,43 @@ class OuterLoop:
             if self.learner is not None:
                 self._learn(t, x_d, x_measured, followed=False)
             return moved
+        command, saturated = self._take(ref, path)
+        if self.learner is not None:
+            self._learn(t, x_d, x_measured, not step.constrained, saturated)
+        return command
+
+    def _along_path(self, path) -> ClikPoint | None:
+        """A track goal's step along ``path`` (:meth:`path_at` at the frame's time) on a frame that
+        cannot correct it (its task markers unseen, or an estimate too uncertain): the reference
+        goes on along the path on the feedforward alone (no error term, nothing learned). A
+        reference held instead would lose the path's motion over the frame for good, an offset the
+        error term then has to win back. A step projected onto the tension limits, or none found,
+        counts in the goal's report as an online one does. Returns the new command (None: no
+        feasible step, or no feedforward to follow: the reference holds)."""
+        if not self.track_feedforward:
+            return None
+        ref, step = self.clik.step(self.reference.q, path[0], self.period, path[0], True, path[1])
+        self.last_step = step
+        report = self.reports[-1]
+        report.infeasible_steps += step.constrained
+        report.held_steps += step.held
+        return None if ref is None else self._take(ref, path)[0]
+
+    def _take(self, ref: ClikPoint, path) -> tuple[ClikPoint, bool]:
+        """Make the CLIK's new reference ``ref`` the goal's, and hand the inner loop its command:
+        on a track goal's ``path`` (x_r, its velocity and acceleration; None: not tracking) with
+        ``track_dynamics`` the dynamic reference. Returns (the command, whether its feedforward
+        needed tensions outside the limits)."""
         self.reference = ref
         saturated = False
         if path is not None and self.track_dynamics:
             ref = self.clik.dynamic_reference(ref.q, path[1], path[2], self.rotor_mass, refresh=False)
             saturated = self.clik.feasibility_error(ref.u_ff) is not None
             self.reports[-1].saturated_steps += saturated
-        if self.learner is not None:
-            self._learn(t, x_d, x_measured, not step.constrained, saturated)
         rate = None
         if self._mode in self.rate_modes:
             rate = (ref.shortening - self.command.shortening) / self.period
-        return self._hand(ref, rate)
+        return self._hand(ref, rate), saturated
 
     def _trusted(self, t: float, x_estimate, report: GoalReport) -> tuple[bool, bool]:
         """(whether an online step may be taken on the estimate at t [s], whether the reference

@@ -12,8 +12,8 @@ compliance so that soft modes may move more), and three kinds of measurement:
   zero at rest under the measured tensions u, A with the paper's friction weight at the tendons'
   friction coefficients mu. The model is not the plant: its stiffness scale k (1 for the model)
   and the friction coefficients' offsets from the model's are estimated with q (the state is (q, k,
-  dmu); they drift by ``parameter_drift`` per sqrt(s); dA/dmu by a finite difference, a second
-  model with every coefficient raised by :data:`FRICTION_STEP`), and what remains is uncertain in
+  dmu); they drift by ``parameter_drift`` per sqrt(s); dA/dmu in closed form with the balance's
+  tangent, :func:`~soft_arm_model.statics.static_tangents`), and what remains is uncertain in
   proportion to the forces in the balance: a standard deviation of ``balance`` times the magnitude
   of the elastic
   and tendon forces of each coordinate, inflated by ``moving`` per m/s of tendon speed (the arm's
@@ -48,16 +48,16 @@ covariance of q and of every marker position, so that a consumer can tell what i
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 
-from soft_arm_model import ArmData, ArmModel, build_model, evaluate, solve_equilibrium
+from soft_arm_model import ArmData, ArmModel, evaluate, solve_equilibrium
 from soft_arm_model.dynamics import STATICS, OutOfDomainError
 from soft_arm_model.parameters import default_config_dir, load_section
-from soft_arm_model.statics import residual_jacobian
 
-FRICTION_STEP = 1e-3                          # the finite difference of dA/dmu
+from .estimator_update import OUT_OF_DOMAIN, UPDATED, marker_update, new_work, tendon_update
+
 MAX_PREDICTION = 0.3          # the largest predicted step of a coordinate, in compliance units
 STIFFNESS_BOUNDS = (0.5, 2.0)  # the arm's stiffness against the model's: what a cast arm can be
 FRICTION_BOUNDS = (0.0, 0.5)   # a tendon's friction coefficient
@@ -197,11 +197,7 @@ class ShapeEstimator:
     def __init__(self, model: ArmModel, config: EstimatorConfig):
         self.model, self.config = model, config
         self.data = ArmData(model)
-        arm = model.config
-        raised = replace(arm, tendons=tuple(replace(t, friction=t.friction + FRICTION_STEP)
-                                            for t in arm.tendons))
-        self.raised = build_model(raised)
-        self.raised_data = ArmData(self.raised)
+        self._evaluated_at = None     # q whose statics and markers self.data holds, if it holds one
         n, nt = model.n, model.n_tendons
         # compliance scale of each coordinate: the random walk follows it
         stiffness = np.abs(np.diag(model.K))
@@ -217,6 +213,10 @@ class ShapeEstimator:
         self._rejected = np.zeros(model.marker_X.size, dtype=int)   # frames in a row out of the gate
         self._retaken = np.zeros(model.marker_X.size, dtype=bool)   # taken again, not yet back in it
         self._linear = None          # (dR/dq, A, u) of the last tendon update, for the prediction
+        size, rows = self.z.size, max(n + nt, 3 * model.marker_X.size)     # the updates' largest
+        self._update_out = (np.zeros(size), np.zeros((size, rows)), np.zeros((rows, size)), np.zeros(rows),
+                            np.zeros(rows))                  # z, K, H, noise, innovation
+        self._update_work = new_work(n, nt, model.marker_X.size)
         self.distrust = None         # why the last update leaves the estimate undefended (None: it does not)
 
     @property
@@ -239,12 +239,12 @@ class ShapeEstimator:
     def start(self, t: float, tension, shortening=None):
         """Start at the equilibrium of ``tension`` [N] (refined by three tendon updates with the
         shortenings [m] when given)."""
-        u = np.asarray(tension, dtype=float)
+        u = np.ascontiguousarray(tension, dtype=float)
         self.z[:self.model.n] = solve_equilibrium(self.model, u).q
         self.t = float(t)
         if shortening is not None:
             for _ in range(3):
-                self._tendon_update(np.asarray(shortening, dtype=float), u, np.zeros(u.size))
+                self._tendon_update(np.ascontiguousarray(shortening, dtype=float), u, np.zeros(u.size))
                 self._clamp_parameters()
 
     @property
@@ -255,7 +255,7 @@ class ShapeEstimator:
         """One sample at time ``t`` [s]: the tendons' shortenings [m], rates [m/s] and tensions [N],
         and ``markers`` (n_markers, 3) [m] in arm_base with NaN rows for the unseen (None: no
         frame). Returns what was used."""
-        s, sd, u = (np.asarray(v, dtype=float) for v in (shortening, rate, tension))
+        s, sd, u = (np.ascontiguousarray(v, dtype=float) for v in (shortening, rate, tension))
         if not self.started:
             self.start(t, u, s)
         saved = self.z.copy(), self.Pz.copy(), self._linear
@@ -272,7 +272,7 @@ class ShapeEstimator:
             report.tendon_nis, shortening_nis = self._tendon_update(s, u, sd)
             if markers is not None:
                 self._marker_update(np.asarray(markers, dtype=float), report, sd)
-            evaluate(self.model, self.data, self.q, level=STATICS, markers=True)    # in the domain
+            self._evaluate_markers()                                              # in the domain
             at_rest = not sd.size or float(np.max(np.abs(sd))) <= c.rest_speed
             stiffness = self.z[self.model.n]
             self._clamp_parameters()
@@ -328,7 +328,9 @@ class ShapeEstimator:
 
     def estimate(self) -> ShapeEstimate:
         """The current estimate (markers and their covariance from the model's kinematics)."""
-        d = evaluate(self.model, self.data, self.q, level=STATICS, markers=True)
+        if self._evaluated_at is None or not np.array_equal(self._evaluated_at, self.q):
+            self._evaluate_markers()
+        d = self.data
         H = self._marker_jacobians(d)
         cov = np.einsum("kin,nm,kjm->kij", H, self.P, H)
         return ShapeEstimate(self.t if self.t is not None else 0.0, self.q.copy(), self.P.copy(),
@@ -337,40 +339,25 @@ class ShapeEstimator:
     # --- updates ---------------------------------------------------------------------------------
 
     def _tendon_update(self, s, u, sd) -> tuple[float, float]:
-        """Iterated update with the shortenings and the static balance; returns their NIS, and the
+        """Iterated update with the shortenings and the static balance
+        (:func:`~soft_arm_control.estimator_update.tendon_update`); returns their NIS, and the
         shortenings' alone."""
-        c, model, n = self.config, self.model, self.model.n
-        z_prior, P = self.z.copy(), self.Pz
-        z = z_prior.copy()
+        c, model, n, d = self.config, self.model, self.model.n, self.data
         speed = float(np.max(np.abs(sd))) if sd.size else 0.0
-        inflation = 1.0 + c.moving * speed
-        moving = speed > c.rest_speed
-        nis = 0.0
-        for _ in range(c.iterations):
-            q, k, dmu = z[:n], z[n], z[n + 1:]
-            r1, Jr = residual_jacobian(model, q, u, data=self.data)   # k = 1, the model's mu
-            d = evaluate(model, self.data, q, level=STATICS)
-            dA = (evaluate(self.raised, self.raised_data, q, level=STATICS).A - d.A) / FRICTION_STEP
-            tendon_force = dA * u[None, :]                            # d(A u)/d mu_i, column i
-            r = r1 + (k - 1.0) * d.Fel + tendon_force @ dmu
-            H_r = np.hstack([Jr + (k - 1.0) * d.Kt, d.Fel[:, None], tendon_force])
-            H_s = np.hstack([-d.A0.T, np.zeros((s.size, 1 + dmu.size))])
-            sigma_r = (c.balance * (np.abs(d.Fel) + np.abs(d.A @ u)) + c.balance_floor) * inflation
-            H = np.vstack([H_s, H_r])
-            y = np.concatenate([s - (model.rest_tendon_lengths - d.Lc), -r])
-            noise = np.concatenate([np.full(s.size, c.shortening ** 2), sigma_r ** 2])
-            innovation = y - H @ (z_prior - z)              # iterated EKF: about the prior
-            S = H @ P @ H.T + np.diag(noise)
-            K = np.linalg.solve(S, H @ P).T
-            if moving:
-                K[n:] = 0.0                                 # the parameters learn at rest only
-            z = z_prior + K @ innovation
-            nis = float(innovation @ np.linalg.solve(S, innovation))
-        self.z = z
-        self.Pz = _joseph(P, K, H, noise)
-        self._linear = (H_r[:, :n], d.A + dA * dmu[None, :], u.copy())
-        m = s.size
-        shortening_nis = float(innovation[:m] @ np.linalg.solve(S[:m, :m], innovation[:m]))
+        self._evaluated_at = None
+        z, K, H, noise, innovation = self._update_out
+        status, nis, shortening_nis = tendon_update(
+            model.kernel_args, d.kernel_args, d.Fg, d.Fel, d.A, d.A0, d.Kt, d.Lc,
+            model.rest_tendon_lengths, s, u, self.z, self.Pz, c.iterations, c.balance, c.balance_floor,
+            1.0 + c.moving * speed, c.shortening ** 2, speed > c.rest_speed, z, K, H, noise, innovation,
+            self._update_work)
+        if status == OUT_OF_DOMAIN:
+            raise OutOfDomainError("configuration outside the model's domain")
+        if status != UPDATED:
+            raise np.linalg.LinAlgError("the innovation covariance is not positive definite")
+        self.z = z.copy()
+        dA = self._update_work[3]                         # dA/d mu at the last linearisation
+        self._linear = (H[s.size:s.size + n, :n].copy(), d.A + dA * self.z[n + 1:][None, :], u.copy())
         return nis, shortening_nis
 
     def _marker_update(self, markers, report: UpdateReport, sd):
@@ -379,17 +366,17 @@ class ShapeEstimator:
         stiffness and friction are left to the tendons."""
         c, n = self.config, self.model.n
         sigma = c.marker * (1.0 + c.moving * (float(np.max(np.abs(sd))) if sd.size else 0.0))
-        d = evaluate(self.model, self.data, self.q, level=STATICS, markers=True)
+        d = self._evaluate_markers()
         H_all = self._marker_jacobians(d)
-        seen = np.all(np.isfinite(markers), axis=1)
+        seen = np.flatnonzero(np.all(np.isfinite(markers), axis=1))
         report.marker_nis = np.full(len(markers), np.nan)
-        rows, ys = [], []
-        R1 = np.eye(3) * sigma ** 2
-        for k in np.flatnonzero(seen):
-            nu = markers[k] - d.marker_p[k]
-            S = H_all[k] @ self.P @ H_all[k].T + R1
-            d2 = float(nu @ np.linalg.solve(S, nu))
-            report.marker_nis[k] = d2
+        nu = markers[seen] - d.marker_p[seen]                              # (k, 3)
+        S = np.einsum("kin,nm,kjm->kij", H_all[seen], self.P, H_all[seen]) + np.eye(3) * sigma ** 2
+        report.marker_nis[seen] = np.einsum("ki,ki->k", nu, np.linalg.solve(S, nu[:, :, None])[:, :, 0])
+        z, K, H, noise, innovation = self._update_out
+        rows = 0
+        for k, y in zip(seen, nu):
+            d2 = report.marker_nis[k]
             if d2 > c.gate and not self._retaken[k]:
                 self._rejected[k] += 1
                 if self._rejected[k] < c.regate:
@@ -400,29 +387,25 @@ class ShapeEstimator:
             if d2 <= c.gate:
                 self._retaken[k] = False
             self._rejected[k] = 0
-            rows.append(H_all[k])
-            ys.append(nu)
+            H[rows:rows + 3, :n] = H_all[k]
+            H[rows:rows + 3, n:] = 0.0
+            innovation[rows:rows + 3] = y
+            rows += 3
             report.used.append(int(k))
         self.counts["markers_used"] += len(report.used)
         self.counts["markers_gated"] += len(report.gated)
-        if not rows:
-            return
-        H = np.hstack([np.vstack(rows), np.zeros((3 * len(rows), self.z.size - n))])
-        y = np.concatenate(ys)
-        noise = np.full(y.size, sigma ** 2)
-        S = H @ self.Pz @ H.T + np.diag(noise)
-        K = np.linalg.solve(S, H @ self.Pz).T
-        K[n:] = 0.0
-        self.z = self.z + K @ y
-        self.Pz = _joseph(self.Pz, K, H, noise)
+        if rows and not marker_update(H, innovation, rows, sigma ** 2, n, self.z, self.Pz, K, noise,
+                                      self._update_work):
+            raise np.linalg.LinAlgError("the markers' innovation covariance is not positive definite")
+
+    def _evaluate_markers(self):
+        """The workspace at the current q, statics and markers (kept for :meth:`estimate` while q
+        stays)."""
+        self._evaluated_at = None                   # until the evaluation has filled it
+        d = evaluate(self.model, self.data, self.q, level=STATICS, markers=True)
+        self._evaluated_at = self.q.copy()
+        return d
 
     def _marker_jacobians(self, d) -> np.ndarray:
         """(n_markers, 3, n): d(marker position in arm_base)/dq at the evaluated workspace."""
         return np.einsum("kij,kjn->kin", d.marker_R, d.marker_J[:, 3:, :])
-
-
-def _joseph(P, K, H, noise) -> np.ndarray:
-    """The covariance after the update with gain K (Joseph form: stays symmetric and positive)."""
-    A = np.eye(P.shape[0]) - K @ H
-    out = A @ P @ A.T + (K * noise) @ K.T
-    return 0.5 * (out + out.T)

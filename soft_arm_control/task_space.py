@@ -58,7 +58,11 @@ class TaskSpace:
 
     def evaluate(self, model: ArmModel, q, data: ArmData | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Task coordinates x(q) [m] and their Jacobian dx/dq (m, n) from the model."""
-        data = evaluate(model, data or ArmData(model), q, level=KINEMATICS, markers=True)
+        return self.read(model, evaluate(model, data or ArmData(model), q, level=KINEMATICS, markers=True))
+
+    def read(self, model: ArmModel, data: ArmData) -> tuple[np.ndarray, np.ndarray]:
+        """Task coordinates [m] and their Jacobian (m, n) at the q ``data`` was evaluated at with
+        its markers."""
         x = data.marker_p[list(self.markers), list(self.axes)].copy()
         J = np.empty((self.m, model.n))
         for row, (k, a) in enumerate(zip(self.markers, self.axes)):

@@ -26,7 +26,7 @@ estimated error ``e = x_d - x_hat`` plus that bias, which adds at most
 further from the target than no step, whatever the bias, if ``alpha <= 2 (1 - B / norm(e)^2)``:
 :meth:`TrustRegion.fraction` is that alpha, clipped to [0, 1].
 The online CLIK steps on alpha e: not on an error the estimate's uncertainty explains (within about
-gamma sigma: the reference holds, the goal is *uncertain*), on all of one beyond twice that.
+gamma sigma: no correcting step, the goal is *uncertain*), on all of one beyond twice that.
 
 :class:`TrustRegion` keeps the recent offsets and judges each frame; the outer loop returns to the
 precomputed reference when it refuses, and steps again only after ``recover`` seconds of frames it

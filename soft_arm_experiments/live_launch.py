@@ -32,8 +32,10 @@ def parse_address(text: str) -> tuple[str, int]:
 
 def live_arguments(host: str, port: int, record: str = "") -> list:
     """The live_view node's ``--ros-args`` for ``host``:``port`` and the MCAP file ``record`` (empty:
-    none): an address beyond loopback, asked for on the command line, sets ``view.remote``."""
-    out = ["-p", f"view.host:={host}", "-p", f"view.port:={port}", "-p", f"view.record:={record}"]
+    none, left to ``config/view.yaml``, since rcl refuses an empty ``-p`` value): an address beyond
+    loopback, asked for on the command line, sets ``view.remote``."""
+    out = ["-p", f"view.host:={host}", "-p", f"view.port:={port}"]
+    out += ["-p", f"view.record:={record}"] if record else []
     return out if is_loopback(host) else out + ["-p", "view.remote:=true"]
 
 

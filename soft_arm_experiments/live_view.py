@@ -218,6 +218,7 @@ class LiveView:
     def __init__(self, base_radius: float, tip_radius: float, trail: float = 2.0):
         self.base_radius, self.tip_radius, self.trail = float(base_radius), float(tip_radius), float(trail)
         self.backbone = None                 # (P, 3) [m]
+        self.backbone_source = ""            # what the backbone is (take_backbone)
         self.mocap = None                    # (n, 3) [m], NaN rows unseen
         self.estimate = None                 # (n, 3) [m], NaN rows not stood by
         self.tip_covariance = None           # (3, 3) [m^2]
@@ -225,9 +226,12 @@ class LiveView:
         self._trail: deque = deque()         # (t [s], tip (3,) [m])
         self.t = 0.0
 
-    def take_backbone(self, t: float, points):
+    def take_backbone(self, t: float, points, source: str = "simulator"):
+        """The backbone points (P, 3) [m] at t [s]; ``source``: what they are (the simulator's arm,
+        the estimate, the model at the reference), shown with the scene's ``arm``."""
         self.t = max(self.t, float(t))
         self.backbone = np.asarray(points, dtype=float).reshape(-1, 3)
+        self.backbone_source = source
         if len(self.backbone):
             self._trail.append((float(t), self.backbone[-1].copy()))
         while self._trail and self._trail[0][0] < float(t) - self.trail:
@@ -288,7 +292,8 @@ class LiveView:
 
         if self.backbone is not None and len(self.backbone) > 1:
             point_radii = radii(self.backbone, self.base_radius, self.tip_radius)
-            entity("arm", cylinders=tube(self.backbone, point_radii))
+            entity("arm", metadata=[("source", self.backbone_source)],
+                   cylinders=tube(self.backbone, point_radii))
         if self.mocap is not None:
             seen = np.all(np.isfinite(self.mocap), axis=1)
             unseen = ",".join(str(k + 1) for k in np.flatnonzero(~seen))

@@ -56,7 +56,8 @@ def _wait_for_graph(node, children, flowing: tuple = (), settle: float = 0.0,
     whole run (tendon/command at the inner loop's rate and the mocap frames: a quarter of a core on
     a 2-core lab PC, bench_emulated_rig.py), and their leaving is one more change of the graph.
     RuntimeError when a node exits or after ``timeout`` [s], naming what is still missing or which
-    node's endpoints kept changing."""
+    node's endpoints kept changing. Returns the monotonic time [s] at which the run's own endpoints
+    last changed (the settle counts from there)."""
     import rclpy
 
     from soft_arm_ros.contract import QOS, TOPICS, TYPES, message_class
@@ -92,12 +93,13 @@ def _wait_for_graph(node, children, flowing: tuple = (), settle: float = 0.0,
                     f"(last {time.monotonic() - since:.1f} s ago; {settle:g} s without a change wanted)"))
         rclpy.spin_once(node, timeout_sec=0.05)
     else:
-        return
+        return since
     if probes:
         for probe in probes:
             node.destroy_subscription(probe)
-        _wait_for_graph(node, children, settle=settle, timeout=min(timeout, settle + 30.0),
-                        published=published)
+        return _wait_for_graph(node, children, settle=settle, timeout=min(timeout, settle + 30.0),
+                               published=published)
+    return since
 
 
 def _endpoints(node, names) -> dict:
@@ -397,7 +399,7 @@ def run_emulated_hardware(ros_args: list, out: dict, duration: float,
     enabled_at = math.inf                  # system time [s] from which a fault counts
     start = time.monotonic()
 
-    settling = {}                          # s: the drivers' set-up to the wired, settled graph, to the enable
+    settling = {}                          # s from the drivers' set-up: own endpoints quiet, settled, enabled
 
     def facts():
         return {"wall_s": time.monotonic() - start, "emulated_hardware": True, "realtime": fifo,
@@ -441,10 +443,11 @@ def run_emulated_hardware(ros_args: list, out: dict, duration: float,
         for client, label in ((driver, "configure"), (bridge, "configure"), (bridge, "activate")):
             _change_state(node, client, label, timeout=min(10.0, left()))
         drivers_up = time.monotonic()
-        _wait_for_graph(node, children, ("command", "markers"), settle=GRAPH_SETTLE, timeout=left(),
-                        published=("command", "reference", "state", "markers")
-                        if controller else ("command", "state", "markers"))
+        quiet_from = _wait_for_graph(node, children, ("command", "markers"), settle=GRAPH_SETTLE,
+                                     timeout=left(), published=("command", "reference", "state", "markers")
+                                     if controller else ("command", "state", "markers"))
         settling["graph_settled_s"] = round(time.monotonic() - drivers_up, 3)
+        settling["graph_quiet_s"] = round(quiet_from - drivers_up, 3)
         if STOP.is_set():
             return facts()
         children.go_realtime()

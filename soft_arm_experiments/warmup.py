@@ -1,6 +1,7 @@
 """``soft-arm-warmup``: compile every numba kernel of the package into its cache, once.
 
-The model's, the integrator's, the inner loop's, the actuation map's and the mocap bridge's kernels
+The model's, the integrator's, the inner loop's, the actuation map's, the shape estimator's and the
+mocap bridge's kernels
 are compiled on their first call and cached beside their modules (numba's ``cache=True``). On a fresh
 machine that first call takes about a minute, and it would otherwise come in the middle of a run:
 harmless on the simulator, but on the emulated rig (or the rig) a node that compiles while its
@@ -17,7 +18,7 @@ import time
 import numpy as np
 
 # One target of coiling for a fraction of a second: the plant, the inner loop, the actuation map, the
-# precomputed and the online CLIK all run at least once.
+# precomputed and the online CLIK and the shape estimator all run at least once.
 SHORT_RUN = ["tasks.coiling.phases=[upward]", "tasks.coiling.phase.upward.sequence=[1]",
              "tasks.coiling.phase.upward.window=0.6"]
 
@@ -34,7 +35,7 @@ def _model():
 
 def _controller_and_plant():
     from soft_arm_experiments.harness import load_setup, run_experiment
-    run_experiment(load_setup("coiling", overrides=SHORT_RUN))
+    run_experiment(load_setup("coiling", overrides=SHORT_RUN), estimate=True)
 
 
 def _mocap():
@@ -43,7 +44,8 @@ def _mocap():
 
 
 STEPS = (("the model's kernels (kinematics to Coriolis, statics, the IMEX step)", _model),
-         ("the plant, the inner loop, the actuation map and the CLIK (a short coiling run)",
+         ("the plant, the inner loop, the actuation map, the CLIK and the shape estimator (a short "
+          "coiling run)",
           _controller_and_plant),
          ("the mocap bridge's frame reader", _mocap))
 

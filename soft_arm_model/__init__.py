@@ -18,7 +18,8 @@ from .dynamics import (CORIOLIS, DYNAMICS, KINEMATICS, STATICS, Frame, OutOfDoma
 from .integrators import ImexStepper, Trajectory, simulate
 from .model import ArmData, ArmModel, build_model
 from .parameters import ConfigError
-from .statics import Equilibrium, EquilibriumError, residual_jacobian, solve_equilibrium, static_residual
+from .statics import (Equilibrium, EquilibriumError, residual_jacobian, solve_equilibrium, static_residual,
+                      static_tangents, tangent_at)
 
 __all__ = [
     "ArmConfig", "ConfigError", "load_arm_config", "ArmModel", "ArmData", "build_model",
@@ -27,6 +28,6 @@ __all__ = [
     "actuation_matrix", "tendon_lengths", "actuation_coordinates", "potential_energies",
     "mass_matrix", "coriolis_matrix", "total_energy", "forward_dynamics",
     "Equilibrium", "EquilibriumError", "solve_equilibrium", "residual_jacobian", "static_residual",
-    "ImexStepper",
+    "static_tangents", "tangent_at", "ImexStepper",
     "Trajectory", "simulate",
 ]

@@ -15,8 +15,8 @@ tension the motor applies (torque / radius) and
 
     (M + A diag(m) A0^T) qdd + ... = ... - A (u + diag(m) Adot0^T qd),
 
-with Adot0^T qd taken by a directional difference of A0 along qd (one tendon-only evaluation, no
-kinematics).
+with Adot0^T qd in closed form from the strains and their rates
+(:func:`~soft_arm_model.kernels.tendon_rate_bias`).
 """
 from __future__ import annotations
 
@@ -32,26 +32,17 @@ from .model import ArmData, ArmModel
 
 
 @njit(cache=True, nogil=True)
-def _imex_prepare(model_args, data_args, A0, rotor_mass, shifted, q, qd, markers, adot_qd):
+def _imex_prepare(model_args, data_args, rotor_mass, q, qd, markers, adot_qd):
     """Evaluate the workspace at (q, qd) (dynamics level, markers if asked) and, with rotors, the
-    tendon acceleration term Adot0^T qd (by a directional difference of A0 along qd) into adot_qd."""
-    n = q.shape[0]
-    adot_qd[:] = 0.0
-    rotors = False
-    for k in range(rotor_mass.shape[0]):
-        rotors = rotors or rotor_mass[k] != 0.0
-    vmax = 0.0
-    for a in range(n):
-        vmax = max(vmax, abs(qd[a]))
-    if rotors and vmax > 0.0:
-        eps = 1e-7 / vmax
-        if not kernels.tendon_matrices(*model_args, q + eps * qd, *shifted):
-            return False
-        adot_qd[:] = shifted[2].T @ qd
+    tendon acceleration term Adot0^T qd into adot_qd."""
     if not kernels.evaluate(*model_args, q, qd, 2, markers, *data_args):
         return False
-    if rotors and vmax > 0.0:
-        adot_qd[:] = (adot_qd - A0.T @ qd) / eps
+    adot_qd[:] = 0.0
+    for k in range(rotor_mass.shape[0]):
+        if rotor_mass[k] != 0.0:
+            kernels.tendon_rate_bias(model_args[0], model_args[1], data_args[0], qd, model_args[12],
+                                     model_args[13], model_args[15], adot_qd)
+            break
     return True
 
 
@@ -100,11 +91,9 @@ class ImexStepper:
             raise ValueError(f"rotor_mass must be {model.n_tendons} masses >= 0 kg, got {rotor_mass}")
         self.model, self.dt, self.friction = model, float(dt), friction
         self.data = d = ArmData(model)
-        shifted = (np.zeros_like(d.xi), np.zeros_like(d.A), np.zeros_like(d.A0), np.zeros_like(d.Lc),
-                   np.zeros_like(d.theta), np.zeros_like(d.wrap), np.zeros_like(d.phi))
         self._adot = np.zeros(model.n_tendons)
         self._no_force = np.zeros(model.n)
-        self._prepare_args = (model.kernel_args, d.kernel_args, d.A0, rotor, shifted)
+        self._prepare_args = (model.kernel_args, d.kernel_args, rotor)
         self._advance_args = (d.M, d.Cqd, d.Fg, d.Fel, d.Kt, d.A if friction else d.A0, d.A0,
                               model.D, rotor, self._adot)
         self._state = None

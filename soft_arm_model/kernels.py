@@ -16,7 +16,12 @@ rotations, which are expressed in ``arm_base``.
   kinetic energy.
 
 It returns False when the configuration is outside the model's domain (non-positive axial stretch
-or a degenerate tendon tangent); the outputs are then meaningless.
+or a degenerate tendon tangent); the outputs are then meaningless. It keeps each Magnus step's
+exponent Omega, Z = dOmega/dq and S = T(Omega) Z in the workspace.
+
+``static_tangent`` then takes the static balance's tangent dR/dq = K_t - dF_g/dq + d(A u)/dq
+analytically from that workspace, in one backward pass over the steps (see ``_gravity_tangent``
+and ``_tendon_tangent``), and dA/d mu in closed form.
 
 The kernels compile with ``fastmath``: 7-10 % faster, and no less reproducible across processors
 than the BLAS already makes them (docs/decisions/0015-the-kernels-keep-fastmath.md).
@@ -24,8 +29,8 @@ than the BLAS already makes them (docs/decisions/0015-the-kernels-keep-fastmath.
 import numpy as np
 from numba import njit
 
-from .lie import (TANGENT_SCRATCH, ad_apply, ad_apply_columns, expmap, inverse_adjoint_apply, tangent,
-                  tangent_rate, tangent_rate_apply)
+from .lie import (TANGENT_SCRATCH, ad_apply, ad_apply_columns, ad_matrix, expmap, inverse_adjoint_apply,
+                  matmul_into, tangent, tangent_rate, tangent_rate_apply, tangent_weights)
 
 ZANNA = np.sqrt(3.0) / 12.0  # coefficient of the commutator in the 4th-order Magnus step
 
@@ -58,17 +63,20 @@ def new_scratch(n):
 
 @njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
 def _magnus_step(q, qd, xi_star, h, B1, B2, R_prev, p_prev, J_prev, R_out, p_out, J_out,
-                 rates, eta_prev, psi_prev, Jd_prev, eta_out, psi_out, Jd_out, scratch):
+                 rates, eta_prev, psi_prev, Jd_prev, eta_out, psi_out, Jd_out, scratch, omega, Z, S):
     """One Zanna step of length h from the previous section frame.
 
-    rates = 0: R, p, J; 1: also the twist eta and psi = Jdot qd; 2: also Jdot.
+    rates = 0: R, p, J; 1: also the twist eta and psi = Jdot qd; 2: also Jdot. The step's Magnus
+    exponent Omega, its q-derivative Z and S = T(Omega) Z go to ``omega``, ``Z`` and ``S`` (the
+    workspace keeps them for the analytic derivatives; scratch's own vec[3], mat[0], mat[1] do
+    where nobody needs them).
     """
     vec, mat, sq, m3 = scratch
     n = q.shape[0]
     c = ZANNA * h * h
-    xi1, xi2, com, omega, ps, omega_dot, V, xi1d, xi2d, tw = (
-        vec[0], vec[1], vec[2], vec[3], vec[4], vec[5], vec[6], vec[7], vec[8], vec[9])
-    Z, S, JS, Zd, G = mat[0], mat[1], mat[2], mat[3], mat[4]
+    xi1, xi2, com, ps, omega_dot, V, xi1d, xi2d, tw = (
+        vec[0], vec[1], vec[2], vec[4], vec[5], vec[6], vec[7], vec[8], vec[9])
+    JS, Zd, G = mat[2], mat[3], mat[4]
     T, Tdot = sq[TANGENT_SCRATCH], sq[TANGENT_SCRATCH + 1]
     Rs = m3[0]
     _strain(xi_star, B1, q, xi1)
@@ -284,6 +292,40 @@ def _tendons(w, B, Bd, xi, q, t_d, t_dp, t_dpp, t_active, t_mu, Q, smoothing, co
 
 
 @njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
+def tendon_rate_bias(w, B, xi, qd, t_d, t_dp, t_active, out):
+    """out[k] = (dA0_k/dt)^T qd = qd^T (d A0_k/dq) qd [m/s^2]: the part of tendon k's length
+    acceleration that the rates alone give (its rate of change with qdd = 0), at the strains ``xi``
+    of q. A tendon's length is the integral of ``norm(tau)``, ``tau = kappa x d + gamma + d'``, with
+    its routing d(X), d'(X) fixed in the section, so along qd
+    ``d2/dt2 norm(tau) = (norm(tau')^2 - (t . tau')^2) / norm(tau)``, with
+    ``tau' = kappa' x d + gamma'`` and ``(kappa'; gamma') = B qd``: exact, and local like the tendon
+    terms (no kinematics). Call it after a successful :func:`evaluate` at q (its strains, and
+    ``norm(tau) > 0``, which that checks)."""
+    P = w.shape[0]
+    rate = np.empty((P, 6))
+    for pt in range(P):
+        _matvec(B[pt], qd, rate[pt])
+    tau = np.empty(3)
+    taud = np.empty(3)
+    for k in range(t_d.shape[0]):
+        acc = 0.0
+        for pt in range(P):
+            wa = w[pt] * t_active[k, pt]
+            if wa == 0.0:
+                continue
+            d = t_d[k, pt]
+            _cross(xi[pt, 0:3], d, tau)
+            _cross(rate[pt, 0:3], d, taud)
+            for r in range(3):
+                tau[r] += xi[pt, 3 + r] + t_dp[k, pt, r]
+                taud[r] += rate[pt, 3 + r]
+            nt = np.sqrt(tau[0] ** 2 + tau[1] ** 2 + tau[2] ** 2)
+            along = (tau[0] * taud[0] + tau[1] * taud[1] + tau[2] * taud[2]) / nt
+            acc += wa * (taud[0] ** 2 + taud[1] ** 2 + taud[2] ** 2 - along * along) / nt
+        out[k] = acc
+
+
+@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
 def _ad_transpose_apply(x, y, out):
     """``out = ad(x)^T y`` = [-(w x a) - (v x b); -(w x b)] for x = [w; v], y = [a; b]."""
     w0, w1, w2, v0, v1, v2 = x[0], x[1], x[2], x[3], x[4], x[5]
@@ -372,9 +414,10 @@ def evaluate(w, B, Bd, h, B1, B2, xi_star, lumped, stiff_diag, neo_axial, R0, gr
              m_point, m_h, m_B1, m_B2,
              q, qd, level, markers,
              xi, R, p, J, eta, psi, Jd, mR, mp, mJ,
-             M, C, Cqd, Fg, Fel, Kt, A, A0, Lc, theta, wrap, phi, energies):
+             M, C, Cqd, Fg, Fel, Kt, A, A0, Lc, theta, wrap, phi, energies, Om, Zs, Ss, tangent_work):
     """Fill the workspace arrays for (q, qd) up to ``level`` (0 kinematics, 1 statics, 2 dynamics,
-    3 Coriolis matrix), markers if ``markers``; returns False outside the model's domain."""
+    3 Coriolis matrix), markers if ``markers``; returns False outside the model's domain.
+    ``tangent_work`` is :func:`static_tangent`'s scratch (unused here)."""
     P = w.shape[0]
     rates = 0 if level < 2 else (1 if level == 2 else 2)
     for pt in range(P):
@@ -389,7 +432,7 @@ def evaluate(w, B, Bd, h, B1, B2, xi_star, lumped, stiff_diag, neo_axial, R0, gr
     for i in range(P - 1):
         _magnus_step(q, qd, xi_star, h[i], B1[i], B2[i], R[i], p[i], J[i], R[i + 1], p[i + 1],
                      J[i + 1], rates, eta[i], psi[i], Jd[i], eta[i + 1], psi[i + 1], Jd[i + 1],
-                     scratch)
+                     scratch, Om[i], Zs[i], Ss[i])
     if markers:
         for m in range(m_point.shape[0]):
             pt = m_point[m]
@@ -400,7 +443,7 @@ def evaluate(w, B, Bd, h, B1, B2, xi_star, lumped, stiff_diag, neo_axial, R0, gr
             else:
                 _magnus_step(q, qd, xi_star, m_h[m], m_B1[m], m_B2[m], R[pt], p[pt], J[pt], mR[m],
                              mp[m], mJ[m], 0, eta[pt], psi[pt], Jd[pt], eta[pt], psi[pt], Jd[pt],
-                             scratch)
+                             scratch, scratch[0][3], scratch[1][0], scratch[1][1])
     if level < 1:
         return True
     if not _elastic(w, B, xi, stiff_diag, neo_axial, col_lo, col_hi, Fel, Kt, energies):
@@ -416,13 +459,382 @@ def evaluate(w, B, Bd, h, B1, B2, xi_star, lumped, stiff_diag, neo_axial, R0, gr
     return True
 
 
+# --------------------------------------------------------------------------------------------------
+# Analytic tangent of the static balance R(q) = F_el(q) - F_g(q) + A(q) u.
+
+
 @njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
-def tendon_matrices(w, B, Bd, h, B1, B2, xi_star, lumped, stiff_diag, neo_axial, R0, gravity,
-                    t_d, t_dp, t_dpp, t_active, t_mu, Q, smoothing, col_lo, col_hi,
-                    m_point, m_h, m_B1, m_B2, q, xi, A, A0, Lc, theta, wrap, phi):
-    """Only the tendon terms at q (A, A0, L_c, theta, wrap angles) into the given arrays: they
-    depend on the local strains alone, so no kinematics is needed. False outside the domain."""
-    for pt in range(w.shape[0]):
-        _strain(xi_star, B[pt], q, xi[pt])
-    return _tendons(w, B, Bd, xi, q, t_d, t_dp, t_dpp, t_active, t_mu, Q, smoothing, col_lo, col_hi,
-                    A, A0, Lc, theta, wrap, phi)
+def new_tangent_work(P, n):
+    """Scratch for :func:`static_tangent`: (6 x n matrices (6, 6, n), P x n matrices (2, P, n),
+    6x6 (TANGENT_SCRATCH + 8, 6, 6), vectors (16, 6))."""
+    return (np.zeros((6, 6, n)), np.zeros((2, P, n)), np.zeros((TANGENT_SCRATCH + 8, 6, 6)),
+            np.zeros((16, 6)))
+
+
+@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
+def _pi_matrix(U, out):
+    """``out[d, v] = U^T ad(e_d) e_v``: the bilinear form (delta, v) -> U^T ad(delta) v of the wrench
+    U = [a; b], i.e. [[-a~, -b~], [-b~, 0]] (skew: U^T ad(x) y = -U^T ad(y) x)."""
+    out[:, :] = 0.0
+    a0, a1, a2, b0, b1, b2 = U[0], U[1], U[2], U[3], U[4], U[5]
+    # -a~ in the top-left block, -b~ in the top-right and bottom-left blocks
+    for (i, j, s) in ((0, 1, 1.0), (0, 2, -1.0), (1, 0, -1.0), (1, 2, 1.0), (2, 0, 1.0), (2, 1, -1.0)):
+        k = 3 - i - j
+        out[i, j] = s * (a0 if k == 0 else (a1 if k == 1 else a2))
+        bv = s * (b0 if k == 0 else (b1 if k == 1 else b2))
+        out[i, 3 + j] = bv
+        out[3 + i, j] = bv
+
+
+@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
+def _step_columns(col_lo, col_hi, i):
+    """Columns [lo, hi) of the division the Magnus step from point i to i + 1 lies in."""
+    if col_hi[i] > col_lo[i]:
+        return col_lo[i], col_hi[i]
+    return col_lo[i + 1], col_hi[i + 1]
+
+
+@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
+def _gravity_tangent(h, B1, B2, lumped, gravity, col_lo, col_hi, R, p, J, Om, Zs, Ss, jac, work):
+    """jac -= dF_g/dq, by one backward pass over the Magnus steps.
+
+    With g_k the frame of point k, S_k = T(Omega_k) Z_k the step's contribution to the body
+    Jacobians (J_{k+1} = Ad_{exp(-Omega_k)} (J_k + S_k)) and mu_k the gravity wrench of everything
+    beyond point k, in frame k, F_g = sum_k S_k^T mu_k. Its derivative has three parts:
+    the steps before k move frame k (-(ad_{S_a}^T mu_k) . J_k[:, b]), every step moves the masses
+    beyond k (their first moment's derivative, through the moment of mu_k), and step k's own
+    S_k depends on q through Omega_k (dT/dOmega) and Z_k (the Zanna commutator).
+    """
+    m6n, _, sq, vec = work
+    n = jac.shape[0]
+    P = R.shape[0]
+    Cd, G, HZ, PB = m6n[0], m6n[1], m6n[3], m6n[4]
+    ad1, Hm, Pi, tmp = sq[0], sq[1], sq[2], sq[3]
+    f, g = sq[4, 0, 0:4], sq[4, 1, 0:4]
+    mu, lam, U, nf, V, gu = vec[0], vec[1], vec[2:7], vec[7], vec[8:12], vec[12]
+    Cd[0:3, :] = 0.0
+    cx, cy, cz = 0.0, 0.0, 0.0     # first moment of the masses beyond the current point
+    mass = 0.0
+    gx, gy, gz = gravity[0], gravity[1], gravity[2]
+    for k in range(P - 2, -1, -1):
+        i = k + 1
+        m = lumped[i, 3]
+        if m != 0.0:
+            mass += m
+            cx += m * p[i, 0]
+            cy += m * p[i, 1]
+            cz += m * p[i, 2]
+            for r in range(3):
+                for b in range(n):
+                    Cd[r, b] += m * (R[i, r, 0] * J[i, 3, b] + R[i, r, 1] * J[i, 4, b]
+                                     + R[i, r, 2] * J[i, 5, b])
+        if mass == 0.0:
+            continue
+        lo, hi = _step_columns(col_lo, col_hi, k)
+        Rk = R[k]
+        # wrench beyond k about p_k, in arm_base: moment (c - M p_k) x g, force M g; into frame k
+        ox, oy, oz = cx - mass * p[k, 0], cy - mass * p[k, 1], cz - mass * p[k, 2]
+        nf[0] = oy * gz - oz * gy
+        nf[1] = oz * gx - ox * gz
+        nf[2] = ox * gy - oy * gx
+        nf[3], nf[4], nf[5] = mass * gx, mass * gy, mass * gz
+        for r in range(3):
+            mu[r] = Rk[0, r] * nf[0] + Rk[1, r] * nf[1] + Rk[2, r] * nf[2]
+            mu[3 + r] = Rk[0, r] * nf[3] + Rk[1, r] * nf[4] + Rk[2, r] * nf[5]
+        # (1) the steps before k move frame k: mu^T ad_{J_k b} S_a = -S_a^T Pi(mu) J_k[:, b];
+        # (2) every step moves the masses beyond k: (R_k S_a^ang) . (dc/dq_b x g).
+        # Together d(F_g)_a/dq_b += S_a^T G_b with G = -Pi(mu) J_k + [R_k^T (dc/dq x g); 0].
+        Sk = Ss[k]
+        Jk = J[k]
+        _pi_matrix(mu, Pi)
+        for r in range(6):
+            for b in range(n):
+                G[r, b] = 0.0
+            if r < 3:
+                for b in range(n):
+                    e0 = Cd[1, b] * gz - Cd[2, b] * gy
+                    e1 = Cd[2, b] * gx - Cd[0, b] * gz
+                    e2 = Cd[0, b] * gy - Cd[1, b] * gx
+                    G[r, b] = Rk[0, r] * e0 + Rk[1, r] * e1 + Rk[2, r] * e2
+            for s_ in range(6):
+                pv = Pi[r, s_]
+                if pv != 0.0:
+                    for b in range(hi):        # J_k is zero beyond the step's division
+                        G[r, b] -= pv * Jk[s_, b]
+        for a in range(lo, hi):
+            s0, s1, s2, s3, s4, s5 = Sk[0, a], Sk[1, a], Sk[2, a], Sk[3, a], Sk[4, a], Sk[5, a]
+            for b in range(n):
+                jac[a, b] -= (s0 * G[0, b] + s1 * G[1, b] + s2 * G[2, b] + s3 * G[3, b]
+                              + s4 * G[4, b] + s5 * G[5, b])
+        # (3) step k's own S_k = T(Omega) Z: mu^T dT[Z_b] Z_a + mu^T T dZ_a/dq_b
+        om = Om[k]
+        tangent_weights(om[0] ** 2 + om[1] ** 2 + om[2] ** 2, f, g)
+        ad_matrix(om, ad1)
+        # U_j = (ad^T)^j mu (j = 0..4); lam = T^T mu = mu + sum_k f_{k-1} U_k
+        for r in range(6):
+            U[0, r] = mu[r]
+        for j in range(1, 5):
+            _ad_transpose_apply(om, U[j - 1], U[j])
+        for r in range(6):
+            lam[r] = mu[r] + f[0] * U[1, r] + f[1] * U[2, r] + f[2] * U[3, r] + f[3] * U[4, r]
+        # Hm[d, y] = d/dOmega_d (mu^T T e_y): the weights' part sum_k g_{k-1} Omega_ang,d U_k[y],
+        # and sum_k f_{k-1} mu^T d(ad^k)[e_d] e_y = sum_j Pi(U_j) Phi_j (Phi_j = sum_m f_{j+m} ad^m)
+        # = sum_m Pi(V_m) ad^m with V_m = sum_{j <= 3-m} f_{j+m} U_j, by Horner's rule in ad.
+        for m in range(4):
+            for r in range(6):
+                acc = 0.0
+                for j in range(4 - m):
+                    acc += f[j + m] * U[j, r]
+                V[m, r] = acc
+        _pi_matrix(V[3], Hm)
+        for m in range(2, -1, -1):
+            matmul_into(Hm, ad1, tmp)
+            _pi_matrix(V[m], Hm)
+            for r in range(6):
+                for s_ in range(6):
+                    Hm[r, s_] += tmp[r, s_]
+        for r in range(6):
+            gu[r] = g[0] * U[1, r] + g[1] * U[2, r] + g[2] * U[3, r] + g[3] * U[4, r]
+        for d in range(3):
+            od = om[d]
+            for y in range(6):
+                Hm[d, y] += od * gu[y]
+        Zk = Zs[k]
+        # HZ = Hm Z (6 x cols); local[a, b] += Z_b^T Hm Z_a
+        for r in range(6):
+            for a in range(lo, hi):
+                HZ[r, a] = 0.0
+            for s_ in range(6):
+                hv = Hm[r, s_]
+                for a in range(lo, hi):
+                    HZ[r, a] += hv * Zk[s_, a]
+        # W = B1^T Pi(lam) B2, local += c (W + W^T)
+        _pi_matrix(lam, Pi)
+        c = ZANNA * h[k] * h[k]
+        b1 = B1[k]
+        b2 = B2[k]
+        for a in range(lo, hi):
+            for r in range(6):
+                PB[r, a] = 0.0
+            for s_ in range(6):
+                bv = b2[s_, a]
+                if bv != 0.0:
+                    bv *= c
+                    for r in range(6):
+                        PB[r, a] += Pi[r, s_] * bv
+        for a in range(lo, hi):
+            for b in range(lo, hi):
+                jac[a, b] -= (Zk[0, b] * HZ[0, a] + Zk[1, b] * HZ[1, a] + Zk[2, b] * HZ[2, a]
+                              + Zk[3, b] * HZ[3, a] + Zk[4, b] * HZ[4, a] + Zk[5, b] * HZ[5, a])
+        # B1 has one non-zero row per column (its strain mode): B1^T PB and its transpose
+        for r in range(6):
+            for a in range(lo, hi):
+                ba = b1[r, a]
+                if ba != 0.0:
+                    for b in range(lo, hi):
+                        jac[a, b] -= ba * PB[r, b]
+                        jac[b, a] -= ba * PB[r, b]
+
+
+@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
+def _turning_rate_gradient(k, w, B, Bd, xi, q, t_d, t_dp, t_dpp, t_active, smoothing, col_lo, col_hi,
+                           Gphi, sq, vec):
+    """Gphi[j, :] = d phi_k(X_j)/dq: the gradient of tendon k's smoothed turning rate
+    phi = sqrt(|v|^2 + s^2) - s, v = kappa x t + (I - t t^T) tau' / |tau|, at every point, through
+    the strains xi = xi* + B q and their derivatives xi' = Bd q."""
+    P = w.shape[0]
+    tau, taud, t, v, e, s3, rt, tmp, col = vec[8], vec[9], vec[10], vec[11], vec[12], vec[13], \
+        vec[14], vec[15], vec[7]
+    gphi = sq[TANGENT_SCRATCH + 6]    # rows 0, 1: d phi / d xi, d phi / d xi'
+    Gphi[:, :] = 0.0
+    for j in range(P):
+        if w[j] == 0.0 or t_active[k, j] == 0.0:
+            continue
+        d = t_d[k, j]
+        dp = t_dp[k, j]
+        kap = xi[j, 0:3]
+        _cross(kap, d, tau)
+        for r in range(3):
+            tau[r] += xi[j, 3 + r] + dp[r]
+        nt = np.sqrt(tau[0] ** 2 + tau[1] ** 2 + tau[2] ** 2)
+        for r in range(3):
+            t[r] = tau[r] / nt
+        _matvec(Bd[j], q, col)          # xi' = Bd q
+        _cross(col[0:3], d, taud)
+        _cross(kap, dp, tmp)
+        for r in range(3):
+            taud[r] += tmp[r] + col[3 + r] + t_dpp[k, j, r]
+        tdt = t[0] * taud[0] + t[1] * taud[1] + t[2] * taud[2]
+        _cross(kap, t, v)
+        for r in range(3):
+            v[r] += (taud[r] - t[r] * tdt) / nt
+        rho = np.sqrt(v[0] ** 2 + v[1] ** 2 + v[2] ** 2 + smoothing * smoothing)
+        for r in range(3):
+            e[r] = v[r] / rho
+        te = t[0] * e[0] + t[1] * e[1] + t[2] * e[2]
+        for r in range(3):
+            s3[r] = (e[r] - t[r] * te) / nt          # P_t e / |tau|
+        # rt = M_tau^T e = P_t (-kap x e) / n - P_t ((t.tau') e + (t.e) tau') / n^2 - t (tau'.P_t e) / n^2
+        _cross(kap, e, tmp)
+        for r in range(3):
+            tmp[r] = -tmp[r] / nt - (tdt * e[r] + te * taud[r]) / (nt * nt)
+        ttmp = t[0] * tmp[0] + t[1] * tmp[1] + t[2] * tmp[2]
+        tps = (taud[0] * s3[0] + taud[1] * s3[1] + taud[2] * s3[2]) / nt
+        for r in range(3):
+            rt[r] = tmp[r] - t[r] * ttmp - t[r] * tps
+        # d phi/d xi = [t x e + d x rt + d' x s3; rt], d phi/d xi' = [d x s3; s3]
+        _cross(t, e, tmp)
+        for r in range(3):
+            gphi[0, r] = tmp[r]
+        _cross(d, rt, tmp)
+        for r in range(3):
+            gphi[0, r] += tmp[r]
+        _cross(dp, s3, tmp)
+        for r in range(3):
+            gphi[0, r] += tmp[r]
+            gphi[0, 3 + r] = rt[r]
+        _cross(d, s3, tmp)
+        for r in range(3):
+            gphi[1, r] = tmp[r]
+            gphi[1, 3 + r] = s3[r]
+        for b in range(col_lo[j], col_hi[j]):
+            acc = 0.0
+            for r in range(6):
+                acc += gphi[0, r] * B[j, r, b] + gphi[1, r] * Bd[j, r, b]
+            Gphi[j, b] = acc
+
+
+@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
+def _tendon_tangent(w, B, Bd, xi, q, t_d, t_dp, t_dpp, t_active, t_mu, Q, smoothing, col_lo, col_hi,
+                    wrap, u, friction, jac, dA_dmu, work):
+    """jac += d(A u)/dq (A with the friction weight if ``friction``, else A0), and the derivative
+    of A with respect to the friction coefficients into dA_dmu (n, n_t: column k is dA_k/dmu_k, the
+    only one of A's columns mu_k moves; zero without friction). Local in the strains but for the
+    friction weight's wrap angle, an integral of the tendon's turning rate phi from the base: its
+    gradient enters through Q."""
+    m6n, mPn, sq, vec = work
+    n_t = t_d.shape[0]
+    P = w.shape[0]
+    DB = m6n[5]
+    Gphi, dwrap = mPn[0], mPn[1]
+    Dt = sq[TANGENT_SCRATCH + 5]
+    tau, t, v, tmp = vec[8], vec[10], vec[11], vec[15]
+    dA_dmu[:, :] = 0.0
+    for pt in range(P):
+        if w[pt] == 0.0:
+            continue
+        lo, hi = col_lo[pt], col_hi[pt]
+        Dt[:, :] = 0.0
+        any_t = False
+        for k in range(n_t):
+            if t_active[k, pt] == 0.0 or u[k] == 0.0:
+                continue
+            any_t = True
+            d = t_d[k, pt]
+            _cross(xi[pt, 0:3], d, tau)
+            for r in range(3):
+                tau[r] += xi[pt, 3 + r] + t_dp[k, pt, r]
+            nt = np.sqrt(tau[0] ** 2 + tau[1] ** 2 + tau[2] ** 2)
+            for r in range(3):
+                t[r] = tau[r] / nt
+            weight = np.exp(-t_mu[k] * wrap[k, pt]) if friction else 1.0
+            s = u[k] * w[pt] * t_active[k, pt] * weight / nt
+            # d Phi_w / d xi = (1/|tau|) [d~; I] (I - t t^T) [-d~, I], column by column
+            for c in range(6):
+                tmp[:] = 0.0
+                if c < 3:
+                    tmp[c] = 1.0
+                    _cross(tmp, d, v)             # -d~ e_c = e_c x d
+                else:
+                    v[:] = 0.0
+                    v[c - 3] = 1.0
+                tx = t[0] * v[0] + t[1] * v[1] + t[2] * v[2]
+                for r in range(3):
+                    v[r] -= t[r] * tx
+                _cross(d, v, tmp)
+                for r in range(3):
+                    Dt[r, c] += s * tmp[r]
+                    Dt[3 + r, c] += s * v[r]
+        if not any_t:
+            continue
+        for b in range(lo, hi):                # B has one non-zero row per column
+            for r in range(6):
+                DB[r, b] = 0.0
+            for c in range(6):
+                bv = B[pt, c, b]
+                if bv != 0.0:
+                    for r in range(6):
+                        DB[r, b] += Dt[r, c] * bv
+        for r in range(6):
+            for a in range(lo, hi):
+                ba = B[pt, r, a]
+                if ba != 0.0:                  # one strain row per basis column
+                    for b in range(lo, hi):
+                        jac[a, b] += ba * DB[r, b]
+    if not friction:
+        return
+    # friction weight: A_k u_k = u_k sum_pt wa exp(-mu wrap(pt)) B^T Phi_w, wrap = Q phi
+    for k in range(n_t):
+        stiff = u[k] != 0.0 and t_mu[k] != 0.0     # the weight's q-derivative enters jac
+        if not stiff:
+            Gphi[:, :] = 0.0
+            dwrap[:, :] = 0.0
+        else:
+            _turning_rate_gradient(k, w, B, Bd, xi, q, t_d, t_dp, t_dpp, t_active, smoothing, col_lo,
+                                   col_hi, Gphi, sq, vec)
+        # dwrap = Q Gphi, then jac[a, b] += sum_pt c_pt[a] dwrap[pt, b]
+        for pt in range(P):
+            if w[pt] == 0.0 or t_active[k, pt] == 0.0:
+                continue
+            lo, hi = col_lo[pt], col_hi[pt]
+            if stiff:
+                for b in range(hi):
+                    dwrap[pt, b] = 0.0
+                for j in range(P):
+                    qv = Q[pt, j]
+                    if qv != 0.0:
+                        for b in range(hi):
+                            dwrap[pt, b] += qv * Gphi[j, b]
+            d = t_d[k, pt]
+            kap = xi[pt, 0:3]
+            _cross(kap, d, tau)
+            for r in range(3):
+                tau[r] += xi[pt, 3 + r] + t_dp[k, pt, r]
+            nt = np.sqrt(tau[0] ** 2 + tau[1] ** 2 + tau[2] ** 2)
+            for r in range(3):
+                t[r] = tau[r] / nt
+            _cross(d, t, tmp)
+            weight = np.exp(-t_mu[k] * wrap[k, pt])
+            wa = w[pt] * t_active[k, pt] * weight
+            for a in range(lo, hi):
+                acc = 0.0
+                for r in range(3):
+                    acc += B[pt, r, a] * tmp[r] + B[pt, 3 + r, a] * t[r]
+                ba = wa * acc                       # this point's share of A[a, k]
+                dA_dmu[a, k] -= ba * wrap[k, pt]
+                if stiff:
+                    f = -t_mu[k] * u[k] * ba
+                    for b in range(hi):
+                        jac[a, b] += f * dwrap[pt, b]
+
+
+@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
+def static_tangent(w, B, Bd, h, B1, B2, xi_star, lumped, stiff_diag, neo_axial, R0, gravity,
+                   t_d, t_dp, t_dpp, t_active, t_mu, Q, smoothing, col_lo, col_hi,
+                   m_point, m_h, m_B1, m_B2,
+                   q, u, friction,
+                   xi, R, p, J, eta, psi, Jd, mR, mp, mJ,
+                   M, C, Cqd, Fg, Fel, Kt, A, A0, Lc, theta, wrap, phi, energies, Om, Zs, Ss,
+                   tangent_work, jac, dA_dmu):
+    """The analytic tangent of the static residual, dR/dq = K_t - dF_g/dq + d(A u)/dq, into jac
+    (A with the friction weight if ``friction``, else A0), and dA/d mu into dA_dmu (n, n_t; column k
+    is dA_k/dmu_k, so d(A u)/d mu = dA_dmu diag(u)),
+    from the workspace as :func:`evaluate` (level >= 1) left it at q."""
+    n = q.shape[0]
+    for a in range(n):
+        for b in range(n):
+            jac[a, b] = Kt[a, b]
+    _gravity_tangent(h, B1, B2, lumped, gravity, col_lo, col_hi, R, p, J, Om, Zs, Ss, jac,
+                     tangent_work)
+    _tendon_tangent(w, B, Bd, xi, q, t_d, t_dp, t_dpp, t_active, t_mu, Q, smoothing, col_lo, col_hi,
+                    wrap, u, friction, jac, dA_dmu, tangent_work)

@@ -4,48 +4,44 @@ rclpy's events executor queues one event per message received and serves the eve
 each taking the newest message a depth-1 subscription holds. When the callback takes longer than
 the period (a CLIK step on a loaded computer), every event still finds a newer message, the queue
 grows by the difference, and whatever else the node waits for (a goal, a timer) waits behind it:
-seconds, and a depth-1 goal can be overwritten by the next before it is taken. A
-:class:`BacklogGuard` tells such a queued event by its start: it follows the end of the
-subscription's last callback within ``gap`` (the executor's own dispatch, a few hundred
-microseconds at most), where a message that arrives to an idle executor starts a period minus the
-callback's cost later (about 0.6 ms for 240 Hz frames and a 3.5 ms callback). The message a queued event
-takes arrived during the last callback: it is dropped, the events queued behind it find nothing to
-take, and the next message to arrive is processed. Nothing is dropped while the callback keeps up
-(its cost below the period minus ``gap``). See
-docs/decisions/0006-clik-node-drops-frames-queued-behind-a-slow-step.md for the measurements.
+seconds, and a depth-1 goal can be overwritten by the next before it is taken.
 
-(The middleware's receive time would tell it exactly, but rclpy Jazzy's events executor fails on a
-callback that takes the message info: "SystemError: null argument to internal routine".)
-
-Times are a monotonic clock's [ns].
+A :class:`Backlog` ends every callback by taking, and dropping, what arrived while it ran (through
+the subscription's own take, which finds nothing when nothing came): the events queued for those
+messages then find nothing to take and run no callback, and the next message processed is the next
+to arrive. Nothing is dropped while the callback keeps up and starts on its message's arrival
+(nothing arrives while it runs; another callback or the GIL delaying its start by more than the
+period minus its cost costs a frame), and the rule needs no clock: which event was queued is told
+by what the subscription holds, not by how soon its callback started, which a loaded computer
+stretches. See
+docs/decisions/0006-clik-node-drops-frames-queued-behind-a-slow-step.md.
 """
 from __future__ import annotations
 
-QUEUED_GAP = 300_000     # ns: a callback that starts this soon after the last one ended was queued
+MAX_TAKES = 64     # takes per drain at most: no subscription of the graph holds this many messages
 
 
-class BacklogGuard:
-    """Which callbacks of one subscription to run (ROS-free). ``dropped``: messages dropped so far;
-    ``processed``: those processed."""
+class Backlog:
+    """The counts of one subscription's messages (ROS-free): ``processed`` (:meth:`processed_one`)
+    and ``dropped`` (taken by :meth:`drain`)."""
 
-    def __init__(self, gap: int = QUEUED_GAP):
-        if gap <= 0:
-            raise ValueError(f"gap = {gap} is not valid: expected > 0 ns")
-        self.gap = int(gap)
-        self._last_end = None         # when the last callback ended [ns]
-        self.dropped = 0
+    def __init__(self):
         self.processed = 0
+        self.dropped = 0
 
-    def admit(self, start: int) -> bool:
-        """Whether the callback starting at ``start`` [ns] is to process its message: not if it
-        starts within ``gap`` of the last callback's end (it was queued; dropped, counted). Every
-        callback, admitted or not, ends with :meth:`done`."""
-        if self._last_end is not None and start - self._last_end < self.gap:
-            self.dropped += 1
-            return False
+    def processed_one(self):
+        """A callback processed its message."""
         self.processed += 1
-        return True
 
-    def done(self, end: int):
-        """The callback ended at ``end`` [ns]."""
-        self._last_end = int(end)
+    def drain(self, take):
+        """Take and drop what arrived while the last callback ran: ``take()`` returns the next
+        message the subscription holds, None when it holds none; at most :data:`MAX_TAKES`.
+        Returns the newest message dropped (None: nothing had arrived)."""
+        newest = None
+        for _ in range(MAX_TAKES):
+            message = take()
+            if message is None:
+                break
+            newest = message
+            self.dropped += 1
+        return newest

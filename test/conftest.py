@@ -21,9 +21,10 @@ if os.environ.get("PYTEST_XDIST_WORKER", "").startswith("gw"):
 
 # Tests that need the cores to themselves: real time (the emulated rig, the driver's cycle thread,
 # real-time scheduling, mocap streams at 240 Hz), or graphs of node processes whose discovery and
-# wall-clock deadlines a loaded machine would stretch: a file, or one test of it. `test/run` runs them
-# alone after the rest, which runs on every core. Graphs composed in one process, in lockstep, are
-# deterministic whatever the load, and run with the rest.
+# wall-clock deadlines a loaded machine would stretch, or the live view, whose process runs only on
+# the CPU the rest leaves (a loaded machine starves it until the run ends): a file, or one test of
+# it. `test/run` runs them alone after the rest, which runs on every core. Graphs composed in one
+# process, in lockstep, are deterministic whatever the load, and run with the rest.
 SERIAL = ("drivers/sim/test_emulated_rig.py", "drivers/sim/test_emulated_hardware.py",
           "experiments/test_realtime.py", "drivers/can/test_motor_driver_node.py",
           "drivers/can/test_periodic_thread.py", "drivers/can/test_loopback_bus.py",
@@ -38,6 +39,7 @@ SERIAL = ("drivers/sim/test_emulated_rig.py", "drivers/sim/test_emulated_hardwar
           "test_layering.py::test_controller_nodes_start_without_the_plant_file",
           "test_benches.py::test_the_mocap_bench_measures_through_the_bridge_node",
           "graph/test_live_view_node.py::test_a_viewer_that_never_reads_does_not_slow_the_graph",
+          "graph/test_live_view_node.py::test_a_run_with_live_serves_itself_to_a_viewer",
           "test_benches.py::test_the_pyelastica_timing_leaves_its_compilation_out")
 
 

@@ -32,6 +32,7 @@ ROSDEP = {
     "foxglove-sdk": None,                          # the live view's server: pip, no rosdep key
     "websockets": None,                            # the live view's test client: pip
     "protobuf": ("test_depend", "python3-protobuf"),
+    "threadpoolctl": None,                         # a campaign test's BLAS threads: pip
 }
 INTERFACE = re.compile(r"^(\w+_(?:msgs|srvs|interfaces))(?:\.|$)")
 ROS_PYTHON = re.compile(r"^(launch_ros|launch|ament_index_python|rclpy)(?:\.|$)")

@@ -31,7 +31,8 @@ with zero-torque frames, which a motor in rest mode ignores but answers), ``enab
 command, rate limited, every cycle) and ``fault`` (latched: zero torque to every motor until
 :meth:`~MotorDriver.enable`). A fault is latched, with its reason, when
 
-- the latest command is older than ``watchdog_timeout`` (enabled only);
+- the latest command is older than ``watchdog_timeout``, or a cycle comes more than
+  ``watchdog_timeout`` after the previous one: nothing watched the motors meanwhile (enabled only);
 - a motor has not replied for ``reply_timeout``, reports a non-zero error code, or a temperature
   above ``max_temperature``;
 - a motor's reported velocity disagrees with the rate of its reported position by a factor that
@@ -311,7 +312,8 @@ class MotorDriver:
         if self._watch_from is None:
             self._watch_from = now
         fresh = self._read(now)
-        self._check(now)
+        # unwatched since the previous cycle or since enable(), whichever came later
+        self._check(now, 0.0 if self._last_cycle is None else now - max(self._last_cycle, self._watch_from))
         if self.mode == "enabled":
             step = self.config.tension_rate_limit * dt
             self._applied = self._applied + np.clip(self._target - self._applied, -step, step)
@@ -396,9 +398,17 @@ class MotorDriver:
                 self._trip(f"motor {motor.can_id}: {mismatch} (rig.motors.models)")
         return fresh
 
-    def _check(self, now: float):
-        """Reply timeouts (every mode) and the command watchdog (enabled)."""
+    def _check(self, now: float, gap: float):
+        """Reply timeouts (every mode), the command watchdog and the watchdog's own deadline
+        (enabled): ``gap`` [s] since the previous cycle (or since enable(), if later) longer than
+        ``watchdog_timeout`` means nothing watched the enabled motors that long (the cycle held:
+        its process stopped, swapped out or stuck in the middleware, or the hardware lock held),
+        whatever the command's age reads now; the motors' firmware timeout may have zeroed them
+        meanwhile."""
         c = self.config
+        if self.mode == "enabled" and gap > c.watchdog_timeout:
+            self._trip(f"cycle held: {gap:.4f} s since the previous cycle, the motors unwatched "
+                       f"(watchdog_timeout {c.watchdog_timeout:g} s)")
         silence = now - np.maximum(self._reply_time, self._watch_from)
         for i in np.flatnonzero(silence > c.reply_timeout):
             self._trip(f"motor {c.motors[i].can_id} silent for {silence[i]:.4f} s "

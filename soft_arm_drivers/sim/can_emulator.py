@@ -20,6 +20,12 @@ Given a seed and the same calls, the replies are identical. Give the emulator a 
 time stamps (``can.Bus(interface="virtual", channel=..., preserve_timestamps=True)``) so that its
 replies carry its clock. :class:`EmulatorThread` serves it in real time instead.
 
+The firmware's CAN timeout (``command_timeout``): a motor in motor mode that receives no frame for
+that long zeroes its command (stiffness, damping and torque), as the MIT firmware does, and applies
+no torque until the next command frame. It is the motors' own safety, apart from the driver's
+watchdog: it holds when the driver's process stops sending altogether (stopped, hung, killed), where
+the watchdog, a part of that process, cannot act.
+
 Fault injection (:meth:`~CanMotorEmulator.inject`): a motor stops replying (it still obeys), reports
 an error code, or reports a temperature.
 """
@@ -55,8 +61,9 @@ _NO_COMMAND = MotorCommand(0.0, 0.0, 0.0, 0.0, 0.0)
 @dataclass
 class EmulatedMotor:
     """State of one emulated motor: motor mode, stored zero (raw angle [rad] that reads 0), latest
-    command, temperature [deg C] and error code it reports, whether it replies, frames received and
-    set-zero frames obeyed."""
+    command, temperature [deg C] and error code it reports, whether it replies, frames received,
+    set-zero frames obeyed, the arrival of its latest frame [s, the emulator's clock] and the times
+    its CAN timeout zeroed its command."""
     motor: Motor
     zero: float
     temperature: int
@@ -66,6 +73,8 @@ class EmulatedMotor:
     silent: bool = False
     frames: int = 0
     zero_count: int = 0
+    last_frame: float = -float("inf")
+    timeouts: int = 0
 
 
 class CanMotorEmulator:
@@ -77,6 +86,9 @@ class CanMotorEmulator:
     ``encoder_noise`` [rad] standard deviation added to each reading (seeded); ``temperature`` [deg C]
     reported while none is injected; ``zero_spread`` [rad]: the stored zeros are uniform in
     ``+-zero_spread`` (seeded); ``start_time`` [s]: the clock's start (a real-time server: now).
+    ``command_timeout`` [s]: the firmware's CAN timeout (0: none); ``on_timeout(can_id, silence)``
+    is called, from the emulator's thread, each time it zeroes a motor's command, with the time
+    [s] since that motor's latest frame.
     """
 
     def __init__(self, bus: can.BusABC, motors: Sequence[Motor], pulley_radius: float,
@@ -85,7 +97,8 @@ class CanMotorEmulator:
                  encoder_resolution: float = 0.0, encoder_noise: float = 0.0,
                  extended_replies: bool = True, temperature: int = 30, zero_spread: float = 1.0,
                  seed: int = 0, start_time: float = 0.0, host_id: int = HOST_ID,
-                 history: Optional[ConfigurationHistory] = None):
+                 history: Optional[ConfigurationHistory] = None, command_timeout: float = 0.0,
+                 on_timeout: Optional[Callable[[int, float], None]] = None):
         if plant is not None and timestep is not None and abs(timestep - plant.stepper.dt) > _EPS:
             raise ValueError(f"timestep {timestep} s differs from the plant's {plant.stepper.dt} s")
         dt = plant.stepper.dt if plant is not None else (1e-3 if timestep is None else timestep)
@@ -93,12 +106,14 @@ class CanMotorEmulator:
             if not value > 0:
                 raise ValueError(f"{name} must be > 0, got {value}")
         for name, value in (("reply_delay", reply_delay), ("encoder_resolution", encoder_resolution),
-                            ("encoder_noise", encoder_noise), ("zero_spread", zero_spread)):
+                            ("encoder_noise", encoder_noise), ("zero_spread", zero_spread),
+                            ("command_timeout", command_timeout)):
             if not value >= 0:
                 raise ValueError(f"{name} must be >= 0, got {value}")
         self.bus, self.plant, self.r, self.dt = bus, plant, float(pulley_radius), float(dt)
         self.reply_delay, self.resolution, self.noise = reply_delay, encoder_resolution, encoder_noise
         self.extended_replies, self.host_id = extended_replies, host_id
+        self.command_timeout, self.on_timeout = float(command_timeout), on_timeout
         self.rng = np.random.default_rng(seed)
         zeros = self.rng.uniform(-zero_spread, zero_spread, len(motors))
         self.motors = [EmulatedMotor(m, float(z), temperature) for m, z in zip(motors, zeros)]
@@ -225,6 +240,8 @@ class CanMotorEmulator:
         self._now = max(self._now, t_end)
 
     def _step(self):
+        if self.command_timeout:
+            self._time_out(self._base + self._k * self.dt)
         tau = np.array([self.torque(i) for i in range(len(self.motors))])
         self.tensions = np.maximum(0.0, self._direction * tau / self.r)
         if self.plant is not None:
@@ -234,6 +251,17 @@ class CanMotorEmulator:
         self._k += 1
         if self.plant is not None:
             self.history.append(self._base + self._k * self.dt, self.plant.q)
+
+    def _time_out(self, now: float):
+        """The firmware's CAN timeout at ``now`` [s]: zero the command of every motor in motor mode
+        whose latest frame is older than ``command_timeout``."""
+        for m in self.motors:
+            silence = now - m.last_frame
+            if m.motor_mode and m.command != _NO_COMMAND and silence > self.command_timeout:
+                m.command = _NO_COMMAND
+                m.timeouts += 1
+                if self.on_timeout is not None:
+                    self.on_timeout(m.motor.can_id, silence)
 
     def configuration_at(self, t: float) -> np.ndarray:
         """The plant's configuration q at time ``t`` [s, the emulator's clock]: the latest of the
@@ -255,6 +283,7 @@ class CanMotorEmulator:
             return
         m, data = self.motors[i], bytes(msg.data)
         m.frames += 1
+        m.last_frame = max(m.last_frame, arrival)
         if data == ENTER_MOTOR_MODE or data == EXIT_MOTOR_MODE:
             m.motor_mode, m.command = data == ENTER_MOTOR_MODE, _NO_COMMAND
         elif data == SET_ZERO_POSITION:

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import gc
 import multiprocessing
+import sys
 import time
 from dataclasses import dataclass
 
@@ -77,6 +78,7 @@ def start_hardware(spec: HardwareSpec, bus: can.BusABC, motive_process: bool = F
     try:
         motors = CanMotorEmulator.for_config(
             c, bus, plant, firmware=emulator["firmware"], reply_delay=emulator["reply_delay"],
+            command_timeout=emulator["command_timeout"], on_timeout=_say_timeout,
             encoder_resolution=p.encoder_resolution,
             zero_spread=emulator["zero_spread"], seed=emulator["seed"], start_time=time.time(),
             history=history)
@@ -91,6 +93,12 @@ def start_hardware(spec: HardwareSpec, bus: can.BusABC, motive_process: bool = F
         if history is not None:
             history.unlink()                # mapped by both processes now, or by none
     return Hardware(thread, motive)
+
+
+def _say_timeout(can_id: int, silence: float):
+    """What a motor's CAN timeout did, on this process's standard error."""
+    print(f"emulated motors: motor {can_id} heard no frame for {silence:.4f} s: command zeroed "
+          f"(firmware CAN timeout), no torque until the next command", file=sys.stderr, flush=True)
 
 
 def _compile_kernels(plant: Plant):

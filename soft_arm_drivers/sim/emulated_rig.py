@@ -56,6 +56,9 @@ INTERFACES = (LOOPBACK, "virtual")
 _VERSIONS = [f"{v.major}.{v.minor}" for v in SUPPORTED_VERSIONS]
 SCHEMA = {
     "reply_delay": ("float", lambda v: 0 <= v <= 0.01, "a delay in [0, 0.01] s from a frame to its reply"),
+    "command_timeout": ("float", lambda v: 0 <= v <= 2,
+                        "a time in [0, 2] s: a motor that hears no frame this long zeroes its command "
+                        "(the firmware's CAN timeout; 0: none)"),
     "zero_spread": ("float", lambda v: 0 <= v <= 10,
                     "an angle in [0, 10] rad: the motors' zeros at power-up are uniform in +-zero_spread"),
     "natnet_version": ("str", lambda v: v in _VERSIONS, f"a NatNet stream version among {_VERSIONS}"),
@@ -118,6 +121,12 @@ class EmulatedRigNode(MotorDriverNode):
                 raise ConfigError(f"rig.motors.channel = {config.channel!r} is not valid: {exc}") from None
         self.emulator_config = load_emulator_config(os.path.join(self._dir, "emulator.yaml"),
                                                     parameter_overrides(self, NAMESPACE))
+        timeout = self.emulator_config["command_timeout"]
+        if 0 < timeout <= config.watchdog_timeout:
+            raise ConfigError(f"rig.emulator.command_timeout = {timeout:g} is not valid: expected 0 or a "
+                              "time longer than rig.motors.watchdog_timeout "
+                              f"({config.watchdog_timeout:g} s): the driver's watchdog acts first, the "
+                              "firmware's timeout when the driver cannot")
         self.mocap_config = load_node_config(self, self._dir)
         if not ipaddress.IPv4Address(self.mocap_config.server_address).is_loopback:
             raise ConfigError(f"rig.mocap.server_address = {self.mocap_config.server_address!r} is "

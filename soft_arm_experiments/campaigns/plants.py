@@ -98,14 +98,18 @@ def plant_overrides(plant: dict) -> list:
 
 
 def plant_holds(task: str, overrides: list) -> dict:
-    """Whether the plant itself can hold the task's targets: the precomputed CLIK solved on the
-    plant's own model, its margin [N] from the tension limits and its stability under the inner loop
-    (:func:`soft_arm_control.target_margin.check_arm`). A target it cannot hold no controller reaches."""
+    """Whether the plant itself can hold the targets the run visits: the precomputed CLIK solved on
+    the plant's own model, its margin [N] from the tension limits and its stability under the inner
+    loop (:func:`soft_arm_control.target_margin.check_arm`), per visited target (``plant_targets``,
+    1-based). A target it cannot hold no controller reaches; one the run never visits says nothing
+    of the run."""
     from soft_arm_control.target_margin import check_arm, is_robust
-    from soft_arm_experiments.harness import load_setup
+    from soft_arm_experiments.harness import load_setup, schedule
     setup = load_setup(task, overrides=overrides)
     if setup.task is None:
         raise ConfigError(f"{task} has no targets to hold")
-    results = check_arm(setup.plant.plant_arm(setup.arm), setup.control, setup.task, setup.task.targets)
-    return {"plant_holds": is_robust(results, min_margin=0.0),
+    visited = sorted({k for _, _, k, _ in schedule(setup.task)})
+    results = check_arm(setup.plant.plant_arm(setup.arm), setup.control, setup.task,
+                        [setup.task.targets[k] for k in visited])
+    return {"plant_holds": is_robust(results, min_margin=0.0), "plant_targets": [k + 1 for k in visited],
             "plant_margins": [r.margin for r in results], "plant_stable": [r.stable for r in results]}

@@ -219,8 +219,9 @@ def test_clik_node_rejects_bad_goals_and_keeps_the_last_reference():
 def test_a_slow_clik_takes_a_goal_at_once_and_drops_the_frames_it_cannot_keep_up_with():
     """A CLIK step of 12.5 ms against 240 Hz frames (a loaded computer), on the events executor the
     node runs on, which queues an event per frame, so that a goal sent 1.5 s in would wait seconds
-    behind them: the frames queued behind a step are dropped, the goal is taken within 0.25 s, the
-    drops are counted and reported, and a step is taken per step's worth of time
+    behind them: the frames that arrive during a step are dropped (every step but the last drops
+    some), the goal is taken within 0.25 s, the drops are counted and reported, and a step is taken
+    per step's worth of time
     (docs/decisions/0006-clik-node-drops-frames-queued-behind-a-slow-step.md)."""
     import threading
 
@@ -260,14 +261,18 @@ def test_a_slow_clik_takes_a_goal_at_once_and_drops_the_frames_it_cannot_keep_up
             executor.spin_once(timeout_sec=0.05)
         markers = [[0.0, 0.0, -0.1 * k] for k in range(1, node.model.marker_X.size + 1)]
         sent = []
+        # built before the stream starts: the publishing thread holds the GIL only to publish, not
+        # for the milliseconds of building messages the node's executor would wait behind
+        stream = [pose_array(markers, k / 240.0) for k in range(720)]      # 3 s at 240 Hz
+        goal_message = _goal([-0.349, -0.009], "replay")
 
         def publish():
             start = time.monotonic()
-            for k in range(720):                          # 3 s at 240 Hz
-                frames.publish(pose_array(markers, k / 240.0))
+            for k, message in enumerate(stream):
+                frames.publish(message)
                 if k == 360:
                     sent.append(time.monotonic())
-                    goals.publish(_goal([-0.349, -0.009], "replay"))
+                    goals.publish(goal_message)
                 time.sleep(max(0.0, start + (k + 1) / 240.0 - time.monotonic()))
 
         thread = threading.Thread(target=publish)
@@ -278,7 +283,7 @@ def test_a_slow_clik_takes_a_goal_at_once_and_drops_the_frames_it_cannot_keep_up
         thread.join()
         assert taken, "the goal was not taken within 2 s of being sent"
         assert taken[0] - sent[0] < 0.25 and node.rejected_goals == 1
-        assert node.frames.dropped > 100 and node.frames.processed == len(steps)
+        assert node.frames.dropped >= len(steps) - 1 and node.frames.processed == len(steps)
         assert 120 < len(steps) < 240                     # one per 12.5-16.7 ms in 3 s
         from soft_arm_control.outer_loop import GoalReport
         node.outer.reports.append(GoalReport([0.0, 0.0], "clik"))
@@ -412,6 +417,8 @@ def test_task_runner_waits_for_start_and_stays_up_after_the_last_window(tmp_path
     ("rig.mocap.server_address:=192.0.2.1", "rig.mocap.server_address = '192.0.2.1' is not valid"),
     ("rig.motors.channel:=can0", "rig.motors.channel = 'can0' is not valid: soft_arm_loopback channel"),
     ("rig.emulator.reply_delay:=0.5", "rig.emulator.reply_delay = 0.5 is not valid"),
+    ("rig.emulator.command_timeout:=0.02", "rig.emulator.command_timeout = 0.02 is not valid: expected 0 "
+                                           "or a time longer than rig.motors.watchdog_timeout"),
 ])
 def test_emulated_rig_refuses_what_is_not_an_emulation(param, message):
     env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")

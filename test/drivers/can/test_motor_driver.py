@@ -332,6 +332,36 @@ def test_runs_are_deterministic_with_explicit_time():
     assert np.isnan(a[0].stamp) and not a[0].fresh.any()
 
 
+def test_a_cycle_held_past_the_watchdog_timeout_trips_whatever_the_command_reads(make_rig):
+    """The driver's process held for longer than the watchdog's timeout and a command taken just
+    before the late cycle (the executor ran first): the command is fresh, but nothing watched the
+    motors meanwhile. A cycle late by less is counted, not a fault; disabled, not a fault; enabled
+    after a long gap between cycles, the watch starts at the enable."""
+    rig = make_rig(overrides={"watchdog_timeout": 0.021})
+    rig.driver.enable()
+    rig.step(10, [3.0, 3.0, 3.0, 3.0])
+    rig.k += 5                                                   # 10 ms late: counted only
+    result = rig.step(1, [3.0, 3.0, 3.0, 3.0])
+    assert result.diagnostics.mode == "enabled" and result.diagnostics.late_cycles == 1
+    rig.k += 11                                                  # 22 ms: past the timeout
+    result = rig.step(1, [3.0, 3.0, 3.0, 3.0])
+    assert result.diagnostics.mode == "fault"
+    assert result.diagnostics.fault == ("cycle held: 0.0240 s since the previous cycle, the motors "
+                                        "unwatched (watchdog_timeout 0.021 s)")
+    assert result.diagnostics.stale_commands == 0
+    np.testing.assert_array_equal(result.state.command, 0.0)
+    idle = make_rig(overrides={"watchdog_timeout": 0.021})
+    idle.step(3)
+    idle.k += 50
+    result = idle.step(1)
+    assert result.diagnostics.mode == "disabled" and result.diagnostics.fault is None
+    idle.k += 50                                                 # enabled after a long gap: the
+    idle.now = idle.t                                            # watch starts at the enable
+    idle.driver.enable()
+    result = idle.step(1, [3.0, 3.0, 3.0, 3.0])
+    assert result.diagnostics.mode == "enabled" and result.diagnostics.fault is None
+
+
 def test_late_cycles_are_counted_and_time_cannot_go_back(make_rig):
     rig = make_rig()
     assert np.isnan(rig.driver.cycle_statistics().period_max)
@@ -368,6 +398,42 @@ def test_cycle_statistics_show_a_delayed_cycle_and_look_back_a_window(make_rig):
 
 
 # -- the emulator ------------------------------------------------------------------------------------
+
+def test_the_motors_firmware_timeout_zeroes_their_command_when_the_driver_stops_sending(make_rig):
+    """The driver's process stops (no cycle, no frame): the watchdog, a part of it, cannot act, and
+    the motors' own CAN timeout zeroes their command a timeout after their last frame, on their own
+    clock; the next command frame applies again."""
+    said = []
+    rig = make_rig(command_timeout=0.05, on_timeout=lambda can_id, silence: said.append((can_id, silence)))
+    rig.driver.enable()
+    rig.step(10, [3.0, 3.0, 3.0, 3.0])
+    np.testing.assert_allclose(rig.emulator.tensions, 3.0, atol=T_STEP / 2 / R)
+    last_frame = rig.t - rig.period                              # the last cycle's frames
+    rig.emulator.advance_to(last_frame + 0.049)                  # within the timeout: still pulling
+    np.testing.assert_allclose(rig.emulator.tensions, 3.0, atol=T_STEP / 2 / R)
+    assert not said
+    rig.emulator.advance_to(last_frame + 0.052)                  # past it: no torque
+    np.testing.assert_array_equal(rig.emulator.tensions, 0.0)
+    assert sorted(c for c, _ in said) == [m.can_id for m in rig.config.motors]
+    assert all(0.05 < silence <= 0.05 + rig.emulator.dt + 1e-9 for _, silence in said)
+    assert [m.timeouts for m in rig.emulator.motors] == [1, 1, 1, 1]
+    rig.emulator.advance_to(last_frame + 0.2)                    # once per silence, not per step
+    assert len(said) == 4
+    rig.k = int(round(rig.emulator.t / rig.period))              # the driver comes back: its
+    result = rig.step(1, [3.0, 3.0, 3.0, 3.0])                   # watchdog missed its deadline
+    assert result.diagnostics.mode == "fault" and result.diagnostics.fault.startswith("cycle held: 0.2")
+    rig.driver.enable()                                          # the next commands apply again
+    rig.step(10, [3.0, 3.0, 3.0, 3.0])
+    np.testing.assert_allclose(rig.emulator.tensions, 3.0, atol=T_STEP / 2 / R)
+
+
+def test_without_a_firmware_timeout_a_silent_driver_leaves_the_motors_pulling(make_rig):
+    rig = make_rig()
+    rig.driver.enable()
+    rig.step(10, [3.0, 3.0, 3.0, 3.0])
+    rig.emulator.advance_to(rig.t + 1.0)
+    np.testing.assert_allclose(rig.emulator.tensions, 3.0, atol=T_STEP / 2 / R)
+
 
 def test_emulator_applies_the_mit_law_only_in_motor_mode():
     cfg = config()

@@ -457,7 +457,8 @@ def _activated_driver_process(context, node_name: str, inject: str = "") -> subp
 
 def _motors_were_left_safe(out: str):
     # the node's log lines (stderr, merged) may fall inside one of the script's printed lines
-    modes = re.findall(r"motor modes (?:\[(?:INFO|WARN|ERROR)\][^\n]*\n)*(\[(?:True|False)[^\]]*\])", out)
+    # (the print's space before the list too: "motor modes[INFO] ...\n [True, ...]")
+    modes = re.findall(r"motor modes ?(?:\[(?:INFO|WARN|ERROR)\][^\n]*\n)* ?(\[(?:True|False)[^\]]*\])", out)
     assert modes[-2:] == ["[True, True, True, True]", "[False, False, False, False]"], out
     assert "torques [0.0, 0.0, 0.0, 0.0]" in out
 

@@ -310,14 +310,20 @@ def test_calibration_is_applied_end_to_end():
 
 
 def test_stamps_are_mid_exposure_on_the_local_clock():
+    """Once the clock map has seen its first frames, each stamp is the frame's exposure on the local
+    clock, late by the smallest delay only; a frame that arrives late (a stall of this process)
+    keeps its stamp: its latency, not its stamp, grows. The second half of 0.4 s of frames is
+    judged: a stall at the start biases the map until a frame comes through on time."""
     with connected(stream=True, latency=0.004) as (emulator, bridge):
         start = time.monotonic()
-        frames = pump(bridge, lambda: time.monotonic() - start > 0.3)
-        errors = [f.stamp - emulator.exposure_time(f.frame_number) for f in frames[5:]]
+        frames = pump(bridge, lambda: time.monotonic() - start > 0.4)
+        settled = frames[len(frames) // 2:]
+        errors = [f.stamp - emulator.exposure_time(f.frame_number) for f in settled]
     assert len(errors) > 40
     assert 0.0 <= np.median(errors) < 2e-3                     # late by the smallest delay only
     assert max(abs(e) for e in errors) < 5e-3
-    assert all(0.0039 <= f.latency < 0.05 for f in frames)
+    assert all(f.latency >= 0.0039 for f in frames)            # never stamped on arrival
+    assert np.median([f.latency for f in frames]) < 0.05
 
 
 def test_clock_map_takes_the_smallest_delay_in_its_window():

@@ -27,12 +27,15 @@ from soft_arm_model.parameters import ConfigError
 
 def _spec(command_port=None) -> HardwareSpec:
     driver_port, motors_port, free = free_udp_ports(3)
-    # the driver runs in this test's process under the normal policy: a relaxed reply timeout, as the
-    # node tests use on a loaded machine (a 54 ms silence tripped the rig's 50 ms once in a suite)
-    motors = {**read_emulated_motors(), "channel": f'"{driver_port}:{motors_port}"', "reply_timeout": 0.2}
+    # the driver runs in this test's process under the normal policy: relaxed timeouts, as the node
+    # tests use on a loaded machine (a 54 ms silence tripped the rig's 50 ms once in a suite), the
+    # motors' firmware timeout longer than the driver's watchdog
+    motors = {**read_emulated_motors(), "channel": f'"{driver_port}:{motors_port}"', "reply_timeout": 0.2,
+              "watchdog_timeout": 0.2}
     driver = load_driver_config(overrides=motors)
     arm = load_arm_config()
-    return HardwareSpec(driver, arm, load_plant_config(arm), load_emulator_config(),
+    emulator = load_emulator_config(overrides={"command_timeout": 0.4})
+    return HardwareSpec(driver, arm, load_plant_config(arm), emulator,
                         load_mocap_config(overrides={"mocap.command_port": command_port or free,
                                                      "mocap.data_port": 0}))
 

@@ -1,0 +1,238 @@
+"""The shape estimator's updates in compiled calls (numba).
+
+:class:`~soft_arm_control.shape_estimation.ShapeEstimator` calls :func:`tendon_update` once per
+sample: the iterated EKF on the tendons' shortenings and the static balance, over the state
+z = (q, stiffness scale k, friction offsets dmu) of size N = n + 1 + n_tendons, then the Joseph
+form of the covariance; and :func:`marker_update` with the markers it took. Written out rather
+than composed of numpy calls: the update runs at 250 Hz beside the loop, and the calls' overhead
+and their temporary arrays cost more than their arithmetic at these sizes; nothing here
+allocates. The innovation covariance is factored by Cholesky (it is symmetric positive definite:
+the noise is), which also makes its rounding the same whatever kernels the machine's BLAS picks.
+The measurement model (units and frames) is the estimator module's.
+"""
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from soft_arm_model.statics import residual_jacobian_kernel
+
+# tendon_update's status
+UPDATED, OUT_OF_DOMAIN, NOT_POSITIVE = 0, 1, 2
+
+
+def new_work(n: int, n_tendons: int, n_markers: int) -> tuple:
+    """The arrays :func:`tendon_update` and :func:`marker_update` work in, for a model with n
+    coordinates, n_tendons and n_markers."""
+    N, rows = n + 1 + n_tendons, max(n + n_tendons, 3 * n_markers)
+    return (np.zeros(n), np.zeros(n), np.zeros((n, n)), np.zeros((n, n_tendons)),   # q, r, jac, dA
+            np.zeros(rows), np.zeros((rows, N)), np.zeros((rows, rows)), np.zeros((rows, rows)),
+            np.zeros(rows), np.zeros((N, N)), np.zeros((N, N)))   # y, HP, S, L, w, I - KH, (I - KH) P
+
+
+@njit(cache=True, nogil=True)
+def _cholesky(S, L, m) -> bool:
+    """L L^T = S over the leading m x m block (L lower); False unless it is positive definite."""
+    for j in range(m):
+        acc = S[j, j]
+        for k in range(j):
+            acc -= L[j, k] * L[j, k]
+        if not acc > 0.0:
+            return False
+        d = np.sqrt(acc)
+        L[j, j] = d
+        for i in range(j + 1, m):
+            acc = S[i, j]
+            for k in range(j):
+                acc -= L[i, k] * L[j, k]
+            L[i, j] = acc / d
+    return True
+
+
+@njit(cache=True, nogil=True)
+def _forward(L, b, x, m):
+    """x[:m] = L[:m, :m]^-1 b[:m] (forward substitution)."""
+    for i in range(m):
+        acc = b[i]
+        for k in range(i):
+            acc -= L[i, k] * x[k]
+        x[i] = acc / L[i, i]
+
+
+@njit(cache=True, nogil=True)
+def _backward(L, b, x, m):
+    """x[:m] = L[:m, :m]^-T b[:m] (back substitution)."""
+    for i in range(m - 1, -1, -1):
+        acc = b[i]
+        for k in range(i + 1, m):
+            acc -= L[k, i] * x[k]
+        x[i] = acc / L[i, i]
+
+
+@njit(cache=True, nogil=True)
+def _gain(H, P, noise, rows, free, K, HP, S, L, y, w) -> bool:
+    """The Kalman gain K (N, rows) = P H^T S^-1 of the first ``rows`` rows of H, S = H P H^T +
+    diag(noise) (its Cholesky factor left in L); the gain's rows from ``free`` on are zero (states
+    the measurement does not move). False unless S is positive definite."""
+    N = P.shape[0]
+    for i in range(rows):                                    # HP = H P (P symmetric)
+        for j in range(N):
+            acc = 0.0
+            for k in range(N):
+                acc += H[i, k] * P[j, k]
+            HP[i, j] = acc
+    for i in range(rows):                                    # S = HP H^T + diag(noise)
+        for j in range(i + 1):
+            acc = 0.0
+            for k in range(N):
+                acc += HP[i, k] * H[j, k]
+            S[i, j] = acc
+            S[j, i] = acc
+        S[i, i] += noise[i]
+    if not _cholesky(S, L, rows):
+        return False
+    for j in range(N):                                       # K^T = S^-1 HP, column by column
+        if j >= free:
+            for i in range(rows):
+                K[j, i] = 0.0
+            continue
+        for i in range(rows):
+            y[i] = HP[i, j]
+        _forward(L, y, w, rows)
+        _backward(L, w, y, rows)
+        for i in range(rows):
+            K[j, i] = y[i]
+    return True
+
+
+@njit(cache=True, nogil=True)
+def _joseph(P, K, H, noise, rows, IKH, tmp):
+    """P <- (I - KH) P (I - KH)^T + K diag(noise) K^T over the first ``rows`` measurements,
+    symmetric to the last bit (Joseph form: positive whatever the gain)."""
+    N = P.shape[0]
+    for i in range(N):
+        for j in range(N):
+            acc = 1.0 if i == j else 0.0
+            for k in range(rows):
+                acc -= K[i, k] * H[k, j]
+            IKH[i, j] = acc
+    for i in range(N):
+        for j in range(N):
+            acc = 0.0
+            for k in range(N):
+                acc += IKH[i, k] * P[j, k]
+            tmp[i, j] = acc
+    for i in range(N):                                       # P's old values are in tmp now
+        for j in range(N):
+            acc = 0.0
+            for k in range(N):
+                acc += tmp[i, k] * IKH[j, k]
+            for k in range(rows):
+                acc += K[i, k] * noise[k] * K[j, k]
+            P[i, j] = acc
+    for i in range(N):
+        for j in range(i):
+            mean = 0.5 * (P[i, j] + P[j, i])
+            P[i, j] = mean
+            P[j, i] = mean
+
+
+@njit(cache=True, nogil=True)
+def tendon_update(model_args, data_args, Fg, Fel, A, A0, Kt, Lc, rest_lengths, s, u, z_prior, P,
+                  iterations, balance, balance_floor, inflation, shortening_var, moving,
+                  z, K, H, noise, innovation, work):
+    """The iterated tendon update from ``z_prior`` with covariance ``P`` (N, N), in place.
+
+    Measurements: the shortenings ``s`` [m] (h = L_c(0) - L_c(q), noise variance ``shortening_var``
+    [m^2]) and the static balance's residual R = R(q; k = 1, mu) + (k - 1) F_el + dA/dmu diag(u) dmu
+    at the tensions ``u`` [N] (pseudo-measurement 0; standard deviation ``balance`` times
+    ``|F_el| + |A u|`` per coordinate plus ``balance_floor``, times ``inflation``); ``iterations``
+    Gauss-Newton steps about the prior. With ``moving`` the gain's rows of k and dmu are zero.
+
+    Leaves in ``z`` the updated state, in ``K`` (N, rows) the last gain, in ``H`` (rows, N) the last
+    measurement Jacobian (rows: the n_tendons shortenings, then the n balance coordinates), in
+    ``noise`` and ``innovation`` their variances and the last innovation, in ``P`` the Joseph-form
+    covariance, and the workspace (``data_args``) at the last linearisation's q. Returns (status,
+    the innovation's normalised square, the shortenings' alone); on a status other than
+    :data:`UPDATED` z and P are not to be used.
+    """
+    q, r, jac, dA, y, HP, S, L, w, IKH, tmp = work
+    N = z_prior.shape[0]
+    n = q.shape[0]
+    m = s.shape[0]
+    rows = n + m
+    nis = 0.0
+    for a in range(N):
+        z[a] = z_prior[a]
+    for _it in range(iterations):
+        for a in range(n):
+            q[a] = z[a]
+        if not residual_jacobian_kernel(model_args, data_args, Fg, Fel, A, q, u, True, r, jac, dA):
+            return OUT_OF_DOMAIN, 0.0, 0.0
+        k1 = z[n] - 1.0
+        for i in range(m):                                   # the shortenings: -A0^T, zero on k, dmu
+            for j in range(n):
+                H[i, j] = -A0[j, i]
+            for j in range(n, N):
+                H[i, j] = 0.0
+            y[i] = s[i] - (rest_lengths[i] - Lc[i])
+            noise[i] = shortening_var
+        for a in range(n):                                   # the balance
+            row = m + a
+            for j in range(n):
+                H[row, j] = jac[a, j] + k1 * Kt[a, j]
+            H[row, n] = Fel[a]
+            res = r[a] + k1 * Fel[a]
+            actuation = 0.0
+            for t in range(m):
+                force = dA[a, t] * u[t]
+                H[row, n + 1 + t] = force
+                res += force * z[n + 1 + t]
+                actuation += A[a, t] * u[t]
+            y[row] = -res
+            sigma = (balance * (abs(Fel[a]) + abs(actuation)) + balance_floor) * inflation
+            noise[row] = sigma * sigma
+        for i in range(rows):                                # about the prior: y - H (z_prior - z)
+            acc = y[i]
+            for j in range(N):
+                acc -= H[i, j] * (z_prior[j] - z[j])
+            innovation[i] = acc
+        # the parameters learn at rest only
+        if not _gain(H, P, noise, rows, n if moving else N, K, HP, S, L, y, w):
+            return NOT_POSITIVE, 0.0, 0.0
+        for a in range(N):
+            acc = z_prior[a]
+            for i in range(rows):
+                acc += K[a, i] * innovation[i]
+            z[a] = acc
+        _forward(L, innovation, w, rows)
+        nis = 0.0
+        for i in range(rows):
+            nis += w[i] * w[i]
+    _forward(L, innovation, w, m)                            # S's leading block: L's leading block
+    shortening_nis = 0.0
+    for i in range(m):
+        shortening_nis += w[i] * w[i]
+    _joseph(P, K, H, noise, rows, IKH, tmp)
+    return UPDATED, nis, shortening_nis
+
+
+@njit(cache=True, nogil=True)
+def marker_update(H, innovation, rows, noise_var, n, z, P, K, noise, work) -> bool:
+    """The update with the markers taken: the first ``rows`` rows of ``H`` (rows, N) (their
+    Jacobians d(marker position)/dq, zero on the parameters) and of ``innovation`` [m], each of
+    noise variance ``noise_var`` [m^2]; moves q only (the gain's rows from ``n`` on are zero). z
+    and P in place; False (nothing changed) unless the innovation covariance is positive definite."""
+    _, _, _, _, y, HP, S, L, w, IKH, tmp = work
+    N = z.shape[0]
+    for i in range(rows):
+        noise[i] = noise_var
+    if not _gain(H, P, noise, rows, n, K, HP, S, L, y, w):
+        return False
+    for a in range(N):
+        acc = z[a]
+        for i in range(rows):
+            acc += K[a, i] * innovation[i]
+        z[a] = acc
+    _joseph(P, K, H, noise, rows, IKH, tmp)
+    return True
