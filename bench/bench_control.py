@@ -53,6 +53,15 @@ def bench_steps():
     ctrl.clik.step(ref.q, x_d, 1 / 240, x_meas)
     full = best_of(lambda: ctrl.clik.step(ref.q, x_d, 1 / 240, x_meas, True), inner=100)
     chord = best_of(lambda: ctrl.clik.step(ref.q, x_d, 1 / 240, x_meas, False), inner=200)
+    # the two above step from one q again and again: each evaluates q and the new reference. The
+    # outer loop steps from the last reference, which the CLIK has just evaluated: one evaluation
+    # a step (the measurement 1 mm off the model's, so that the walk settles short of the target)
+    walk = [ref]
+
+    def operating():
+        point, _ = ctrl.clik.step(walk[0].q, x_d, 1 / 240, walk[0].x + 1e-3, True)
+        walk[0] = point if point is not None else walk[0]
+    operation = best_of(operating, inner=100)
     learner = HarmonicLearner(0.5, x_d.size)          # a track goal's, per CLIK step: correction, frame
     tau = iter(np.arange(0, 1e6, 1 / 240))
 
@@ -76,7 +85,8 @@ def bench_steps():
         ctrl.clik.precompute(np.array(target), rest, seeds)
         pre[k + 1]["with_seeds_s"] = time.perf_counter() - t0
     return {"inner_loop_step_us": 1e6 * inner, "clik_online_step_ms": 1e3 * full,
-            "clik_online_step_reused_jacobian_ms": 1e3 * chord, "track_learning_frame_us": 1e6 * learning,
+            "clik_online_step_reused_jacobian_ms": 1e3 * chord, "clik_operating_step_ms": 1e3 * operation,
+            "track_learning_frame_us": 1e6 * learning,
             "clik_online_step_projected_ms": 1e3 * bench_projected_step(), "precompute": pre,
             **bench_estimator(),
             "seed_equilibria": len(seeds), "seed_equilibria_s": seed_time,
@@ -146,6 +156,8 @@ def main():
           "   (target <= 100 us)")
     print(f"online CLIK step, Z recomputed              {steps['clik_online_step_ms']:8.3f} ms"
           "   (target <= 2 ms)")
+    print(f"online CLIK step from the last reference    {steps['clik_operating_step_ms']:8.3f} ms"
+          "   (as the outer loop steps: Z recomputed, q already evaluated; target <= 0.2 ms)")
     reused = steps["clik_online_step_reused_jacobian_ms"]
     print(f"online CLIK step, Z reused                  {reused:8.3f} ms")
     projected = steps["clik_online_step_projected_ms"]

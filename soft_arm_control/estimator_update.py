@@ -22,7 +22,7 @@ UPDATED, OUT_OF_DOMAIN, NOT_POSITIVE = 0, 1, 2
 
 
 def new_work(n: int, n_tendons: int, n_markers: int) -> tuple:
-    """The arrays :func:`tendon_update` and :func:`marker_update` work in, for a model with n
+    """The arrays the updates and the markers' moments and innovations work in, for a model with n
     coordinates, n_tendons and n_markers."""
     N, rows = n + 1 + n_tendons, max(n + n_tendons, 3 * n_markers)
     return (np.zeros(n), np.zeros(n), np.zeros((n, n)), np.zeros((n, n_tendons)),   # q, r, jac, dA
@@ -70,10 +70,9 @@ def _backward(L, b, x, m):
 
 
 @njit(cache=True, nogil=True)
-def _gain(H, P, noise, rows, free, K, HP, S, L, y, w) -> bool:
-    """The Kalman gain K (N, rows) = P H^T S^-1 of the first ``rows`` rows of H, S = H P H^T +
-    diag(noise) (its Cholesky factor left in L); the gain's rows from ``free`` on are zero (states
-    the measurement does not move). False unless S is positive definite."""
+def _factor(H, P, noise, rows, HP, S, L) -> bool:
+    """HP = H P and the Cholesky factor L of S = H P H^T + diag(noise) over the first ``rows``
+    rows of H; False unless S is positive definite."""
     N = P.shape[0]
     for i in range(rows):                                    # HP = H P (P symmetric)
         for j in range(N):
@@ -89,8 +88,33 @@ def _gain(H, P, noise, rows, free, K, HP, S, L, y, w) -> bool:
             S[i, j] = acc
             S[j, i] = acc
         S[i, i] += noise[i]
-    if not _cholesky(S, L, rows):
-        return False
+    return _cholesky(S, L, rows)
+
+
+@njit(cache=True, nogil=True)
+def _step(HP, L, innovation, rows, free, z_prior, z, x, w) -> float:
+    """z = z_prior + K innovation with K = P H^T S^-1 (its rows from ``free`` on zero), as
+    z_prior + HP^T S^-1 innovation without forming K; returns the innovation's normalised square
+    (``w``: L^-1 innovation, ``x``: S^-1 innovation)."""
+    _forward(L, innovation, w, rows)
+    _backward(L, w, x, rows)
+    for a in range(z.shape[0]):
+        acc = z_prior[a]
+        if a < free:
+            for i in range(rows):
+                acc += HP[i, a] * x[i]
+        z[a] = acc
+    nis = 0.0
+    for i in range(rows):
+        nis += w[i] * w[i]
+    return nis
+
+
+@njit(cache=True, nogil=True)
+def _gain(HP, L, rows, free, K, y, w):
+    """The Kalman gain K (N, rows) = P H^T S^-1 from :func:`_factor`'s HP and L; its rows from
+    ``free`` on are zero (states the measurement does not move)."""
+    N = HP.shape[1]
     for j in range(N):                                       # K^T = S^-1 HP, column by column
         if j >= free:
             for i in range(rows):
@@ -102,7 +126,6 @@ def _gain(H, P, noise, rows, free, K, HP, S, L, y, w) -> bool:
         _backward(L, w, y, rows)
         for i in range(rows):
             K[j, i] = y[i]
-    return True
 
 
 @njit(cache=True, nogil=True)
@@ -122,19 +145,15 @@ def _joseph(P, K, H, noise, rows, IKH, tmp):
             for k in range(N):
                 acc += IKH[i, k] * P[j, k]
             tmp[i, j] = acc
-    for i in range(N):                                       # P's old values are in tmp now
-        for j in range(N):
+    for i in range(N):                       # P's old values are in tmp now; its lower triangle,
+        for j in range(i + 1):               # mirrored
             acc = 0.0
             for k in range(N):
                 acc += tmp[i, k] * IKH[j, k]
             for k in range(rows):
                 acc += K[i, k] * noise[k] * K[j, k]
             P[i, j] = acc
-    for i in range(N):
-        for j in range(i):
-            mean = 0.5 * (P[i, j] + P[j, i])
-            P[i, j] = mean
-            P[j, i] = mean
+            P[j, i] = acc
 
 
 @njit(cache=True, nogil=True)
@@ -197,18 +216,10 @@ def tendon_update(model_args, data_args, Fg, Fel, A, A0, Kt, Lc, rest_lengths, s
             for j in range(N):
                 acc -= H[i, j] * (z_prior[j] - z[j])
             innovation[i] = acc
-        # the parameters learn at rest only
-        if not _gain(H, P, noise, rows, n if moving else N, K, HP, S, L, y, w):
+        if not _factor(H, P, noise, rows, HP, S, L):
             return NOT_POSITIVE, 0.0, 0.0
-        for a in range(N):
-            acc = z_prior[a]
-            for i in range(rows):
-                acc += K[a, i] * innovation[i]
-            z[a] = acc
-        _forward(L, innovation, w, rows)
-        nis = 0.0
-        for i in range(rows):
-            nis += w[i] * w[i]
+        nis = _step(HP, L, innovation, rows, n if moving else N, z_prior, z, y, w)  # the parameters
+    _gain(HP, L, rows, n if moving else N, K, y, w)                                 # learn at rest only
     _forward(L, innovation, w, m)                            # S's leading block: L's leading block
     shortening_nis = 0.0
     for i in range(m):
@@ -218,21 +229,87 @@ def tendon_update(model_args, data_args, Fg, Fel, A, A0, Kt, Lc, rest_lengths, s
 
 
 @njit(cache=True, nogil=True)
+def marker_moments(marker_R, marker_J, P, H, C, work):
+    """Each marker's position Jacobian and covariance at the evaluated workspace: H[k] (3, n) =
+    R_k J_k[3:6], d(marker k in arm_base)/dq [m], and C[k] (3, 3) = H_k P H_k^T [m^2] with P the
+    leading (n, n) block of ``P`` (the configuration's)."""
+    HP = work[5]
+    n = H.shape[2]
+    for k in range(H.shape[0]):
+        for i in range(3):
+            for j in range(n):
+                acc = 0.0
+                for a in range(3):
+                    acc += marker_R[k, i, a] * marker_J[k, 3 + a, j]
+                H[k, i, j] = acc
+        for i in range(3):                                   # HP = H_k P (P symmetric)
+            for j in range(n):
+                acc = 0.0
+                for m in range(n):
+                    acc += H[k, i, m] * P[j, m]
+                HP[i, j] = acc
+        for i in range(3):
+            for j in range(i + 1):
+                acc = 0.0
+                for m in range(n):
+                    acc += HP[i, m] * H[k, j, m]
+                C[k, i, j] = acc
+                C[k, j, i] = acc
+
+
+@njit(cache=True, nogil=True)
+def marker_innovations(C, markers, predicted, noise_var, innovation, nis, work):
+    """Each seen marker's innovation (measured - predicted) [m] and its normalised square
+    nu^T (C_k + noise_var I)^-1 nu, by a 3 x 3 Cholesky factor; NaN for a marker not seen (a row of
+    ``markers`` with a NaN) or whose innovation covariance is not positive definite."""
+    L, w = work[7], work[8]
+    for k in range(markers.shape[0]):
+        seen = True
+        for i in range(3):
+            innovation[k, i] = markers[k, i] - predicted[k, i]
+            if not np.isfinite(markers[k, i]):
+                seen = False
+        nis[k] = np.nan
+        if not seen:
+            continue
+        positive = True
+        for j in range(3):
+            acc = C[k, j, j] + noise_var
+            for m in range(j):
+                acc -= L[j, m] * L[j, m]
+            if not acc > 0.0:
+                positive = False
+                break
+            L[j, j] = np.sqrt(acc)
+            for i in range(j + 1, 3):
+                acc = C[k, i, j]
+                for m in range(j):
+                    acc -= L[i, m] * L[j, m]
+                L[i, j] = acc / L[j, j]
+        if not positive:
+            continue
+        total = 0.0
+        for i in range(3):
+            acc = innovation[k, i]
+            for m in range(i):
+                acc -= L[i, m] * w[m]
+            w[i] = acc / L[i, i]
+            total += w[i] * w[i]
+        nis[k] = total
+
+
+@njit(cache=True, nogil=True)
 def marker_update(H, innovation, rows, noise_var, n, z, P, K, noise, work) -> bool:
     """The update with the markers taken: the first ``rows`` rows of ``H`` (rows, N) (their
     Jacobians d(marker position)/dq, zero on the parameters) and of ``innovation`` [m], each of
     noise variance ``noise_var`` [m^2]; moves q only (the gain's rows from ``n`` on are zero). z
     and P in place; False (nothing changed) unless the innovation covariance is positive definite."""
     _, _, _, _, y, HP, S, L, w, IKH, tmp = work
-    N = z.shape[0]
     for i in range(rows):
         noise[i] = noise_var
-    if not _gain(H, P, noise, rows, n, K, HP, S, L, y, w):
+    if not _factor(H, P, noise, rows, HP, S, L):
         return False
-    for a in range(N):
-        acc = z[a]
-        for i in range(rows):
-            acc += K[a, i] * innovation[i]
-        z[a] = acc
+    _step(HP, L, innovation, rows, n, z, z, y, w)
+    _gain(HP, L, rows, n, K, y, w)
     _joseph(P, K, H, noise, rows, IKH, tmp)
     return True

@@ -53,10 +53,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from soft_arm_model import ArmData, ArmModel, evaluate, solve_equilibrium
-from soft_arm_model.dynamics import STATICS, OutOfDomainError
+from soft_arm_model.dynamics import KINEMATICS, STATICS, OutOfDomainError
 from soft_arm_model.parameters import default_config_dir, load_section
 
-from .estimator_update import OUT_OF_DOMAIN, UPDATED, marker_update, new_work, tendon_update
+from .estimator_update import (OUT_OF_DOMAIN, UPDATED, marker_innovations, marker_moments, marker_update,
+                               new_work, tendon_update)
 
 MAX_PREDICTION = 0.3          # the largest predicted step of a coordinate, in compliance units
 STIFFNESS_BOUNDS = (0.5, 2.0)  # the arm's stiffness against the model's: what a cast arm can be
@@ -197,7 +198,7 @@ class ShapeEstimator:
     def __init__(self, model: ArmModel, config: EstimatorConfig):
         self.model, self.config = model, config
         self.data = ArmData(model)
-        self._evaluated_at = None     # q whose statics and markers self.data holds, if it holds one
+        self._evaluated_at = None     # (q, level) whose markers (and statics at STATICS) self.data holds
         n, nt = model.n, model.n_tendons
         # compliance scale of each coordinate: the random walk follows it
         stiffness = np.abs(np.diag(model.K))
@@ -217,6 +218,9 @@ class ShapeEstimator:
         self._update_out = (np.zeros(size), np.zeros((size, rows)), np.zeros((rows, size)), np.zeros(rows),
                             np.zeros(rows))                  # z, K, H, noise, innovation
         self._update_work = new_work(n, nt, model.marker_X.size)
+        n_m = model.marker_X.size                            # the markers' Jacobians, covariances,
+        self._marker_out = (np.zeros((n_m, 3, n)), np.zeros((n_m, 3, 3)), np.zeros((n_m, 3)),
+                            np.zeros(n_m))                   # innovations and NIS
         self.distrust = None         # why the last update leaves the estimate undefended (None: it does not)
 
     @property
@@ -328,13 +332,11 @@ class ShapeEstimator:
 
     def estimate(self) -> ShapeEstimate:
         """The current estimate (markers and their covariance from the model's kinematics)."""
-        if self._evaluated_at is None or not np.array_equal(self._evaluated_at, self.q):
-            self._evaluate_markers()
-        d = self.data
-        H = self._marker_jacobians(d)
-        cov = np.einsum("kin,nm,kjm->kij", H, self.P, H)
+        d = self._evaluate_markers(KINEMATICS)
+        H, C = self._marker_out[:2]
+        marker_moments(d.marker_R, d.marker_J, self.Pz, H, C, self._update_work)
         return ShapeEstimate(self.t if self.t is not None else 0.0, self.q.copy(), self.P.copy(),
-                             d.marker_p.copy(), cov, self.distrust)
+                             d.marker_p.copy(), C.copy(), self.distrust)
 
     # --- updates ---------------------------------------------------------------------------------
 
@@ -366,17 +368,17 @@ class ShapeEstimator:
         stiffness and friction are left to the tendons."""
         c, n = self.config, self.model.n
         sigma = c.marker * (1.0 + c.moving * (float(np.max(np.abs(sd))) if sd.size else 0.0))
-        d = self._evaluate_markers()
-        H_all = self._marker_jacobians(d)
+        d = self._evaluate_markers(KINEMATICS)
+        H_all, C, nu, nis = self._marker_out
+        marker_moments(d.marker_R, d.marker_J, self.Pz, H_all, C, self._update_work)
+        marker_innovations(C, np.ascontiguousarray(markers), d.marker_p, sigma ** 2, nu, nis,
+                           self._update_work)
         seen = np.flatnonzero(np.all(np.isfinite(markers), axis=1))
-        report.marker_nis = np.full(len(markers), np.nan)
-        nu = markers[seen] - d.marker_p[seen]                              # (k, 3)
-        S = np.einsum("kin,nm,kjm->kij", H_all[seen], self.P, H_all[seen]) + np.eye(3) * sigma ** 2
-        report.marker_nis[seen] = np.einsum("ki,ki->k", nu, np.linalg.solve(S, nu[:, :, None])[:, :, 0])
+        report.marker_nis = nis.copy()
         z, K, H, noise, innovation = self._update_out
         rows = 0
-        for k, y in zip(seen, nu):
-            d2 = report.marker_nis[k]
+        for k in seen:
+            d2, y = report.marker_nis[k], nu[k]
             if d2 > c.gate and not self._retaken[k]:
                 self._rejected[k] += 1
                 if self._rejected[k] < c.regate:
@@ -398,14 +400,15 @@ class ShapeEstimator:
                                       self._update_work):
             raise np.linalg.LinAlgError("the markers' innovation covariance is not positive definite")
 
-    def _evaluate_markers(self):
-        """The workspace at the current q, statics and markers (kept for :meth:`estimate` while q
-        stays)."""
+    def _evaluate_markers(self, level: int = STATICS):
+        """The workspace at the current q, up to ``level`` (KINEMATICS: the markers' positions and
+        Jacobians; STATICS: also the checks of the tendons' domain), with the markers; evaluated
+        again only where q moved or a higher level is asked (OutOfDomainError outside the
+        model's domain)."""
+        held = self._evaluated_at
+        if held is not None and held[1] >= level and np.array_equal(held[0], self.q):
+            return self.data
         self._evaluated_at = None                   # until the evaluation has filled it
-        d = evaluate(self.model, self.data, self.q, level=STATICS, markers=True)
-        self._evaluated_at = self.q.copy()
+        d = evaluate(self.model, self.data, self.q, level=level, markers=True)
+        self._evaluated_at = self.q.copy(), level
         return d
-
-    def _marker_jacobians(self, d) -> np.ndarray:
-        """(n_markers, 3, n): d(marker position in arm_base)/dq at the evaluated workspace."""
-        return np.einsum("kij,kjn->kin", d.marker_R, d.marker_J[:, 3:, :])

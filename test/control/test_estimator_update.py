@@ -4,9 +4,11 @@ random states, tensions and covariances, at rest and moving, and with random mar
 import numpy as np
 import pytest
 
-from soft_arm_control.estimator_update import OUT_OF_DOMAIN, UPDATED, marker_update, new_work, tendon_update
+from soft_arm_control.estimator_update import (OUT_OF_DOMAIN, UPDATED, marker_innovations, marker_moments,
+                                               marker_update, new_work, tendon_update)
 from soft_arm_control.shape_estimation import load_estimator_config
-from soft_arm_model import ArmData, build_model, solve_equilibrium, tendon_lengths
+from soft_arm_model import ArmData, build_model, evaluate, solve_equilibrium, tendon_lengths
+from soft_arm_model.dynamics import KINEMATICS
 from soft_arm_model.statics import static_tangents
 
 
@@ -128,3 +130,35 @@ def test_the_compiled_marker_update_is_the_numpy_update(model, taken):
     assert relative(z, z0 + K_want @ y) < 1e-9 and relative(z - z0, K_want @ y) < 1e-9
     assert relative(K[:, :rows], K_want) < 1e-9 and np.all(z[n:] == z0[n:])
     assert relative(P_got, 0.5 * (P_want + P_want.T)) < 1e-9 and np.array_equal(P_got, P_got.T)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_the_markers_moments_and_innovations_are_the_numpy_ones(model, seed):
+    """Each marker's Jacobian R J[3:] and covariance H P H^T, and each seen marker's normalised
+    innovation square against numpy's; a marker with a NaN coordinate is not seen."""
+    rng = np.random.default_rng(seed)
+    n, nt, nm = model.n, model.n_tendons, model.marker_X.size
+    N = n + 1 + nt
+    q = solve_equilibrium(model, rng.uniform(0.0, 2.0, nt)).q
+    d = evaluate(model, ArmData(model), q, level=KINEMATICS, markers=True)
+    root = rng.normal(size=(N, N)) * 1e-2
+    Pz = root @ root.T + np.eye(N) * 1e-4
+    work = new_work(n, nt, nm)
+    H, C = np.zeros((nm, 3, n)), np.zeros((nm, 3, 3))
+    marker_moments(d.marker_R, d.marker_J, Pz, H, C, work)
+    H_want = np.einsum("kij,kjn->kin", d.marker_R, d.marker_J[:, 3:, :])
+    C_want = np.einsum("kin,nm,kjm->kij", H_want, Pz[:n, :n], H_want)
+    assert relative(H, H_want) < 1e-12 and relative(C, C_want) < 1e-12
+    assert np.array_equal(C, np.swapaxes(C, 1, 2))
+    markers = d.marker_p + rng.normal(0.0, 1e-3, (nm, 3))
+    markers[seed % nm, seed % 3] = np.nan
+    sigma2 = 5e-4 ** 2
+    nu, nis = np.zeros((nm, 3)), np.zeros(nm)
+    marker_innovations(C, markers, d.marker_p, sigma2, nu, nis, work)
+    for k in range(nm):
+        if k == seed % nm:
+            assert np.isnan(nis[k])
+            continue
+        y = markers[k] - d.marker_p[k]
+        want = y @ np.linalg.solve(C_want[k] + sigma2 * np.eye(3), y)
+        assert np.array_equal(nu[k], y) and abs(nis[k] - want) <= 1e-10 * want
