@@ -135,20 +135,26 @@ class Clik:
 
     def _solve(self, Z, rhs):
         """Z^-1 rhs (a vector or the columns of a matrix) with unit-norm rows; damped least squares
-        below the singular threshold. The factorisation of the current Z is kept for the chord steps
-        that reuse it."""
+        below the singular threshold. The singular values alone decide (the full decomposition
+        only where they call for damping: an inverse costs half of it); the inverse of the current
+        Z is kept for the chord steps that reuse it."""
         if self._factor is None or self._factor[0] is not Z:
-            w = 1.0 / np.linalg.norm(Z, axis=1)
-            U, sig, Vt = np.linalg.svd(Z * w[:, None])
-            lam = self.gains.singular_threshold * sig[0]
-            damped = sig[-1] < lam
-            inv = sig / (sig ** 2 + lam ** 2) if damped else 1.0 / sig
+            w = 1.0 / np.sqrt(np.einsum("ij,ij->i", Z, Z))
+            Zw = Z * w[:, None]
+            sig = np.linalg.svd(Zw, compute_uv=False)
+            damped = sig[-1] < self.gains.singular_threshold * sig[0]
             cond = sig[0] / sig[-1] if sig[-1] > 0 else np.inf
-            self._factor = (Z, w, U, inv, Vt, float(cond), bool(damped))
-        _, w, U, inv, Vt, cond, damped = self._factor
+            if damped:
+                U, sig, Vt = np.linalg.svd(Zw)
+                lam = self.gains.singular_threshold * sig[0]
+                inverse = Vt.T @ ((sig / (sig ** 2 + lam ** 2))[:, None] * U.T)
+            else:
+                inverse = np.linalg.inv(Zw)
+            self._factor = (Z, w, inverse, float(cond), bool(damped))
+        _, w, inverse, cond, damped = self._factor
         if rhs.ndim == 2:
-            return Vt.T @ (inv[:, None] * (U.T @ (w[:, None] * rhs))), cond, damped
-        return Vt.T @ (inv * (U.T @ (w * rhs))), cond, damped
+            return inverse @ (w[:, None] * rhs), cond, damped
+        return inverse @ (w * rhs), cond, damped
 
     def velocity(self, q, x_d, x=None, xd_dot=None, refresh: bool = True) -> ClikStep:
         """qdot of the CLIK law at q [generalised coordinates] for target x_d [m].
@@ -179,10 +185,9 @@ class Clik:
 
     def feasibility_error(self, u_ff) -> str | None:
         """Why the feedforward tensions [N] violate [u_min, u_max], or None if they do not."""
-        names = self.cm.model.tendon_names
         for k, u in zip(self.cm.active, u_ff):
             if not self.u_min <= u <= self.u_max:
-                return (f"{names[k]} would need {u:.3f} N at equilibrium, outside "
+                return (f"{self.cm.model.tendon_names[k]} would need {u:.3f} N at equilibrium, outside "
                         f"[{self.u_min}, {self.u_max}] N")
         return None
 

@@ -17,9 +17,11 @@ G_theta_a [N]; G_theta_u in the generalised-force units of the selected coordina
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 import scipy.linalg
+from numba import njit
 
 from soft_arm_model import ArmData, ArmModel, actuation_matrix, evaluate, residual_jacobian, tangent_at
 from soft_arm_model.dynamics import STATICS, mass_matrix
@@ -42,6 +44,11 @@ class CollocatedModel:
     @property
     def n(self) -> int:
         return self.model.n
+
+    @cached_property
+    def active_index(self) -> np.ndarray:
+        """``active`` as an integer array (the compiled terms' index)."""
+        return np.array(self.active, dtype=np.int64)
 
     @property
     def n_a(self) -> int:
@@ -130,25 +137,54 @@ def evaluate_collocated(cm: CollocatedModel, cd: CollocatedData, q, markers: boo
     q = np.ascontiguousarray(q, dtype=float)
     cd.q[:] = np.nan            # until cd.arm holds q: a failed evaluation leaves no q to trust
     arm = evaluate(cm.model, cd.arm, q, level=STATICS, markers=markers)
-    A = arm.A if cm.friction else arm.A0
+    model = cm.model
     cd.q[:] = q
-    cd.B[:] = -A[:, list(cm.active)]
-    n_a = cm.n_a
-    cd.J_h[:n_a] = cd.B.T
-    cd.J_h[n_a:] = cm.selector
     try:
-        cd.J_h_inv[:] = np.linalg.inv(cd.J_h)
+        regular = _collocated_terms(arm.A if cm.friction else arm.A0, cm.active_index, cm.selector, cm.held,
+                                    arm.Fel, arm.Fg, model.rest_tendon_lengths, arm.Lc, model.rest_theta,
+                                    arm.theta, cm.friction, cd.B, cd.J_h, cd.J_h_inv, cd.G, cd.K_theta,
+                                    cd.F_theta, cd.G_theta, cd.shortening, cd.theta_a)
     except np.linalg.LinAlgError:
-        raise ValueError("J_h = [B^T; S_u] is singular at this configuration") from None
-    if np.abs(cd.J_h_inv).max() * np.abs(cd.J_h).max() > 1e12:
+        regular = False
+    if not regular:
         raise ValueError("J_h = [B^T; S_u] is singular at this configuration")
-    cd.G[:] = arm.Fel - arm.Fg + A @ cm.held
-    cd.K_theta[:] = cd.solve_transposed(arm.Fel)
-    cd.F_theta[:] = cd.solve_transposed(cd.G - arm.Fel)
-    cd.G_theta[:] = cd.K_theta + cd.F_theta
-    cd.shortening[:] = cm.model.rest_tendon_lengths - arm.Lc
-    cd.theta_a[:] = (cm.model.rest_theta - arm.theta) if cm.friction else cd.shortening
     return cd
+
+
+@njit(cache=True, nogil=True)
+def _collocated_terms(A, active, selector, held, Fel, Fg, rest_lengths, Lc, rest_theta, theta, friction,
+                      B, J_h, J_h_inv, G, K_theta, F_theta, G_theta, shortening, theta_a) -> bool:
+    """:func:`evaluate_collocated`'s terms from the workspace's statics (A: with friction or
+    without, as ``friction``); False where J_h is singular (its inverse's scale beyond 1e12)."""
+    n, n_a = A.shape[0], active.shape[0]
+    for i in range(n):
+        for a in range(n_a):
+            B[i, a] = -A[i, active[a]]
+            J_h[a, i] = B[i, a]
+    for r in range(n - n_a):
+        for i in range(n):
+            J_h[n_a + r, i] = selector[r, i]
+    J_h_inv[:, :] = np.linalg.inv(J_h)
+    if np.abs(J_h_inv).max() * np.abs(J_h).max() > 1e12:
+        return False
+    for i in range(n):
+        acc = Fel[i] - Fg[i]
+        for k in range(A.shape[1]):
+            acc += A[i, k] * held[k]
+        G[i] = acc
+    for i in range(n):                                   # J_h^-T F_el and J_h^-T (G - F_el)
+        k_acc = 0.0
+        f_acc = 0.0
+        for j in range(n):
+            k_acc += J_h_inv[j, i] * Fel[j]
+            f_acc += J_h_inv[j, i] * (G[j] - Fel[j])
+        K_theta[i] = k_acc
+        F_theta[i] = f_acc
+        G_theta[i] = k_acc + f_acc
+    for k in range(Lc.shape[0]):
+        shortening[k] = rest_lengths[k] - Lc[k]
+        theta_a[k] = rest_theta[k] - theta[k] if friction else shortening[k]
+    return True
 
 
 def full_tensions(cm: CollocatedModel, u_active) -> np.ndarray:

@@ -6,8 +6,10 @@ the arm's ``markers.positions`` in order from the base (index 0) to the tip (las
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
+from numba import njit
 
 from soft_arm_model import ArmData, ArmModel, evaluate
 from soft_arm_model.dynamics import KINEMATICS
@@ -32,6 +34,10 @@ class TaskSpace:
     @property
     def m(self) -> int:
         return len(self.axes)
+
+    @cached_property
+    def _index(self) -> tuple[np.ndarray, np.ndarray]:
+        return np.array(self.markers, dtype=np.int64), np.array(self.axes, dtype=np.int64)
 
     def labels(self) -> list:
         """Human-readable names, e.g. ``marker4.x`` (markers numbered from 1 at the base)."""
@@ -63,8 +69,18 @@ class TaskSpace:
     def read(self, model: ArmModel, data: ArmData) -> tuple[np.ndarray, np.ndarray]:
         """Task coordinates [m] and their Jacobian (m, n) at the q ``data`` was evaluated at with
         its markers."""
-        x = data.marker_p[list(self.markers), list(self.axes)].copy()
-        J = np.empty((self.m, model.n))
-        for row, (k, a) in enumerate(zip(self.markers, self.axes)):
-            J[row] = data.marker_R[k][a] @ data.marker_J[k][3:]
+        x, J = np.empty(self.m), np.empty((self.m, model.n))
+        _read(data.marker_p, data.marker_R, data.marker_J, *self._index, x, J)
         return x, J
+
+
+@njit(cache=True, nogil=True)
+def _read(marker_p, marker_R, marker_J, markers, axes, x, J):
+    """x[row] = component ``axes[row]`` of marker ``markers[row]``'s position [m], J[row] its
+    row of R J[3:6] (the position's Jacobian in arm_base)."""
+    for row in range(markers.shape[0]):
+        k, a = markers[row], axes[row]
+        x[row] = marker_p[k, a]
+        for j in range(J.shape[1]):
+            J[row, j] = (marker_R[k, a, 0] * marker_J[k, 3, j] + marker_R[k, a, 1] * marker_J[k, 4, j]
+                         + marker_R[k, a, 2] * marker_J[k, 5, j])

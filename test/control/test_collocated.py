@@ -101,3 +101,32 @@ def test_selector_must_complement_the_input_matrix(paper_model):
     bad = build_collocated(paper_model, ALL, selector=np.zeros((paper_model.n - 4, paper_model.n)))
     with pytest.raises(ValueError, match="singular"):
         evaluate_collocated(bad, CollocatedData(bad), np.zeros(paper_model.n))
+
+
+@pytest.mark.parametrize("friction", [False, True])
+def test_the_compiled_terms_are_their_definitions(paper_model, rng, friction):
+    """B = -A[:, active], J_h = [B^T; S_u], G = F_el - F_g + A held, K_theta = J_h^-T F_el,
+    F_theta = J_h^-T (G - F_el), theta_a and the shortenings, as numpy composes them, on a pair of
+    actuated tendons with the others held (a dense selector: the inverse is not a selection's)."""
+    active = (2, 0)
+    base = build_collocated(paper_model, active, held_tension=0.7, friction=friction)
+    cm = build_collocated(paper_model, active, held_tension=0.7, friction=friction,
+                          selector=_null_selector(paper_model, base, _bent(paper_model)))
+    cd = CollocatedData(cm)
+    for _ in range(3):
+        q = _bent(paper_model) + 0.02 * rng.standard_normal(paper_model.n)
+        evaluate_collocated(cm, cd, q)
+        arm = cd.arm
+        A = arm.A if friction else arm.A0
+        B = -A[:, list(active)]
+        J_h = np.vstack([B.T, cm.selector])
+        G = arm.Fel - arm.Fg + A @ cm.held
+        K = np.linalg.solve(J_h.T, arm.Fel)
+        F = np.linalg.solve(J_h.T, G - arm.Fel)
+        shortening = paper_model.rest_tendon_lengths - arm.Lc
+        theta_a = paper_model.rest_theta - arm.theta if friction else shortening
+        for got, want in ((cd.B, B), (cd.J_h, J_h), (cd.J_h_inv, np.linalg.inv(J_h)), (cd.G, G),
+                          (cd.K_theta, K), (cd.F_theta, F), (cd.G_theta, K + F),
+                          (cd.shortening, shortening), (cd.theta_a, theta_a)):
+            assert np.abs(got - want).max() <= 1e-10 * max(np.abs(want).max(), 1e-12)
+        assert np.array_equal(cd.q, q)
