@@ -154,11 +154,14 @@ def test_processes_mode_runs_each_node_as_its_own_process(tmp_path, monkeypatch)
     out = tmp_path / "procs"
     code = main(["coiling", "--processes", "--quiet", "--output", str(out), "--set",
                  "tasks.coiling.phases=[upward]", "--set", "tasks.coiling.phase.upward.sequence=[1]",
-                 "--set", "tasks.coiling.phase.upward.window=6.0"])
+                 "--set", "tasks.coiling.phase.upward.window=8.0"])
     assert code == 0
     with open(out / "metrics.json", encoding="utf-8") as fh:
         metrics = json.load(fh)
-    # the precomputed step leaves ~7 mm on this plant; 4 s of online refinement at 0.5/s close it
+    # the precomputed step leaves ~7 mm on this plant; 4 s of online refinement at 0.5/s close it.
+    # The window leaves them whatever the start: the lockstep simulator and the inner loop take both
+    # cores, and the CLIK's first reference for a goal comes up to 3 s of simulated time late in
+    # about one run of six
     assert metrics["transitions"][0]["final_error"] < 3e-3
     assert sorted(p.name for p in (out / "figures").iterdir()) == [
         "actuation.png", "task_error.png", "tensions.png"]
