@@ -262,7 +262,7 @@ def marker_innovations(C, markers, predicted, noise_var, innovation, nis, work):
     """Each seen marker's innovation (measured - predicted) [m] and its normalised square
     nu^T (C_k + noise_var I)^-1 nu, by a 3 x 3 Cholesky factor; NaN for a marker not seen (a row of
     ``markers`` with a NaN) or whose innovation covariance is not positive definite."""
-    L, w = work[7], work[8]
+    S, L, w = work[6], work[7], work[8]
     for k in range(markers.shape[0]):
         seen = True
         for i in range(3):
@@ -272,30 +272,14 @@ def marker_innovations(C, markers, predicted, noise_var, innovation, nis, work):
         nis[k] = np.nan
         if not seen:
             continue
-        positive = True
-        for j in range(3):
-            acc = C[k, j, j] + noise_var
-            for m in range(j):
-                acc -= L[j, m] * L[j, m]
-            if not acc > 0.0:
-                positive = False
-                break
-            L[j, j] = np.sqrt(acc)
-            for i in range(j + 1, 3):
-                acc = C[k, i, j]
-                for m in range(j):
-                    acc -= L[i, m] * L[j, m]
-                L[i, j] = acc / L[j, j]
-        if not positive:
-            continue
-        total = 0.0
         for i in range(3):
-            acc = innovation[k, i]
-            for m in range(i):
-                acc -= L[i, m] * w[m]
-            w[i] = acc / L[i, i]
-            total += w[i] * w[i]
-        nis[k] = total
+            for j in range(3):
+                S[i, j] = C[k, i, j]
+            S[i, i] += noise_var
+        if not _cholesky(S, L, 3):
+            continue
+        _forward(L, innovation[k], w, 3)
+        nis[k] = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]
 
 
 @njit(cache=True, nogil=True)

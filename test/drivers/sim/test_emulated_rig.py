@@ -253,6 +253,16 @@ def _child(parent: int, name: str) -> int:
     raise LookupError(f"no child of {parent} named {name}")
 
 
+def _stopped_after_activation(proc, name: str) -> tuple[str, int]:
+    """The run's output until the motor driver's activation, then 2 s on, node ``name``'s process
+    stopped (SIGSTOP): (that output, its pid)."""
+    seen = wait_for_output(proc, "[motor_driver]: activated", timeout=120)
+    time.sleep(2.0)
+    pid = _child(proc.pid, name)
+    os.kill(pid, signal.SIGSTOP)
+    return seen, pid
+
+
 def test_a_command_gap_faults_the_driver_and_the_run_is_no_result(tmp_path, config_dir):
     """The inner loop held for three watchdog periods while the motors are enabled: the driver's
     watchdog trips, the run ends at once with status 1, the motors are disabled, the bag stays
@@ -260,10 +270,7 @@ def test_a_command_gap_faults_the_driver_and_the_run_is_no_result(tmp_path, conf
     out = tmp_path / "run"
     proc = _experiment(config_dir, out, "--quiet")
     with killed_on_exit(proc):
-        seen = wait_for_output(proc, "[motor_driver]: activated", timeout=120)
-        time.sleep(2.0)
-        inner_loop = _child(proc.pid, "inner_loop")
-        os.kill(inner_loop, signal.SIGSTOP)
+        seen, inner_loop = _stopped_after_activation(proc, "inner_loop")
         time.sleep(3 * TIMEOUT)
         os.kill(inner_loop, signal.SIGCONT)
         output = seen + proc.communicate(timeout=60)[0]
@@ -302,10 +309,7 @@ def test_a_stopped_driver_process_leaves_the_motors_to_their_firmware_timeout(tm
     out = tmp_path / "run"
     proc = _experiment(config_dir, out, "--quiet")
     with killed_on_exit(proc):
-        seen = wait_for_output(proc, "[motor_driver]: activated", timeout=120)
-        time.sleep(2.0)
-        driver = _child(proc.pid, "emulated_rig")
-        os.kill(driver, signal.SIGSTOP)
+        seen, driver = _stopped_after_activation(proc, "emulated_rig")
         try:
             time.sleep(FIRMWARE_TIMEOUT + 0.3)
         finally:
