@@ -373,8 +373,8 @@ class ShapeEstimator:
         marker_moments(d.marker_R, d.marker_J, self.Pz, H_all, C, self._update_work)
         marker_innovations(C, np.ascontiguousarray(markers), d.marker_p, sigma ** 2, nu, nis,
                            self._update_work)
-        seen = np.flatnonzero(np.all(np.isfinite(markers), axis=1))
         report.marker_nis = nis.copy()
+        seen = np.flatnonzero(np.isfinite(nis))       # NaN: not seen (or no innovation covariance)
         z, K, H, noise, innovation = self._update_out
         rows = 0
         for k in seen:
