@@ -64,6 +64,7 @@ STIFFNESS_BOUNDS = (0.5, 2.0)  # the arm's stiffness against the model's: what a
 FRICTION_BOUNDS = (0.0, 0.5)   # a tendon's friction coefficient
 RESTART_NIS = 25.0             # per shortening: the tendons disagree with the estimate by 5 sigma
 RESTART_AFTER = 25             # updates in a row out of the domain, pinned, or at rest and disagreeing
+PROCESS_MODELS = ("static", "dynamic")   # what carries the estimate between samples
 
 ESTIMATOR_SCHEMA = {
     "rate": ("float", lambda v: 1 <= v <= 1000, "an update rate in [1, 1000] Hz"),
@@ -94,6 +95,19 @@ ESTIMATOR_SCHEMA = {
     "max_sigma": ("float", lambda v: 0 < v <= 1,
                   "a standard deviation in (0, 1] m: a marker estimated less surely is no position "
                   "(NaN on estimate/markers)"),
+    "process_model": ("str", lambda v: v in PROCESS_MODELS, f"one of {list(PROCESS_MODELS)}"),
+    "noise.force": ("float", lambda v: 0 <= v <= 10,
+                    "a relative standard deviation in [0, 10] of the forces in the dynamics"),
+    "noise.force_floor": ("float", lambda v: 0 < v <= 1,
+                          "a standard deviation in (0, 1] (generalised force units)"),
+    "noise.tension": ("float", lambda v: 0 <= v <= 10, "a standard deviation in [0, 10] N"),
+    "noise.encoder_rate": ("float", lambda v: 0 < v <= 1, "a standard deviation in (0, 1] m/s"),
+    "marker_age": ("float", lambda v: 0 <= v <= 0.1, "a time in [0, 0.1] s"),
+    "max_substep": ("float", lambda v: 0 < v <= 0.1, "a time step in (0, 0.1] s"),
+    "prior.tendon_offset": ("float", lambda v: 0 <= v <= 0.2,
+                            "a standard deviation in [0, 0.2] of a tendon's offset (fraction of the radius)"),
+    "prior.tendon_angle": ("float", lambda v: 0 <= v <= 0.2, "a standard deviation in [0, 0.2] rad"),
+    "prior.payload": ("float", lambda v: 0 <= v <= 0.1, "a standard deviation in [0, 0.1] kg"),
 }
 
 
@@ -117,7 +131,17 @@ class EstimatorConfig:
     rest_speed: float
     prior_stiffness: float
     prior_friction: float
-    max_sigma: float = 0.1
+    max_sigma: float
+    process_model: str
+    force: float
+    force_floor: float
+    tension: float
+    encoder_rate: float
+    marker_age: float
+    max_substep: float
+    prior_tendon_offset: float
+    prior_tendon_angle: float
+    prior_payload: float
 
     @classmethod
     def of(cls, values: dict) -> "EstimatorConfig":

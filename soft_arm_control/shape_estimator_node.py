@@ -51,8 +51,10 @@ from soft_arm_ros.conversions import markers_of, ordered, pose_array, seconds_to
 from soft_arm_ros.parameters import NodeParameters
 from soft_arm_ros.runtime import run_node
 
+from .config import control_of
+from .estimators import shape_estimator
 from .loop_clock import LoopClock
-from .shape_estimation import ESTIMATOR_SCHEMA, EstimatorConfig, ShapeEstimator, fused_markers, fused_tip
+from .shape_estimation import ESTIMATOR_SCHEMA, EstimatorConfig, fused_markers, fused_tip
 
 REPORT_PERIOD = 1.0          # s of wall time between diagnostics
 
@@ -64,7 +66,7 @@ class ShapeEstimatorNode(Node):
         params = NodeParameters(self, config_dir)
         self.config = EstimatorConfig.of(params.section("estimator", ESTIMATOR_SCHEMA))
         self.model = build_model(params.arm)
-        self.core = ShapeEstimator(self.model, self.config)
+        self.core = shape_estimator(self.model, self.config, control_of(params, params.arm).rotor_mass)
         self.names = self.model.tendon_names
         self.period = 1.0 / self.config.rate
         self.clock = LoopClock(self.config.max_time_step)   # the estimate's time, from the states' stamps

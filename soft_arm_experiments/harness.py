@@ -24,8 +24,8 @@ from soft_arm_control.clik import TargetError
 from soft_arm_control.config import (FEEDBACKS, IDENTIFICATION, ControlConfig, TaskConfig,
                                      load_control_config, load_task_config)
 from soft_arm_control.outer_loop import OuterLoop, outer_loop_for
-from soft_arm_control.shape_estimation import (EstimatorConfig, ShapeEstimator, fused_markers, fused_tip,
-                                               load_estimator_config)
+from soft_arm_control.estimators import shape_estimator
+from soft_arm_control.shape_estimation import EstimatorConfig, fused_markers, fused_tip, load_estimator_config
 from soft_arm_control.strike_planner import strike_move_for
 from soft_arm_control.two_level import TwoLevelController
 from soft_arm_control.target_margin import target_point
@@ -365,7 +365,7 @@ def run_experiment(setup: Setup, progress=None, actuation_map: ActuationMap | No
     space = task.space
     estimator = None
     if estimate or setup.feedback != "mocap":
-        estimator = ShapeEstimator(model, setup.estimator or load_estimator_config())
+        estimator = shape_estimator(model, setup.estimator or load_estimator_config(), ctl.rotor_mass)
     latest = None                # markers of the latest frame delivered since the last estimate
     u = pretension.copy()
     balls = []                   # (exposure time, ball marker, tip marker) of the strike's frames

@@ -19,6 +19,7 @@ from numpy.polynomial import legendre as npleg
 from soft_arm_model import kernels
 
 from .config import STRAIN_MODES, ArmConfig, load_arm_config
+from .routing import routing_arrays, routing_of, tendon_ends
 
 # arm_base <- section frame at the clamp: the section's x axis (the arm axis) points along -z,
 # its y axis along +y and its z axis along +x.
@@ -250,29 +251,15 @@ def _friction_quadrature(config: ArmConfig, X, div):
 
 
 def _tendon_arrays(config: ArmConfig, X, w):
+    """The tendons' offsets d, dp, dpp (n_t, P, 3) [m] and where they run (n_t, P) (one
+    implementation with the dynamic estimate's routing states: :mod:`.routing`)."""
     g = config.geometry
-    P = X.size
-    nt = len(config.tendons)
-    d = np.zeros((nt, P, 3))
-    dp = np.zeros((nt, P, 3))
-    dpp = np.zeros((nt, P, 3))
-    active = np.zeros((nt, P))
-    dr = (g.tip_radius - g.base_radius) / g.length
-    for k, t in enumerate(config.tendons):
-        on = (w > 0) & (X < t.end)
-        active[k, on] = 1.0
-        x = X[on]
-        r = g.base_radius + dr * x
-        rho, rho_p = t.offset_fraction * r, t.offset_fraction * dr
-        th_p = (t.end_angle - t.start_angle) / t.end
-        th = t.start_angle + th_p * x
-        s, c = np.sin(th), np.cos(th)
-        z = np.zeros_like(x)
-        # d = rho (0, sin th, cos th) in the section frame (see R_BASE)
-        d[k, on] = np.stack([z, rho * s, rho * c], axis=1)
-        dp[k, on] = np.stack([z, rho_p * s + rho * th_p * c, rho_p * c - rho * th_p * s], axis=1)
-        dpp[k, on] = np.stack([z, 2 * rho_p * th_p * c - rho * th_p ** 2 * s,
-                               -2 * rho_p * th_p * s - rho * th_p ** 2 * c], axis=1)
+    P, nt = X.size, len(config.tendons)
+    d, dp, dpp = np.zeros((nt, P, 3)), np.zeros((nt, P, 3)), np.zeros((nt, P, 3))
+    ends = tendon_ends(config)
+    active = ((w[None, :] > 0) & (X[None, :] < ends[:, None])).astype(float)
+    routing_arrays(X, active, g.base_radius, (g.tip_radius - g.base_radius) / g.length, routing_of(config),
+                   ends, d, dp, dpp)
     return d, dp, dpp, active
 
 

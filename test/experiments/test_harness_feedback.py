@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from conftest import CHI2_3_99, nees_bounded, nees_not_overconfident
-from soft_arm_control.shape_estimation import ShapeEstimator
+from soft_arm_control.estimators import shape_estimator
 from soft_arm_experiments import harness
 from soft_arm_experiments.harness import load_setup, precompute_targets, run_experiment
 
@@ -66,18 +66,22 @@ def test_on_the_tendons_alone_the_tips_reported_uncertainty_bounds_its_error(run
     assert not nees_not_overconfident(tip_nees(runs["estimate"], 1e-3))
 
 
-def test_without_the_mocap_the_uncertain_estimate_holds_the_reference_and_says_so(runs):
+def test_without_the_mocap_the_estimate_steps_only_on_what_its_uncertainty_defends_and_says_so(runs):
+    """The tendon-only (dynamic) estimate is sure to a few millimetres: the CLIK steps on the part
+    of the error its uncertainty cannot explain and ends nearer than holding the precomputed
+    reference (5.98 mm on this target), then holds once what is left is within that uncertainty,
+    and says so."""
     mocap, estimate = runs["mocap"], runs["estimate"]
     assert mocap.goals[0]["status"] == "unseen" and mocap.goals[0]["online_steps"] == 0
     goal = estimate.goals[0]
-    assert goal["uncertain_frames"] > 500 and goal["online_steps"] == 0 and goal["unseen_frames"] == 0
+    assert goal["uncertain_frames"] > 500 and goal["online_steps"] > 0 and goal["unseen_frames"] == 0
     assert goal["status"] == "uncertain" and goal["fraction"] == 0.0, goal
     assert "within what the estimate's own uncertainty explains" in harness.goal_warning(goal)
-    # the estimate's error at the end: what it showed was within its 2 sigma, and the reference held
+    # the estimate's error at the end: what it showed was within its 2 sigma
     rec = estimate.record.arrays()
     sigma = np.sqrt(np.diagonal(rec["marker_covariance"][-1, -1])[[0, 2]])
     assert goal["error"] < 2.0 * np.sum(sigma), (goal["error"], sigma)
-    assert abs(estimate.metrics[0].final_error - mocap.metrics[0].final_error) < 0.2e-3
+    assert estimate.metrics[0].final_error < mocap.metrics[0].final_error - 0.5e-3
     assert not rec["markers_seen"].any()
     error = np.linalg.norm(rec["markers_estimated"][-1] - rec["markers_true"][-1], axis=1)
     assert error[-1] < 3e-3
@@ -138,13 +142,19 @@ def test_on_an_arm_whose_tendons_run_off_their_paths_the_blind_loop_ends_no_wors
                                                 blind.goals[0])
 
 
-class WalkingEstimate(ShapeEstimator):
-    """The estimator, with a bias on every marker growing at ``RATE`` along arm_base x from
-    ``START`` [s] on: an estimate that walks away from the arm."""
+class WalkingEstimate:
+    """The configured estimator, with a bias on every marker growing at ``RATE`` along arm_base x
+    from ``START`` [s] on: an estimate that walks away from the arm."""
     START, RATE = 7.0, np.array([0.005, 0.0, 0.0])
 
+    def __init__(self, *args):
+        self.inner = shape_estimator(*args)
+
+    def __getattr__(self, name):
+        return getattr(self.inner, name)
+
     def estimate(self):
-        out = super().estimate()
+        out = self.inner.estimate()
         return replace(out, markers=out.markers + self.RATE * max(0.0, out.t - self.START))
 
 
@@ -154,7 +164,7 @@ def walking(runs):
     walk starts when the online CLIK has brought the arm to rest (its swing below 0.3 mm)."""
     longer = ["tasks.coiling.phase.upward.window=10.0"]
     patch = pytest.MonkeyPatch()
-    patch.setattr(harness, "ShapeEstimator", WalkingEstimate)
+    patch.setattr(harness, "shape_estimator", WalkingEstimate)
     try:
         return {on: run_experiment(load_setup("coiling", overrides=ONE_TARGET + MOCAP_LOST + longer + [
             f"control.clik.trust.enabled={str(on).lower()}"], feedback="estimate"), truth=True)

@@ -1,0 +1,377 @@
+"""Proprioceptive shape estimation in motion: an extended Kalman filter whose process model is the
+arm's Variable-Strain dynamics. ROS-free; the ``shape_estimator`` node runs it when
+``estimator.process_model`` is ``dynamic``.
+
+The state is z = (q, qd, k, dmu, b, m_p): the configuration of the controller's model and its rate,
+the arm's stiffness scale against the model, the offsets of the tendons' friction coefficients, the
+offsets of the tendons' routing from the model's (per tendon its offset as a fraction of the radius,
+its start and end angles [rad]: :mod:`soft_arm_model.routing`) and a payload at the tip [kg].
+Between samples it is carried by the model's own time step (:mod:`soft_arm_model.integrators`'
+linearly implicit Euler step, the rotors' reflected mass m [kg] on every tendon) under the
+measured tensions u [N], at the estimated routing and payload:
+
+    (M + h D + h^2 k K_t + A m A0^T) qd+
+        = M qd + A m A0^T qd + h (F_g - C qd - k F_el - A (u + m Adot0^T qd) + m_p J_tip^T g),
+    q+ = q + h qd+,
+
+with A at the estimated friction (A + dA/dmu dmu). The step's Jacobian takes the static balance's
+analytic tangent dR/dq for the forces' dependence on q (the elastic tangent, the gravity Hessian,
+the tendons' geometric stiffness: :func:`~soft_arm_model.kernels.static_tangent`), the implicit
+part exactly, and the routing's derivatives of A and A0
+(:func:`~soft_arm_model.routing.routing_derivatives`); the derivatives of M, C and the rotors'
+coupling with q are left out (second order at the estimator's 4 ms:
+``test/control/test_dynamic_estimation.py`` bounds them at 5 %). What the model does not explain
+enters as a generalised impulse per step of standard deviation h (``force`` times the magnitude of
+the elastic, tendon and damping forces of each coordinate, + ``force_floor``) and the tensions' own
+noise ``tension`` [N] through A.
+
+Measurements, each sample: the shortenings s = L_c(0) - L_c(q) (Jacobian -A0^T, noise
+``shortening`` [m]) and their rates -A0^T qd (the encoders' velocities, noise ``encoder_rate``
+[m/s]), which with the dynamics between samples fix the arm's motion in the tendons' directions
+while the model carries the rest; the markers when seen, gated as in
+:class:`~soft_arm_control.shape_estimation.ShapeEstimator`, their noise ``marker`` [m] grown by the
+distance the marker travels in ``marker_age`` [s] at its estimated velocity (a frame is a few
+milliseconds old when it arrives).
+
+Where the arm is not the model. The stiffness and friction are learnt from the tendons, as the
+static estimate learns them. The routing and the payload are not: four lengths cannot tell a tendon
+running a few hundredths of a radius off its path from a different bend, nor a payload on the last
+few centimetres that no tendon reaches from the shape's own droop. Without markers they are
+*considered* (Schmidt): their prior uncertainty (``prior.tendon_offset``, ``prior.tendon_angle``,
+``prior.payload``) is carried into the configuration's covariance through the dynamics and the
+shortenings, so that the reported uncertainty includes what they may do, and their estimate stays;
+with markers seen they are learnt like the rest of the state. Neither drifts (a cast arm's routing
+does not move); the stiffness and friction drift by ``parameter_drift``. :attr:`routing_sigma` and
+:attr:`payload` say how much of them the markers have told.
+
+The public interface is :class:`~soft_arm_control.shape_estimation.ShapeEstimator`'s (``update``,
+``estimate``, ``counts``, ``distrust``, ``parameters``), so that a consumer takes either; the
+restarts and the distrust are the same rules.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from soft_arm_model import ArmData, ArmModel, solve_equilibrium
+from soft_arm_model import kernels
+from soft_arm_model.dynamics import DYNAMICS, KINEMATICS, STATICS, OutOfDomainError
+from soft_arm_model.routing import (new_routing_work, routing_arrays, routing_derivatives, routing_of,
+                                    tendon_ends)
+
+from .shape_estimation import (FRICTION_BOUNDS, RESTART_AFTER, RESTART_NIS, STIFFNESS_BOUNDS,
+                               EstimatorConfig, ShapeEstimate, UpdateReport)
+
+ROUTING_BOUNDS = (0.15, 0.15)   # a tendon's offset (fraction of the radius), angles [rad] off the model's
+PAYLOAD_BOUNDS = (0.0, 0.1)     # kg at the tip
+
+
+class DynamicShapeEstimator:
+    """The filter for ``model`` (the controller's) with ``config`` and the rotors' reflected mass
+    ``rotor_mass`` [kg] on every tendon. :meth:`update` once per sample; :attr:`q`, :attr:`qd` and
+    :attr:`P` are the state's configuration, rate and the configuration's covariance, :attr:`routing`
+    the tendons' estimated routing ((3, n_tendons): offset fractions, start and end angles [rad])."""
+
+    def __init__(self, model: ArmModel, config: EstimatorConfig, rotor_mass: float):
+        self.model, self.config = model, config
+        self.rotor = np.full(model.n_tendons, float(rotor_mass))
+        self.data = ArmData(model)
+        n, nt = model.n, model.n_tendons
+        self.N = 2 * n + 1 + 4 * nt + 1
+        # where each part starts: stiffness scale, friction offsets, routing offsets, the tip's payload
+        self._k, self._mu, self._beta, self._load = 2 * n, 2 * n + 1, 2 * n + 1 + nt, 2 * n + 1 + 4 * nt
+        stiffness = np.abs(np.diag(model.K))
+        self.scale = 1.0 / np.sqrt(np.maximum(stiffness, 1e-9 * stiffness.max()))
+        self.z = np.concatenate([np.zeros(2 * n), [1.0], np.zeros(4 * nt), [0.0]])
+        routing_sigma = np.repeat([config.prior_tendon_offset, config.prior_tendon_angle,
+                                   config.prior_tendon_angle], nt)
+        self.Pz = np.diag(np.concatenate([(0.05 * self.scale) ** 2, (0.05 * self.scale) ** 2,
+                                          [config.prior_stiffness ** 2],
+                                          np.full(nt, config.prior_friction ** 2),
+                                          routing_sigma ** 2, [config.prior_payload ** 2]]))
+        self._prior = self.z.copy(), self.Pz.copy()
+        self.t = None
+        self.u = None
+        self.counts = {"updates": 0, "markers_used": 0, "markers_gated": 0, "diverged": 0,
+                       "out_of_domain": 0, "restarts": 0}
+        self._bad = 0
+        self._rejected = np.zeros(model.marker_X.size, dtype=int)
+        self._retaken = np.zeros(model.marker_X.size, dtype=bool)
+        self.distrust = None
+        # the model's tendon arrays at the estimated routing (the other kernel arguments are the model's)
+        g = model.config.geometry
+        self._drawn = routing_of(model.config)
+        self._geometry = (model.X, model.tendon_active, g.base_radius,
+                          (g.tip_radius - g.base_radius) / g.length, tendon_ends(model.config))
+        self._t_arrays = tuple(np.array(a) for a in (model.tendon_d, model.tendon_dp, model.tendon_dpp))
+        args = list(model.kernel_args)
+        args[12:15] = self._t_arrays
+        self.args = tuple(args)
+        a = model.kernel_args
+        self._routing_args = (a[0], a[1], a[2], a[17], a[18], a[19], a[20])
+        self._routing_work = new_routing_work(model)
+        rest = ArmData(model)
+        kernels.evaluate(*model.kernel_args, np.zeros(n), np.zeros(n), 0, False, *rest.kernel_args)
+        self._xi_rest, self._q_rest = rest.xi.copy(), np.zeros(n)
+        self._L0 = np.array(model.rest_tendon_lengths)
+        self._dA, self._dA0 = np.zeros((3, n, nt)), np.zeros((3, n, nt))
+        self._dLc, self._dL0 = np.zeros((3, nt)), np.zeros((3, nt))
+        self._adot = np.zeros(nt)
+        self._jac = np.zeros((n, n))
+        self._dA_dmu = np.zeros((n, nt))
+        self._evaluated_at = None    # (q, level) whose terms self.data holds
+
+    @property
+    def q(self) -> np.ndarray:
+        return self.z[:self.model.n]
+
+    @property
+    def qd(self) -> np.ndarray:
+        n = self.model.n
+        return self.z[n:2 * n]
+
+    @property
+    def P(self) -> np.ndarray:
+        n = self.model.n
+        return self.Pz[:n, :n]
+
+    @property
+    def parameters(self) -> tuple[float, np.ndarray]:
+        """The estimated stiffness scale of the arm against the model and its tendons' friction
+        coefficients."""
+        mu = np.array([t.friction for t in self.model.config.tendons]) + self.z[self._mu:self._beta]
+        return float(self.z[self._k]), mu
+
+    @property
+    def routing(self) -> np.ndarray:
+        return self._drawn + self.z[self._beta:self._load].reshape(3, -1)
+
+    @property
+    def routing_sigma(self) -> np.ndarray:
+        """(3, n_tendons): the routing's standard deviations (the prior's where the tendons cannot
+        tell it)."""
+        return np.sqrt(np.diag(self.Pz)[self._beta:self._load]).reshape(3, -1)
+
+    @property
+    def payload(self) -> tuple[float, float]:
+        """The estimated payload at the tip [kg] and its standard deviation."""
+        return float(self.z[self._load]), float(np.sqrt(self.Pz[self._load, self._load]))
+
+    @property
+    def started(self) -> bool:
+        return self.t is not None
+
+    def start(self, t: float, tension, shortening=None):
+        """Start at rest at the model's equilibrium of ``tension`` [N]."""
+        u = np.ascontiguousarray(tension, dtype=float)
+        n = self.model.n
+        self._set_routing()
+        self.z[:n] = solve_equilibrium(self.model, u).q
+        self.z[n:2 * n] = 0.0
+        self.t, self.u = float(t), u.copy()
+
+    # --- the model at the estimated routing -----------------------------------------------------
+
+    def _set_routing(self):
+        X, active, r0, taper, ends = self._geometry
+        routing_arrays(X, active, r0, taper, self.routing, ends, *self._t_arrays)
+        self._evaluated_at = None
+
+    def _evaluate(self, q, v, level: int, markers: bool):
+        if not kernels.evaluate(*self.args, q, v, level, markers, *self.data.kernel_args):
+            self._evaluated_at = None
+            raise OutOfDomainError("the state left the model's domain")
+        self._evaluated_at = (q.copy(), level) if markers and level <= STATICS else None
+
+    def _routing_derivatives(self, q, with_rest: bool):
+        """dA, dA0 and dL_c with respect to the routing at q (evaluated in self.data), and with
+        ``with_rest`` dL_0 and L_0 (the straight arm's)."""
+        m = self.model
+        X, active, r0, taper, ends = self._geometry
+        if not routing_derivatives(*self._routing_args, X, active, r0, taper, ends, m.friction_mu,
+                                   self.routing, self.data.xi, q, self._xi_rest, self._q_rest, with_rest,
+                                   self._L0, self._dA, self._dA0, self._dLc, self._dL0, self._routing_work):
+            raise OutOfDomainError("a degenerate tendon tangent")
+
+    # --- prediction ------------------------------------------------------------------------------
+
+    def _predict(self, h: float, u) -> np.ndarray:
+        """One step of length ``h`` [s] under tensions u [N]: the state and its covariance; returns
+        the step's Jacobian (N, N)."""
+        m, c, d = self.model, self.config, self.data
+        n, nt, N = m.n, m.n_tendons, self.N
+        q, v = self.z[:n].copy(), self.z[n:2 * n].copy()
+        k, dmu = self.z[self._k], self.z[self._mu:self._beta]
+        self._evaluate(q, v, DYNAMICS, True)
+        rot = self.rotor
+        if np.any(rot):
+            kernels.tendon_rate_bias(m.kernel_args[0], m.kernel_args[1], d.xi, v, self._t_arrays[0],
+                                     self._t_arrays[1], m.kernel_args[15], self._adot)
+        kernels.static_tangent(*self.args, q, u, True, *d.kernel_args, self._jac, self._dA_dmu)
+        self._routing_derivatives(q, False)
+        A = d.A + self._dA_dmu * dmu[None, :]
+        D = m.D
+        S = d.M + h * D + (h * h * k) * d.Kt + (A * rot[None, :]) @ d.A0.T
+        weight = d.marker_J[-1][3:].T @ (d.marker_R[-1].T @ m.gravity)     # of a unit mass at the tip
+        rhs = d.M @ v + A @ (rot * (d.A0.T @ v)) + h * (d.Fg - d.Cqd - k * d.Fel - A @ (u + rot * self._adot)
+                                                        + self.z[self._load] * weight)
+        Sinv = np.linalg.inv(S)
+        v_new = Sinv @ rhs
+        force = h * (u + rot * self._adot) + rot * (d.A0.T @ (v_new - v))     # impulse per tendon
+        F = np.eye(N)
+        Fv = F[n:2 * n]
+        Fv[:, :n] = -h * (Sinv @ (self._jac + (k - 1.0) * d.Kt))
+        Fv[:, n:2 * n] -= h * (Sinv @ (D + (h * k) * d.Kt))
+        Fv[:, self._k] = -h * (Sinv @ (d.Fel + h * (d.Kt @ v_new)))
+        Fv[:, self._mu:self._beta] = -(Sinv @ (self._dA_dmu * force[None, :]))
+        # the routing moves A (the tendons' forces) and A0 (the rotors' coupling, through the rate change)
+        rotor_rate = rot[None, :] * np.einsum("jak,a->jk", self._dA0, v_new - v)          # (3, nt)
+        dforce = self._dA * force[None, None, :] + A[None, :, :] * rotor_rate[:, None, :]
+        Fv[:, self._beta:self._load] = -(Sinv @ dforce.transpose(1, 0, 2).reshape(n, 3 * nt))
+        Fv[:, self._load] = h * (Sinv @ weight)
+        F[:n] += h * Fv
+        # the impulse the model does not explain, through the same implicit step
+        sigma_f = c.force * (np.abs(k * d.Fel) + np.abs(A @ u) + np.abs(D @ v)) + c.force_floor
+        W = np.diag((h * sigma_f) ** 2) + (h * h * c.tension ** 2) * (A @ A.T)
+        G = np.vstack([h * Sinv, Sinv])
+        P = F @ self.Pz @ F.T
+        P[:2 * n, :2 * n] += G @ W @ G.T
+        drifting = np.arange(self._k, self._beta)            # the stiffness and friction; a cast arm's
+        P[drifting, drifting] += c.parameter_drift ** 2 * h    # routing and its payload stay
+        self.Pz = P
+        self.z[:n] = q + h * v_new
+        self.z[n:2 * n] = v_new
+        return F
+
+    # --- update ------------------------------------------------------------------------------------
+
+    def update(self, t: float, shortening, rate, tension, markers=None) -> UpdateReport:
+        """One sample at time ``t`` [s]: the tendons' shortenings [m], rates [m/s] and tensions [N],
+        and ``markers`` (n_markers, 3) [m] in arm_base with NaN rows for the unseen (None: no
+        frame). Returns what was used."""
+        s, sd, u = (np.ascontiguousarray(v, dtype=float) for v in (shortening, rate, tension))
+        if not self.started:
+            self.start(t, u, s)
+        c = self.config
+        dt = float(t) - self.t
+        if not 0.0 <= dt <= c.max_time_step:
+            dt = 1.0 / c.rate
+        saved = self.z.copy(), self.Pz.copy()
+        report = UpdateReport()
+        try:
+            steps = int(np.ceil(dt / c.max_substep - 1e-9))
+            u_mean = 0.5 * (u + self.u)
+            for _ in range(steps):
+                self._predict(dt / steps, u_mean)
+            self._measure(s, sd, markers, report)
+            self._clamp_parameters()
+            self._set_routing()
+            self._evaluate(self.q, self.qd, STATICS, True)                 # in the domain
+            stiffness = self.z[self._k]
+            pinned = not STIFFNESS_BOUNDS[0] < stiffness < STIFFNESS_BOUNDS[1]
+            disagree = report.tendon_nis > RESTART_NIS * s.size
+            self._bad = self._bad + 1 if pinned or disagree else 0
+            self.distrust = None
+            if pinned:
+                self.distrust = (f"the tendons need a stiffness {stiffness:.2f} times the model's, at or "
+                                 f"beyond what a cast arm can be {list(STIFFNESS_BOUNDS)}")
+            elif disagree:
+                self.distrust = (f"the shortenings disagree with the estimate (normalised square "
+                                 f"{report.tendon_nis:.0f} over {s.size} tendons)")
+        except (OutOfDomainError, np.linalg.LinAlgError):
+            self.counts["out_of_domain"] += 1
+            self.z, self.Pz = saved
+            self._set_routing()
+            self._bad += 1
+            self.distrust = "the update left the model's domain"
+        self.t, self.u = float(t), u.copy()
+        if self._bad >= RESTART_AFTER:
+            self.counts["restarts"] += 1
+            self.z, self.Pz = (a.copy() for a in self._prior)
+            self._bad = 0
+            self.start(t, u, s)
+            self.distrust = None
+        self.counts["updates"] += 1
+        return report
+
+    def _clamp_parameters(self):
+        z = self.z
+        z[self._k] = np.clip(z[self._k], *STIFFNESS_BOUNDS)
+        mu = np.array([t.friction for t in self.model.config.tendons])
+        z[self._mu:self._beta] = np.clip(z[self._mu:self._beta], FRICTION_BOUNDS[0] - mu,
+                                         FRICTION_BOUNDS[1] - mu)
+        beta = z[self._beta:self._load].reshape(3, -1)
+        beta[0] = np.clip(beta[0], -ROUTING_BOUNDS[0], ROUTING_BOUNDS[0])
+        beta[1:] = np.clip(beta[1:], -ROUTING_BOUNDS[1], ROUTING_BOUNDS[1])
+        z[self._load] = np.clip(z[self._load], *PAYLOAD_BOUNDS)
+
+    def _measure(self, s, sd, markers, report):
+        m, c, d = self.model, self.config, self.data
+        n, nt, N = m.n, m.n_tendons, self.N
+        q, v = self.z[:n].copy(), self.z[n:2 * n]
+        self._evaluate(q, v, STATICS, True)
+        self._routing_derivatives(q, True)
+        H = np.zeros((2 * nt, N))
+        H[:nt, :n] = -d.A0.T
+        H[nt:, n:2 * n] = -d.A0.T
+        tendon = np.arange(nt)
+        for j in range(3):
+            H[tendon, self._beta + j * nt + tendon] = self._dL0[j] - self._dLc[j]
+            H[nt + tendon, self._beta + j * nt + tendon] = -(v @ self._dA0[j])
+        y = np.concatenate([s - (self._L0 - d.Lc), sd + d.A0.T @ v])
+        r = np.concatenate([np.full(nt, c.shortening ** 2), np.full(nt, c.encoder_rate ** 2)])
+        Sy = H[:nt] @ self.Pz @ H[:nt].T + np.diag(r[:nt])
+        report.tendon_nis = float(y[:nt] @ np.linalg.solve(Sy, y[:nt]))
+        rows_H, rows_y, rows_r = [H], [y], [r]
+        if markers is not None:
+            markers = np.asarray(markers, dtype=float)
+            nm = m.marker_X.size
+            report.marker_nis = np.full(nm, np.nan)
+            for j in range(nm):
+                if not np.all(np.isfinite(markers[j])):
+                    continue
+                Hj = np.zeros((3, N))
+                Hj[:, :n] = d.marker_R[j] @ d.marker_J[j][3:]
+                travel = np.linalg.norm(Hj[:, :n] @ v) * c.marker_age
+                var = c.marker ** 2 + travel ** 2
+                yj = markers[j] - d.marker_p[j]
+                Sj = Hj[:, :n] @ self.Pz[:n, :n] @ Hj[:, :n].T + var * np.eye(3)
+                d2 = float(yj @ np.linalg.solve(Sj, yj))
+                report.marker_nis[j] = d2
+                if d2 > c.gate and not self._retaken[j]:
+                    self._rejected[j] += 1
+                    if self._rejected[j] < c.regate:
+                        report.gated.append(j)
+                        continue
+                    self.counts["diverged"] += 1
+                    self._retaken[j] = True
+                if d2 <= c.gate:
+                    self._retaken[j] = False
+                self._rejected[j] = 0
+                rows_H.append(Hj)
+                rows_y.append(yj)
+                rows_r.append(np.full(3, var))
+                report.used.append(j)
+            self.counts["markers_used"] += len(report.used)
+            self.counts["markers_gated"] += len(report.gated)
+        H, y, r = np.vstack(rows_H), np.concatenate(rows_y), np.concatenate(rows_r)
+        P = self.Pz
+        PHt = P @ H.T
+        L = np.linalg.cholesky(H @ PHt + np.diag(r))
+        K = np.linalg.solve(L.T, np.linalg.solve(L, PHt.T)).T
+        if not report.used:               # the tendons alone do not tell the routing and the payload
+            K[self._beta:] = 0.0          # from the rest: considered, not learnt
+        self.z = self.z + K @ y
+        IKH = np.eye(N) - K @ H
+        P = IKH @ P @ IKH.T + (K * r[None, :]) @ K.T
+        self.Pz = 0.5 * (P + P.T)
+
+    def estimate(self) -> ShapeEstimate:
+        """The current estimate (markers and their covariance from the model's kinematics)."""
+        d, n = self.data, self.model.n
+        held = self._evaluated_at
+        if held is None or not np.array_equal(held[0], self.q):
+            self._evaluate(self.q.copy(), self.qd.copy(), KINEMATICS, True)
+        H = np.einsum("kij,kjl->kil", d.marker_R, d.marker_J[:, 3:])
+        C = np.einsum("kij,jl,kml->kim", H, self.Pz[:n, :n], H)
+        return ShapeEstimate(self.t if self.t is not None else 0.0, self.q.copy(), self.P.copy(),
+                             d.marker_p.copy(), C, self.distrust)

@@ -1,0 +1,94 @@
+"""The dynamic shape estimate (the arm's dynamics as the filter's process model): its prediction is
+the model's own time step and its Jacobian the step's derivatives (through fast moves on the
+declared plant: test/experiments/test_estimate_in_motion.py)."""
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from soft_arm_control.dynamic_estimation import DynamicShapeEstimator
+from soft_arm_control.estimators import shape_estimator
+from soft_arm_control.shape_estimation import ShapeEstimator, load_estimator_config
+from soft_arm_model import ImexStepper, build_model, load_arm_config, solve_equilibrium
+
+CONFIG = load_estimator_config()
+ROTOR = 0.6                     # kg: control.yaml's rotor_mass, the plant's 6e-5 kg m^2 / (0.01 m)^2
+PERIOD = 1 / 240                # s: the harness's updates, at the mocap's exposures
+RELATIVE = 0.05                 # the step's Jacobian leaves out dM/dq, dC/dq and the rotors' coupling
+
+
+@pytest.fixture(scope="module")
+def arm():
+    return load_arm_config()
+
+
+@pytest.fixture(scope="module")
+def model(arm):
+    return build_model(arm)
+
+
+def _moving_state(model):
+    """A state of the arm swinging: q between two equilibria, qd from a step of the model."""
+    u0, u1 = np.array([0.5, 0.5, 0.5, 0.5]), np.array([3.0, 0.8, 1.5, 0.4])
+    q = solve_equilibrium(model, u0).q
+    stepper = ImexStepper(model, 1e-3, rotor_mass=np.full(4, ROTOR))
+    qd = np.zeros(model.n)
+    for _ in range(60):
+        q, qd = stepper.step(q, qd, u1)
+    return q, qd, u1
+
+
+def test_with_no_model_error_the_prediction_is_the_models_own_time_step(model):
+    q, qd, u = _moving_state(model)
+    estimator = DynamicShapeEstimator(model, CONFIG, ROTOR)
+    estimator.start(0.0, u)
+    estimator.z[:model.n], estimator.z[model.n:2 * model.n] = q, qd
+    estimator._predict(PERIOD, u)
+    q_step, qd_step = ImexStepper(model, PERIOD, rotor_mass=np.full(4, ROTOR)).step(q, qd, u)
+    assert np.allclose(estimator.q, q_step, rtol=0, atol=1e-12 * np.abs(q_step).max())
+    assert np.allclose(estimator.qd, qd_step, rtol=0, atol=1e-10 * np.abs(qd_step).max())
+
+
+def _step_map(model, z, u):
+    estimator = DynamicShapeEstimator(model, CONFIG, ROTOR)
+    estimator.start(0.0, u)
+    estimator.z[:] = z
+    estimator._set_routing()
+    F = estimator._predict(PERIOD, u)
+    return estimator.z.copy(), F
+
+
+def test_the_steps_jacobian_matches_central_differences(model):
+    """Block by block (q, qd, stiffness, friction, routing, payload, each column group against the
+    new q and qd), the Jacobian the covariance is carried with agrees with central differences of the
+    step to within what it leaves out (5 % in the Frobenius norm); a block with its sign flipped is
+    200 % off."""
+    q, qd, u = _moving_state(model)
+    estimator = DynamicShapeEstimator(model, CONFIG, ROTOR)
+    n, nt = model.n, model.n_tendons
+    z = np.concatenate([q, qd, [1.1], np.full(nt, 0.02), np.full(3 * nt, 0.01), [0.002]])
+    _, F = _step_map(model, z, u)
+    steps = np.concatenate([1e-6 * estimator.scale, 1e-5 * estimator.scale, [1e-6], np.full(nt, 1e-6),
+                            np.full(3 * nt, 1e-6), [1e-6]])
+    central = np.zeros_like(F)
+    for j in range(z.size):
+        e = np.zeros(z.size)
+        e[j] = steps[j]
+        central[:, j] = (_step_map(model, z + e, u)[0] - _step_map(model, z - e, u)[0]) / (2 * steps[j])
+    groups = {"q": slice(0, n), "qd": slice(n, 2 * n), "stiffness": slice(2 * n, 2 * n + 1),
+              "friction": slice(2 * n + 1, 2 * n + 1 + nt),
+              "routing": slice(2 * n + 1 + nt, 2 * n + 1 + 4 * nt),
+              "payload": slice(2 * n + 1 + 4 * nt, 2 * n + 2 + 4 * nt)}
+    for name, columns in groups.items():
+        for rows in (slice(0, n), slice(n, 2 * n)):
+            mine, theirs = F[rows, columns], central[rows, columns]
+            if name == "q" and rows.start == 0:
+                mine, theirs = mine - np.eye(n), theirs - np.eye(n)      # the identity hides the rest
+            error = np.linalg.norm(mine - theirs) / np.linalg.norm(theirs)
+            assert error <= RELATIVE, (name, rows, error)
+            assert np.linalg.norm(-mine - theirs) / np.linalg.norm(theirs) > 1.5
+
+
+def test_the_configuration_names_the_estimator(model):
+    assert isinstance(shape_estimator(model, CONFIG, ROTOR), DynamicShapeEstimator)
+    assert isinstance(shape_estimator(model, replace(CONFIG, process_model="static"), ROTOR), ShapeEstimator)
