@@ -185,8 +185,13 @@ def main(argv=None) -> int:
                         help="instead: this many plants of the robustness campaign's draws (seeds 0..N-1), "
                              "each identified, then the first of --tasks blind with the controller's "
                              "model and with the identified arm (default output sensing_draws.json)")
+    parser.add_argument("--process-model", choices=["static", "dynamic"], default=None,
+                        help="the shape estimate's process model (default: config/estimator.yaml's)")
     parser.add_argument("--output", default=None)
     args = parser.parse_args(argv)
+    if args.process_model is None:
+        from soft_arm_control.shape_estimation import load_estimator_config
+        args.process_model = load_estimator_config().process_model
     if args.draws:
         return _draws(args)
     args.output = args.output or results_path("sensing.json")
@@ -195,7 +200,8 @@ def main(argv=None) -> int:
     for task, scenario, feedback in itertools.product(args.tasks, args.scenarios, args.feedbacks):
         lost_at = schedule(load_setup(task).task)[0][3]
         specs.append({"task": task, "scenario": scenario, "feedback": feedback,
-                      "sets": _sets(task, scenario), "lost_at": lost_at})
+                      "sets": _sets(task, scenario) + [f"estimator.process_model={args.process_model}"],
+                      "lost_at": lost_at})
     rows = map_runs(f"{os.path.abspath(__file__)}:run_spec", specs, workers=args.workers)
     print(f"{'task':9} {'scenario':10} {'feedback':9} {'RMS mm':>7} {'mocap':>6} {'mm band':>8} "
           f"{'v_mm m/s':>9} "
@@ -209,7 +215,7 @@ def main(argv=None) -> int:
               f"{r['reached_mm']:>3}/{r['transitions']:<4} {v:>9} {_tip(rest):>30} "
               f"{_tip(moving, True):>24} "
               f"{r['tip_nees_mean']:5.2f}  {', '.join(r['statuses'])}")
-    write_results(args.output, {"runs": rows, "rest_speed": REST_SPEED})
+    write_results(args.output, {"runs": rows, "rest_speed": REST_SPEED, "process_model": args.process_model})
     return 0
 
 

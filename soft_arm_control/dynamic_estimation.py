@@ -161,7 +161,8 @@ class DynamicShapeEstimator:
         return self.t is not None
 
     def start(self, t: float, tension, shortening=None):
-        """Start at rest at the model's equilibrium of ``tension`` [N]."""
+        """Start at rest at the model's equilibrium of ``tension`` [N] (the shortenings [m] are the
+        first update's measurement; the argument is the static estimator's interface)."""
         u = np.ascontiguousarray(tension, dtype=float)
         n = self.model.n
         self._set_routing()

@@ -90,5 +90,6 @@ def test_the_steps_jacobian_matches_central_differences(model):
 
 
 def test_the_configuration_names_the_estimator(model):
-    assert isinstance(shape_estimator(model, CONFIG, ROTOR), DynamicShapeEstimator)
+    assert isinstance(shape_estimator(model, replace(CONFIG, process_model="dynamic"), ROTOR),
+                      DynamicShapeEstimator)
     assert isinstance(shape_estimator(model, replace(CONFIG, process_model="static"), ROTOR), ShapeEstimator)

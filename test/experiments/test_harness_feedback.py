@@ -20,6 +20,7 @@ ONE_TARGET = ["tasks.coiling.phases=[upward]", "tasks.coiling.phase.upward.seque
               "tasks.coiling.phase.upward.window=6.0"]
 HELD_MARGIN = 1e-3          # m: an estimate the trust region refused ends within the hold's error + this
 MOCAP_LOST = ["plant.mocap.occlusion.blackout=[0.0, 1.0e6]"]
+DYNAMIC = ["estimator.process_model=dynamic"]
 
 
 @pytest.fixture(scope="module")
@@ -66,25 +67,33 @@ def test_on_the_tendons_alone_the_tips_reported_uncertainty_bounds_its_error(run
     assert not nees_not_overconfident(tip_nees(runs["estimate"], 1e-3))
 
 
-def test_without_the_mocap_the_estimate_steps_only_on_what_its_uncertainty_defends_and_says_so(runs):
-    """The tendon-only (dynamic) estimate is sure to a few millimetres: the CLIK steps on the part
-    of the error its uncertainty cannot explain and ends nearer than holding the precomputed
-    reference (5.98 mm on this target), then holds once what is left is within that uncertainty,
-    and says so."""
+def test_without_the_mocap_the_uncertain_estimate_holds_the_reference_and_says_so(runs):
     mocap, estimate = runs["mocap"], runs["estimate"]
     assert mocap.goals[0]["status"] == "unseen" and mocap.goals[0]["online_steps"] == 0
     goal = estimate.goals[0]
-    assert goal["uncertain_frames"] > 500 and goal["online_steps"] > 0 and goal["unseen_frames"] == 0
+    assert goal["uncertain_frames"] > 500 and goal["online_steps"] == 0 and goal["unseen_frames"] == 0
     assert goal["status"] == "uncertain" and goal["fraction"] == 0.0, goal
     assert "within what the estimate's own uncertainty explains" in harness.goal_warning(goal)
-    # the estimate's error at the end: what it showed was within its 2 sigma
+    # the estimate's error at the end: what it showed was within its 2 sigma, and the reference held
     rec = estimate.record.arrays()
     sigma = np.sqrt(np.diagonal(rec["marker_covariance"][-1, -1])[[0, 2]])
     assert goal["error"] < 2.0 * np.sum(sigma), (goal["error"], sigma)
-    assert estimate.metrics[0].final_error < mocap.metrics[0].final_error - 0.5e-3
+    assert abs(estimate.metrics[0].final_error - mocap.metrics[0].final_error) < 0.2e-3
     assert not rec["markers_seen"].any()
     error = np.linalg.norm(rec["markers_estimated"][-1] - rec["markers_true"][-1], axis=1)
     assert error[-1] < 3e-3
+
+
+def test_on_the_dynamic_estimate_the_blind_loop_steps_on_what_its_uncertainty_defends(runs):
+    """The dynamic estimate (``estimator.process_model: dynamic``) is sure to a few millimetres on
+    the tendons alone: the CLIK steps on the part of the error its uncertainty cannot explain and
+    ends nearer than holding the precomputed reference (5.98 mm on this target), then holds once
+    what is left is within that uncertainty, and says so."""
+    estimate = run_experiment(load_setup("coiling", overrides=ONE_TARGET + MOCAP_LOST + DYNAMIC,
+                                         feedback="estimate"), truth=True)
+    goal = estimate.goals[0]
+    assert goal["online_steps"] > 0 and goal["status"] == "uncertain", goal
+    assert estimate.metrics[0].final_error < runs["mocap"].metrics[0].final_error - 0.5e-3
 
 
 def test_with_markers_seen_the_fused_estimate_is_sure_and_closes_the_loop(runs):

@@ -71,13 +71,7 @@ def test_the_node_publishes_estimate_fused_tip_and_diagnostics():
         assert 60 <= len(got["estimate"]) <= 110 and len(got["fused"]) == len(got["estimate"])
         estimate, fused = markers_of(got["estimate"][-1]), markers_of(got["fused"][-1])
         assert np.all(np.isfinite(estimate)) and np.all(np.isfinite(fused))
-        # the markers seen within a millimetre (the frames' own 0.5 mm calibration error in them);
-        # the hidden tip within the covariance the node reports (chi-square, 3 degrees of freedom,
-        # 0.1 %: the estimator's own gate)
-        np.testing.assert_allclose(estimate[:-1], true[:-1], atol=1e-3)
-        tip_cov = np.array(got["tip"][-1].pose.covariance).reshape(6, 6)[:3, :3]
-        tip_error = estimate[-1] - true[-1]
-        assert tip_error @ np.linalg.solve(tip_cov, tip_error) <= 16.27, (tip_error, np.diag(tip_cov))
+        np.testing.assert_allclose(estimate, true, atol=1e-3)
         # fused, update by update: the frame's markers where the mocap saw them (the estimate's
         # when no frame came since the last update), the estimate's tip where it did not
         with_frame = 0
