@@ -8,7 +8,7 @@ offsets of the tendons' routing from the model's (per tendon its offset as a fra
 its start and end angles [rad]: :mod:`soft_arm_model.routing`) and a payload at the tip [kg].
 Between samples it is carried by the model's own time step (:mod:`soft_arm_model.integrators`'
 linearly implicit Euler step, the rotors' reflected mass m [kg] on every tendon) under the
-measured tensions u [N], at the estimated routing and payload:
+measured tensions u [N], at the estimated routing and payload::
 
     (M + h D + h^2 k K_t + A m A0^T) qd+
         = M qd + A m A0^T qd + h (F_g - C qd - k F_el - A (u + m Adot0^T qd) + m_p J_tip^T g),
