@@ -120,3 +120,55 @@ def test_a_stepped_state_clock_is_counted_and_neither_stops_the_updates_nor_infl
         node.destroy_node()
     finally:
         rclpy.try_shutdown()
+
+
+def test_configured_dynamic_the_node_runs_the_dynamic_estimate_with_the_controllers_rotors():
+    """``estimator.process_model: dynamic`` on the node: the dynamic filter, the rotors' reflected
+    mass from ``control.rotor_mass``; at rest on the tendons alone the tip it publishes is within
+    the covariance it publishes (chi-square, 3 degrees of freedom, 0.1 %)."""
+    import rclpy
+    from geometry_msgs.msg import PoseWithCovarianceStamped
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.parameter import Parameter
+    from sensor_msgs.msg import JointState
+
+    from soft_arm_control.dynamic_estimation import DynamicShapeEstimator
+    from soft_arm_control.shape_estimator_node import ShapeEstimatorNode
+    from soft_arm_ros.contract import QOS
+    from soft_arm_ros.conversions import joint_state
+
+    model = build_model()
+    u = np.array([0.5, 2.0, 1.5, 0.3])
+    q = solve_equilibrium(model, u).q
+    s = model.rest_tendon_lengths - tendon_lengths(model, q)
+    rclpy.init()
+    try:
+        node = ShapeEstimatorNode(parameter_overrides=[Parameter("estimator.process_model", value="dynamic"),
+                                                       Parameter("control.rotor_mass", value=0.4)])
+        assert isinstance(node.core, DynamicShapeEstimator) and np.all(node.core.rotor == 0.4)
+        peer = rclpy.create_node("peer")
+        state = peer.create_publisher(JointState, "tendon/state", QOS["tendon/state"])
+        tips = []
+        peer.create_subscription(PoseWithCovarianceStamped, "estimate/tip", tips.append, QOS["estimate/tip"])
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        executor.add_node(peer)
+        deadline = time.monotonic() + 10.0
+        while not peer.count_subscribers("tendon/state") or not peer.count_publishers("estimate/tip"):
+            executor.spin_once(timeout_sec=0.01)
+            assert time.monotonic() < deadline
+        for k in range(200):                                # 0.4 s of states at 500 Hz
+            state.publish(joint_state(model.tendon_names, k * 0.002, position=s, velocity=np.zeros(4),
+                                      effort=u))
+            for _ in range(3):
+                executor.spin_once(timeout_sec=0.002)
+        end = time.monotonic() + 3.0
+        while len(tips) < 90 and time.monotonic() < end:
+            executor.spin_once(timeout_sec=0.01)
+        assert len(tips) >= 60
+        p = tips[-1].pose.pose.position
+        error = np.array([p.x, p.y, p.z]) - marker_positions(model, q)[-1]
+        covariance = np.array(tips[-1].pose.covariance).reshape(6, 6)[:3, :3]
+        assert error @ np.linalg.solve(covariance, error) <= 16.27, (error, np.diag(covariance))
+    finally:
+        rclpy.try_shutdown()
