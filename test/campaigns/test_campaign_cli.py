@@ -227,20 +227,26 @@ def dask_cluster(tmp_path):
                 proc.kill()
 
 
+def _parent(pid: int) -> int:
+    with open(f"/proc/{pid}/status", encoding="ascii") as fh:
+        return next(int(line.split()[1]) for line in fh if line.startswith("PPid:"))
+
+
 def test_a_campaign_runs_on_an_existing_cluster_given_its_scheduler(tmp_path, dask_cluster):
-    address, _ = dask_cluster
+    address, cluster_pids = dask_cluster
     out = tmp_path / "campaign"
     offsets = "[[0.5,0.5,0.5,0.5],[0.6,0.6,0.6,0.6],[0.7,0.7,0.7,0.7],[0.65,0.55,0.65,0.55]]"
-    # runs of 256 equilibria (a second or so each): long enough that the scheduler hands both
-    # workers some, where runs of 27 could all be done by the first worker before the second asks
     status = cli.main(WORKSPACE + ["--levels", "0", "1", "2", "3", "--vary",
                                    f"arm.tendons.offset_fraction={offsets}",
                                    "--scheduler", address, "--quiet", "--output", str(out)])
     assert status == 0
     records = engine.read_records(out)
     assert len(records) == 4
-    workers = {r["worker"] for r in records}
-    assert len(workers) == 2 and str(os.getpid()) not in {w.rpartition(":")[2] for w in workers}
+    # every run on the cluster's workers (each a process under a worker the fixture started), none
+    # here; how the scheduler shares them out is its own (a worker that registers late gets none)
+    pids = {int(r["worker"].rpartition(":")[2]) for r in records}
+    assert os.getpid() not in pids
+    assert all(pid in cluster_pids or _parent(pid) in cluster_pids for pid in pids), (pids, cluster_pids)
     assert _serially("sweep", [r["spec"] for r in records[:2]]) == [r["result"] for r in records[:2]]
     # a wider offset reaches farther from the axis
     reach = {r["spec"]["sets"][0].partition("=")[2]: r["result"]["reach_m"] for r in records}
