@@ -59,7 +59,7 @@ from soft_arm_model.routing import (new_routing_work, routing_arrays, routing_de
                                     tendon_ends)
 
 from .shape_estimation import (FRICTION_BOUNDS, RESTART_AFTER, RESTART_NIS, STIFFNESS_BOUNDS,
-                               EstimatorConfig, ShapeEstimate, UpdateReport)
+                               EstimatorConfig, MarkerGate, ShapeEstimate, UpdateReport)
 
 ROUTING_BOUNDS = (0.15, 0.15)   # a tendon's offset (fraction of the radius), angles [rad] off the model's
 PAYLOAD_BOUNDS = (0.0, 0.1)     # kg at the tip
@@ -94,8 +94,7 @@ class DynamicShapeEstimator:
         self.counts = {"updates": 0, "markers_used": 0, "markers_gated": 0, "diverged": 0,
                        "out_of_domain": 0, "restarts": 0}
         self._bad = 0
-        self._rejected = np.zeros(model.marker_X.size, dtype=int)
-        self._retaken = np.zeros(model.marker_X.size, dtype=bool)
+        self._gate = MarkerGate(model.marker_X.size, config.gate, config.regate)
         self.distrust = None
         # the model's tendon arrays at the estimated routing (the other kernel arguments are the model's)
         g = model.config.geometry
@@ -338,22 +337,16 @@ class DynamicShapeEstimator:
                 Sj = Hj[:, :n] @ self.Pz[:n, :n] @ Hj[:, :n].T + var * np.eye(3)
                 d2 = float(yj @ np.linalg.solve(Sj, yj))
                 report.marker_nis[j] = d2
-                if d2 > c.gate and not self._retaken[j]:
-                    self._rejected[j] += 1
-                    if self._rejected[j] < c.regate:
-                        report.gated.append(j)
-                        continue
-                    self.counts["diverged"] += 1
-                    self._retaken[j] = True
-                if d2 <= c.gate:
-                    self._retaken[j] = False
-                self._rejected[j] = 0
+                if not self._gate.takes(j, d2):
+                    report.gated.append(j)
+                    continue
                 rows_H.append(Hj)
                 rows_y.append(yj)
                 rows_r.append(np.full(3, var))
                 report.used.append(j)
             self.counts["markers_used"] += len(report.used)
             self.counts["markers_gated"] += len(report.gated)
+            self.counts["diverged"] = self._gate.diverged
         H, y, r = np.vstack(rows_H), np.concatenate(rows_y), np.concatenate(rows_r)
         P = self.Pz
         PHt = P @ H.T

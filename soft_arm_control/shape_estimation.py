@@ -214,6 +214,32 @@ class UpdateReport:
     marker_nis: np.ndarray | None = None
 
 
+class MarkerGate:
+    """The markers' innovation gate both shape estimators share: a marker whose normalised square
+    exceeds ``gate`` is an outlier, left out; one that stays out for ``regate`` frames in a row is
+    taken again (the estimate had diverged from it: counted in ``diverged``) and kept until it is
+    back within the gate."""
+
+    def __init__(self, n_markers: int, gate: float, regate: int):
+        self.gate, self.regate = gate, regate
+        self.rejected = np.zeros(n_markers, dtype=int)    # frames in a row out of the gate
+        self.retaken = np.zeros(n_markers, dtype=bool)    # taken again, not yet back in it
+        self.diverged = 0
+
+    def takes(self, k: int, nis: float) -> bool:
+        """Whether marker k, whose innovation has the normalised square ``nis``, is taken."""
+        if nis > self.gate and not self.retaken[k]:
+            self.rejected[k] += 1
+            if self.rejected[k] < self.regate:
+                return False
+            self.diverged += 1
+            self.retaken[k] = True
+        if nis <= self.gate:
+            self.retaken[k] = False
+        self.rejected[k] = 0
+        return True
+
+
 class ShapeEstimator:
     """The filter for ``model`` (the controller's) with ``config``. :meth:`start` initialises it at
     the equilibrium of the measured tensions; then :meth:`update` once per sample. The state is
@@ -235,8 +261,7 @@ class ShapeEstimator:
                        "out_of_domain": 0, "restarts": 0}
         self._prior = self.z.copy(), self.Pz.copy()
         self._bad = 0                # updates in a row that say the estimate is lost
-        self._rejected = np.zeros(model.marker_X.size, dtype=int)   # frames in a row out of the gate
-        self._retaken = np.zeros(model.marker_X.size, dtype=bool)   # taken again, not yet back in it
+        self._gate = MarkerGate(model.marker_X.size, config.gate, config.regate)
         self._linear = None          # (dR/dq, A, u) of the last tendon update, for the prediction
         size, rows = self.z.size, max(n + nt, 3 * model.marker_X.size)     # the updates' largest
         self._update_out = (np.zeros(size), np.zeros((size, rows)), np.zeros((rows, size)), np.zeros(rows),
@@ -402,24 +427,17 @@ class ShapeEstimator:
         z, K, H, noise, innovation = self._update_out
         rows = 0
         for k in seen:
-            d2, y = report.marker_nis[k], nu[k]
-            if d2 > c.gate and not self._retaken[k]:
-                self._rejected[k] += 1
-                if self._rejected[k] < c.regate:
-                    report.gated.append(int(k))
-                    continue
-                self.counts["diverged"] += 1          # believed again until it is back in the gate
-                self._retaken[k] = True
-            if d2 <= c.gate:
-                self._retaken[k] = False
-            self._rejected[k] = 0
+            if not self._gate.takes(k, report.marker_nis[k]):
+                report.gated.append(int(k))
+                continue
             H[rows:rows + 3, :n] = H_all[k]
             H[rows:rows + 3, n:] = 0.0
-            innovation[rows:rows + 3] = y
+            innovation[rows:rows + 3] = nu[k]
             rows += 3
             report.used.append(int(k))
         self.counts["markers_used"] += len(report.used)
         self.counts["markers_gated"] += len(report.gated)
+        self.counts["diverged"] = self._gate.diverged
         if rows and not marker_update(H, innovation, rows, sigma ** 2, n, self.z, self.Pz, K, noise,
                                       self._update_work):
             raise np.linalg.LinAlgError("the markers' innovation covariance is not positive definite")
