@@ -140,10 +140,13 @@ def _blind(task: str, overrides: list, arm_file=None) -> dict:
 def run_draw(spec: dict) -> dict:
     """One plant of the robustness campaign's draws (``seed``, with its mocap calibration error):
     the identification experiment simulated on it and fitted as ``soft-arm-identify`` fits it, then
-    ``task`` blind (the tendons alone) with the controller's model and with the identified arm."""
+    ``task`` blind (the tendons alone) with the controller's model, the estimator told the
+    tolerances' spread (:func:`~soft_arm_experiments.campaigns.plants.estimator_priors`), and with
+    the identified arm, the estimator told the identified payload's uncertainty."""
     import tempfile
 
-    from soft_arm_experiments.campaigns.plants import draw_frame, draw_plant, load_tolerances, plant_overrides
+    from soft_arm_experiments.campaigns.plants import (draw_frame, draw_plant, estimator_priors,
+                                                       load_tolerances, plant_overrides)
     from soft_arm_experiments.excitation import Excitation, load_identification, parse_fit
     from soft_arm_experiments.harness import load_setup
     from soft_arm_experiments.identification_run import simulate_recording
@@ -152,17 +155,20 @@ def run_draw(spec: dict) -> dict:
     t0 = time.perf_counter()
     tolerances = load_tolerances()
     plant = {**draw_plant(spec["seed"], tolerances), **draw_frame(spec["seed"], tolerances)}
-    overrides = plant_overrides(plant)
+    overrides = plant_overrides(plant) + [f"estimator.process_model={spec['process_model']}"]
     setup = load_setup("identification", overrides=overrides)
     rec = simulate_recording(setup, Excitation(setup.excitation, len(setup.arm.tendons)))
     fit = identify(rec, setup.arm, parse_fit(load_identification()), workers=1)["static"]
+    # what the estimator is told the plant may be: the tolerances' spread about the drawing, or the
+    # identification's uncertainty of the payload it found
     out = {"seed": spec["seed"], "task": spec["task"], "plant": plant,
-           "model": _blind(spec["task"], overrides)}
+           "model": _blind(spec["task"], overrides + estimator_priors(tolerances, setup.arm))}
     with tempfile.TemporaryDirectory() as tmp:
         path = os.path.join(tmp, "arm.yaml")
         write_identified_arm(path, fit.arm, composed_calibration(fit.registration,
                                                                  load_mocap_config().calibration))
-        out["identified"] = _blind(spec["task"], overrides, path)
+        told = [f"estimator.prior.payload={fit.estimates['tip_mass'].uncertainty:.6g}"]
+        out["identified"] = _blind(spec["task"], overrides + told, path)
     return {**out, "wall_s": time.perf_counter() - t0}
 
 
@@ -220,10 +226,11 @@ def main(argv=None) -> int:
 
 
 def _draws(args) -> int:
-    specs = [{"seed": seed, "task": args.tasks[0]} for seed in range(args.draws)]
+    specs = [{"seed": seed, "task": args.tasks[0], "process_model": args.process_model}
+             for seed in range(args.draws)]
     rows = map_runs(f"{os.path.abspath(__file__)}:run_draw", specs, workers=args.workers)
     print(f"{'seed':>4} {'model':10} {'RMS mm':>7} {'hold mm':>7} {'worse':>6} {'refused':>7} "
-          f"{'mm band':>8} {'tip est. rest mm (median/p95/max)':>34} {'NEES rest':>9}")
+          f"{'mm band':>8} {'tip est. rest mm (median/p95/max)':>34} {'NEES rest':>9} {'NEES all':>8}")
     for r in rows:
         for which in ("model", "identified"):
             f = r[which]
@@ -232,12 +239,12 @@ def _draws(args) -> int:
             hold = f["hold"]["rms_error"]
             print(f"{r['seed']:>4} {which:10} {1e3 * f['rms_error']:7.3f} {1e3 * hold:7.3f} "
                   f"{1e3 * worse:6.2f} {f['distrusts']:>7} {f['reached_mm']:>3}/{f['transitions']:<4} "
-                  f"{_tip(f['estimate_at_rest'], True):>34} {nees:>9}")
+                  f"{_tip(f['estimate_at_rest'], True):>34} {nees:>9} {f['tip_nees_mean']:8.2f}")
     worst = {which: max(r[which]["estimate_at_rest"]["median"][-1] for r in rows)
              for which in ("model", "identified")}
     print("worst median tip error at rest [mm]: " + ", ".join(f"{k} {1e3 * v:.2f}" for k, v in worst.items()))
     write_results(args.output or results_path("sensing_draws.json"),
-                  {"draws": rows, "rest_speed": REST_SPEED})
+                  {"draws": rows, "rest_speed": REST_SPEED, "process_model": args.process_model})
     return 0
 
 

@@ -240,6 +240,45 @@ class MarkerGate:
         return True
 
 
+class LostRule:
+    """When both shape estimators stop standing by their estimate, and when they restart: an update
+    whose stiffness scale is on :data:`STIFFNESS_BOUNDS` (no cast arm is so, moving or not), whose
+    shortenings disagree with it by :data:`RESTART_NIS` each (where the filter's process model makes
+    that meaningful) or that leaves the model's domain is distrusted (:attr:`distrust` says why);
+    :data:`RESTART_AFTER` such updates in a row and the estimate is :attr:`lost`."""
+
+    def __init__(self):
+        self.bad = 0                 # updates in a row that say the estimate is lost
+        self.distrust: str | None = None
+
+    def judge(self, stiffness: float, shortening_nis: float, n_tendons: int, disagreement_counts: bool):
+        """An update taken: its stiffness scale and the normalised square of its shortenings'
+        innovation over ``n_tendons``; ``disagreement_counts``: whether a disagreement of the
+        shortenings alone counts towards a restart (it is said either way)."""
+        pinned = not STIFFNESS_BOUNDS[0] < stiffness < STIFFNESS_BOUNDS[1]
+        disagree = shortening_nis > RESTART_NIS * n_tendons
+        self.bad = self.bad + 1 if pinned or (disagreement_counts and disagree) else 0
+        self.distrust = None
+        if pinned:
+            self.distrust = (f"the tendons need a stiffness {stiffness:.2f} times the model's, at or "
+                             f"beyond what a cast arm can be {list(STIFFNESS_BOUNDS)}")
+        elif disagree:
+            self.distrust = (f"the shortenings disagree with the estimate (normalised square "
+                             f"{shortening_nis:.0f} over {n_tendons} tendons)")
+
+    def out_of_domain(self):
+        """An update not taken: it left the model's domain."""
+        self.bad += 1
+        self.distrust = "the update left the model's domain"
+
+    @property
+    def lost(self) -> bool:
+        return self.bad >= RESTART_AFTER
+
+    def restarted(self):
+        self.bad, self.distrust = 0, None
+
+
 class ShapeEstimator:
     """The filter for ``model`` (the controller's) with ``config``. :meth:`start` initialises it at
     the equilibrium of the measured tensions; then :meth:`update` once per sample. The state is
@@ -260,7 +299,7 @@ class ShapeEstimator:
         self.counts = {"updates": 0, "markers_used": 0, "markers_gated": 0, "diverged": 0,
                        "out_of_domain": 0, "restarts": 0}
         self._prior = self.z.copy(), self.Pz.copy()
-        self._bad = 0                # updates in a row that say the estimate is lost
+        self._lost = LostRule()
         self._gate = MarkerGate(model.marker_X.size, config.gate, config.regate)
         self._linear = None          # (dR/dq, A, u) of the last tendon update, for the prediction
         size, rows = self.z.size, max(n + nt, 3 * model.marker_X.size)     # the updates' largest
@@ -270,7 +309,6 @@ class ShapeEstimator:
         n_m = model.marker_X.size                            # the markers' Jacobians, covariances,
         self._marker_out = (np.zeros((n_m, 3, n)), np.zeros((n_m, 3, 3)), np.zeros((n_m, 3)),
                             np.zeros(n_m))                   # innovations and NIS
-        self.distrust = None         # why the last update leaves the estimate undefended (None: it does not)
 
     @property
     def q(self) -> np.ndarray:
@@ -304,6 +342,11 @@ class ShapeEstimator:
     def started(self) -> bool:
         return self.t is not None
 
+    @property
+    def distrust(self) -> str | None:
+        """Why the last update leaves the estimate undefended (None: it does not)."""
+        return self._lost.distrust
+
     def update(self, t: float, shortening, rate, tension, markers=None) -> UpdateReport:
         """One sample at time ``t`` [s]: the tendons' shortenings [m], rates [m/s] and tensions [N],
         and ``markers`` (n_markers, 3) [m] in arm_base with NaN rows for the unseen (None: no
@@ -329,30 +372,19 @@ class ShapeEstimator:
             at_rest = not sd.size or float(np.max(np.abs(sd))) <= c.rest_speed
             stiffness = self.z[self.model.n]
             self._clamp_parameters()
-            pinned = not STIFFNESS_BOUNDS[0] < self.z[self.model.n] < STIFFNESS_BOUNDS[1]
-            disagree = shortening_nis > RESTART_NIS * s.size
-            # a stiffness on its bound is lost whether the arm moves or not (no cast arm is so);
-            # shortenings that disagree only at rest (a move outruns the static balance)
-            self._bad = self._bad + 1 if pinned or (at_rest and disagree) else 0
-            self.distrust = None
-            if pinned:
-                self.distrust = (f"the tendons need a stiffness {stiffness:.2f} times the model's, at or "
-                                 f"beyond what a cast arm can be {list(STIFFNESS_BOUNDS)}")
-            elif disagree:
-                self.distrust = (f"the shortenings disagree with the estimate (normalised square "
-                                 f"{shortening_nis:.0f} over {s.size} tendons)")
+            # shortenings that disagree count only at rest: a move outruns the static balance
+            self._lost.judge(stiffness, shortening_nis, s.size, disagreement_counts=at_rest)
         except OutOfDomainError:                  # the update left the model's domain: not taken
             self.counts["out_of_domain"] += 1
             self.z, self.Pz, self._linear = saved
             self.Pz[np.diag_indices(self.model.n)] += (c.tension_change * self.scale) ** 2 * 1e-2
-            self._bad += 1
-            self.distrust = "the update left the model's domain"
-        if self._bad >= RESTART_AFTER:            # lost: start again from the tensions' equilibrium
+            self._lost.out_of_domain()
+        if self._lost.lost:                       # lost: start again from the tensions' equilibrium
             self.counts["restarts"] += 1
             self.z, self.Pz = (a.copy() for a in self._prior)
-            self._linear, self._bad = None, 0
+            self._linear = None
             self.start(t, u, s)
-            self.distrust = None
+            self._lost.restarted()
         self.counts["updates"] += 1
         return report
 

@@ -97,6 +97,37 @@ def plant_overrides(plant: dict) -> list:
     return [f"plant.{key}={json.dumps(value)}" for key, value in plant.items()]
 
 
+def _rms_about(low: float, high: float, value: float) -> float:
+    """The root-mean-square distance from ``value`` of a number uniform in [low, high]."""
+    if high <= low:
+        return abs(low - value)
+    return math.sqrt(((high - value) ** 3 - (low - value) ** 3) / (3.0 * (high - low)))
+
+
+def estimator_priors(tolerances: dict, arm) -> list:
+    """``estimator.prior.*`` overrides that tell the shape estimator what the tolerances leave
+    unknown of ``arm`` (an :class:`~soft_arm_model.config.ArmConfig`, the controller's): the
+    stiffness scale (Young's modulus over the arm's) [-], the tendons' friction coefficients [-],
+    offset fractions [-], start and end angles [rad] and the payload [kg] the plant carries at the
+    tip beyond the arm's ``tip_mass``, each the root-mean-square distance of the drawn value from the
+    arm's (the worst tendon's). These are what
+    the dynamic estimate considers where the tendons cannot tell them; a filter told less reports an
+    uncertainty the drawn plants exceed (``docs/concepts/sensing.md``). The stiffness and friction the
+    estimators learn from the tendons; these are where they start."""
+    t = tolerances
+    priors = {
+        "stiffness": _rms_about(*t["youngs_modulus_scale"], 1.0),
+        "friction": max(_rms_about(*t["friction"], tendon.friction) for tendon in arm.tendons),
+        "tendon_offset": max(_rms_about(*t["offset_fraction"], tendon.offset_fraction)
+                             for tendon in arm.tendons),
+        "tendon_angle": math.radians(t["angle_error_deg"]) / math.sqrt(3.0),
+        "payload": _rms_about(*t["tip_payload"], 0.0),     # on top of the arm's own tip mass
+    }
+    # the schema's floor: a tolerance of none still leaves the stiffness and friction a little freedom
+    floors = {"stiffness": 1e-3, "friction": 1e-3}
+    return [f"estimator.prior.{key}={max(value, floors.get(key, 0.0)):.6g}" for key, value in priors.items()]
+
+
 def plant_holds(task: str, overrides: list) -> dict:
     """Whether the plant itself can hold the targets the run visits: the precomputed CLIK solved on
     the plant's own model, its margin [N] from the tension limits and its stability under the inner

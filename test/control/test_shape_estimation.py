@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from conftest import nees_bounded
-from soft_arm_control.shape_estimation import ShapeEstimator, fused_markers, load_estimator_config
+from soft_arm_control.shape_estimation import (RESTART_AFTER, RESTART_NIS, STIFFNESS_BOUNDS, LostRule,
+                                               ShapeEstimator, fused_markers, load_estimator_config)
 from soft_arm_drivers.sim.plant_config import load_plant_config
 from soft_arm_drivers.sim.simulated_rig import SimulatedRig
 from soft_arm_model import (ArmData, build_model, evaluate, load_arm_config, marker_positions,
@@ -225,3 +226,27 @@ def test_fused_markers_take_the_mocap_where_it_saw_and_the_estimate_elsewhere():
 def test_a_bad_estimator_value_names_the_key():
     with pytest.raises(ConfigError, match=r"estimator\.noise\.marker"):
         load_estimator_config(overrides={"noise.marker": 1.0})
+
+
+def test_the_lost_rule_distrusts_says_why_and_restarts_after_a_run_of_bad_updates():
+    """Both filters' rule: a pinned stiffness counts moving or not, a disagreement of the shortenings
+    only where it counts, a left domain always; a good update ends the run; RESTART_AFTER in a row
+    is lost."""
+    rule, good = LostRule(), (1.0, 1.0, 4)
+    rule.judge(STIFFNESS_BOUNDS[1], 0.0, 4, disagreement_counts=False)
+    assert rule.bad == 1 and "stiffness 2.00" in rule.distrust
+    rule.judge(*good, disagreement_counts=True)
+    assert rule.bad == 0 and rule.distrust is None
+    rule.judge(1.0, RESTART_NIS * 4 + 1.0, 4, disagreement_counts=False)
+    assert rule.bad == 0 and "disagree" in rule.distrust          # said, not counted
+    for k in range(RESTART_AFTER - 1):
+        assert not rule.lost
+        if k % 2:
+            rule.judge(1.0, RESTART_NIS * 4 + 1.0, 4, disagreement_counts=True)
+        else:
+            rule.out_of_domain()
+    assert not rule.lost
+    rule.out_of_domain()
+    assert rule.lost and "domain" in rule.distrust
+    rule.restarted()
+    assert not rule.lost and rule.distrust is None
