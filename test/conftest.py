@@ -46,7 +46,8 @@ SERIAL = ("drivers/sim/test_emulated_rig.py", "drivers/sim/test_emulated_hardwar
 # Tests that assert a closed-loop figure (an error, an RMS, targets reached, a NEES): `test/variants`
 # runs them on other arithmetics and on perturbed twins of the plant, where each must hold as well.
 FIGURES = ("experiments/test_harness.py", "experiments/test_harness_feedback.py",
-           "control/test_shape_estimation.py", "graph/test_graph.py", "graph/test_feedback_graph.py")
+           "experiments/test_estimate_in_motion.py", "control/test_shape_estimation.py",
+           "control/test_dynamic_estimation.py", "graph/test_graph.py", "graph/test_feedback_graph.py")
 
 
 def pytest_collection_modifyitems(config, items):
