@@ -493,8 +493,11 @@ def test_a_cycle_that_raises_stops_the_motors_and_ends_the_process_with_status_1
     """An exception in the cycle thread is not lost in the thread: the motors go to zero torque and
     out of motor mode, the reason is logged, and the node's process ends with status 1."""
     proc = _activated_driver_process(context, "failing_driver", FAILING_CYCLE)
-    with killed_on_exit(proc):
+    try:
         out, _ = proc.communicate(timeout=20)
+    except subprocess.TimeoutExpired:           # what it did before it hung: the failure says
+        proc.kill()
+        raise AssertionError(f"the process did not end within 20 s:\n{proc.communicate()[0]}") from None
     assert proc.returncode == 1, out
     assert "the driver's cycle failed" in out and "injected: the bus vanished" in out
     _motors_were_left_safe(out)
