@@ -110,10 +110,10 @@ def estimator_priors(tolerances: dict, arm) -> list:
     stiffness scale (Young's modulus over the arm's) [-], the tendons' friction coefficients [-],
     offset fractions [-], start and end angles [rad] and the payload [kg] the plant carries at the
     tip beyond the arm's ``tip_mass``, each the root-mean-square distance of the drawn value from the
-    arm's (the worst tendon's). These are what
-    the dynamic estimate considers where the tendons cannot tell them; a filter told less reports an
-    uncertainty the drawn plants exceed (``docs/concepts/sensing.md``). The stiffness and friction the
-    estimators learn from the tendons; these are where they start."""
+    arm's (the worst tendon's). The dynamic estimate considers the routing and the payload where the
+    tendons cannot tell them, and a filter told less reports an uncertainty the drawn plants exceed
+    (``docs/concepts/sensing.md``); the stiffness and friction both estimators learn from the
+    tendons, and these are where the learning starts."""
     t = tolerances
     priors = {
         "stiffness": _rms_about(*t["youngs_modulus_scale"], 1.0),
