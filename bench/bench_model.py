@@ -13,7 +13,12 @@ Measures, on one core:
   solver's before), side by side in the same run;
 - simulation real-time factor at 1 ms IMEX steps, 10 s with a tendon step; at 20 DOF also with the
   plant's rotors, and their term (the tendons' rate bias) alone;
-- peak memory of the model process (before PyElastica is imported);
+- the two integrators at equal accuracy (20 DOF, the plant's rotors, a 5 N step): the largest tip
+  error over 1.5 s against a fine reference (ROS2 at 0.125 ms) and the real-time factor, for the
+  Euler step at 1 ms and ROS2 at 1 to 5 ms; the longest ROS2 step as accurate as the Euler step at
+  1 ms, and its speed over it;
+- peak memory of the model process (before the integrators' comparison, whose fine reference run
+  the bench keeps, and before PyElastica is imported);
 - the tip error against the exact tendon-load solution by Legendre order, with and without a division
   break at the tendon end;
 - the same cone as a horizontal cantilever under gravity in PyElastica and in this model, side by
@@ -305,6 +310,40 @@ def elastica_settings(config, g_acc, duration, ref, target_error) -> dict:
     return {"elements": best["elements"], "dt_s": best["dt_s"], "equal_accuracy": False, "tried": tried}
 
 
+INTEGRATOR_STEPS = {"imex": (1e-3,), "ros2": (1e-3, 2e-3, 4e-3, 5e-3)}
+
+
+def bench_integrators(duration=1.5, sample=0.02):
+    """The Euler step and ROS2 against a fine ROS2 reference (0.125 ms): largest tip error [m] over
+    ``duration`` s of a 5 N step on tendons 1 and 3 at 0.2 s (sampled every ``sample`` s) and the
+    real-time factor (best of three), 20 DOF, the plant's rotors."""
+    m = _model(20)
+    rotor = [load_plant_config(load_arm_config()).rotor_mass] * 4
+    q0 = solve_equilibrium(m, np.zeros(4)).q
+    step = np.array([5.0, 0.0, 5.0, 0.0])
+
+    def run(method, dt):
+        tr = simulate(m, q0, np.zeros(m.n), lambda t: step if t >= 0.2 else np.zeros(4), duration,
+                      dt=dt, rotor_mass=rotor, method=method)
+        return np.array([tip_frame(m, q).p for q in tr.q[::int(round(sample / dt))]])
+
+    reference = run("ros2", 1.25e-4)
+    rows = []
+    for method, steps in INTEGRATOR_STEPS.items():
+        for dt in steps:
+            error = float(np.linalg.norm(run(method, dt) - reference, axis=1).max())
+            wall = best_of(lambda: run(method, dt), repeats=3, inner=1)
+            rows.append({"method": method, "dt_s": dt, "max_tip_error_m": error,
+                         "real_time_factor": duration / wall})
+    euler = rows[0]
+    equal = max((r for r in rows[1:] if r["max_tip_error_m"] <= euler["max_tip_error_m"]),
+                key=lambda r: r["dt_s"], default=None)
+    return {"rotor_mass_kg": rotor, "duration_s": duration, "reference": {"method": "ros2", "dt_s": 1.25e-4},
+            "runs": rows, "ros2_at_equal_accuracy": equal,
+            "speed_ratio_at_equal_accuracy": None if equal is None else
+            equal["real_time_factor"] / euler["real_time_factor"]}
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--output", default=results_path("model.json"))
@@ -320,6 +359,7 @@ def main(argv=None):
     res["simulation_with_rotors"] = bench_simulation(20, rotor_mass=[rotor] * 4)
     res["rotor_term_us"] = bench_rotor_term()
     res["peak_memory_mb_model"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    res["integrators"] = bench_integrators()
     res["convergence"] = bench_convergence()
     res["cantilever"] = bench_cantilever(elastica=not args.skip_elastica)
 
@@ -345,6 +385,16 @@ def main(argv=None):
     r = res["simulation_with_rotors"]
     print(f"  with the plant's rotors ({r['rotor_mass_kg'][0]:g} kg per tendon), 20 DOF: real-time factor "
           f"{r['real_time_factor']:.1f}; their term, the tendons' rate bias: {res['rotor_term_us']:.2f} us")
+    r = res["integrators"]
+    print("integrators, 20 DOF with the rotors, 1.5 s of a 5 N step, largest tip error against ROS2 at "
+          "0.125 ms:")
+    for row in r["runs"]:
+        print(f"  {row['method']:>4} {row['dt_s'] * 1e3:4.1f} ms: {row['max_tip_error_m'] * 1e3:7.3f} mm, "
+              f"real-time factor {row['real_time_factor']:5.1f}")
+    if r["ros2_at_equal_accuracy"] is not None:
+        print(f"  at the Euler step's accuracy ROS2 steps {r['ros2_at_equal_accuracy']['dt_s'] * 1e3:g} ms: "
+              f"real-time factor {r['ros2_at_equal_accuracy']['real_time_factor']:.1f}, "
+              f"{r['speed_ratio_at_equal_accuracy']:.2f}x the Euler step's [>= 60 with it]")
     print(f"peak memory of the model process: {res['peak_memory_mb_model']:.0f} MB [< 300 MB]")
     print("tip error against the exact tendon-load solution (2 N on tendon 3, no gravity):")
     for r in res["convergence"]:

@@ -30,7 +30,9 @@ def _model():
     model = build_model()
     evaluate(model, ArmData(model), np.zeros(model.n), np.zeros(model.n), CORIOLIS, markers=True)
     eq = solve_equilibrium(model, [0.5, 0.0, 0.5, 0.0])
-    simulate(model, eq.q, np.zeros(model.n), lambda t: [0.5, 0.0, 0.5, 0.0], 0.01, dt=1e-3)
+    for method in ("imex", "ros2"):
+        simulate(model, eq.q, np.zeros(model.n), lambda t: [0.5, 0.0, 0.5, 0.0], 0.01, dt=1e-3,
+                 method=method)
 
 
 def _controller_and_plant():
@@ -43,7 +45,7 @@ def _mocap():
     warm_up()
 
 
-STEPS = (("the model's kernels (kinematics to Coriolis, statics, the IMEX step)", _model),
+STEPS = (("the model's kernels (kinematics to Coriolis, statics, the IMEX and ROS2 steps)", _model),
          ("the plant, the inner loop, the actuation map, the CLIK and the shape estimator (a short "
           "coiling run)",
           _controller_and_plant),

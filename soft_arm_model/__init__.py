@@ -15,7 +15,7 @@ from .dynamics import (CORIOLIS, DYNAMICS, KINEMATICS, STATICS, Frame, OutOfDoma
                        actuation_coordinates, actuation_matrix, coriolis_matrix, elastic_force, evaluate,
                        forward_dynamics, frame_at, gravity_force, marker_positions, mass_matrix,
                        potential_energies, tendon_lengths, tip_frame, total_energy)
-from .integrators import ImexStepper, Trajectory, simulate
+from .integrators import ImexStepper, Ros2Stepper, Trajectory, simulate
 from .model import ArmData, ArmModel, build_model
 from .parameters import ConfigError
 from .statics import (Equilibrium, EquilibriumError, residual_jacobian, solve_equilibrium, static_residual,
@@ -28,6 +28,6 @@ __all__ = [
     "actuation_matrix", "tendon_lengths", "actuation_coordinates", "potential_energies",
     "mass_matrix", "coriolis_matrix", "total_energy", "forward_dynamics",
     "Equilibrium", "EquilibriumError", "solve_equilibrium", "residual_jacobian", "static_residual",
-    "static_tangents", "tangent_at", "ImexStepper",
+    "static_tangents", "tangent_at", "ImexStepper", "Ros2Stepper",
     "Trajectory", "simulate",
 ]
