@@ -6,8 +6,9 @@ are compiled on their first call and cached beside their modules (numba's ``cach
 machine that first call takes about a minute, and it would otherwise come in the middle of a run:
 harmless on the simulator, but on the emulated rig (or the rig) a node that compiles while its
 neighbours time out looks like a fault. This command makes the calls a run makes, says what it
-compiles and how long each took, and is quick once the cache is warm. Exit status 0, or 1 with the
-reason when a kernel cannot be compiled.
+compiles and how long each took, and is quick once the cache is warm. It first clears a cache built
+from other sources (:mod:`.kernel_cache`). Exit status 0, or 1 with the reason when a kernel cannot
+be compiled.
 """
 from __future__ import annotations
 
@@ -16,6 +17,8 @@ import sys
 import time
 
 import numpy as np
+
+from .kernel_cache import clear_stale
 
 # One target of coiling for a fraction of a second: the plant, the inner loop, the actuation map, the
 # precomputed and the online CLIK and the shape estimator all run at least once.
@@ -56,6 +59,10 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="soft-arm-warmup", description=__doc__.splitlines()[0])
     parser.parse_args(argv)
     start = time.monotonic()
+    removed = clear_stale()
+    if removed:
+        print(f"soft-arm-warmup: the sources changed since the kernels were cached: {removed} cached "
+              "kernel files removed", file=sys.stderr)
     for what, step in STEPS:
         print(f"soft-arm-warmup: compiling {what} ...", end="", file=sys.stderr, flush=True)
         t0 = time.monotonic()

@@ -173,21 +173,50 @@ TANGENT_SCRATCH = 11  # number of 6x6 scratch matrices the tangent functions sha
 
 @njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
 def tangent(omega, T, work):
-    """Tangent operator ``T(omega)``. Leaves ad(omega)^1..4 in work[0:4] and the weights f, g in
-    work[10] for ``tangent_rate`` and ``tangent_rate_apply``; ``work`` has shape (TANGENT_SCRATCH, 6, 6).
+    """Tangent operator ``T(omega)``. Leaves the weights f, g in work[10] for ``tangent_rate`` and
+    ``tangent_rate_apply``; ``work`` has shape (TANGENT_SCRATCH, 6, 6).
+
+    In closed form by 3 x 3 blocks rather than by powers of ad: with W = w~, V = v~, ad = [[W, 0],
+    [V, W]], W^3 = -theta^2 W, and the block identities W V W = -(w.v) W, V W + W V = w v^T + v w^T
+    - 2 (w.v) I, the series I + f1 ad + ... + f4 ad^4 is [[T_w, 0], [T_v, T_w]] with
+    T_w = I + a W + b W^2 and T_v = a V + b (V W + W V) - 2 (w.v) (f3 W + f4 W^2), where
+    a = f1 - theta^2 f3 and b = f2 - theta^2 f4.
     """
-    theta2 = omega[0] ** 2 + omega[1] ** 2 + omega[2] ** 2
+    w0, w1, w2, v0, v1, v2 = omega[0], omega[1], omega[2], omega[3], omega[4], omega[5]
+    theta2 = w0 * w0 + w1 * w1 + w2 * w2
     f = work[10, 0, 0:4]
     tangent_weights(theta2, f, work[10, 1, 0:4])
-    ad1, ad2, ad3, ad4 = work[0], work[1], work[2], work[3]
-    ad_matrix(omega, ad1)
-    matmul_into(ad1, ad1, ad2)
-    matmul_into(ad2, ad1, ad3)
-    matmul_into(ad3, ad1, ad4)
-    for i in range(6):
-        for j in range(6):
-            T[i, j] = (1.0 if i == j else 0.0) + f[0] * ad1[i, j] + f[1] * ad2[i, j] \
-                + f[2] * ad3[i, j] + f[3] * ad4[i, j]
+    a = f[0] - theta2 * f[2]
+    b = f[1] - theta2 * f[3]
+    wv = w0 * v0 + w1 * v1 + w2 * v2
+    w = (w0, w1, w2)
+    v = (v0, v1, v2)
+    for i in range(3):
+        for j in range(3):
+            eye = 1.0 if i == j else 0.0
+            Wij = 0.0   # (w~)_ij = -eps_ijk w_k
+            Vij = 0.0
+            if i != j:
+                k = 3 - i - j
+                sign = 1.0 if (i - j) % 3 == 1 else -1.0
+                Wij = sign * w[k]
+                Vij = sign * v[k]
+            W2ij = w[i] * w[j] - theta2 * eye
+            P1ij = w[i] * v[j] + v[i] * w[j] - 2.0 * wv * eye
+            tw = eye + a * Wij + b * W2ij
+            T[i, j] = tw
+            T[i + 3, j + 3] = tw
+            T[i, j + 3] = 0.0
+            T[i + 3, j] = a * Vij + b * P1ij - 2.0 * wv * (f[2] * Wij + f[3] * W2ij)
+
+
+@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
+def _ad_powers(omega, work):
+    """ad(omega)^1..4 into work[0:4]."""
+    ad_matrix(omega, work[0])
+    matmul_into(work[0], work[0], work[1])
+    matmul_into(work[1], work[0], work[2])
+    matmul_into(work[2], work[0], work[3])
 
 
 @njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
@@ -195,6 +224,7 @@ def tangent_rate(omega, omega_dot, Tdot, work):
     """Time derivative of ``T(omega)`` for ``d omega/dt = omega_dot`` (call ``tangent`` first)."""
     f = work[10, 0, 0:4]
     g = work[10, 1, 0:4]
+    _ad_powers(omega, work)
     ad1, ad2, ad3, ad4 = work[0], work[1], work[2], work[3]
     theta_dtheta = omega[0] * omega_dot[0] + omega[1] * omega_dot[1] + omega[2] * omega_dot[2]
     E, d2, d3, d4, tmp, tmp2 = work[4], work[5], work[6], work[7], work[8], work[9]

@@ -50,6 +50,14 @@ FIGURES = ("experiments/test_harness.py", "experiments/test_harness_feedback.py"
            "control/test_dynamic_estimation.py", "graph/test_graph.py", "graph/test_feedback_graph.py")
 
 
+def pytest_configure(config):
+    """Before anything compiles, and once per session (not in xdist's workers): delete the cached
+    kernels if the sources changed since they were cached (numba misses an edit in another file)."""
+    if not hasattr(config, "workerinput"):
+        from soft_arm_experiments.kernel_cache import clear_stale
+        clear_stale()
+
+
 def pytest_collection_modifyitems(config, items):
     """Mark the tests of :data:`SERIAL` ``serial`` and those of :data:`FIGURES` ``figure``."""
     root = os.path.dirname(os.path.abspath(__file__))
