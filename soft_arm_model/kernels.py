@@ -100,13 +100,15 @@ def _magnus_step(q, qd, xi_star, h, B1, B2, R_prev, p_prev, J_prev, R_out, p_out
             R_out[a, b] = s
         p_out[a] = acc
     tangent(omega, T, sq)
-    for r in range(6):
+    for r in range(6):                  # S = T Z, the inner loop along Z's rows (vectorised)
         for j in range(n):
-            acc = 0.0
-            for k in range(6):
-                acc += T[r, k] * Z[k, j]
-            S[r, j] = acc
-            JS[r, j] = J_prev[r, j] + acc
+            S[r, j] = 0.0
+        for k in range(6):
+            t = T[r, k]
+            for j in range(n):
+                S[r, j] += t * Z[k, j]
+        for j in range(n):
+            JS[r, j] = J_prev[r, j] + S[r, j]
     inverse_adjoint_apply(Rs, ps, JS, J_out)
     if rates == 0:
         return
@@ -154,6 +156,21 @@ def _cross(a, b, out):
 
 
 @njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
+def _column_rows(Bp, lo, hi, rows):
+    """rows[a] = the one strain row r where Bp[r, a] != 0 for the columns a in [lo, hi) (-1 where
+    the column is zero at this point); False if a column has more than one (the basis is not one
+    strain mode per coordinate, and the caller takes every row)."""
+    for a in range(lo, hi):
+        rows[a] = -1
+        for r in range(6):
+            if Bp[r, a] != 0.0:
+                if rows[a] >= 0:
+                    return False
+                rows[a] = r
+    return True
+
+
+@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
 def _elastic(w, B, xi, stiff_diag, neo_axial, col_lo, col_hi, Fel, Kt, energies):
     """Elastic force F_el = sum w B^T sigma(xi - xi*), tangent K_t, energy; False if stretch <= 0."""
     n = Fel.shape[0]
@@ -163,6 +180,7 @@ def _elastic(w, B, xi, stiff_diag, neo_axial, col_lo, col_hi, Fel, Kt, energies)
     energy = 0.0
     sig = np.empty(6)
     dsig = np.empty(6)
+    rows = np.empty(n, dtype=np.int64)
     for pt in range(P):
         if w[pt] == 0.0:
             continue
@@ -180,12 +198,24 @@ def _elastic(w, B, xi, stiff_diag, neo_axial, col_lo, col_hi, Fel, Kt, energies)
                 energy += w[pt] * k3 * (0.5 * lam * lam + 1.0 / lam - 1.5)
             else:
                 energy += w[pt] * 0.5 * stiff_diag[pt, r] * e * e
-        for a in range(col_lo[pt], col_hi[pt]):  # B is zero outside the point's division
+        lo, hi = col_lo[pt], col_hi[pt]      # B is zero outside the point's division
+        if _column_rows(B[pt], lo, hi, rows):
+            # one strain mode per coordinate: B^T diag(dsig) B couples only coordinates of one mode
+            for a in range(lo, hi):
+                r = rows[a]
+                if r < 0:
+                    continue
+                Fel[a] += w[pt] * (B[pt, r, a] * sig[r])
+                for b in range(a, hi):
+                    if rows[b] == r:
+                        Kt[a, b] += w[pt] * (B[pt, r, a] * dsig[r] * B[pt, r, b])
+            continue
+        for a in range(lo, hi):
             acc = 0.0
             for r in range(6):
                 acc += B[pt, r, a] * sig[r]
             Fel[a] += w[pt] * acc
-            for b in range(a, col_hi[pt]):
+            for b in range(a, hi):
                 acc = 0.0
                 for r in range(6):
                     acc += B[pt, r, a] * dsig[r] * B[pt, r, b]
@@ -227,7 +257,15 @@ def _tendons(w, B, Bd, xi, q, t_d, t_dp, t_dpp, t_active, t_mu, Q, smoothing, co
     A0[:, :] = 0.0
     tang = np.empty((P, 3))
     ntau = np.zeros(P)
-    xid = np.empty(6)
+    # per point, whatever the tendon: the strain's rate of change along the arm xi' = Bd q, and
+    # the one strain row of each coordinate (sparse[pt]: B is one mode per coordinate there)
+    xid_all = np.zeros((P, 6))
+    rows = np.full((P, q.shape[0]), -1, dtype=np.int64)
+    sparse = np.zeros(P, dtype=np.bool_)
+    for pt in range(P):
+        if w[pt] != 0.0:
+            _matvec(Bd[pt], q, xid_all[pt])
+            sparse[pt] = _column_rows(B[pt], col_lo[pt], col_hi[pt], rows[pt])
     tau = np.empty(3)
     taud = np.empty(3)
     tmp = np.empty(3)
@@ -253,7 +291,7 @@ def _tendons(w, B, Bd, xi, q, t_d, t_dp, t_dpp, t_active, t_mu, Q, smoothing, co
             for r in range(3):
                 tang[pt, r] = tau[r] / nt
             # tau' = k' x d + k x d' + gamma' + d''
-            _matvec(Bd[pt], q, xid)
+            xid = xid_all[pt]
             _cross(xid[0:3], d, taud)
             _cross(kap, dp, tmp)
             for r in range(3):
@@ -281,9 +319,13 @@ def _tendons(w, B, Bd, xi, q, t_d, t_dp, t_dpp, t_active, t_mu, Q, smoothing, co
                 phi_w[3 + r] = t[r]
             wa = w[pt] * t_active[k, pt]
             for a in range(col_lo[pt], col_hi[pt]):
-                acc = 0.0
-                for r in range(6):
-                    acc += B[pt, r, a] * phi_w[r]
+                if sparse[pt]:
+                    r = rows[pt, a]
+                    acc = B[pt, r, a] * phi_w[r] if r >= 0 else 0.0
+                else:
+                    acc = 0.0
+                    for r in range(6):
+                        acc += B[pt, r, a] * phi_w[r]
                 A0[a, k] += wa * acc
                 A[a, k] += wa * weight * acc
             Lc[k] += wa * ntau[pt]
