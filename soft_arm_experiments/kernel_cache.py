@@ -6,7 +6,7 @@ cached kernels of ``kernels.py``, ``statics.py`` and the controller's would go o
 code, and tests would pass on it. :func:`clear_stale` keeps one digest of every source file of the
 project's packages beside the cache; when the sources no longer match it, every cached kernel
 (``.nbi`` index, ``.nbc`` object code) is deleted and recompiles on its next call. ``test/run``'s
-pytest session and ``soft-arm-warmup`` call it before anything compiles.
+pytest run and ``soft-arm-warmup`` call it before anything compiles.
 """
 from __future__ import annotations
 

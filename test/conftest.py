@@ -51,8 +51,8 @@ FIGURES = ("experiments/test_harness.py", "experiments/test_harness_feedback.py"
 
 
 def pytest_configure(config):
-    """Before anything compiles, and once per session (not in xdist's workers): delete the cached
-    kernels if the sources changed since they were cached (numba misses an edit in another file)."""
+    """Before anything compiles, once per pytest run (not in xdist's workers): delete the cached
+    kernels if they were built from other sources (numba misses an edit in another file)."""
     if not hasattr(config, "workerinput"):
         from soft_arm_experiments.kernel_cache import clear_stale
         clear_stale()
