@@ -157,17 +157,14 @@ def _cross(a, b, out):
 
 @njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
 def _column_rows(Bp, lo, hi, rows):
-    """rows[a] = the one strain row r where Bp[r, a] != 0 for the columns a in [lo, hi) (-1 where
-    the column is zero at this point); False if a column has more than one (the basis is not one
-    strain mode per coordinate, and the caller takes every row)."""
+    """rows[a] = the strain row r where Bp[r, a] != 0 for the columns a in [lo, hi), -1 where the
+    column is zero at this point. Each coordinate is one strain mode's polynomial
+    (``model._basis_at``): a column of B has at most one non-zero row."""
     for a in range(lo, hi):
         rows[a] = -1
         for r in range(6):
             if Bp[r, a] != 0.0:
-                if rows[a] >= 0:
-                    return False
                 rows[a] = r
-    return True
 
 
 @njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
@@ -199,27 +196,16 @@ def _elastic(w, B, xi, stiff_diag, neo_axial, col_lo, col_hi, Fel, Kt, energies)
             else:
                 energy += w[pt] * 0.5 * stiff_diag[pt, r] * e * e
         lo, hi = col_lo[pt], col_hi[pt]      # B is zero outside the point's division
-        if _column_rows(B[pt], lo, hi, rows):
-            # one strain mode per coordinate: B^T diag(dsig) B couples only coordinates of one mode
-            for a in range(lo, hi):
-                r = rows[a]
-                if r < 0:
-                    continue
-                Fel[a] += w[pt] * (B[pt, r, a] * sig[r])
-                for b in range(a, hi):
-                    if rows[b] == r:
-                        Kt[a, b] += w[pt] * (B[pt, r, a] * dsig[r] * B[pt, r, b])
-            continue
+        _column_rows(B[pt], lo, hi, rows)
+        # one strain mode per coordinate: B^T diag(dsig) B couples only coordinates of one mode
         for a in range(lo, hi):
-            acc = 0.0
-            for r in range(6):
-                acc += B[pt, r, a] * sig[r]
-            Fel[a] += w[pt] * acc
+            r = rows[a]
+            if r < 0:
+                continue
+            Fel[a] += w[pt] * (B[pt, r, a] * sig[r])
             for b in range(a, hi):
-                acc = 0.0
-                for r in range(6):
-                    acc += B[pt, r, a] * dsig[r] * B[pt, r, b]
-                Kt[a, b] += w[pt] * acc
+                if rows[b] == r:
+                    Kt[a, b] += w[pt] * (B[pt, r, a] * dsig[r] * B[pt, r, b])
     for a in range(n):
         for b in range(a):
             Kt[a, b] = Kt[b, a]
@@ -258,14 +244,13 @@ def _tendons(w, B, Bd, xi, q, t_d, t_dp, t_dpp, t_active, t_mu, Q, smoothing, co
     tang = np.empty((P, 3))
     ntau = np.zeros(P)
     # per point, whatever the tendon: the strain's rate of change along the arm xi' = Bd q, and
-    # the one strain row of each coordinate (sparse[pt]: B is one mode per coordinate there)
+    # the one strain row of each coordinate
     xid_all = np.zeros((P, 6))
     rows = np.full((P, q.shape[0]), -1, dtype=np.int64)
-    sparse = np.zeros(P, dtype=np.bool_)
     for pt in range(P):
         if w[pt] != 0.0:
             _matvec(Bd[pt], q, xid_all[pt])
-            sparse[pt] = _column_rows(B[pt], col_lo[pt], col_hi[pt], rows[pt])
+            _column_rows(B[pt], col_lo[pt], col_hi[pt], rows[pt])
     tau = np.empty(3)
     taud = np.empty(3)
     tmp = np.empty(3)
@@ -319,13 +304,8 @@ def _tendons(w, B, Bd, xi, q, t_d, t_dp, t_dpp, t_active, t_mu, Q, smoothing, co
                 phi_w[3 + r] = t[r]
             wa = w[pt] * t_active[k, pt]
             for a in range(col_lo[pt], col_hi[pt]):
-                if sparse[pt]:
-                    r = rows[pt, a]
-                    acc = B[pt, r, a] * phi_w[r] if r >= 0 else 0.0
-                else:
-                    acc = 0.0
-                    for r in range(6):
-                        acc += B[pt, r, a] * phi_w[r]
+                r = rows[pt, a]
+                acc = B[pt, r, a] * phi_w[r] if r >= 0 else 0.0
                 A0[a, k] += wa * acc
                 A[a, k] += wa * weight * acc
             Lc[k] += wa * ntau[pt]

@@ -184,6 +184,9 @@ def _legendre(s: float, order: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _basis_at(config: ArmConfig, n: int, X: float, division: int | None = None):
+    """Strain basis B (6, n) and its derivative along the arm Bd at arc length X [m]: coordinate
+    (division, strain row r, order j) is the Legendre polynomial P_j in row r only, so a column has
+    one non-zero row at most (the kernels take that row alone)."""
     labels, _ = _coordinate_layout(config)
     d = _division_of(config, X) if division is None else division
     a, b = _division_bounds(config)[d]
