@@ -197,17 +197,23 @@ class ImexStepper:
 
     def advance(self, u, f_ext=None):
         """(q, qd) one step after the prepared state under tensions u [N] and an optional external
-        generalised force ``f_ext`` (e.g. a payload's weight through a Jacobian) (new arrays)."""
+        generalised force ``f_ext`` (e.g. a payload's weight through a Jacobian), both held over the
+        step (new arrays). Raises OutOfDomainError if the step cannot be taken."""
         if self._state is None:
             raise RuntimeError("advance() needs a prepare() first")
         q, qd = self._state
+        self._state = None
         q_out = np.empty_like(q)
         qd_out = np.empty_like(qd)
         f_ext = self._no_force if f_ext is None else np.ascontiguousarray(f_ext, dtype=float)
-        _imex_advance(*self._advance_args, q, qd, np.ascontiguousarray(u, dtype=float), f_ext,
-                      self.dt, q_out, qd_out)
-        self._state = None
+        if not self._advance_kernel(q, qd, np.ascontiguousarray(u, dtype=float), f_ext, q_out, qd_out):
+            raise OutOfDomainError("the step left the model's domain, or its linear system is singular")
         return q_out, qd_out
+
+    def _advance_kernel(self, q, qd, u, f_ext, q_out, qd_out) -> bool:
+        """The step from the prepared workspace into q_out, qd_out; False if it cannot be taken."""
+        _imex_advance(*self._advance_args, q, qd, u, f_ext, self.dt, q_out, qd_out)
+        return True
 
     def step(self, q, qd, u):
         """Return (q, qd) one step later (new arrays). Raises OutOfDomainError if the state leaves
@@ -232,22 +238,10 @@ class Ros2Stepper(ImexStepper):
         self._ros2_args = (model.kernel_args, d.kernel_args, self._prepare_args[2], self._adot, d.M,
                            d.Cqd, d.Fg, d.Fel, d.Kt, d.A if friction else d.A0, d.A0, model.D, work)
 
-    def advance(self, u, f_ext=None):
-        """(q, qd) one step after the prepared state under tensions u [N] and an optional external
-        generalised force ``f_ext``, held over the step (new arrays). Raises OutOfDomainError if the
-        step's second stage is outside the model's domain."""
-        if self._state is None:
-            raise RuntimeError("advance() needs a prepare() first")
-        q, qd = self._state
-        q_out = np.empty_like(q)
-        qd_out = np.empty_like(qd)
-        f_ext = self._no_force if f_ext is None else np.ascontiguousarray(f_ext, dtype=float)
-        self._state = None
-        if not _ros2_advance(*self._ros2_args, q, qd, np.ascontiguousarray(u, dtype=float), f_ext,
-                             self.dt, q_out, qd_out):
-            raise OutOfDomainError("the step's second stage left the model's domain, or its linear "
-                                   "system is singular")
-        return q_out, qd_out
+    def _advance_kernel(self, q, qd, u, f_ext, q_out, qd_out) -> bool:
+        """The ROS2 step from the prepared workspace; False if its second stage is outside the
+        model's domain or a linear system is singular."""
+        return _ros2_advance(*self._ros2_args, q, qd, u, f_ext, self.dt, q_out, qd_out)
 
 
 STEPPERS = {"imex": ImexStepper, "ros2": Ros2Stepper}
