@@ -36,6 +36,14 @@ def _model():
     for method in ("imex", "ros2"):
         simulate(model, eq.q, np.zeros(model.n), lambda t: [0.5, 0.0, 0.5, 0.0], 0.01, dt=1e-3,
                  method=method)
+    # the identification's compiled segment loop, on a segment of two steps
+    from soft_arm_model.dynamic_identification import SegmentData, simulate_changes
+    u = np.array([[0.5, 0.0, 0.5, 0.0]])
+    n_markers = len(model.config.marker_positions)
+    segment = SegmentData(t_input=np.zeros(1), tension=u, t_start=0.0, u_start=u[0],
+                          t_s=np.array([0.002, 0.004]), ds=np.zeros((2, 4)), t_m=np.array([0.004]),
+                          dp=np.zeros((1, n_markers, 3)))
+    simulate_changes(model.config, 0.5, segment, 0.002)
 
 
 def _controller_and_plant():
@@ -48,7 +56,8 @@ def _mocap():
     warm_up()
 
 
-STEPS = (("the model's kernels (kinematics to Coriolis, statics, the IMEX and ROS2 steps)", _model),
+STEPS = (("the model's kernels (kinematics to Coriolis, statics, the IMEX and ROS2 steps, the "
+          "identification's segment loop)", _model),
          ("the plant, the inner loop, the actuation map, the CLIK and the shape estimator (a short "
           "coiling run)",
           _controller_and_plant),

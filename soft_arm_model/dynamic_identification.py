@@ -18,11 +18,13 @@ import os
 from dataclasses import dataclass, replace
 
 import numpy as np
+from numba import njit
 from scipy.optimize import least_squares
 
 from .config import ArmConfig
+from .dynamics import OutOfDomainError
 from .identification import Estimate, IdentificationError, Registration
-from .integrators import ImexStepper
+from .integrators import ImexStepper, _imex_advance, _imex_prepare
 from .model import build_model
 from .recording import SETTLED_LEAD
 from .statics import solve_equilibrium
@@ -82,6 +84,40 @@ def segment_data(rec, seg, registration: Registration, lead: float) -> SegmentDa
                        t_m[::every_m], dp[::every_m])
 
 
+@njit(cache=True, nogil=True)
+def _simulate_segment(prepare_args, advance_args, Lc, marker_p, rest_lengths, q, qd, t_start, h,
+                      t_input, tension, t_s, t_m, ds, dp, s_ref, p_ref, no_force):
+    """The loop of :func:`simulate_changes`, compiled: from (q, qd) prepared at t_start, sample the
+    shortening and marker changes at t_s and t_m into ds and dp, stepping under the tensions held
+    from t_input. Returns 0, 1 if a state left the model's domain, 2 if the dynamics diverged."""
+    model_args, data_args, rotor_mass, adot = prepare_args
+    n = q.shape[0]
+    q_next = np.empty(n)
+    qd_next = np.empty(n)
+    i_s = i_m = 0
+    n_steps = int(np.ceil((max(t_s[-1], t_m[-1]) - t_start) / h)) + 1
+    for k in range(n_steps):
+        t = t_start + k * h
+        want_m = i_m < t_m.shape[0] and t_m[i_m] <= t + 0.5 * h
+        if not _imex_prepare(model_args, data_args, rotor_mass, q, qd, want_m, adot):
+            return 1
+        while i_s < t_s.shape[0] and t_s[i_s] <= t + 0.5 * h:
+            ds[i_s] = (rest_lengths - Lc) - s_ref
+            i_s += 1
+        while want_m and i_m < t_m.shape[0] and t_m[i_m] <= t + 0.5 * h:
+            dp[i_m] = marker_p - p_ref
+            i_m += 1
+        if i_s >= t_s.shape[0] and i_m >= t_m.shape[0]:
+            break
+        j = max(0, np.searchsorted(t_input, t, side="right") - 1)
+        _imex_advance(*advance_args, q, qd, tension[j], no_force, h, q_next, qd_next)
+        q, q_next = q_next, q
+        qd, qd_next = qd_next, qd
+        if not np.all(np.isfinite(q)):
+            return 2
+    return 0
+
+
 def simulate_changes(arm: ArmConfig, rotor_mass: float, data: SegmentData, timestep: float):
     """The model's changes of shortenings (len(t_s), n_t) and markers (len(t_m), n_m, 3) [m] from
     the equilibrium under ``u_start``, driven by the recorded tensions (held between stamps)."""
@@ -93,25 +129,15 @@ def simulate_changes(arm: ArmConfig, rotor_mass: float, data: SegmentData, times
     d = stepper.data
     s_ref, p_ref = (model.rest_tendon_lengths - d.Lc).copy(), d.marker_p.copy()
     ds, dp = np.zeros_like(data.ds), np.zeros_like(data.dp)
-    i_s = i_m = 0
-    n_steps = int(np.ceil((max(data.t_s[-1], data.t_m[-1]) - data.t_start) / timestep)) + 1
-    for k in range(n_steps):
-        t = data.t_start + k * timestep
-        want_m = i_m < len(data.t_m) and data.t_m[i_m] <= t + 0.5 * timestep
-        stepper.prepare(q, qd, want_m)
-        while i_s < len(data.t_s) and data.t_s[i_s] <= t + 0.5 * timestep:
-            ds[i_s] = (model.rest_tendon_lengths - d.Lc) - s_ref
-            i_s += 1
-        while want_m and i_m < len(data.t_m) and data.t_m[i_m] <= t + 0.5 * timestep:
-            dp[i_m] = d.marker_p - p_ref
-            i_m += 1
-        if i_s >= len(data.t_s) and i_m >= len(data.t_m):
-            break
-        j = max(0, np.searchsorted(data.t_input, t, side="right") - 1)
-        q, qd = stepper.advance(data.tension[j], None)
-        if not np.all(np.isfinite(q)):
-            raise IdentificationError("the dynamics diverged in a segment (step too long, or a "
-                                      "parameter far off)")
+    status = _simulate_segment(*stepper.compiled_args, d.Lc, d.marker_p, model.rest_tendon_lengths,
+                               q.copy(), qd, data.t_start, timestep, data.t_input,
+                               np.ascontiguousarray(data.tension, dtype=float), data.t_s, data.t_m, ds,
+                               dp, s_ref, p_ref, np.zeros(model.n))
+    if status == 1:
+        raise OutOfDomainError("the state left the model's domain")
+    if status == 2:
+        raise IdentificationError("the dynamics diverged in a segment (step too long, or a "
+                                  "parameter far off)")
     return ds, dp
 
 

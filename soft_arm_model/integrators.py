@@ -186,6 +186,14 @@ class ImexStepper:
                               model.D, rotor, self._adot)
         self._state = None
 
+    @property
+    def compiled_args(self) -> tuple:
+        """(prepare arguments, advance arguments) of the compiled halves of the step,
+        ``_imex_prepare(*prepare_args[:3], q, qd, markers, prepare_args[3])`` and
+        ``_imex_advance(*advance_args, q, qd, u, f_ext, dt, q_out, qd_out)``: for a compiled loop
+        that steps without Python in between (the workspace is ``data``'s)."""
+        return self._prepare_args + (self._adot,), self._advance_args
+
     def prepare(self, q, qd, markers: bool = False):
         """Evaluate ``data`` at (q, qd) (dynamics terms, markers if asked). Raises OutOfDomainError
         if the state is outside the model's domain."""
