@@ -1,0 +1,56 @@
+"""The dynamic fit's segment simulation: what it samples is the stepper's motion, and a segment the
+model cannot follow is refused, not returned."""
+import numpy as np
+import pytest
+
+from soft_arm_model import ImexStepper, OutOfDomainError, build_model, load_arm_config, solve_equilibrium
+from soft_arm_model.dynamic_identification import SegmentData, simulate_changes
+
+STEP = 0.002        # s, the fit's time step
+ROTOR = 0.5         # kg
+
+
+def _segment(arm, tensions, t_input, t_s, t_m):
+    n_markers = len(arm.marker_positions)
+    return SegmentData(t_input=np.asarray(t_input, dtype=float), tension=np.asarray(tensions, dtype=float),
+                       t_start=0.0, u_start=np.zeros(4), t_s=np.asarray(t_s, dtype=float),
+                       ds=np.zeros((len(t_s), 4)), t_m=np.asarray(t_m, dtype=float),
+                       dp=np.zeros((len(t_m), n_markers, 3)))
+
+
+def test_the_changes_are_the_steppers_motion_sampled_at_their_stamps():
+    """Tension 1 N on tendon 1 from 0.01 s, then tendon 3 from 0.05 s (held between stamps);
+    shortenings every 4 ms and markers at three stamps off the step grid: the segment's changes are
+    a step-by-step run of the stepper's, sampled at the nearest step, to the bit."""
+    arm = load_arm_config()
+    tensions = [[0.0, 0.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0], [1.0, 0.0, 1.0, 0.0]]
+    t_input = [0.0, 0.01, 0.05]
+    t_s = np.arange(1, 31) * 0.004
+    t_m = [0.0309, 0.0701, 0.1193]
+    ds, dp = simulate_changes(arm, ROTOR, _segment(arm, tensions, t_input, t_s, t_m), STEP)
+
+    model = build_model(arm)
+    stepper = ImexStepper(model, STEP, rotor_mass=np.full(4, ROTOR))
+    q, qd = solve_equilibrium(model, np.zeros(4)).q, np.zeros(model.n)
+    stepper.prepare(q, qd, True)
+    s_ref = model.rest_tendon_lengths - stepper.data.Lc
+    p_ref = stepper.data.marker_p.copy()
+    want_s, want_m = {}, {}
+    for k in range(int(round(0.12 / STEP)) + 1):
+        t = k * STEP
+        stepper.prepare(q, qd, True)
+        want_s[k] = (model.rest_tendon_lengths - stepper.data.Lc) - s_ref
+        want_m[k] = stepper.data.marker_p - p_ref
+        j = np.searchsorted(t_input, t, side="right") - 1
+        q, qd = stepper.advance(np.array(tensions[j]))
+    nearest = [int(np.ceil(t / STEP - 0.5)) for t in t_s]
+    np.testing.assert_array_equal(ds, np.array([want_s[k] for k in nearest]))
+    np.testing.assert_array_equal(dp, np.array([want_m[int(np.ceil(t / STEP - 0.5))] for t in t_m]))
+    assert np.abs(ds[-1]).max() > 1e-3                       # the tendons did move
+
+
+def test_a_segment_pulled_out_of_the_models_domain_is_refused_not_returned():
+    arm = load_arm_config()
+    segment = _segment(arm, [[200.0] * 4], [0.0], np.linspace(0.002, 0.5, 250), [0.5])
+    with pytest.raises(OutOfDomainError, match="left the model's domain"):
+        simulate_changes(arm, ROTOR, segment, STEP)
