@@ -8,13 +8,15 @@ tensions as recorded (the motor torque / pulley radius: it moves the rotor and p
 Residuals are *changes* from the segment's start, markers over ``marker_sigma`` and shortenings
 over ``shortening_sigma``, so that a static error left by the static fit does not bias the
 dynamic one. Parameters: log ratios of the viscosity and of the rotor mass to their starting
-values; ``scipy.optimize.least_squares`` with forward differences, the segments simulated in
-parallel (one process per core).
+values; ``scipy.optimize.least_squares`` with forward differences of a fixed step in the log
+parameters. The segments of an evaluation, and the two perturbed evaluations of a Jacobian
+together, are simulated in parallel, one thread per core: the compiled segment loop releases the
+GIL, so threads share the compiled kernels that processes would each have to load.
 """
 from __future__ import annotations
 
-import multiprocessing
 import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -30,7 +32,7 @@ from .recording import SETTLED_LEAD
 from .statics import solve_equilibrium
 
 SAMPLE_PERIOD = 0.02        # s between the compared samples of a segment
-_LOG_STEP = 1e-3            # forward-difference step of the log parameters
+_LOG_STEP = 1e-3            # forward-difference step of the log parameters (absolute)
 
 
 @dataclass(frozen=True)
@@ -118,12 +120,14 @@ def _simulate_segment(prepare_args, advance_args, Lc, marker_p, rest_lengths, q,
     return 0
 
 
-def simulate_changes(arm: ArmConfig, rotor_mass: float, data: SegmentData, timestep: float):
+def simulate_changes(arm: ArmConfig, rotor_mass: float, data: SegmentData, timestep: float,
+                     q_start: np.ndarray | None = None):
     """The model's changes of shortenings (len(t_s), n_t) and markers (len(t_m), n_m, 3) [m] from
-    the equilibrium under ``u_start``, driven by the recorded tensions (held between stamps)."""
+    the equilibrium under ``u_start`` (``q_start`` if given: it depends on neither the viscosity
+    nor the rotor mass), driven by the recorded tensions (held between stamps)."""
     model = build_model(arm)
     stepper = ImexStepper(model, timestep, rotor_mass=np.full(model.n_tendons, rotor_mass))
-    q = solve_equilibrium(model, data.u_start).q
+    q = solve_equilibrium(model, data.u_start).q if q_start is None else np.array(q_start, dtype=float)
     qd = np.zeros(model.n)
     stepper.prepare(q, qd, True)
     d = stepper.data
@@ -142,25 +146,25 @@ def simulate_changes(arm: ArmConfig, rotor_mass: float, data: SegmentData, times
 
 
 def _simulate(job):
-    arm, rotor_mass, data, timestep = job
-    return simulate_changes(arm, rotor_mass, data, timestep)
+    return simulate_changes(*job)
 
 
 class DynamicProblem:
     """The weighted least-squares problem of :func:`identify_dynamics` over p = (log viscosity
-    ratio, log rotor-mass ratio)."""
+    ratio, log rotor-mass ratio): the segments ``data`` (:class:`SegmentData`) simulated on
+    ``arm`` with ``rotor_mass`` [kg] scaled, ``timestep`` [s]; ``pool``: where the simulations run
+    (None: in the caller's thread)."""
 
-    def __init__(self, arm: ArmConfig, rotor_mass: float, rec, segments, registration: Registration,
-                 marker_sigma: float, shortening_sigma: float, timestep: float, lead: float,
-                 pool=None):
-        if not segments:
-            raise IdentificationError("no dynamic segment (a step or a chirp between two plateaus): "
-                                      "the viscosity and the rotor mass cannot be identified")
+    def __init__(self, arm: ArmConfig, rotor_mass: float, data, marker_sigma: float, shortening_sigma: float,
+                 timestep: float, pool: ThreadPoolExecutor | None = None):
         self.arm0, self.m0 = arm, float(rotor_mass)
-        self.data = [segment_data(rec, seg, registration, lead) for seg in segments]
+        self.data = list(data)
         self.marker_sigma, self.shortening_sigma = marker_sigma, shortening_sigma
         self.timestep, self.pool = timestep, pool
+        model = build_model(arm)
+        self.q_start = [solve_equilibrium(model, d.u_start).q for d in self.data]
         self.evaluations = 0
+        self._last = None           # (p, changes, residual) of the last residual: the Jacobian's base
 
     def arm(self, p) -> ArmConfig:
         return replace(self.arm0, material=replace(self.arm0.material,
@@ -168,15 +172,40 @@ class DynamicProblem:
 
     def changes(self, p) -> list:
         """Per segment, the simulated (shortening changes, marker changes) at p."""
-        self.evaluations += 1
-        jobs = [(self.arm(p), self.m0 * np.exp(p[1]), d, self.timestep) for d in self.data]
-        return list(self.pool.map(_simulate, jobs)) if self.pool is not None else [_simulate(j) for j in jobs]
+        if self._last is not None and np.array_equal(self._last[0], p):
+            return self._last[1]
+        return self._changes([p])[0]
 
-    def residual(self, p) -> np.ndarray:
+    def _changes(self, points) -> list:
+        """:meth:`changes` at each of ``points``, every segment of every point in one batch."""
+        self.evaluations += len(points)
+        jobs = [(self.arm(p), self.m0 * np.exp(p[1]), d, self.timestep, q0)
+                for p in points for d, q0 in zip(self.data, self.q_start)]
+        done = list(self.pool.map(_simulate, jobs)) if self.pool is not None else [_simulate(j) for j in jobs]
+        k = len(self.data)
+        return [done[i * k:(i + 1) * k] for i in range(len(points))]
+
+    def _weighted(self, changes) -> np.ndarray:
         out = []
-        for (ds, dp), d in zip(self.changes(p), self.data):
+        for (ds, dp), d in zip(changes, self.data):
             out += [((dp - d.dp) / self.marker_sigma).ravel(), ((ds - d.ds) / self.shortening_sigma).ravel()]
         return np.concatenate(out)
+
+    def residual(self, p) -> np.ndarray:
+        """The weighted residual at p (markers over ``marker_sigma``, shortenings over
+        ``shortening_sigma``)."""
+        changes = self.changes(p)
+        r = self._weighted(changes)
+        self._last = (np.array(p, dtype=float), changes, r)
+        return r
+
+    def jacobian(self, p) -> np.ndarray:
+        """Forward differences of :meth:`residual` with the step ``_LOG_STEP`` in each log
+        parameter, both perturbed points simulated in one batch."""
+        p = np.array(p, dtype=float)
+        r0 = self.residual(p)
+        points = [p + _LOG_STEP * e for e in np.eye(p.size)]
+        return np.column_stack([(self._weighted(c) - r0) / _LOG_STEP for c in self._changes(points)])
 
 
 def identify_dynamics(arm: ArmConfig, rotor_mass: float, rec, segments, registration: Registration,
@@ -188,20 +217,21 @@ def identify_dynamics(arm: ArmConfig, rotor_mass: float, rec, segments, registra
     of the recording ``rec`` (markers mapped to arm_base by ``registration``); ``marker_sigma`` and
     ``shortening_sigma`` [m]: the noise of one marker coordinate and one shortening reading;
     ``timestep`` [s]: the simulation's; ``lead`` [s]: the settled start of each segment averaged as
-    its reference; ``workers``: processes (default: the cores)."""
+    its reference; ``workers``: threads (default: the cores)."""
+    if not segments:
+        raise IdentificationError("no dynamic segment (a step or a chirp between two plateaus): "
+                                  "the viscosity and the rotor mass cannot be identified")
+    data = [segment_data(rec, seg, registration, lead) for seg in segments]
     workers = workers or os.cpu_count() or 1
-    # spawned, not forked: the caller may run threads (rclpy, DDS) that a fork would copy mid-lock
-    pool = multiprocessing.get_context("spawn").Pool(workers) if workers > 1 and len(segments) > 1 else None
+    pool = ThreadPoolExecutor(workers, thread_name_prefix="dynamic_fit") if workers > 1 else None
     try:
-        pb = DynamicProblem(arm, rotor_mass, rec, segments, registration, marker_sigma, shortening_sigma,
-                            timestep, lead, pool)
-        sol = least_squares(pb.residual, np.zeros(2), method="trf", diff_step=_LOG_STEP, x_scale=1.0,
+        pb = DynamicProblem(arm, rotor_mass, data, marker_sigma, shortening_sigma, timestep, pool)
+        sol = least_squares(pb.residual, np.zeros(2), jac=pb.jacobian, method="trf", x_scale=1.0,
                             xtol=1e-4, ftol=1e-6, max_nfev=max_evaluations)
         changes = pb.changes(sol.x)
     finally:
         if pool is not None:
-            pool.close()
-            pool.join()
+            pool.shutdown()
     J = sol.jac
     r = sol.fun
     scale = 2.0 * sol.cost / max(1, r.size - 2)

@@ -72,7 +72,7 @@ def frame_at(model: ArmModel, q, X: float, data: ArmData | None = None) -> Frame
         raise ValueError(f"X = {X} m is outside [0, {model.length}] m")
     data = evaluate(model, data or ArmData(model), q, level=KINEMATICS)
     pt = int(np.flatnonzero(model.X <= X)[-1])
-    h, B1, B2 = _substep(model.config, model.n, float(model.X[pt]), float(X))
+    h, B1, B2 = _substep(model.config.discretisation, model.n, float(model.X[pt]), float(X))
     R = np.empty((3, 3))
     p = np.empty(3)
     J = np.empty((6, model.n))

@@ -34,7 +34,7 @@ from scipy.spatial.transform import Rotation
 from .config import ArmConfig
 from .dynamics import STATICS, OutOfDomainError, evaluate
 from .model import ArmData, build_model
-from .statics import EquilibriumError, solve_equilibrium, static_residual
+from .statics import EquilibriumError, solve_equilibrium
 
 TENDON_GROUPS = ("friction", "offset_fraction", "start_angle", "end_angle")
 # prior standard deviations of the tendon geometry around the starting arm: casting tolerances
@@ -191,6 +191,13 @@ def observe(model, data: ArmData, q):
     return data.marker_p.copy(), model.rest_tendon_lengths - data.Lc, Jp, -data.A0.T.copy()
 
 
+def _residual_and_shortening(model, data: ArmData, q, u):
+    """The static residual F_el - F_g + A u (friction on) and the tendon shortenings [m] at (q, u),
+    from one evaluation (``data``: a workspace of ``model``)."""
+    evaluate(model, data, q, level=STATICS)
+    return data.Fel - data.Fg + data.A @ u, model.rest_tendon_lengths - data.Lc
+
+
 def check_excitation(samples, n_tendons: int, names=None, min_pull: float = MIN_PULL):
     """IdentificationError saying what is missing when ``samples`` cannot determine the fit: too few
     of them, or a tendon never pulled ``min_pull`` [N] above the smallest tension it sees."""
@@ -233,6 +240,7 @@ class StaticProblem:
         self.measured_p = np.array([s.markers for s in samples])
         self.measured_s = np.array([s.shortening for s in samples])
         self._cache = {}
+        self._jacobian = None
 
     def evaluate(self, p):
         """(residual, model, equilibria, observations) at p, cached for the last p."""
@@ -261,7 +269,14 @@ class StaticProblem:
         return self.evaluate(p)[0]
 
     def jacobian(self, p) -> np.ndarray:
-        """d residual / d p: the equilibria's sensitivities by the implicit function theorem."""
+        """d residual / d p: the equilibria's sensitivities by the implicit function theorem (the
+        last one kept: the fit asks again at its solution)."""
+        key = p.tobytes()
+        if self._jacobian is None or self._jacobian[0] != key:
+            self._jacobian = (key, self._jacobian_at(p))
+        return self._jacobian[1].copy()
+
+    def _jacobian_at(self, p) -> np.ndarray:
         r, model, eqs, obs = self.evaluate(p)
         layout, samples, n_t = self.layout, self.samples, self.n_t
         ms, ss = self.marker_sigma, self.shortening_sigma
@@ -270,21 +285,25 @@ class StaticProblem:
         rows_p = [slice(k * n_p, (k + 1) * n_p) for k in range(len(samples))]
         off = len(samples) * n_p
         rows_s = [slice(off + k * n_t, off + (k + 1) * n_t) for k in range(len(samples))]
-        for j in range(layout.n_model):
+        n_model, n_q = layout.n_model, model.n
+        dR = np.zeros((len(samples), n_q, n_model))      # d residual / d p at each sample's q
+        ds = np.zeros((len(samples), n_t, n_model))       # the direct dependence of the tendon
+        for j in range(n_model):                          # lengths on the geometry
             plus, minus = p.copy(), p.copy()
             plus[j] += _STEP
             minus[j] -= _STEP
             m_plus, m_minus = build_model(layout.arm(plus)), build_model(layout.arm(minus))
             d_plus, d_minus = ArmData(m_plus), ArmData(m_minus)
             for k, (eq, smp) in enumerate(zip(eqs, samples)):
-                dR = (static_residual(m_plus, eq.q, smp.tension, data=d_plus)
-                      - static_residual(m_minus, eq.q, smp.tension, data=d_minus)) / (2 * _STEP)
-                dq = -np.linalg.solve(eq.jacobian, dR)
-                s_plus = observe(m_plus, d_plus, eq.q)[1]          # the direct dependence of the
-                s_minus = observe(m_minus, d_minus, eq.q)[1]       # tendon lengths on the geometry
-                _, _, Jp, Js = obs[k]
-                J[rows_p[k], j] = (Jp @ dq) / ms
-                J[rows_s[k], j] = (Js @ dq + (s_plus - s_minus) / (2 * _STEP)) / ss
+                r_plus, s_plus = _residual_and_shortening(m_plus, d_plus, eq.q, smp.tension)
+                r_minus, s_minus = _residual_and_shortening(m_minus, d_minus, eq.q, smp.tension)
+                dR[k, :, j] = (r_plus - r_minus) / (2 * _STEP)
+                ds[k, :, j] = (s_plus - s_minus) / (2 * _STEP)
+        for k, eq in enumerate(eqs):
+            dq = -np.linalg.solve(eq.jacobian, dR[k])
+            _, _, Jp, Js = obs[k]
+            J[rows_p[k], :n_model] = (Jp @ dq) / ms
+            J[rows_s[k], :n_model] = (Js @ dq + ds[k]) / ss
         for k in range(len(samples)):                                   # encoder zeros
             J[rows_s[k], layout.n_model:layout.n_model + n_t] = np.eye(n_t) / ss
         for j in range(layout.size - 6, layout.size):                   # the registration

@@ -11,14 +11,16 @@ length, so an angular coordinate is an angle [rad] and an axial/shear coordinate
 """
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field, replace
+from typing import NamedTuple
 
 import numpy as np
 from numpy.polynomial import legendre as npleg
 
 from soft_arm_model import kernels
 
-from .config import STRAIN_MODES, ArmConfig, load_arm_config
+from .config import STRAIN_MODES, ArmConfig, Discretisation, load_arm_config
 from .routing import routing_arrays, routing_of, tendon_ends
 
 # arm_base <- section frame at the clamp: the section's x axis (the arm axis) points along -z,
@@ -143,24 +145,24 @@ class ArmData:
 
 # ---------------------------------------------------------------------------------------------------
 
-def _division_bounds(config: ArmConfig):
-    ends = config.discretisation.division_ends
+def _division_bounds(disc: Discretisation):
+    ends = disc.division_ends
     starts = (0.0,) + tuple(ends[:-1])
     return list(zip(starts, ends))
 
 
-def _division_of(config: ArmConfig, X: float) -> int:
-    for i, (a, b) in enumerate(_division_bounds(config)):
-        if X < b or i == len(config.discretisation.division_ends) - 1:
+def _division_of(disc: Discretisation, X: float) -> int:
+    for i, (a, b) in enumerate(_division_bounds(disc)):
+        if X < b or i == len(disc.division_ends) - 1:
             return i
     raise AssertionError("unreachable")
 
 
-def _coordinate_layout(config: ArmConfig):
+def _coordinate_layout(disc: Discretisation):
     """(division, mode row, Legendre order) per coordinate, and the column offset per division."""
     labels, offsets = [], []
-    modes = [r for r, on in enumerate(config.discretisation.modes) if on]
-    for d, order in enumerate(config.discretisation.legendre_order):
+    modes = [r for r, on in enumerate(disc.modes) if on]
+    for d, order in enumerate(disc.legendre_order):
         offsets.append(len(labels))
         for r in modes:
             for j in range(order + 1):
@@ -183,15 +185,15 @@ def _legendre(s: float, order: int) -> tuple[np.ndarray, np.ndarray]:
     return P, dP
 
 
-def _basis_at(config: ArmConfig, n: int, X: float, division: int | None = None):
+def _basis_at(disc: Discretisation, n: int, X: float, division: int | None = None):
     """Strain basis B (6, n) and its derivative along the arm Bd at arc length X [m]: coordinate
     (division, strain row r, order j) is the Legendre polynomial P_j in row r only, so a column has
     one non-zero row at most (the kernels take that row alone)."""
-    labels, _ = _coordinate_layout(config)
-    d = _division_of(config, X) if division is None else division
-    a, b = _division_bounds(config)[d]
+    labels, _ = _coordinate_layout(disc)
+    d = _division_of(disc, X) if division is None else division
+    a, b = _division_bounds(disc)[d]
     L = b - a
-    P, dP = _legendre(2.0 * (X - a) / L - 1.0, config.discretisation.legendre_order[d])
+    P, dP = _legendre(2.0 * (X - a) / L - 1.0, disc.legendre_order[d])
     B = np.zeros((6, n))
     Bd = np.zeros((6, n))
     for col, (dd, r, j) in enumerate(labels):
@@ -203,19 +205,19 @@ def _basis_at(config: ArmConfig, n: int, X: float, division: int | None = None):
     return B, Bd
 
 
-def _substep(config: ArmConfig, n: int, X0: float, X1: float):
+def _substep(disc: Discretisation, n: int, X0: float, X1: float):
     """Magnus sub-step data (h, B1, B2) from X0 to X1 (both in one division)."""
     h = X1 - X0
-    d = _division_of(config, 0.5 * (X0 + X1)) if h > 0 else _division_of(config, X0)
-    B1, _ = _basis_at(config, n, X0 + _ZANNA_OFFSETS[0] * h, d)
-    B2, _ = _basis_at(config, n, X0 + _ZANNA_OFFSETS[1] * h, d)
+    d = _division_of(disc, 0.5 * (X0 + X1)) if h > 0 else _division_of(disc, X0)
+    B1, _ = _basis_at(disc, n, X0 + _ZANNA_OFFSETS[0] * h, d)
+    B2, _ = _basis_at(disc, n, X0 + _ZANNA_OFFSETS[1] * h, d)
     return h, B1, B2
 
 
-def _points(config: ArmConfig):
+def _points(disc: Discretisation):
     """Point abscissae, weights, owning division (-1 at division ends)."""
     X, w, div = [0.0], [0.0], [-1]
-    for d, ((a, b), m) in enumerate(zip(_division_bounds(config), config.discretisation.gauss_points)):
+    for d, ((a, b), m) in enumerate(zip(_division_bounds(disc), disc.gauss_points)):
         s, ws = npleg.leggauss(m)
         X += list(a + 0.5 * (s + 1.0) * (b - a))
         w += list(0.5 * ws * (b - a))
@@ -226,13 +228,13 @@ def _points(config: ArmConfig):
     return np.array(X), np.array(w), np.array(div)
 
 
-def _friction_quadrature(config: ArmConfig, X, div):
+def _friction_quadrature(disc: Discretisation, X, div):
     """Q with wrap(X_p) = int_0^{X_p} phi = sum_j Q[p, j] phi(X_j), exact for phi polynomial of degree
     < gauss points in each division (Lagrange interpolation on the Gauss nodes)."""
     P = X.size
     Q = np.zeros((P, P))
     carry = np.zeros(P)  # full-division weights of the divisions already passed
-    for d, ((a, b), m) in enumerate(zip(_division_bounds(config), config.discretisation.gauss_points)):
+    for d, ((a, b), m) in enumerate(zip(_division_bounds(disc), disc.gauss_points)):
         idx = np.flatnonzero(div == d)
         s, ws = npleg.leggauss(m)
         V = npleg.legvander(s, m - 1)             # V[j, i] = P_i(s_j)
@@ -266,25 +268,80 @@ def _tendon_arrays(config: ArmConfig, X, w):
     return d, dp, dpp, active
 
 
-def build_model(config: ArmConfig | None = None) -> ArmModel:
-    """Discretise the arm described by ``config`` (default: the package's ``arm.yaml``; for
-    overrides use ``build_model(load_arm_config(overrides={...}))``)."""
-    if config is None:
-        config = load_arm_config()
-    labels, _ = _coordinate_layout(config)
+class _Grid(NamedTuple):
+    """What a discretisation fixes of a model, whatever its material and tendons (read-only arrays,
+    shared by the models built on it): coordinate labels and count, points (X, w, division), the
+    basis and its derivative at the points, the Magnus sub-steps, the friction quadrature, each
+    point's columns [col_lo, col_hi), and each marker's point and sub-step from it."""
+    labels: tuple
+    n: int
+    X: np.ndarray
+    w: np.ndarray
+    div: np.ndarray
+    B: np.ndarray
+    Bd: np.ndarray
+    h: np.ndarray
+    B1: np.ndarray
+    B2: np.ndarray
+    Q: np.ndarray
+    col_lo: np.ndarray
+    col_hi: np.ndarray
+    marker_point: np.ndarray
+    marker_h: np.ndarray
+    marker_B1: np.ndarray
+    marker_B2: np.ndarray
+
+
+@functools.lru_cache(maxsize=64)
+def _grid(disc: Discretisation, length: float, marker_positions: tuple) -> _Grid:
+    """The :class:`_Grid` of ``disc`` for an arm of ``length`` [m] with markers at
+    ``marker_positions`` [m]; cached, as the fits and campaigns build many models on one
+    discretisation and its Legendre and quadrature work is most of a model's construction."""
+    labels, _ = _coordinate_layout(disc)
     n = len(labels)
-    X, w, div = _points(config)
+    X, w, div = _points(disc)
     P = X.size
     B = np.zeros((P, 6, n))
     Bd = np.zeros((P, 6, n))
     for i in range(P):
         if div[i] >= 0:
-            B[i], Bd[i] = _basis_at(config, n, X[i], int(div[i]))
+            B[i], Bd[i] = _basis_at(disc, n, X[i], int(div[i]))
     h = np.diff(X)
     B1 = np.zeros((P - 1, 6, n))
     B2 = np.zeros((P - 1, 6, n))
     for i in range(P - 1):
-        _, B1[i], B2[i] = _substep(config, n, X[i], X[i + 1])
+        _, B1[i], B2[i] = _substep(disc, n, X[i], X[i + 1])
+    Q = _friction_quadrature(disc, X, div)
+    mX = np.array(marker_positions, dtype=float)
+    m_point = np.array([int(np.flatnonzero(X <= x + 1e-15)[-1]) for x in mX], dtype=np.int64)
+    m_h = np.zeros(mX.size)
+    m_B1 = np.zeros((mX.size, 6, n))
+    m_B2 = np.zeros((mX.size, 6, n))
+    for m, (x, pt) in enumerate(zip(mX, m_point)):
+        m_h[m], m_B1[m], m_B2[m] = _substep(disc, n, X[pt], min(x, length))
+        if m_h[m] < 0:
+            m_h[m] = 0.0
+    # columns of each point's division (empty at division ends, whose weight is zero)
+    col_lo = np.zeros(P, dtype=np.int64)
+    col_hi = np.zeros(P, dtype=np.int64)
+    for i in range(P):
+        cols = [c for c, (d, _, _) in enumerate(labels) if d == div[i]]
+        if cols:
+            col_lo[i], col_hi[i] = cols[0], cols[-1] + 1
+    for a in (div, col_lo, col_hi, m_point):
+        a.setflags(write=False)
+    return _Grid(tuple(labels), n, _frozen(X), _frozen(w), div, *(_frozen(a) for a in (B, Bd, h, B1, B2, Q)),
+                 col_lo, col_hi, m_point, *(_frozen(a) for a in (m_h, m_B1, m_B2)))
+
+
+def build_model(config: ArmConfig | None = None) -> ArmModel:
+    """Discretise the arm described by ``config`` (default: the package's ``arm.yaml``; for
+    overrides use ``build_model(load_arm_config(overrides={...}))``)."""
+    if config is None:
+        config = load_arm_config()
+    grid = _grid(config.discretisation, float(config.geometry.length),
+                 tuple(float(x) for x in config.marker_positions))
+    labels, n, X, w = grid.labels, grid.n, grid.X, grid.w
 
     g, mat = config.geometry, config.material
     r = g.base_radius + (g.tip_radius - g.base_radius) * X / g.length
@@ -297,38 +354,19 @@ def build_model(config: ArmConfig | None = None) -> ArmModel:
     lumped_mass[-1, 3:] += config.tip_mass      # X[-1] is the tip (a division end)
     stiff_diag = np.stack([G * polar, E * inertia, E * inertia, E * area, G * area, G * area], axis=1)
     visc_diag = mat.viscosity * np.stack([polar, 3 * inertia, 3 * inertia, 3 * area, area, area], axis=1)
-    K = np.einsum("p,pra,pr,prb->ab", w, B, stiff_diag, B)
-    D = np.einsum("p,pra,pr,prb->ab", w, B, visc_diag, B)
+    K = np.einsum("p,pra,pr,prb->ab", w, grid.B, stiff_diag, grid.B)
+    D = np.einsum("p,pra,pr,prb->ab", w, grid.B, visc_diag, grid.B)
 
     t_d, t_dp, t_dpp, active = _tendon_arrays(config, X, w)
     mu = np.array([t.friction for t in config.tendons])
-    Q = _friction_quadrature(config, X, div)
-
     mX = np.array(config.marker_positions, dtype=float)
-    m_point = np.array([int(np.flatnonzero(X <= x + 1e-15)[-1]) for x in mX], dtype=np.int64)
-    m_h = np.zeros(mX.size)
-    m_B1 = np.zeros((mX.size, 6, n))
-    m_B2 = np.zeros((mX.size, 6, n))
-    for m, (x, pt) in enumerate(zip(mX, m_point)):
-        m_h[m], m_B1[m], m_B2[m] = _substep(config, n, X[pt], min(x, g.length))
-        if m_h[m] < 0:
-            m_h[m] = 0.0
-    arrays = dict(X=X, w=w, B=B, Bd=Bd, h=h, B1=B1, B2=B2, mass_diag=mass_diag,
+    arrays = dict(X=X, w=w, B=grid.B, Bd=grid.Bd, h=grid.h, B1=grid.B1, B2=grid.B2, mass_diag=mass_diag,
                   lumped_mass=lumped_mass, stiff_diag=stiff_diag, visc_diag=visc_diag, K=K, D=D, tendon_d=t_d,
                   tendon_dp=t_dp, tendon_dpp=t_dpp, tendon_active=active, friction_mu=mu,
-                  friction_Q=Q, gravity=np.array(config.gravity, dtype=float), marker_X=mX,
-                  marker_h=m_h, marker_B1=m_B1, marker_B2=m_B2)
+                  friction_Q=grid.Q, gravity=np.array(config.gravity, dtype=float), marker_X=mX,
+                  marker_h=grid.marker_h, marker_B1=grid.marker_B1, marker_B2=grid.marker_B2)
     arrays = {k: _frozen(v) for k, v in arrays.items()}
-    m_point.setflags(write=False)
-    # columns of each point's division (empty at division ends, whose weight is zero)
-    col_lo = np.zeros(P, dtype=np.int64)
-    col_hi = np.zeros(P, dtype=np.int64)
-    for i in range(P):
-        cols = [c for c, (d, _, _) in enumerate(labels) if d == div[i]]
-        if cols:
-            col_lo[i], col_hi[i] = cols[0], cols[-1] + 1
-    col_lo.setflags(write=False)
-    col_hi.setflags(write=False)
+    m_point, col_lo, col_hi = grid.marker_point, grid.col_lo, grid.col_hi
     neo = config.material.axial_law == "neo_hookean"
     a = arrays
     kernel_args = (a["w"], a["B"], a["Bd"], a["h"], a["B1"], a["B2"], _frozen(XI_STAR),

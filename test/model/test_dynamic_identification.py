@@ -1,10 +1,13 @@
-"""The dynamic fit's segment simulation: what it samples is the stepper's motion, and a segment the
-model cannot follow is refused, not returned."""
+"""The dynamic fit's segment simulation: what it samples is the stepper's motion, a segment the
+model cannot follow is refused, not returned; its Jacobian takes the step it states, and its
+threads change nothing."""
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 import pytest
 
 from soft_arm_model import ImexStepper, OutOfDomainError, build_model, load_arm_config, solve_equilibrium
-from soft_arm_model.dynamic_identification import SegmentData, simulate_changes
+from soft_arm_model.dynamic_identification import _LOG_STEP, DynamicProblem, SegmentData, simulate_changes
 
 STEP = 0.002        # s, the fit's time step
 ROTOR = 0.5         # kg
@@ -54,3 +57,39 @@ def test_a_segment_pulled_out_of_the_models_domain_is_refused_not_returned():
     segment = _segment(arm, [[200.0] * 4], [0.0], np.linspace(0.002, 0.5, 250), [0.5])
     with pytest.raises(OutOfDomainError, match="left the model's domain"):
         simulate_changes(arm, ROTOR, segment, STEP)
+
+
+def _problem(pool=None):
+    """Two short segments of the model's own motion as the data (changes measured as zero)."""
+    arm = load_arm_config()
+    segments = [_segment(arm, [[0.0] * 4, [1.0, 0.0, 0.0, 0.0]], [0.0, 0.01], np.arange(1, 21) * 0.004,
+                         [0.03, 0.07]),
+                _segment(arm, [[0.0] * 4, [0.0, 0.0, 1.0, 0.5]], [0.0, 0.02], np.arange(1, 16) * 0.004,
+                         [0.05])]
+    return DynamicProblem(arm, ROTOR, segments, 2e-4, 2e-5, STEP, pool)
+
+
+def test_the_jacobian_is_the_forward_difference_of_its_fixed_step_also_at_the_start():
+    """At p = 0 (the fit's start) each column is (r(p + h e_i) - r(p)) / h with h = _LOG_STEP in
+    the log parameter: a step relative to |p| would be zero there (scipy's relative step falls back
+    to 1.5e-8, noise-dominated on a simulated residual)."""
+    pb = _problem()
+    for p in (np.zeros(2), np.array([-0.25, 0.18])):
+        J = pb.jacobian(p)
+        r0 = pb.residual(p)
+        for i in range(2):
+            want = (pb.residual(p + _LOG_STEP * np.eye(2)[i]) - r0) / _LOG_STEP
+            np.testing.assert_array_equal(J[:, i], want)
+        assert np.abs(J).max() > 0.0
+
+
+def test_threads_simulate_what_the_callers_thread_does_to_the_bit():
+    """The segments of a residual and of a Jacobian run on two threads; each simulation is
+    deterministic, so the residual and the Jacobian are the caller's thread's, bit for bit."""
+    p = np.array([0.3, -0.2])
+    serial = _problem()
+    with ThreadPoolExecutor(2) as pool:
+        threaded = _problem(pool)
+        np.testing.assert_array_equal(threaded.residual(p), serial.residual(p))
+        np.testing.assert_array_equal(threaded.jacobian(p), serial.jacobian(p))
+    assert threaded.evaluations == serial.evaluations == 3     # the residual at p is reused
