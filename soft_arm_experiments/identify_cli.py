@@ -40,6 +40,7 @@ from soft_arm_model.recording import (SETTLED_LEAD, Recording, dynamic_segments,
 
 from soft_arm_drivers.recording.rosbag_writer import BagError
 
+from .bag_arrays import joint_state_arrays, pose_array_positions, read_raw
 from .excitation import load_identification, parse_fit
 from .writable import writable_directory
 
@@ -48,8 +49,8 @@ TOPICS = ("tendon/state", "tendon/command", "mocap/markers")
 
 def read_recording(bag_dir: str, names) -> Recording:
     """The identification series of a bag (tendons in the order of ``names``); IdentificationError
-    naming the topics it lacks."""
-    from .figures import read_series
+    naming the topics it lacks. Topics of one message layout are decoded as arrays
+    (:mod:`.bag_arrays`), others message by message."""
     if not os.path.isdir(bag_dir):
         raise IdentificationError(f"{bag_dir} is not a bag directory")
     schedule = os.path.join(os.path.dirname(os.path.abspath(bag_dir)), "excitation.json")
@@ -60,14 +61,28 @@ def read_recording(bag_dir: str, names) -> Recording:
             raise IdentificationError(f"the run of {bag_dir} is marked invalid in {schedule} "
                                       f"({played.get('failure', 'no reason given')}): record it again")
     try:
-        series = read_series(bag_dir, TOPICS)
+        raw = read_raw(bag_dir, TOPICS)
     except BagError as exc:
         raise IdentificationError(str(exc)) from None
-    missing = [t for t in TOPICS if len(series.get(t, [])) < 2]
+    missing = [t for t in TOPICS if len(raw.get(t, ("", []))[1]) < 2]
     if missing:
         raise IdentificationError(f"the bag lacks {', '.join(missing)} (it has "
-                                  f"{', '.join(sorted(series)) or 'no messages'}): an identification "
+                                  f"{', '.join(sorted(raw)) or 'no messages'}): an identification "
                                   "experiment records tendon states, commands and mocap markers")
+    state = joint_state_arrays(raw["tendon/state"][1], names)
+    command = joint_state_arrays(raw["tendon/command"][1], names, fields=("effort",))
+    frames = pose_array_positions(raw["mocap/markers"][1])
+    if state is None or command is None or frames is None:
+        return _read_by_message(bag_dir, names)
+    (t, values), (t_c, commanded) = state, command
+    return Recording(t, values["position"], values["effort"], t_c, commanded["effort"], *frames)
+
+
+def _read_by_message(bag_dir: str, names) -> Recording:
+    """:func:`read_recording` for topics whose messages change layout: each message decoded, the
+    states lacking one of ``names`` or a value skipped."""
+    from .figures import read_series
+    series = read_series(bag_dir, TOPICS)
 
     def tendon_values(topic, field):
         t, values = [], []
