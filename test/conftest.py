@@ -1,4 +1,5 @@
 """Shared fixtures. Every rclpy process in the suite stays on loopback with its own domain id."""
+import gc
 import os
 import pathlib
 import re
@@ -67,6 +68,22 @@ def pytest_collection_modifyitems(config, items):
             item.add_marker(pytest.mark.serial)
         if path in FIGURES or f"{path}::{item.originalname}" in FIGURES:
             item.add_marker(pytest.mark.figure)
+
+
+@pytest.fixture(autouse=True)
+def _real_time_heap(request):
+    """A ``serial`` (real-time) test's process is set up as a node's process is
+    (:func:`soft_arm_ros.runtime.run_node`): what the suite allocated before it is frozen out of the
+    garbage collector for the test, as a full collection of that heap holds the GIL 100-170 ms, past
+    the watchdogs of a driver's cycle thread in the same process."""
+    if request.node.get_closest_marker("serial") is None:
+        yield
+        return
+    gc.freeze()
+    try:
+        yield
+    finally:
+        gc.unfreeze()
 
 
 # SOFT_ARM_TWIN=k (1, 2, 3; `test/variants`): every plant this process simulates is a twin of the
