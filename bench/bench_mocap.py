@@ -202,7 +202,7 @@ def bench_ros_latency(duration: float = 5.0) -> dict:
                         calibration=calibration) as emulator:
         rclpy.init()
         node = listener = None
-        received = []
+        received, published = [], 0
         try:
             node = MocapBridgeNode(parameter_overrides=[
                 Parameter("rig.mocap.command_port", value=emulator.command_port),
@@ -222,6 +222,7 @@ def bench_ros_latency(duration: float = 5.0) -> dict:
             start = time.monotonic()
             while time.monotonic() - start < duration + 1.0:
                 executor.spin_once(timeout_sec=0.05)
+            published = node.published
             executor.shutdown()
         finally:
             if node is not None:
@@ -239,7 +240,7 @@ def bench_ros_latency(duration: float = 5.0) -> dict:
         k = bisect.bisect_left(exposures, stamp - 1e-3)
         if arrival - first > 1.0 and k < len(exposures) and abs(exposures[k] - stamp) < 1e-3:
             latency.append(arrival - exposures[k])
-    return {"to_mocap_markers": _percentiles(latency), "received": len(received)}
+    return {"to_mocap_markers": _percentiles(latency), "received": len(received), "published": published}
 
 
 def main():

@@ -8,10 +8,11 @@ tensions as recorded (the motor torque / pulley radius: it moves the rotor and p
 Residuals are *changes* from the segment's start, markers over ``marker_sigma`` and shortenings
 over ``shortening_sigma``, so that a static error left by the static fit does not bias the
 dynamic one. Parameters: log ratios of the viscosity and of the rotor mass to their starting
-values; ``scipy.optimize.least_squares`` with forward differences of a fixed step in the log
-parameters. The segments of an evaluation, and the two perturbed evaluations of a Jacobian
-together, are simulated in parallel, one thread per core: the compiled segment loop releases the
-GIL, so threads share the compiled kernels that processes would each have to load.
+values; Levenberg-Marquardt (:func:`levenberg_marquardt`) on forward differences of a fixed step
+in the log parameters, stopped when a next step would be below the estimates' resolution. The
+segments of an evaluation, and the two perturbed evaluations of a Jacobian together, are simulated
+in parallel, one thread per core: the compiled segment loop releases the GIL, so threads share
+the compiled kernels that processes would each have to load.
 """
 from __future__ import annotations
 
@@ -21,7 +22,6 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 from numba import njit
-from scipy.optimize import least_squares
 
 from .config import ArmConfig
 from .dynamics import OutOfDomainError
@@ -208,6 +208,40 @@ class DynamicProblem:
         return np.column_stack([(self._weighted(c) - r0) / _LOG_STEP for c in self._changes(points)])
 
 
+def standard_errors(J: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """Each parameter's standard error at a least-squares solution with Jacobian ``J`` and
+    residual ``r`` (weighted), the residuals' variance estimated from ``r`` itself."""
+    scale = float(r @ r) / max(1, r.size - J.shape[1])
+    return np.sqrt(np.clip(np.diag(np.linalg.pinv(J.T @ J)) * scale, 0.0, None))
+
+
+def levenberg_marquardt(residual, jacobian, x0, max_evaluations: int, resolution: float = 0.05):
+    """Minimise |residual(x)|^2 from ``x0``: Gauss-Newton steps, damped (Levenberg-Marquardt) only
+    after a step that did not lower the cost. Stops before simulating a step that would move every
+    parameter by less than ``resolution`` of its standard error (:func:`standard_errors` at the
+    current point): the data cannot tell such a step from none, and a simulated residual costs
+    seconds. Returns (x, residual, Jacobian at x, converged); ``max_evaluations`` bounds the
+    residuals evaluated outside the Jacobians."""
+    x = np.array(x0, dtype=float)
+    r = residual(x)
+    J = jacobian(x)
+    cost, damping, evaluations = float(r @ r), 0.0, 1
+    while evaluations < max_evaluations:
+        A, g = J.T @ J, J.T @ r
+        step = np.linalg.solve(A + damping * np.diag(np.diag(A)), -g)
+        if np.all(np.abs(step) < resolution * standard_errors(J, r)):
+            return x, r, J, True
+        r_new = residual(x + step)
+        evaluations += 1
+        cost_new = float(r_new @ r_new)
+        if np.isfinite(cost_new) and cost_new < cost:
+            x, r, cost, damping = x + step, r_new, cost_new, damping / 10.0
+            J = jacobian(x)
+        else:
+            damping = max(10.0 * damping, 1e-3)
+    return x, r, J, False
+
+
 def identify_dynamics(arm: ArmConfig, rotor_mass: float, rec, segments, registration: Registration,
                       marker_sigma: float = 2e-4, shortening_sigma: float = 2e-5,
                       timestep: float = 0.002, lead: float = SETTLED_LEAD, workers: int | None = None,
@@ -226,18 +260,17 @@ def identify_dynamics(arm: ArmConfig, rotor_mass: float, rec, segments, registra
     pool = ThreadPoolExecutor(workers, thread_name_prefix="dynamic_fit") if workers > 1 else None
     try:
         pb = DynamicProblem(arm, rotor_mass, data, marker_sigma, shortening_sigma, timestep, pool)
-        sol = least_squares(pb.residual, np.zeros(2), jac=pb.jacobian, method="trf", x_scale=1.0,
-                            xtol=1e-4, ftol=1e-6, max_nfev=max_evaluations)
-        changes = pb.changes(sol.x)
+        x, r, J, converged = levenberg_marquardt(pb.residual, pb.jacobian, np.zeros(2), max_evaluations)
+        if not converged:
+            raise IdentificationError(f"the dynamic fit did not converge in {max_evaluations} "
+                                      "evaluations (a segment the model cannot follow?)")
+        changes = pb.changes(x)
     finally:
         if pool is not None:
             pool.shutdown()
-    J = sol.jac
-    r = sol.fun
-    scale = 2.0 * sol.cost / max(1, r.size - 2)
-    se = np.sqrt(np.clip(np.diag(np.linalg.pinv(J.T @ J)) * scale, 0.0, None))
-    eta = arm.material.viscosity * np.exp(sol.x[0])
-    m_r = rotor_mass * np.exp(sol.x[1])
+    se = standard_errors(J, r)
+    eta = arm.material.viscosity * np.exp(x[0])
+    m_r = rotor_mass * np.exp(x[1])
     err_p = np.concatenate([(dp - d.dp) for (_, dp), d in zip(changes, pb.data)])
     err_s = np.concatenate([(ds - d.ds) for (ds, _), d in zip(changes, pb.data)])
     return DynamicFit(Estimate(float(eta), float(eta * se[0]), "Pa s"),

@@ -43,10 +43,13 @@ def test_a_bench_script_imports_and_every_module_it_runs_exists(name, bench_path
 
 def test_the_mocap_bench_measures_through_the_bridge_node(bench_path):
     """Its emulated server streams at 240 Hz on loopback for 2 s; the node, configured and activated,
-    publishes the frames (more than 300 arrive), and the latency it measures is positive."""
+    publishes the frames (more than 300), and the latency measured on those that reach the probe is
+    positive. The probe's own count is not the node's: on the stream's best-effort, depth-1 QoS a
+    probe spun by a loaded machine misses frames, as any late subscriber would (254 of about 470
+    reached it on a CI run)."""
     from bench_mocap import bench_ros_latency
     out = bench_ros_latency(duration=1.0)
-    assert out["received"] > 300, out
+    assert out["published"] > 300 and out["received"] > 100, out
     assert 0 < out["to_mocap_markers"]["p50_ms"] <= out["to_mocap_markers"]["p99_ms"], out
 
 

@@ -93,3 +93,52 @@ def test_threads_simulate_what_the_callers_thread_does_to_the_bit():
         np.testing.assert_array_equal(threaded.residual(p), serial.residual(p))
         np.testing.assert_array_equal(threaded.jacobian(p), serial.jacobian(p))
     assert threaded.evaluations == serial.evaluations == 3     # the residual at p is reused
+
+
+def _decay(noise_seed=0):
+    """y = a exp(-b t) + noise, weighted residual and its exact Jacobian in (log a, log b)."""
+    t = np.linspace(0.0, 3.0, 60)
+    y = 2.0 * np.exp(-1.3 * t) + 0.01 * np.random.default_rng(noise_seed).standard_normal(t.size)
+    calls = []
+
+    def residual(x):
+        calls.append(np.array(x))
+        return (np.exp(x[0]) * np.exp(-np.exp(x[1]) * t) - y) / 0.01
+
+    def jacobian(x):
+        e = np.exp(x[0]) * np.exp(-np.exp(x[1]) * t)
+        return np.column_stack([e, -e * np.exp(x[1]) * t]) / 0.01
+    return residual, jacobian, calls
+
+
+def test_the_fit_stops_within_a_twentieth_of_a_standard_error_of_the_optimum():
+    """From far off (a 3x, b 0.4x) on a curved problem: the optimum scipy finds at tight tolerances,
+    within 0.05 standard errors in each parameter, and no residual evaluated after the last step
+    that the data could tell from none."""
+    from scipy.optimize import least_squares
+
+    from soft_arm_model.dynamic_identification import levenberg_marquardt, standard_errors
+    for seed in range(5):
+        residual, jacobian, calls = _decay(seed)
+        x0 = np.log([6.0, 0.5])
+        x, r, J, converged = levenberg_marquardt(residual, jacobian, x0, 30)
+        evaluated = np.array(calls)
+        best = least_squares(residual, x0, jac=jacobian, xtol=1e-14, ftol=1e-14, gtol=1e-14)
+        se = standard_errors(J, r)
+        assert converged and np.all(np.abs(x - best.x) < 0.05 * se), (x - best.x) / se
+        np.testing.assert_array_equal(r, residual(x))
+        assert np.array_equal(evaluated[-1], x)                   # the last point evaluated is the fit's
+        assert np.any(np.abs(evaluated[-1] - evaluated[-2]) >= 0.05 * se)     # and its step mattered
+
+
+def test_a_fit_at_its_optimum_evaluates_nothing_more_and_one_without_evaluations_says_so():
+    from scipy.optimize import least_squares
+
+    from soft_arm_model.dynamic_identification import levenberg_marquardt
+    residual, jacobian, calls = _decay(1)
+    best = least_squares(residual, np.log([2.0, 1.3]), jac=jacobian, xtol=1e-14, ftol=1e-14, gtol=1e-14)
+    calls.clear()
+    x, _, _, converged = levenberg_marquardt(residual, jacobian, best.x, 30)
+    assert converged and len(calls) == 1 and np.array_equal(x, best.x)
+    _, _, _, converged = levenberg_marquardt(residual, jacobian, np.log([6.0, 0.5]), 2)
+    assert not converged
