@@ -216,12 +216,12 @@ def standard_errors(J: np.ndarray, r: np.ndarray) -> np.ndarray:
 
 
 def levenberg_marquardt(residual, jacobian, x0, max_evaluations: int, resolution: float = 0.05):
-    """Minimise |residual(x)|^2 from ``x0``: Gauss-Newton steps, damped (Levenberg-Marquardt) only
-    after a step that did not lower the cost. Stops before simulating a step that would move every
-    parameter by less than ``resolution`` of its standard error (:func:`standard_errors` at the
-    current point): the data cannot tell such a step from none, and a simulated residual costs
-    seconds. Returns (x, residual, Jacobian at x, converged); ``max_evaluations`` bounds the
-    residuals evaluated outside the Jacobians."""
+    """Minimise the squared norm of ``residual(x)`` from ``x0``: Gauss-Newton steps, damped
+    (Levenberg-Marquardt) only after a step that did not lower the cost. Stops before simulating
+    a step that would move every parameter by less than ``resolution`` of its standard error
+    (:func:`standard_errors` at the current point): the data cannot tell such a step from none,
+    and a simulated residual costs seconds. Returns (x, residual, Jacobian at x, converged);
+    ``max_evaluations`` bounds the residuals evaluated outside the Jacobians."""
     x = np.array(x0, dtype=float)
     r = residual(x)
     J = jacobian(x)
