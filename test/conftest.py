@@ -73,12 +73,14 @@ def pytest_collection_modifyitems(config, items):
 @pytest.fixture(autouse=True)
 def _real_time_heap(request):
     """A ``serial`` (real-time) test's process is set up as a node's process is
-    (:func:`soft_arm_ros.runtime.run_node`): what the suite allocated before it is frozen out of the
-    garbage collector for the test, as a full collection of that heap holds the GIL 100-170 ms, past
-    the watchdogs of a driver's cycle thread in the same process."""
+    (:func:`soft_arm_ros.runtime.run_node`): the earlier tests' garbage collected, then what is left
+    frozen out of the garbage collector for the test, as a full collection of that heap holds the
+    GIL 100-170 ms, past the watchdogs of a driver's cycle thread in the same process. Collected
+    first: frozen garbage would keep an earlier test's nodes alive, on this test's topics."""
     if request.node.get_closest_marker("serial") is None:
         yield
         return
+    gc.collect()
     gc.freeze()
     try:
         yield
