@@ -101,18 +101,27 @@ def _stamps(rows: np.ndarray, at: int) -> np.ndarray:
     return _field(rows, at, "<i4", 1)[:, 0] + 1e-9 * _field(rows, at + 4, "<u4", 1)[:, 0]
 
 
-def joint_state_arrays(raws: list, names, fields=("position", "effort")):
-    """``sensor_msgs/JointState`` messages of one layout as (header stamps (N,) [s], per field of
-    ``fields`` an (N, len(names)) array, columns in the order of ``names``); None when the
-    messages do not share one layout or the first lacks one of ``names`` or a field's values."""
-    if not raws:
-        return None
-    rows = _stacked(raws)
+def _start(raws: list):
+    """(rows, the walk past the header and the message's first sequence count, the stamp's offset,
+    that count) of messages with one header layout; None if there are none or their lengths or
+    byte orders differ."""
+    rows = _stacked(raws) if raws else None
     if rows is None:
         return None
     walk = _Walk(raws[0])
     stamp = walk.header()
     _, count = walk.u32()
+    return rows, walk, stamp, count
+
+
+def joint_state_arrays(raws: list, names, fields=("position", "effort")):
+    """``sensor_msgs/JointState`` messages of one layout as (header stamps (N,) [s], per field of
+    ``fields`` an (N, len(names)) array, columns in the order of ``names``); None when the
+    messages do not share one layout or the first lacks one of ``names`` or a field's values."""
+    start = _start(raws)
+    if start is None:
+        return None
+    rows, walk, stamp, count = start
     found = []
     for _ in range(count):
         at, length = walk.u32()
@@ -138,14 +147,10 @@ def joint_state_arrays(raws: list, names, fields=("position", "effort")):
 def pose_array_positions(raws: list):
     """``geometry_msgs/PoseArray`` messages of one layout as (header stamps (N,) [s], positions
     (N, poses, 3) [m]); None when they do not share one layout."""
-    if not raws:
+    start = _start(raws)
+    if start is None:
         return None
-    rows = _stacked(raws)
-    if rows is None:
-        return None
-    walk = _Walk(raws[0])
-    stamp = walk.header()
-    _, count = walk.u32()
+    rows, walk, stamp, count = start
     at = walk.doubles(7 * count)        # each pose: position (3), orientation (4), all float64
     if walk.pos > rows.shape[1] - _HEADER or not _uniform(rows, [(stamp, 8), (at, 56 * count)]):
         return None

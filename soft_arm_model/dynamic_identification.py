@@ -145,10 +145,6 @@ def simulate_changes(arm: ArmConfig, rotor_mass: float, data: SegmentData, times
     return ds, dp
 
 
-def _simulate(job):
-    return simulate_changes(*job)
-
-
 class DynamicProblem:
     """The weighted least-squares problem of :func:`identify_dynamics` over p = (log viscosity
     ratio, log rotor-mass ratio): the segments ``data`` (:class:`SegmentData`) simulated on
@@ -181,7 +177,8 @@ class DynamicProblem:
         self.evaluations += len(points)
         jobs = [(self.arm(p), self.m0 * np.exp(p[1]), d, self.timestep, q0)
                 for p in points for d, q0 in zip(self.data, self.q_start)]
-        done = list(self.pool.map(_simulate, jobs)) if self.pool is not None else [_simulate(j) for j in jobs]
+        run = self.pool.map if self.pool is not None else map
+        done = list(run(lambda job: simulate_changes(*job), jobs))
         k = len(self.data)
         return [done[i * k:(i + 1) * k] for i in range(len(points))]
 
