@@ -142,7 +142,8 @@ def run_draw(spec: dict) -> dict:
     the identification experiment simulated on it and fitted as ``soft-arm-identify`` fits it, then
     ``task`` blind (the tendons alone) with the controller's model, the estimator told the
     tolerances' spread (:func:`~soft_arm_experiments.campaigns.plants.estimator_priors`), and with
-    the identified arm, the estimator told the identified payload's uncertainty."""
+    the identified arm as soft-arm-identify writes it, the estimator told the identified payload's
+    uncertainty (:func:`~soft_arm_experiments.identify_cli.identified_priors`)."""
     import tempfile
 
     from soft_arm_experiments.campaigns.plants import (draw_frame, draw_plant, estimator_priors,
@@ -150,7 +151,8 @@ def run_draw(spec: dict) -> dict:
     from soft_arm_experiments.excitation import Excitation, load_identification, parse_fit
     from soft_arm_experiments.harness import load_setup
     from soft_arm_experiments.identification_run import simulate_recording
-    from soft_arm_experiments.identify_cli import composed_calibration, identify, write_identified_arm
+    from soft_arm_experiments.identify_cli import (composed_calibration, identified_priors, identify,
+                                                   write_identified_arm)
     from soft_arm_drivers.mocap.bridge_config import load_mocap_config
     t0 = time.perf_counter()
     tolerances = load_tolerances()
@@ -159,16 +161,16 @@ def run_draw(spec: dict) -> dict:
     setup = load_setup("identification", overrides=overrides)
     rec = simulate_recording(setup, Excitation(setup.excitation, len(setup.arm.tendons)))
     fit = identify(rec, setup.arm, parse_fit(load_identification()), workers=1)["static"]
-    # what the estimator is told the plant may be: the tolerances' spread about the drawing, or the
-    # identification's uncertainty of the payload it found
+    # what the estimator is told the plant may be: the tolerances' spread about the drawing, or (in
+    # the identified arm's file) the identified payload's uncertainty
     out = {"seed": spec["seed"], "task": spec["task"], "plant": plant,
            "model": _blind(spec["task"], overrides + estimator_priors(tolerances, setup.arm))}
+    out["identified_priors"] = priors = identified_priors(fit.estimates)
     with tempfile.TemporaryDirectory() as tmp:
         path = os.path.join(tmp, "arm.yaml")
-        write_identified_arm(path, fit.arm, composed_calibration(fit.registration,
-                                                                 load_mocap_config().calibration))
-        told = [f"estimator.prior.payload={fit.estimates['tip_mass'].uncertainty:.6g}"]
-        out["identified"] = _blind(spec["task"], overrides + told, path)
+        calibration = composed_calibration(fit.registration, load_mocap_config().calibration)
+        write_identified_arm(path, fit.arm, calibration, priors=priors)
+        out["identified"] = _blind(spec["task"], overrides, path)
     return {**out, "wall_s": time.perf_counter() - t0}
 
 

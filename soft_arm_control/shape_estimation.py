@@ -54,7 +54,8 @@ import numpy as np
 
 from soft_arm_model import ArmData, ArmModel, evaluate, solve_equilibrium
 from soft_arm_model.dynamics import KINEMATICS, STATICS, OutOfDomainError
-from soft_arm_model.parameters import default_config_dir, load_section
+from soft_arm_model.parameters import (ConfigError, check_value, default_config_dir, load_section,
+                                       read_parameters)
 
 from .estimator_update import (OUT_OF_DOMAIN, UPDATED, marker_innovations, marker_moments, marker_update,
                                new_work, tendon_update)
@@ -153,6 +154,21 @@ def load_estimator_config(path: str | None = None, overrides=None) -> EstimatorC
     """``estimator`` of ``config/estimator.yaml`` (default: the package's) with overrides."""
     path = path or os.path.join(default_config_dir(), "estimator.yaml")
     return EstimatorConfig.of(load_section(path, "estimator", ESTIMATOR_SCHEMA, overrides))
+
+
+def prior_overrides(path: str) -> dict:
+    """``estimator.prior.*`` of a parameter file (an arm file written by soft-arm-identify carries
+    what its fit leaves unknown) as overrides for :func:`load_estimator_config`, checked against the
+    schema (ConfigError naming ``path``); empty if the file has none."""
+    estimator = read_parameters(path).get("estimator")
+    prior = estimator.get("prior") if isinstance(estimator, dict) else None
+    if not isinstance(prior, dict):
+        return {}
+    try:
+        return {f"prior.{key}": check_value(ESTIMATOR_SCHEMA, "estimator", f"prior.{key}", value)
+                for key, value in prior.items()}
+    except ConfigError as exc:
+        raise ConfigError(f"{path}: {exc}") from None
 
 
 def fused_markers(mocap, estimate) -> np.ndarray:

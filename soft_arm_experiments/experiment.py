@@ -48,13 +48,15 @@ NAMESPACES = ("arm", "control", "plant", "tasks", "graph", "identification", "es
 
 
 def _ros_arguments(task: str, sets, config_dir: str | None, arm_file: str | None = None) -> list:
-    """--ros-args for every node: the package's parameter files (``arm_file`` for arm.yaml), the
-    task and the overrides."""
+    """--ros-args for every node: the package's parameter files (``arm_file`` for arm.yaml, last, so
+    that the estimator priors it carries replace estimator.yaml's), the task and the overrides."""
     d = config_dir or default_config_dir()
     args = ["--ros-args"]
     for name in NAMESPACES:
-        path = os.path.abspath(arm_file) if name == "arm" and arm_file else os.path.join(d, f"{name}.yaml")
-        args += ["--params-file", path]
+        if not (name == "arm" and arm_file):
+            args += ["--params-file", os.path.join(d, f"{name}.yaml")]
+    if arm_file:
+        args += ["--params-file", os.path.abspath(arm_file)]
     args += ["-p", f"graph.task:={task}"]
     for pair in sets:
         key, sep, value = pair.partition("=")

@@ -25,7 +25,8 @@ from soft_arm_control.config import (FEEDBACKS, IDENTIFICATION, ControlConfig, T
                                      load_control_config, load_task_config)
 from soft_arm_control.outer_loop import OuterLoop, outer_loop_for
 from soft_arm_control.estimators import shape_estimator
-from soft_arm_control.shape_estimation import EstimatorConfig, fused_markers, fused_tip, load_estimator_config
+from soft_arm_control.shape_estimation import (EstimatorConfig, fused_markers, fused_tip,
+                                               load_estimator_config, prior_overrides)
 from soft_arm_control.strike_planner import strike_move_for
 from soft_arm_control.two_level import TwoLevelController
 from soft_arm_control.target_margin import target_point
@@ -62,9 +63,11 @@ def load_setup(task: str, config_dir: str | None = None, overrides=None,
     ``arm.yaml`` (e.g. an identified one): the plant stays the arm of ``plant.yaml`` over
     ``arm.yaml`` (or ``plant.plant_file``), whatever the controller believes; the mocap
     calibration an arm file carries (``rig.mocap.calibration``, as soft-arm-identify writes it) is
-    the one the markers come through, as the mocap bridge given that file would publish them.
-    ``task`` "identification": the identification experiment of ``identification.yaml`` instead of
-    a task. ``feedback``: what the online CLIK closes its loop on (mocap, fused or estimate)."""
+    the one the markers come through, as the mocap bridge given that file would publish them, and
+    the estimator priors it carries (``estimator.prior``) replace estimator.yaml's beneath
+    ``overrides``. ``task`` "identification": the identification experiment of
+    ``identification.yaml`` instead of a task. ``feedback``: what the online CLIK closes its loop
+    on (mocap, fused or estimate)."""
     if feedback not in FEEDBACKS:
         raise ValueError(f"feedback must be one of {list(FEEDBACKS)}, got {feedback!r}")
     d = config_dir or default_config_dir()
@@ -78,7 +81,8 @@ def load_setup(task: str, config_dir: str | None = None, overrides=None,
     plant.plant_arm(arm)                  # a bad plant file is refused before anything runs
     control = load_control_config(arm, os.path.join(d, "control.yaml"),
                                   {**groups["control"], "clik.feedback": feedback})
-    estimator = load_estimator_config(os.path.join(d, "estimator.yaml"), groups["estimator"])
+    estimator = load_estimator_config(os.path.join(d, "estimator.yaml"), {
+        **(prior_overrides(arm_file) if arm_file else {}), **groups["estimator"]})
     if task == IDENTIFICATION:
         return Setup(arm, control, plant, None, load_excitation(
             len(arm.tendons), control.tension_min, control.tension_max,

@@ -172,3 +172,30 @@ def test_configured_dynamic_the_node_runs_the_dynamic_estimate_with_the_controll
         assert error @ np.linalg.solve(covariance, error) <= 16.27, (error, np.diag(covariance))
     finally:
         rclpy.try_shutdown()
+
+
+def test_an_identified_arm_file_after_estimator_yaml_gives_the_node_its_priors(tmp_path):
+    """The rig's way to an identified arm: ``--params-file`` the file soft-arm-identify wrote; the
+    node's estimator takes the priors it carries, the arm it describes."""
+    import rclpy
+
+    from soft_arm_control.shape_estimator_node import ShapeEstimatorNode
+    from soft_arm_experiments.identify_cli import write_identified_arm
+    from soft_arm_model import load_arm_config
+
+    arm = load_arm_config(overrides={"material.youngs_modulus": 1.8e5})
+    path = str(tmp_path / "arm_identified.yaml")
+    priors = {"prior.stiffness": 0.004, "prior.friction": 0.01, "prior.tendon_offset": 0.013,
+              "prior.tendon_angle": 0.014, "prior.payload": 1e-5}
+    write_identified_arm(path, arm, (np.eye(3), np.zeros(3)), priors=priors)
+    rclpy.init()
+    try:
+        node = ShapeEstimatorNode(cli_args=["--ros-args", "--params-file", path])
+        c = node.config
+        assert (c.prior_stiffness, c.prior_friction, c.prior_tendon_offset, c.prior_tendon_angle,
+                c.prior_payload) == tuple(priors.values())
+        assert node.model.config.material.youngs_modulus == 1.8e5
+        assert node.get_parameter("estimator.prior.tendon_angle").value == 0.014
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown()
