@@ -29,8 +29,10 @@ from launch_ros.event_handlers import OnStateTransition
 from launch_ros.events.lifecycle import ChangeState
 from lifecycle_msgs.msg import Transition
 
-PARAMETER_FILES = ["arm.yaml", "control.yaml", "plant.yaml", "tasks.yaml", "graph.yaml", "rig.yaml",
-                   "mocap.yaml", "estimator.yaml"]
+# arm.yaml last: an identified arm put in its place carries the mocap calibration and estimator
+# priors of its fit, which win over mocap.yaml's and estimator.yaml's
+PARAMETER_FILES = ["control.yaml", "plant.yaml", "tasks.yaml", "graph.yaml", "rig.yaml", "mocap.yaml",
+                   "estimator.yaml", "arm.yaml"]
 # the clik's mocap/markers per feedback (soft_arm_experiments.orchestration.FEEDBACK_TOPICS)
 FEEDBACK = {"mocap": "mocap/markers", "fused": "fused/markers", "estimate": "estimate/markers"}
 NODES = ["motor_driver", "mocap_bridge", "inner_loop", "clik", "task_runner", "recorder"]

@@ -13,7 +13,8 @@ from launch.conditions import IfCondition
 from launch.substitutions import LaunchConfiguration, PythonExpression
 from launch_ros.actions import Node
 
-PARAMETER_FILES = ["arm.yaml", "control.yaml", "plant.yaml", "tasks.yaml", "graph.yaml", "estimator.yaml"]
+# arm.yaml last: an identified arm put in its place carries the estimator priors of its fit
+PARAMETER_FILES = ["control.yaml", "plant.yaml", "tasks.yaml", "graph.yaml", "estimator.yaml", "arm.yaml"]
 # the clik's mocap/markers per feedback (soft_arm_experiments.orchestration.FEEDBACK_TOPICS)
 FEEDBACK = {"mocap": "mocap/markers", "fused": "fused/markers", "estimate": "estimate/markers"}
 NODES = ["simulator", "inner_loop", "clik", "task_runner", "recorder"]

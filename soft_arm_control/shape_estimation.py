@@ -157,9 +157,9 @@ def load_estimator_config(path: str | None = None, overrides=None) -> EstimatorC
 
 
 def prior_overrides(path: str) -> dict:
-    """``estimator.prior.*`` of a parameter file (an arm file written by soft-arm-identify carries
-    what its fit leaves unknown) as overrides for :func:`load_estimator_config`, checked against the
-    schema (ConfigError naming ``path``); empty if the file has none."""
+    """``estimator.prior.*`` of a parameter file (an arm file: soft-arm-identify writes the
+    identified payload's uncertainty there) as overrides for :func:`load_estimator_config`, checked
+    against the schema (ConfigError naming ``path``); empty if the file has none."""
     estimator = read_parameters(path).get("estimator")
     prior = estimator.get("prior") if isinstance(estimator, dict) else None
     if not isinstance(prior, dict):

@@ -35,6 +35,18 @@ def test_launch_file_names_existing_executables_and_parameter_files(path):
     assert "package=\"soft_arm\"" in path.read_text()
 
 
+@pytest.mark.parametrize("name", ["rig.launch.py", "sim.launch.py"])
+def test_the_task_launches_read_arm_yaml_last(name):
+    """An identified arm put in arm.yaml's place carries its mocap calibration and estimator priors
+    (soft-arm-identify): given last, they win over mocap.yaml's and estimator.yaml's. The
+    identification launch keeps mocap.yaml's calibration, the one soft-arm-identify composes with."""
+    files = _constant(ast.parse((ROOT / "launch" / name).read_text()), "PARAMETER_FILES")
+    assert files[-1] == "arm.yaml" and files.count("arm.yaml") == 1
+    ident = _constant(ast.parse((ROOT / "launch" / "identification.launch.py").read_text()),
+                      "PARAMETER_FILES")
+    assert ident.index("mocap.yaml") > ident.index("arm.yaml")
+
+
 def test_the_simulated_graph_records_on_the_simulators_clock():
     """sim.launch.py gives the recorder use_sim_time (as soft-arm-experiment --processes does), and
     only nodes it starts."""
