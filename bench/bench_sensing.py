@@ -143,7 +143,7 @@ def run_draw(spec: dict) -> dict:
     ``task`` blind (the tendons alone) with the controller's model, the estimator told the
     tolerances' spread (:func:`~soft_arm_experiments.campaigns.plants.estimator_priors`), and with
     the identified arm as soft-arm-identify writes it, the estimator told the identified payload's
-    uncertainty (:func:`~soft_arm_experiments.identify_cli.identified_priors`)."""
+    uncertainty (the report's ``estimator_priors``)."""
     import tempfile
 
     from soft_arm_experiments.campaigns.plants import (draw_frame, draw_plant, estimator_priors,
@@ -151,8 +151,7 @@ def run_draw(spec: dict) -> dict:
     from soft_arm_experiments.excitation import Excitation, load_identification, parse_fit
     from soft_arm_experiments.harness import load_setup
     from soft_arm_experiments.identification_run import simulate_recording
-    from soft_arm_experiments.identify_cli import (composed_calibration, identified_priors, identify,
-                                                   write_identified_arm)
+    from soft_arm_experiments.identify_cli import composed_calibration, identify, write_identified_arm
     from soft_arm_drivers.mocap.bridge_config import load_mocap_config
     t0 = time.perf_counter()
     tolerances = load_tolerances()
@@ -160,12 +159,13 @@ def run_draw(spec: dict) -> dict:
     overrides = plant_overrides(plant) + [f"estimator.process_model={spec['process_model']}"]
     setup = load_setup("identification", overrides=overrides)
     rec = simulate_recording(setup, Excitation(setup.excitation, len(setup.arm.tendons)))
-    fit = identify(rec, setup.arm, parse_fit(load_identification()), workers=1)["static"]
+    result = identify(rec, setup.arm, parse_fit(load_identification()), workers=1)
+    fit = result["static"]
     # what the estimator is told the plant may be: the tolerances' spread about the drawing, or (in
     # the identified arm's file) the identified payload's uncertainty
     out = {"seed": spec["seed"], "task": spec["task"], "plant": plant,
            "model": _blind(spec["task"], overrides + estimator_priors(tolerances, setup.arm))}
-    out["identified_priors"] = priors = identified_priors(fit.estimates)
+    out["identified_priors"] = priors = result["report"]["estimator_priors"]
     with tempfile.TemporaryDirectory() as tmp:
         path = os.path.join(tmp, "arm.yaml")
         calibration = composed_calibration(fit.registration, load_mocap_config().calibration)

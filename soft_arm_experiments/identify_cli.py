@@ -197,6 +197,7 @@ def identify(rec: Recording, arm, fit_config, workers: int | None = None) -> dic
         "plateaus": len(held), "dynamic_segments": len(segments),
         "noise": {"marker": marker_sigma, "shortening": shortening_sigma},
         "estimates": {k: {**vars(e), "uncertainty": e.uncertainty} for k, e in static.estimates.items()},
+        "estimator_priors": identified_priors(static.estimates),
         "marker_rms": static.marker_rms.tolist(), "shortening_rms": static.shortening_rms.tolist(),
         "static": {"evaluations": static.evaluations, "seconds": static_s}, "basis_check": check,
         "dynamic": None if dynamic is None else {
@@ -274,8 +275,6 @@ def main(argv=None) -> int:
     calibration = composed_calibration(static.registration, mocap)
     report["mocap_calibration"] = {"rotation_matrix": calibration[0].tolist(),
                                    "translation": calibration[1].tolist()}
-    priors = identified_priors(static.estimates)
-    report["estimator_priors"] = priors
     if args.output:
         stamp = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
         dyn = report["dynamic"]
@@ -286,7 +285,7 @@ def main(argv=None) -> int:
                      "No step or chirp in the bag: the viscosity is the starting arm's.\n")
                   + "estimator.prior: the payload's uncertainty, for the shape estimator.\n"
                   + "Use: --arm-file FILE, or --params-file FILE after mocap.yaml and estimator.yaml.")
-        write_identified_arm(args.output, static.arm, calibration, header, priors)
+        write_identified_arm(args.output, static.arm, calibration, header, report["estimator_priors"])
     if args.plot:
         from .identification_figures import identification_figures
         report["figures"] = identification_figures(result, args.plot)
