@@ -115,13 +115,19 @@ def bench_estimator() -> dict:
     d, r, jac, dA = estimator.data, np.zeros(model.n), np.zeros((model.n, model.n)), np.zeros((model.n, 4))
     linearise = best_of(lambda: residual_jacobian_kernel(model.kernel_args, d.kernel_args, d.Fg, d.Fel, d.A,
                                                          estimator.q.copy(), u, True, r, jac, dA), inner=50)
-    # the dynamic estimate (the arm's dynamics between samples): swinging, at the same pose
+    # the dynamic estimate (the arm's dynamics between samples): swinging at the same pose (the
+    # tendons five times faster than rest_speed), and at rest, where it takes the static filter's
+    # second opinion
     dynamic = DynamicShapeEstimator(model, setup.estimator, setup.control.rotor_mass)
-    swing = np.full(4, 2e-3)
+    swing = np.full(4, 5 * setup.estimator.rest_speed)
     dynamic_tendons = best_of(lambda: dynamic.update(next(clock), s, swing, u), inner=50)
     dynamic_fused = best_of(lambda: dynamic.update(next(clock), s, swing, u, markers), inner=50)
+    dynamic_rest = best_of(lambda: dynamic.update(next(clock), s, zero, u), inner=50)
+    dynamic_rest_fused = best_of(lambda: dynamic.update(next(clock), s, zero, u, markers), inner=50)
     return {"dynamic_estimator_update_tendons_ms": 1e3 * dynamic_tendons,
             "dynamic_estimator_update_markers_ms": 1e3 * dynamic_fused,
+            "dynamic_estimator_update_at_rest_ms": 1e3 * dynamic_rest,
+            "dynamic_estimator_update_at_rest_markers_ms": 1e3 * dynamic_rest_fused,
             "dynamic_estimator_core_share": dynamic_fused * setup.estimator.rate,
             "estimator_update_tendons_ms": 1e3 * tendons, "estimator_update_markers_ms": 1e3 * fused,
             "estimator_tendon_update_ms": 1e3 * tendon_update,
@@ -181,6 +187,10 @@ def main():
           "target <= 50 %)")
     dynamic = steps["dynamic_estimator_update_tendons_ms"], steps["dynamic_estimator_update_markers_ms"]
     print(f"dynamic shape estimator update, tendons     {dynamic[0]:8.3f} ms")
+    at_rest = (steps["dynamic_estimator_update_at_rest_ms"],
+               steps["dynamic_estimator_update_at_rest_markers_ms"])
+    print(f"dynamic shape estimator update, at rest     {at_rest[0]:8.3f} ms"
+          f" / {at_rest[1]:.3f} ms with 4 markers   (with the static filter's second opinion)")
     print(f"dynamic shape estimator update, 4 markers   {dynamic[1]:8.3f} ms"
           f"   ({100 * steps['dynamic_estimator_core_share']:.0f} % of a core at "
           f"{steps['estimator_rate_hz']:g} Hz; target <= 1 ms)")

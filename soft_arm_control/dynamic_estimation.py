@@ -49,11 +49,29 @@ droop the payload may cause. Neither drifts (a cast arm's routing
 does not move); the stiffness and friction drift by ``parameter_drift``. :attr:`routing_sigma` and
 :attr:`payload` say how much of them the markers have told.
 
+A second opinion at rest. What neither the states above nor their priors cover (a strain the basis
+lacks, a payload beyond its linear share, a stiffness or friction learnt wrongly in motion) leaves
+the estimate biased with a covariance that does not say so. At rest the arm is in its static balance,
+and the static filter (:class:`~soft_arm_control.shape_estimation.ShapeEstimator`, run on the same
+samples: the balance is its process model, so at rest it answers from the model's statics, not from
+the history of a move) is an independent estimate of the same configuration. Whenever every tendon is
+slower than ``rest_speed`` and the static filter stands by its estimate, their difference (:attr:`gap`:
+in q, and at every marker [m]) is taken as a sample of the model's bias and held through the moves
+until the next rest; the reported covariances add its outer products, of q's to the configuration's
+and of each marker's to that marker's (a bias of centimetres is not linear in q; the filter's own
+state and gain are not changed). Where the two tips differ by more than their covariances allow
+(normalised square above ``gate``), the estimate is distrusted until the two agree at a rest, and
+the disagreement counted (``disagreements``). In motion, where nobody asks it, the static filter
+only keeps up: it updates at most every :data:`SECOND_OPINION_PERIOD`; at rest on every sample (its
+covariance, which the gate weighs, is its steady state at the estimator's rate).
+
 The public interface is :class:`~soft_arm_control.shape_estimation.ShapeEstimator`'s (``update``,
 ``estimate``, ``counts``, ``distrust``, ``parameters``), so that a consumer takes either; the
-restarts and the distrust are the same rules.
+restarts and the distrust are the same rules, and the second opinion's disagreement besides.
 """
 from __future__ import annotations
+
+from dataclasses import replace
 
 import numpy as np
 
@@ -64,17 +82,19 @@ from soft_arm_model.routing import (new_routing_work, routing_arrays, routing_de
                                     tendon_ends)
 
 from .shape_estimation import (FRICTION_BOUNDS, STIFFNESS_BOUNDS, EstimatorConfig, LostRule, MarkerGate,
-                               ShapeEstimate, UpdateReport)
+                               ShapeEstimate, ShapeEstimator, UpdateReport)
 
 ROUTING_BOUNDS = (0.15, 0.15)   # a tendon's offset (fraction of the radius), angles [rad] off the model's
 PAYLOAD_BOUNDS = (0.0, 0.1)     # kg at the tip
+SECOND_OPINION_PERIOD = 1 / 60  # s: in motion the static filter updates at most this often
 
 
 class DynamicShapeEstimator:
     """The filter for ``model`` (the controller's) with ``config`` and the rotors' reflected mass
     ``rotor_mass`` [kg] on every tendon. :meth:`update` once per sample; :attr:`q`, :attr:`qd` and
-    :attr:`P` are the state's configuration, rate and the configuration's covariance, :attr:`routing`
-    the tendons' estimated routing ((3, n_tendons): offset fractions, start and end angles [rad])."""
+    :attr:`P` are the state's configuration, rate and the configuration's covariance (the filter's,
+    without the second opinion's :attr:`gap`, which :meth:`estimate` adds), :attr:`routing` the
+    tendons' estimated routing ((3, n_tendons): offset fractions, start and end angles [rad])."""
 
     def __init__(self, model: ArmModel, config: EstimatorConfig, rotor_mass: float):
         self.model, self.config = model, config
@@ -101,7 +121,13 @@ class DynamicShapeEstimator:
         self.t = None
         self.u = None
         self.counts = {"updates": 0, "markers_used": 0, "markers_gated": 0, "diverged": 0,
-                       "out_of_domain": 0, "restarts": 0}
+                       "out_of_domain": 0, "restarts": 0, "disagreements": 0}
+        # the second opinion at rest (module docstring): the static filter on the same samples, and
+        # the configuration's difference from it at the latest rest
+        self.second = ShapeEstimator(model, replace(config, process_model="static"))
+        self.gap = np.zeros(n), np.zeros((model.marker_X.size, 3))
+        self._second_t: float | None = None           # the static filter's last update [s]
+        self._disagree: str | None = None
         self._lost = LostRule()
         self._gate = MarkerGate(model.marker_X.size, config.gate, config.regate)
         # the model's tendon arrays at the estimated routing (the other kernel arguments are the model's)
@@ -170,7 +196,7 @@ class DynamicShapeEstimator:
     @property
     def distrust(self) -> str | None:
         """Why the last update leaves the estimate undefended (None: it does not)."""
-        return self._lost.distrust
+        return self._lost.distrust or self._disagree
 
     def start(self, t: float, tension, shortening=None):
         """Start at rest at the model's equilibrium of ``tension`` [N] (the shortenings [m] are the
@@ -295,8 +321,31 @@ class DynamicShapeEstimator:
             self._share[self._load] = 1.0
             self.start(t, u, s)
             self._lost.restarted()
+        self._second_opinion(t, s, sd, u, markers)
         self.counts["updates"] += 1
         return report
+
+    def _second_opinion(self, t, s, sd, u, markers):
+        """The static filter's update on the same sample; at rest, where both stand by their
+        estimates, the gap between them and whether the two tips agree within their covariances."""
+        second = self.second
+        at_rest = not sd.size or float(np.max(np.abs(sd))) <= self.config.rest_speed
+        since = None if self._second_t is None else float(t) - self._second_t
+        if not at_rest and since is not None and 0.0 <= since < SECOND_OPINION_PERIOD - 1e-9:
+            return                              # in motion it only keeps up (a clock step updates it)
+        self._second_t = float(t)
+        second.update(t, s, sd, u, markers)
+        if not at_rest or second.distrust is not None or self._lost.distrust is not None:
+            return
+        mine, theirs = self._estimate(), second.estimate()
+        self.gap = self.q - second.q, mine.markers - theirs.markers
+        gap = self.gap[1][-1]
+        nis = float(gap @ np.linalg.solve(mine.marker_covariance[-1] + theirs.marker_covariance[-1], gap))
+        self._disagree = None
+        if nis > self.config.gate:
+            self.counts["disagreements"] += 1
+            self._disagree = (f"at rest the static balance puts the tip {1e3 * np.linalg.norm(gap):.0f} mm "
+                              f"from the estimate (normalised square {nis:.0f})")
 
     def _clamp_parameters(self):
         z = self.z
@@ -372,12 +421,19 @@ class DynamicShapeEstimator:
         self.Pz = 0.5 * (P + P.T)
 
     def estimate(self) -> ShapeEstimate:
-        """The current estimate (markers and their covariance from the model's kinematics)."""
-        d, n = self.data, self.model.n
+        """The current estimate (markers and their covariance from the model's kinematics), its
+        covariances the filter's and the second opinion's :attr:`gap`."""
+        q_gap, marker_gap = self.gap
+        return self._estimate(np.outer(q_gap, q_gap), np.einsum("ki,kj->kij", marker_gap, marker_gap))
+
+    def _estimate(self, q_bias=0.0, marker_bias=0.0) -> ShapeEstimate:
+        """The estimate with ``q_bias`` (n, n) added to the configuration's covariance and
+        ``marker_bias`` (n_markers, 3, 3) to the markers' (0: the filter's own)."""
+        d = self.data
         held = self._evaluated_at
         if held is None or not np.array_equal(held[0], self.q):
             self._evaluate(self.q.copy(), self.qd.copy(), KINEMATICS, True)
         H = np.einsum("kij,kjl->kil", d.marker_R, d.marker_J[:, 3:])
-        C = np.einsum("kij,jl,kml->kim", H, self.Pz[:n, :n], H)
-        return ShapeEstimate(self.t if self.t is not None else 0.0, self.q.copy(), self.P.copy(),
+        C = np.einsum("kij,jl,kml->kim", H, self.P, H) + marker_bias
+        return ShapeEstimate(self.t if self.t is not None else 0.0, self.q.copy(), self.P + q_bias,
                              d.marker_p.copy(), C, self.distrust)

@@ -6,7 +6,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from conftest import nees_not_overconfident
+from conftest import CHI2_3_99, nees_not_overconfident
 from soft_arm_control.dynamic_estimation import DynamicShapeEstimator
 from soft_arm_control.estimators import shape_estimator
 from soft_arm_control.shape_estimation import ShapeEstimator, load_estimator_config
@@ -176,3 +176,41 @@ def test_a_payload_the_tendons_cannot_tell_widens_the_covariance_and_leaves_the_
     assert np.mean(tip_error[last]) > 5e-3, np.mean(tip_error[last])     # the droop is not seen
     assert nees_not_overconfident(nees[payload][last]), np.mean(nees[payload][last])
     assert np.mean(nees[0.0][last]) > 4 * np.mean(nees[payload][last]), np.mean(nees[0.0][last])
+
+
+def test_at_rest_the_static_balance_is_a_second_opinion_the_covariance_carries(model):
+    """An arm that is the model, at rest at a bend, the tendons alone. A filter sure of a stiffness
+    30 % above the arm's (its prior and drift zero: a bias its states cannot learn) rests about
+    25 mm from the tip with a covariance of millimetres: its own NEES is far beyond the chi-square
+    bound. The static filter beside it (the second opinion) learns nothing wrong: the gap between
+    the two is taken into the reported covariance, whose NEES is then within the bound, and the
+    estimate is distrusted, naming the static balance. The gap is held through a move (a sample
+    whose tendons are faster than ``rest_speed``). A filter sure of the right stiffness agrees with
+    its second opinion to a tenth of a millimetre and is not distrusted."""
+    from soft_arm_drivers.sim.simulated_rig import Plant
+    u = np.array([2.5, 0.3, 1.5, 0.3])
+    plant = Plant(model, 1e-3, ROTOR)
+    plant.settle(u)
+    plant.sense(markers=True)
+    s, sd = plant.tendons()
+    true_tip = plant.markers()[0][-1]
+    sure = replace(CONFIG, prior_stiffness=1e-9, parameter_drift=0.0)
+    filters = {}
+    for stiffness in (1.0, 1.3):
+        f = filters[stiffness] = DynamicShapeEstimator(model, sure, ROTOR)
+        f.z[f._k] = stiffness
+        for k in range(1, 151):
+            f.update(k * PERIOD, s, sd, u)
+
+    def nees(estimate):
+        error = estimate.markers[-1] - true_tip
+        return error @ np.linalg.solve(estimate.marker_covariance[-1], error)
+    wrong, right = filters[1.3], filters[1.0]
+    assert np.linalg.norm(wrong.estimate().markers[-1] - true_tip) > 0.01
+    assert nees(wrong._estimate()) > 10 * CHI2_3_99 and nees(wrong.estimate()) <= CHI2_3_99
+    assert "static balance" in wrong.distrust and wrong.counts["disagreements"] > 0
+    assert np.linalg.norm(right.gap[1][-1]) < 1e-4 and right.distrust is None
+    assert right.counts["disagreements"] == 0
+    held = [g.copy() for g in wrong.gap]
+    wrong.update(151 * PERIOD, s + 1e-3, sd + 10 * CONFIG.rest_speed, u)
+    assert all(np.array_equal(a, b) for a, b in zip(held, wrong.gap))
