@@ -87,13 +87,15 @@ def test_without_the_mocap_the_uncertain_estimate_holds_the_reference_and_says_s
 def test_on_the_dynamic_estimate_the_blind_loop_steps_on_what_its_uncertainty_defends(runs):
     """The dynamic estimate (``estimator.process_model: dynamic``) is sure to a few millimetres on
     the tendons alone: the CLIK steps on the part of the error its uncertainty cannot explain and
-    ends nearer than holding the precomputed reference (5.98 mm on this target), then holds once
-    what is left is within that uncertainty, and says so."""
+    ends nearer than holding the precomputed reference (5.63 against 5.98 mm on this target; the
+    uncertainty includes the second opinion's gap at rest, so the loop takes less of the error than
+    the filter's covariance alone would let it), then holds once what is left is within that
+    uncertainty, and says so."""
     estimate = run_experiment(load_setup("coiling", overrides=ONE_TARGET + MOCAP_LOST + DYNAMIC,
                                          feedback="estimate"), truth=True)
     goal = estimate.goals[0]
     assert goal["online_steps"] > 0 and goal["status"] == "uncertain", goal
-    assert estimate.metrics[0].final_error < runs["mocap"].metrics[0].final_error - 0.5e-3
+    assert estimate.metrics[0].final_error < runs["mocap"].metrics[0].final_error - 0.2e-3
 
 
 def test_with_markers_seen_the_fused_estimate_is_sure_and_closes_the_loop(runs):
