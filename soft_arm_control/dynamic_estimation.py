@@ -82,7 +82,7 @@ from soft_arm_model.routing import (new_routing_work, routing_arrays, routing_de
                                     tendon_ends)
 
 from .shape_estimation import (FRICTION_BOUNDS, STIFFNESS_BOUNDS, EstimatorConfig, LostRule, MarkerGate,
-                               ShapeEstimate, ShapeEstimator, UpdateReport)
+                               ShapeEstimate, ShapeEstimator, UpdateReport, at_rest)
 
 ROUTING_BOUNDS = (0.15, 0.15)   # a tendon's offset (fraction of the radius), angles [rad] off the model's
 PAYLOAD_BOUNDS = (0.0, 0.1)     # kg at the tip
@@ -329,13 +329,13 @@ class DynamicShapeEstimator:
         """The static filter's update on the same sample; at rest, where both stand by their
         estimates, the gap between them and whether the two tips agree within their covariances."""
         second = self.second
-        at_rest = not sd.size or float(np.max(np.abs(sd))) <= self.config.rest_speed
+        resting = at_rest(sd, self.config.rest_speed)
         since = None if self._second_t is None else float(t) - self._second_t
-        if not at_rest and since is not None and 0.0 <= since < SECOND_OPINION_PERIOD - 1e-9:
+        if not resting and since is not None and 0.0 <= since < SECOND_OPINION_PERIOD - 1e-9:
             return                              # in motion it only keeps up (a clock step updates it)
         self._second_t = float(t)
         second.update(t, s, sd, u, markers)
-        if not at_rest or second.distrust is not None or self._lost.distrust is not None:
+        if not resting or second.distrust is not None or self._lost.distrust is not None:
             return
         mine, theirs = self._estimate(), second.estimate()
         self.gap = self.q - second.q, mine.markers - theirs.markers

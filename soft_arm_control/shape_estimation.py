@@ -171,6 +171,11 @@ def prior_overrides(path: str) -> dict:
         raise ConfigError(f"{path}: {exc}") from None
 
 
+def at_rest(rate, rest_speed: float) -> bool:
+    """Whether every tendon's rate [m/s] is at most ``rest_speed``: the arm is at rest."""
+    return not rate.size or float(np.max(np.abs(rate))) <= rest_speed
+
+
 def fused_markers(mocap, estimate) -> np.ndarray:
     """(n_markers, 3) [m]: the mocap's markers where they were seen, the estimate's elsewhere
     (``mocap`` None: the estimate's)."""
@@ -385,11 +390,10 @@ class ShapeEstimator:
             if markers is not None:
                 self._marker_update(np.asarray(markers, dtype=float), report, sd)
             self._evaluate_markers()                                              # in the domain
-            at_rest = not sd.size or float(np.max(np.abs(sd))) <= c.rest_speed
             stiffness = self.z[self.model.n]
             self._clamp_parameters()
             # shortenings that disagree count only at rest: a move outruns the static balance
-            self._lost.judge(stiffness, shortening_nis, s.size, disagreement_counts=at_rest)
+            self._lost.judge(stiffness, shortening_nis, s.size, disagreement_counts=at_rest(sd, c.rest_speed))
         except OutOfDomainError:                  # the update left the model's domain: not taken
             self.counts["out_of_domain"] += 1
             self.z, self.Pz, self._linear = saved
