@@ -388,12 +388,12 @@ def _mass_bias(lumped, J, eta, psi, col_hi, M, Cqd, energies):
             for r in range(6):
                 acc += Jp[r, a] * f[r]
             Cqd[a] += acc
-            for b in range(a, hi):
-                accm = 0.0
-                for r in range(6):
-                    accm += Jp[r, a] * mc[r] * Jp[r, b]
-                M[a, b] += accm
-    for a in range(n):
+    # M = G^T (Mc G) with G the points' Jacobians stacked (6 P x n; a massless point's rows add
+    # nothing): one matrix product, which the BLAS vectorises where sums per point and row did not
+    G = J.reshape((J.shape[0] * 6, n))
+    W = lumped.reshape((lumped.shape[0] * 6, 1)) * G
+    np.dot(G.T, W, M)
+    for a in range(n):                # exactly symmetric: the product's rounding need not be
         for b in range(a):
             M[a, b] = M[b, a]
     energies[0] = kin
