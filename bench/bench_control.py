@@ -97,8 +97,9 @@ def bench_steps():
 
 
 def bench_estimator() -> dict:
-    """One shape-estimator update [ms] at a pose of the triangle, on the tendons alone and with its
-    four markers (seen, at the model's positions plus 0.2 mm), and the core share at its rate."""
+    """One shape-estimator update [ms] at a pose of the triangle, at rest (the same sample again: the
+    iterated update stops after one step), on the tendons alone and with its four markers (seen, at
+    the model's positions plus 0.2 mm), and the core share at its rate."""
     setup = load_setup("triangle")
     model = build_model(setup.arm)
     u = np.array([1.2, 0.3, 0.8, 0.5])
@@ -181,7 +182,8 @@ def main():
     print(f"path learner per CLIK step (track goals)    {steps['track_learning_frame_us']:8.1f} us")
     print(f"shape estimator update, tendons alone       {steps['estimator_update_tendons_ms']:8.3f} ms")
     print(f"  its tendon update (compiled)              {steps['estimator_tendon_update_ms']:8.3f} ms"
-          f"   (of which the balance's linearisations {steps['estimator_linearisations_ms']:.3f} ms)")
+          f"   (at rest: one Gauss-Newton step, one linearisation of the balance "
+          f"{steps['estimator_linearisations_ms']:.3f} ms)")
     print(f"shape estimator update, with four markers   {steps['estimator_update_markers_ms']:8.3f} ms"
           f"   ({100 * steps['estimator_core_share']:.0f} % of a core at {steps['estimator_rate_hz']:g} Hz; "
           "target <= 50 %)")

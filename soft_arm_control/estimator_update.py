@@ -19,6 +19,10 @@ from soft_arm_model.statics import residual_jacobian_kernel
 
 # tendon_update's status
 UPDATED, OUT_OF_DOMAIN, NOT_POSITIVE = 0, 1, 2
+# the iterated update stops once a Gauss-Newton step moves no state by more than this part of its
+# prior standard deviation: relinearising about a point that near changes the estimate by a part of
+# that step (at rest, with a measurement much like the last, the first step is already that small)
+CONVERGED = 1e-3
 
 
 def new_work(n: int, n_tendons: int, n_markers: int) -> tuple:
@@ -157,6 +161,17 @@ def _joseph(P, K, H, noise, rows, IKH, tmp):
 
 
 @njit(cache=True, nogil=True)
+def _converged(z, last, P) -> bool:
+    """No state moved from ``last`` to ``z`` by more than :data:`CONVERGED` of its standard deviation
+    in ``P``."""
+    for a in range(z.shape[0]):
+        step = z[a] - last[a]
+        if step * step > CONVERGED * CONVERGED * P[a, a]:
+            return False
+    return True
+
+
+@njit(cache=True, nogil=True)
 def tendon_update(model_args, data_args, Fg, Fel, A, A0, Kt, Lc, rest_lengths, s, u, z_prior, P,
                   iterations, balance, balance_floor, inflation, shortening_var, moving,
                   z, K, H, noise, innovation, work):
@@ -165,8 +180,9 @@ def tendon_update(model_args, data_args, Fg, Fel, A, A0, Kt, Lc, rest_lengths, s
     Measurements: the shortenings ``s`` [m] (h = L_c(0) - L_c(q), noise variance ``shortening_var``
     [m^2]) and the static balance's residual R = R(q; k = 1, mu) + (k - 1) F_el + dA/dmu diag(u) dmu
     at the tensions ``u`` [N] (pseudo-measurement 0; standard deviation ``balance`` times
-    ``|F_el| + |A u|`` per coordinate plus ``balance_floor``, times ``inflation``); ``iterations``
-    Gauss-Newton steps about the prior. With ``moving`` the gain's rows of k and dmu are zero.
+    ``|F_el| + |A u|`` per coordinate plus ``balance_floor``, times ``inflation``); at most
+    ``iterations`` Gauss-Newton steps about the prior, fewer once one is below :data:`CONVERGED`.
+    With ``moving`` the gain's rows of k and dmu are zero.
 
     Leaves in ``z`` the updated state, in ``K`` (N, rows) the last gain, in ``H`` (rows, N) the last
     measurement Jacobian (rows: the n_tendons shortenings, then the n balance coordinates), in
@@ -218,8 +234,13 @@ def tendon_update(model_args, data_args, Fg, Fel, A, A0, Kt, Lc, rest_lengths, s
             innovation[i] = acc
         if not _factor(H, P, noise, rows, HP, S, L):
             return NOT_POSITIVE, 0.0, 0.0
+        last = tmp[0]
+        for a in range(N):
+            last[a] = z[a]
         nis = _step(HP, L, innovation, rows, n if moving else N, z_prior, z, y, w)  # the parameters
-    _gain(HP, L, rows, n if moving else N, K, y, w)                                 # learn at rest only
+        if _converged(z, last, P):                                                  # learn at rest only
+            break
+    _gain(HP, L, rows, n if moving else N, K, y, w)
     _forward(L, innovation, w, m)                            # S's leading block: L's leading block
     shortening_nis = 0.0
     for i in range(m):

@@ -40,7 +40,8 @@ tendons push beyond its bounds, whose shortenings disagree with it by :data:`RES
 whose update left the model's domain; nor by a marker whose standard deviation exceeds
 ``max_sigma`` (:meth:`ShapeEstimate.defended`). Such markers go to the online CLIK as unseen.
 
-The tendon and balance updates are iterated (``iterations`` Gauss-Newton steps of the iterated EKF,
+The tendon and balance updates are iterated (at most ``iterations`` Gauss-Newton steps of the
+iterated EKF, fewer once a step moves no state by a thousandth of its standard deviation,
 the balance being strongly nonlinear in bending). Everything is in SI units and arm_base. Each
 update returns the innovations' normalised squares for the diagnostics, and the estimate carries the
 covariance of q and of every marker position, so that a consumer can tell what it knows.
