@@ -7,9 +7,14 @@ feedback (mocap, fused, estimate) under four mocap scenarios; prints tables, wri
     python bench/bench_sensing.py --draws 10 [--tasks triangle] [--output bench/results/sensing_draws.json]
 
 With ``--draws``, each blind run (no marker, the loop on the estimate) is printed beside the same run
-holding the precomputed references (``hold``: on the mocap, without a marker): ``worse`` is the
-largest amount [mm] by which a transition's final error on the estimate exceeds the hold's, and
-``refused`` counts the trust region's refusals.
+holding the precomputed references (``hold``: on the mocap, without a marker), and beside a hold on
+the plant's twin (its Young's modulus scale 1e-6 larger, ``TWIN``). A plant far from its model may
+have more than one equilibrium under one reference (the crossed tendons' branches, the tendons'
+friction): which one a transition ends on is then decided by the last micrometre of the state
+before it, and the twin's hold shows where that is so. ``worse`` is the largest amount [mm] by which
+a transition's final error on the estimate exceeds the worse of the two holds'; ``flips`` counts
+the transitions whose holds end more than ``FLIP`` apart; ``refused`` counts the trust region's
+refusals. ``--seeds`` runs chosen draws instead of the first N.
 
 Scenarios (``plant.mocap.occlusion``): *clean*, no occlusion; *realistic*, the declared plant's
 (the cameras' lines of sight against the arm's body, 1 % dropouts); *heavy*, realistic with the
@@ -40,6 +45,8 @@ from soft_arm_experiments.campaigns.engine import map_runs
 from timing import results_path, write_results
 
 REST_SPEED = 0.005        # m/s: the true tip slower than this is at rest
+TWIN = 1e-6               # relative change of the plant's Young's modulus scale in the hold's twin
+FLIP = 0.001              # m: holds whose transitions end further apart than this flipped
 CHI2_99 = 11.345          # chi-square, 3 degrees of freedom, 99 %
 SCENARIOS = {
     "clean": ["plant.mocap.occlusion.enabled=false"],
@@ -117,24 +124,38 @@ def run_spec(spec: dict) -> dict:
             "measured": _measured(setup.task, result), "wall_s": time.perf_counter() - t0}
 
 
-def _blind(task: str, overrides: list, arm_file=None) -> dict:
+def _blind(task: str, overrides: list, twin: list, arm_file=None) -> dict:
     """``task`` without a marker, closed on the estimate, with the controller's (and estimator's)
     model of ``arm_file`` (None: arm.yaml); targets its model cannot hold moved to the closest it
     can (``--accept-closest``). Beside it, ``hold``: the same run on the mocap, which without a
     marker takes no online step and holds the precomputed references (what closing the loop on the
-    estimate must never be worse than); ``finals`` [m], each transition's final error on the truth,
-    and ``distrusts``, the trust region's refusals."""
+    estimate must never be worse than), on the plant of ``overrides`` and on its ``twin`` (overrides
+    of the plant 1e-6 away: ``hold_twin``); ``finals`` [m], each transition's final error on the
+    truth, ``online_steps`` per goal, and ``distrusts``, the trust region's refusals."""
     from soft_arm_experiments.harness import load_setup_at_closest, run_experiment
     runs = {}
-    for feedback in ("estimate", "mocap"):
-        setup, moved = load_setup_at_closest(task, overrides=overrides + SCENARIOS["blind"],
+    for name, feedback, sets in (("blind", "estimate", overrides), ("hold", "mocap", overrides),
+                                 ("hold_twin", "mocap", twin)):
+        setup, moved = load_setup_at_closest(task, overrides=sets + SCENARIOS["blind"],
                                              arm_file=arm_file, feedback=feedback)
-        runs[feedback] = run_experiment(setup, estimate=True, truth=True)
-    blind, hold = runs["estimate"], runs["mocap"]
+        runs[name] = run_experiment(setup, estimate=True, truth=True)
+    blind = runs["blind"]
     return {**_figures(blind, lambda t: t >= 1.0), "targets_moved": len(moved),
             "finals": [m.final_error for m in blind.metrics],
+            "online_steps": [g["online_steps"] for g in blind.goals],
             "distrusts": sum(g["distrusts"] for g in blind.goals),
-            "hold": {"rms_error": hold.summary.rms_error, "finals": [m.final_error for m in hold.metrics]}}
+            **{name: {"rms_error": runs[name].summary.rms_error,
+                      "finals": [m.final_error for m in runs[name].metrics]}
+               for name in ("hold", "hold_twin")}}
+
+
+def _versus_hold(f: dict) -> tuple[float, int]:
+    """(the largest amount [m] by which a transition of the blind run ``f`` (:func:`_blind`) ended
+    further from its target than the worse of the two holds, the number of transitions whose holds
+    ended more than ``FLIP`` apart)."""
+    hold, twin = np.array(f["hold"]["finals"]), np.array(f["hold_twin"]["finals"])
+    worse = float(np.max(np.array(f["finals"]) - np.maximum(hold, twin)))
+    return worse, int(np.sum(np.abs(hold - twin) > FLIP))
 
 
 def run_draw(spec: dict) -> dict:
@@ -156,21 +177,25 @@ def run_draw(spec: dict) -> dict:
     t0 = time.perf_counter()
     tolerances = load_tolerances()
     plant = {**draw_plant(spec["seed"], tolerances), **draw_frame(spec["seed"], tolerances)}
-    overrides = plant_overrides(plant) + [f"estimator.process_model={spec['process_model']}"]
+    process = [f"estimator.process_model={spec['process_model']}"]
+    overrides = plant_overrides(plant) + process
     setup = load_setup("identification", overrides=overrides)
     rec = simulate_recording(setup, Excitation(setup.excitation, len(setup.arm.tendons)))
     result = identify(rec, setup.arm, parse_fit(load_identification()), workers=1)
     fit = result["static"]
     # what the estimator is told the plant may be: the tolerances' spread about the drawing, or (in
     # the identified arm's file) the identified payload's uncertainty
+    twin = plant_overrides({**plant, "youngs_modulus_scale": plant["youngs_modulus_scale"] * (1.0 + TWIN)})
+    twin += process
+    priors = estimator_priors(tolerances, setup.arm)
     out = {"seed": spec["seed"], "task": spec["task"], "plant": plant,
-           "model": _blind(spec["task"], overrides + estimator_priors(tolerances, setup.arm))}
+           "model": _blind(spec["task"], overrides + priors, twin + priors)}
     out["identified_priors"] = priors = result["report"]["estimator_priors"]
     with tempfile.TemporaryDirectory() as tmp:
         path = os.path.join(tmp, "arm.yaml")
         calibration = composed_calibration(fit.registration, load_mocap_config().calibration)
         write_identified_arm(path, fit.arm, calibration, priors=priors)
-        out["identified"] = _blind(spec["task"], overrides, path)
+        out["identified"] = _blind(spec["task"], overrides, twin, path)
     return {**out, "wall_s": time.perf_counter() - t0}
 
 
@@ -193,6 +218,8 @@ def main(argv=None) -> int:
                         help="instead: this many plants of the robustness campaign's draws (seeds 0..N-1), "
                              "each identified, then the first of --tasks blind with the controller's "
                              "model and with the identified arm (default output sensing_draws.json)")
+    parser.add_argument("--seeds", type=int, nargs="+", default=None,
+                        help="with the draws' output: these draws' seeds instead of 0..N-1")
     parser.add_argument("--process-model", choices=["static", "dynamic"], default=None,
                         help="the shape estimate's process model (default: config/estimator.yaml's)")
     parser.add_argument("--output", default=None)
@@ -200,7 +227,7 @@ def main(argv=None) -> int:
     if args.process_model is None:
         from soft_arm_control.shape_estimation import load_estimator_config
         args.process_model = load_estimator_config().process_model
-    if args.draws:
+    if args.draws or args.seeds:
         return _draws(args)
     args.output = args.output or results_path("sensing.json")
     from soft_arm_experiments.harness import load_setup, schedule
@@ -228,19 +255,20 @@ def main(argv=None) -> int:
 
 
 def _draws(args) -> int:
-    specs = [{"seed": seed, "task": args.tasks[0], "process_model": args.process_model}
-             for seed in range(args.draws)]
+    seeds = args.seeds or range(args.draws)
+    specs = [{"seed": seed, "task": args.tasks[0], "process_model": args.process_model} for seed in seeds]
     rows = map_runs(f"{os.path.abspath(__file__)}:run_draw", specs, workers=args.workers)
-    print(f"{'seed':>4} {'model':10} {'RMS mm':>7} {'hold mm':>7} {'worse':>6} {'refused':>7} "
+    print(f"{'seed':>4} {'model':10} {'RMS mm':>7} {'hold mm':>7} {'worse':>6} {'flips':>5} {'refused':>7} "
           f"{'mm band':>8} {'tip est. rest mm (median/p95/max)':>34} {'NEES rest':>9} {'NEES all':>8}")
     for r in rows:
         for which in ("model", "identified"):
             f = r[which]
             nees = "-" if f["tip_nees_rest_mean"] is None else f"{f['tip_nees_rest_mean']:.2f}"
-            worse = max(b - h for b, h in zip(f["finals"], f["hold"]["finals"]))
+            worse, flips = _versus_hold(f)
             hold = f["hold"]["rms_error"]
             print(f"{r['seed']:>4} {which:10} {1e3 * f['rms_error']:7.3f} {1e3 * hold:7.3f} "
-                  f"{1e3 * worse:6.2f} {f['distrusts']:>7} {f['reached_mm']:>3}/{f['transitions']:<4} "
+                  f"{1e3 * worse:6.2f} {flips:>5} {f['distrusts']:>7} "
+                  f"{f['reached_mm']:>3}/{f['transitions']:<4} "
                   f"{_tip(f['estimate_at_rest'], True):>34} {nees:>9} {f['tip_nees_mean']:8.2f}")
     worst = {which: max(r[which]["estimate_at_rest"]["median"][-1] for r in rows)
              for which in ("model", "identified")}

@@ -9,7 +9,9 @@ An estimate that has left the arm (another branch of the crossed tendons' equili
 walking away) shows itself in the offset:
 
 - **radius**: the offset, averaged over ``window``, is larger than any model error the lab expects
-  (``radius`` [m]): the estimate claims the arm is where the model cannot put it;
+  (``radius`` [m]): the estimate claims the arm is where the model cannot put it (or the arm is
+  there: a plant far from its model can settle on a branch the model does not have; the tendons
+  cannot tell the two apart, and the precomputed reference is the closest safe thing to hold);
 - **drift**: the offset, in means over quarter windows, leaves the straight line of the two windows
   before (carried on to now) by more than ``drift`` [m] beyond what the arm's own swing explains
   (half the peak-to-peak of those means about their line), or that line itself moves by more than
@@ -98,7 +100,8 @@ class TrustRegion:
         mean = recent.mean(axis=0)
         if np.linalg.norm(mean) > c.radius:
             return (f"the estimate puts the task {np.linalg.norm(mean) * 1e3:.1f} mm from where the model "
-                    f"puts the reference (trust radius {c.radius * 1e3:.1f} mm): it has left the arm")
+                    f"puts the reference (trust radius {c.radius * 1e3:.1f} mm): it has left the arm, "
+                    "or the arm the model")
         if times[0] > t - 3.0 * c.window + 1e-9:
             return None                      # not yet three windows of offsets: no drift to judge
         # the offset in quarter-window means (the frames' noise averaged out), oldest first: the two

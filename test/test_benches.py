@@ -78,3 +78,15 @@ def test_the_pyelastica_timing_leaves_its_compilation_out(tmp_path):
     first, second = times["runs"]
     assert times["cold"] > 5.0 * max(first, second), times
     assert max(first, second) < 2.0 * min(first, second) + 0.05, times
+
+
+def test_the_sensing_draws_judge_the_blind_loop_against_the_worse_of_two_holds(bench_path):
+    """A transition where the hold and its 1e-6 twin end on different equilibria (2 mm apart) is a
+    flip of the plant's, and the blind run ending as the worse of them is no worse than holding; a
+    blind run beyond both holds is worse by its distance to the worse one."""
+    from bench_sensing import _versus_hold
+    holds = {"hold": {"finals": [0.010, 0.050, 0.003]}, "hold_twin": {"finals": [0.010, 0.070, 0.003]}}
+    worse, flips = _versus_hold({"finals": [0.010, 0.070, 0.003], **holds})
+    assert flips == 1 and abs(worse) < 1e-12
+    worse, flips = _versus_hold({"finals": [0.012, 0.060, 0.003], **holds})
+    assert flips == 1 and abs(worse - 0.002) < 1e-12
