@@ -258,7 +258,11 @@ def _stopped_after_activation(proc, name: str) -> tuple[str, int]:
     stopped (SIGSTOP): (that output, its pid)."""
     seen = wait_for_output(proc, "[motor_driver]: activated", timeout=120)
     time.sleep(2.0)
-    pid = _child(proc.pid, name)
+    try:
+        pid = _child(proc.pid, name)
+    except LookupError as missing:        # say what the run was doing, not only that the node is gone
+        raise AssertionError(f"{missing} 2 s after the driver's activation (the run's status: "
+                             f"{proc.poll()}); its output so far:\n{seen}") from missing
     os.kill(pid, signal.SIGSTOP)
     return seen, pid
 
