@@ -238,9 +238,9 @@ def tendon_update(model_args, data_args, Fg, Fel, A, A0, Kt, Lc, rest_lengths, s
         for a in range(N):
             last[a] = z[a]
         nis = _step(HP, L, innovation, rows, n if moving else N, z_prior, z, y, w)  # the parameters
-        if _converged(z, last, P):                                                  # learn at rest only
+        if _converged(z, last, P):
             break
-    _gain(HP, L, rows, n if moving else N, K, y, w)
+    _gain(HP, L, rows, n if moving else N, K, y, w)                                 # learn at rest only
     _forward(L, innovation, w, m)                            # S's leading block: L's leading block
     shortening_nis = 0.0
     for i in range(m):
