@@ -234,7 +234,7 @@ def tendon_update(model_args, data_args, Fg, Fel, A, A0, Kt, Lc, rest_lengths, s
             innovation[i] = acc
         if not _factor(H, P, noise, rows, HP, S, L):
             return NOT_POSITIVE, 0.0, 0.0
-        last = tmp[0]
+        last = tmp[0]                   # the iterate before this step (tmp is free until the Joseph form)
         for a in range(N):
             last[a] = z[a]
         nis = _step(HP, L, innovation, rows, n if moving else N, z_prior, z, y, w)  # the parameters

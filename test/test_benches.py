@@ -81,7 +81,7 @@ def test_the_pyelastica_timing_leaves_its_compilation_out(tmp_path):
 
 
 def test_the_sensing_draws_judge_the_blind_loop_against_the_worse_of_two_holds(bench_path):
-    """A transition where the hold and its 1e-6 twin end on different equilibria (2 mm apart) is a
+    """A transition where the hold and its 1e-6 twin end on different equilibria (20 mm apart) is a
     flip of the plant's, and the blind run ending as the worse of them is no worse than holding; a
     blind run beyond both holds is worse by its distance to the worse one."""
     from bench_sensing import _versus_hold
