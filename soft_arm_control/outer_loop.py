@@ -82,7 +82,8 @@ class GoalReport:
     trust region refused the estimate and the reference returned to the goal's precomputed one (its
     reason in ``distrust``, the frame time [s] of the last in ``distrust_time``), and
     ``untrusted_frames``, the frames on which an online step was due but not taken for it; a goal is
-    *untrusted* while it holds the precomputed reference so. ``fraction``: the part of the
+    *untrusted* while it holds the precomputed reference so (a track goal's: follows its path's
+    precomputed reference, the model closing the CLIK). ``fraction``: the part of the
     estimated error the last online step took (1 on a measurement; less on an estimate whose
     uncertainty explains some of it, :meth:`~soft_arm_control.trust_region.TrustRegion.fraction`),
     ``uncertain_frames``: the frames whose step took less than all of it, or none (no correcting
@@ -150,7 +151,8 @@ class GoalReport:
     @property
     def status(self) -> str:
         """held (no feasible step: the reference stayed), untrusted (the trust region refused the
-        estimate the online steps were taken on: the precomputed reference holds), uncertain (the
+        estimate the online steps were taken on: the precomputed reference holds, a track goal's
+        follows its path's), uncertain (the
         estimate's uncertainty explains the error it shows: no correcting step), unseen (no frame
         showed the task's markers for longer than ``unseen_after``: no correcting step; the
         reference holds, a track goal's goes on along its path), constrained (the reference
@@ -199,9 +201,10 @@ class OuterLoop:
     a track goal's references balance the path's inertial and damping forces, with the rotors'
     reflected mass ``rotor_mass`` [kg] on every tendon; ``trust``: the trust region of an estimated
     feedback (None: the feedback is measured, every frame seen is stepped on). A frame it refuses
-    returns the reference to the goal's precomputed one (an online or track goal's: the reference
-    it started from), and the online steps resume after ``trust.config.recover`` seconds of frames
-    it accepts.
+    returns the reference to the goal's precomputed one (an online goal's: the reference it started
+    from; a track goal's: the model's equilibrium at the path's point, after which the model closes
+    the CLIK along the path, without the learned correction), and the online steps resume after
+    ``trust.config.recover`` seconds of frames it accepts.
     """
 
     def __init__(self, clik, start: ClikPoint, switch_delay: float, rate: float,
@@ -320,7 +323,7 @@ class OuterLoop:
         self._fallback = ref if ref is not None else current
         self._trusted_since = None
         if self.trust is not None:
-            self.trust.reset()
+            self.trust.new_goal(None if trajectory is None else trajectory.period)
         settled = t
         self._planned, self._planned_from = move, t
         if ref is not None and move is None and self.shaper is not None and mode in self.shaped_modes:
@@ -415,9 +418,11 @@ class OuterLoop:
             if self._unseen_since is None:
                 self._unseen_since = t
             report.unseen_time = t - self._unseen_since
-            if self._trajectory is None or report.holding:
+            if self._trajectory is None:
                 return moved
             self._next_step = max(self._next_step + self.period, t + 0.5 * self.period)
+            if report.holding:                          # refused by the trust region: by the model
+                return self._along_path(self._nominal_path(t), by_model=True) or moved
             return self._along_path(self.path_at(t)) or moved
         self._unseen_since = None
         report.unseen_time = 0.0
@@ -431,6 +436,8 @@ class OuterLoop:
             self.trust.reset()
         elif self.trust is not None:
             allowed, returned = self._trusted(t, x_measured, report)
+            if not allowed and self._trajectory is not None:
+                return self._along_path(self._nominal_path(t), by_model=True) or moved
             if returned:
                 return self.command
             if not allowed:
@@ -463,17 +470,39 @@ class OuterLoop:
             self._learn(t, x_d, x_measured, not step.constrained, saturated)
         return command
 
-    def _along_path(self, path) -> ClikPoint | None:
+    def _on_path(self, t: float) -> ClikPoint:
+        """A track goal's precomputed reference at t [s]: the model's equilibrium at its path's point
+        (:meth:`_nominal_path`), solved from the current reference; the current reference when
+        none is found (the model-closed steps along the path then bring it there)."""
+        try:
+            return self.clik.precompute(self._nominal_path(t)[0], self.reference.q, tol=self.tolerance,
+                                        search=False)
+        except TargetError:
+            return self.reference
+
+    def _nominal_path(self, t: float) -> tuple:
+        """:meth:`path_at` without the learned correction (what was learned on an estimate the trust
+        region refused is not trusted either)."""
+        tau = t - self._t0
+        x, velocity = self._trajectory.at(self._x_d, tau)
+        return x, velocity, self._trajectory.acceleration(self._x_d.size, tau)
+
+    def _along_path(self, path, by_model: bool = False) -> ClikPoint | None:
         """A track goal's step along ``path`` (:meth:`path_at` at the frame's time) on a frame that
         cannot correct it (its task markers unseen, or an estimate too uncertain): the reference
         goes on along the path on the feedforward alone (no error term, nothing learned). A
         reference held instead would lose the path's motion over the frame for good, an offset the
-        error term then has to win back. A step projected onto the tension limits, or none found,
-        counts in the goal's report as an online one does. Returns the new command (None: no
+        error term then has to win back. ``by_model`` (an estimate the trust region refuses): the
+        model closes the CLIK's loop instead (its error term is the path less the model's task
+        coordinates at the reference), so that the reference returns to the path's precomputed one
+        at the task gain and goes on along it. A step projected onto the tension limits, or none
+        found, counts in the goal's report as an online one does. Returns the new command (None: no
         feasible step, or no feedforward to follow: the reference holds)."""
-        if not self.track_feedforward:
+        if not (self.track_feedforward or by_model):
             return None
-        ref, step = self.clik.step(self.reference.q, path[0], self.period, path[0], True, path[1])
+        velocity = path[1] if self.track_feedforward else None
+        ref, step = self.clik.step(self.reference.q, path[0], self.period, None if by_model else path[0], True,
+                                   velocity)
         self.last_step = step
         report = self.reports[-1]
         report.infeasible_steps += step.constrained
@@ -511,8 +540,8 @@ class OuterLoop:
             report.holding = True
             report.distrusts += 1
             report.distrust_time = t
-            self.reference = self._fallback
-            self._hand(self._fallback)
+            self.reference = self._fallback if self._trajectory is None else self._on_path(t)
+            self._hand(self.reference)
             self.trust.reset()
             return False, True
         if not report.holding:
@@ -530,7 +559,13 @@ class OuterLoop:
         coordinates [m]; ``followed``: the CLIK step was neither constrained nor held; ``clipped``:
         the dynamic reference was)."""
         tau = t - self._t0
-        self.learner.add(tau, self._trajectory.at(self._x_d, tau)[0], x_r, x_measured, followed, clipped)
+        learner = self.learner
+        if (learner.add(tau, self._trajectory.at(self._x_d, tau)[0], x_r, x_measured, followed, clipped)
+                and self.trust is not None
+                and np.linalg.norm(np.real(learner.current[0] - learner.previous[0])) > self.trust.config.drift):
+            # a lesson that moves the path's mean by more than the drift moves the reference as a
+            # jump does, and the arm follows it late: the judge starts afresh after it
+            self.trust.reset()
 
     def finish(self):
         """Store the reference of the last clik goal and close its report (end of an experiment)."""

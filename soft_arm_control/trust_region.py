@@ -16,7 +16,10 @@ walking away) shows itself in the offset:
   before (carried on to now) by more than ``drift`` [m] beyond what the arm's own swing explains
   (half the peak-to-peak of those means about their line), or that line itself moves by more than
   ``drift`` + the swing over a ``window``: a walking bias, or a loop whose steps move the estimate
-  the other way than they move the model (a branch on which the CLIK runs away).
+  the other way than they move the model (a branch on which the CLIK runs away). Along a track
+  goal's periodic path the offset swings with the path (the arm's lag behind its reference), so
+  the drift is judged on the offset averaged over the path's period before each frame
+  (:meth:`TrustRegion.new_goal`).
 
 A steady bias inside the radius shows itself in nothing the tendons measure: on an arm whose tendons
 run a few per cent off their modelled paths the tendon-only estimate is 20 mm off at rest, three
@@ -68,10 +71,21 @@ class TrustRegion:
 
     def __init__(self, config: TrustConfig):
         self.config = config
+        self.period: float | None = None    # s: the current track goal's path period (None: a target)
         self._history: deque = deque()      # (t [s], offset [m]) over the last three windows
 
     def reset(self):
         self._history.clear()
+
+    def new_goal(self, period: float | None = None):
+        """Forget the offsets and judge a new goal's: ``period`` [s] is a track goal's path period
+        (None: a fixed target). Along a periodic path the arm lags its reference by a phase and an
+        amplitude of its own, so the offset swings with the path (by 13 mm on the fast circle,
+        1.5 cm at 0.2 m/s), far beyond the drift; the drift is then judged on the offset averaged
+        over the period before each frame, in which that swing and its harmonics cancel, so that a
+        walk under it is seen as one."""
+        self.period = None if period is None else float(period)
+        self.reset()
 
     def fraction(self, error, sigma) -> float:
         """The fraction alpha in [0, 1] of the estimated task ``error`` [m] (target less estimate)
@@ -92,7 +106,9 @@ class TrustRegion:
         offset = np.asarray(x_estimate, dtype=float) - np.asarray(x_model, dtype=float)
         history = self._history
         history.append((float(t), offset))
-        while history and history[0][0] < t - 3.0 * c.window - 1e-9:
+        # three windows, and on a periodic path a period and a quarter window more to average over
+        span = 3.0 * c.window + (0.0 if self.period is None else self.period + 0.25 * c.window)
+        while history and history[0][0] < t - span - 1e-9:
             history.popleft()
         times = np.fromiter((h[0] for h in history), float, len(history))
         offsets = np.stack([h[1] for h in history])
@@ -102,7 +118,9 @@ class TrustRegion:
             return (f"the estimate puts the task {np.linalg.norm(mean) * 1e3:.1f} mm from where the model "
                     f"puts the reference (trust radius {c.radius * 1e3:.1f} mm): it has left the arm, "
                     "or the arm the model")
-        if times[0] > t - 3.0 * c.window + 1e-9:
+        if self.period is not None:
+            times, offsets = period_means(times, offsets, self.period)
+        if not times.size or times[0] > t - 3.0 * c.window + 1e-9:
             return None                      # not yet three windows of offsets: no drift to judge
         # the offset in quarter-window means (the frames' noise averaged out), oldest first: the two
         # windows before this one (a period of the arm's slowest swing, 0.8 s), then this one
@@ -148,3 +166,14 @@ def defensible_fraction(error, sigma, confidence: float) -> float:
         return 0.0
     bound = confidence * float(np.abs(o) @ np.asarray(sigma, dtype=float))
     return float(np.clip(2.0 * (1.0 - bound / square), 0.0, 1.0))
+
+
+def period_means(times, offsets, period: float) -> tuple[np.ndarray, np.ndarray]:
+    """The offsets (k, d) [m] at ``times`` (k,) [s], ascending, averaged over the ``period`` [s]
+    before each (that frame included), for the frames with a whole period of frames before them:
+    (their times, the means)."""
+    kept = times >= times[0] + period - 1e-9
+    sums = np.vstack([np.zeros(offsets.shape[1]), np.cumsum(offsets, axis=0)])
+    end = np.arange(1, times.size + 1)[kept]
+    begin = np.searchsorted(times, times[kept] - period + 1e-9)
+    return times[kept], (sums[end] - sums[begin]) / (end - begin)[:, None]
