@@ -39,9 +39,10 @@ tendons alone, in motion, they are considered (below). A sustained move is where
 other errors (the tendons' friction reversing each half period, their routing) are largest, and
 the tendons alone cannot tell those from the stiffness and friction: learnt through the fast
 circle (1.5 cm at 0.2 m/s), they walked from 1.17 to 1.40 (the plant's 1.15) and 0.10 to 0.00-0.21
-in ten seconds, and the tip's estimate 6 mm away with them. The routing and the payload are not: four lengths cannot tell a tendon
-running a few hundredths of a radius off its path from a different bend, nor a payload on the last
-few centimetres that no tendon reaches from the shape's own droop. Without markers they are
+in ten seconds, and the tip's estimate 6 mm away with them. The routing and the payload are not
+learnt from the tendons at all: four lengths cannot tell a tendon running a few hundredths of a
+radius off its path from a different bend, nor a payload on the last few centimetres that no
+tendon reaches from the shape's own droop. Without markers they are
 *considered* (Schmidt): their prior uncertainty (``prior.tendon_offset``, ``prior.tendon_angle``,
 ``prior.payload``) is carried into the configuration's covariance through the dynamics and the
 shortenings, so that the reported uncertainty includes what they may do, and their estimate stays;

@@ -472,13 +472,14 @@ class OuterLoop:
 
     def _on_path(self, t: float) -> ClikPoint:
         """A track goal's precomputed reference at t [s]: the model's equilibrium at its path's point
-        (:meth:`_nominal_path`), solved from the current reference; the current reference when
-        none is found (the model-closed steps along the path then bring it there)."""
+        (:meth:`_nominal_path`), solved from the goal's start (not from the reference the refused
+        estimate led, which may be on another branch); the goal's start when none is found (the
+        model-closed steps along the path then bring it there)."""
         try:
-            return self.clik.precompute(self._nominal_path(t)[0], self.reference.q, tol=self.tolerance,
+            return self.clik.precompute(self._nominal_path(t)[0], self._fallback.q, tol=self.tolerance,
                                         search=False)
         except TargetError:
-            return self.reference
+            return self._fallback
 
     def _nominal_path(self, t: float) -> tuple:
         """:meth:`path_at` without the learned correction (what was learned on an estimate the trust
@@ -501,8 +502,8 @@ class OuterLoop:
         if not (self.track_feedforward or by_model):
             return None
         velocity = path[1] if self.track_feedforward else None
-        ref, step = self.clik.step(self.reference.q, path[0], self.period, None if by_model else path[0], True,
-                                   velocity)
+        measured = None if by_model else path[0]
+        ref, step = self.clik.step(self.reference.q, path[0], self.period, measured, True, velocity)
         self.last_step = step
         report = self.reports[-1]
         report.infeasible_steps += step.constrained
@@ -560,9 +561,9 @@ class OuterLoop:
         the dynamic reference was)."""
         tau = t - self._t0
         learner = self.learner
-        if (learner.add(tau, self._trajectory.at(self._x_d, tau)[0], x_r, x_measured, followed, clipped)
-                and self.trust is not None
-                and np.linalg.norm(np.real(learner.current[0] - learner.previous[0])) > self.trust.config.drift):
+        lesson = learner.add(tau, self._trajectory.at(self._x_d, tau)[0], x_r, x_measured, followed, clipped)
+        mean_moved = np.linalg.norm(np.real(learner.current[0] - learner.previous[0])) if lesson else 0.0
+        if self.trust is not None and mean_moved > self.trust.config.drift:
             # a lesson that moves the path's mean by more than the drift moves the reference as a
             # jump does, and the arm follows it late: the judge starts afresh after it
             self.trust.reset()

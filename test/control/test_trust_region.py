@@ -127,4 +127,3 @@ def test_along_a_periodic_path_a_bias_walking_at_5_mm_per_s_is_refused_within_a_
         return lag(t) + np.array([0.005, 0.0]) * max(0.0, t - start)
     caught = first_refusal(walking, 10.0, period=period)
     assert caught is not None and start < caught <= start + 1.0, caught
-

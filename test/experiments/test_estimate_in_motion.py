@@ -110,8 +110,10 @@ def test_the_fast_circle_closed_on_the_estimate_tracks_as_the_mocap_does():
               f"tasks.tracking.phase.circle_fast.trajectory.period={period!r}",
               f"tasks.tracking.phase.circle_fast.window={22 * period!r}", "estimator.process_model=dynamic"]
     windows, goals = {}, {}
-    for feedback, sets in (("mocap", []), ("estimate", []), ("blind", ["plant.mocap.occlusion.blackout=[0.0, 1.0e6]"])):
-        setup = load_setup("tracking", overrides=circle + sets, feedback="mocap" if feedback == "mocap" else "estimate")
+    blind = ["plant.mocap.occlusion.blackout=[0.0, 1.0e6]"]
+    for feedback, sets in (("mocap", []), ("estimate", []), ("blind", blind)):
+        setup = load_setup("tracking", overrides=circle + sets,
+                           feedback="mocap" if feedback == "mocap" else "estimate")
         result = run_experiment(setup, estimate=feedback != "mocap", truth=True)
         windows[feedback], = result.tracking
         goals[feedback] = result.goals[-1]
