@@ -152,14 +152,13 @@ class GoalReport:
     def status(self) -> str:
         """held (no feasible step: the reference stayed), untrusted (the trust region refused the
         estimate the online steps were taken on: the precomputed reference holds, a track goal's
-        follows its path's), uncertain (the
-        estimate's uncertainty explains the error it shows: no correcting step), unseen (no frame
-        showed the task's markers for longer than ``unseen_after``: no correcting step; the
-        reference holds, a track goal's goes on along its path), constrained (the reference
-        keeps moving towards the closest feasible point), saturated (a track goal whose path needed tensions
-        outside the limits), stalled (feasible steps, but the error stays above the tolerance),
-        unreached (closed away from the target) or ok (a track goal, whose error is a tracking
-        error, is never stalled or unreached)."""
+        follows its path's), uncertain (the estimate's uncertainty explains the error it shows: no
+        correcting step), unseen (no frame showed the task's markers for longer than
+        ``unseen_after``: no correcting step; the reference holds, a track goal's goes on along its
+        path), constrained (the reference keeps moving towards the closest feasible point),
+        saturated (a track goal whose path needed tensions outside the limits), stalled (feasible
+        steps, but the error stays above the tolerance), unreached (closed away from the target) or
+        ok (a track goal, whose error is a tracking error, is never stalled or unreached)."""
         if self.held_steps:
             return "held"
         if self.holding:
