@@ -81,9 +81,11 @@ class GoalReport:
     (:class:`~soft_arm_control.trust_region.TrustRegion`): ``distrusts``, the times the
     trust region refused the estimate and the reference returned to the goal's precomputed one (its
     reason in ``distrust``, the frame time [s] of the last in ``distrust_time``), and
-    ``untrusted_frames``, the frames on which an online step was due but not taken for it; a goal is
-    *untrusted* while it holds the precomputed reference so (a track goal's: follows its path's
-    precomputed reference, the model closing the CLIK). ``fraction``: the part of the
+    ``untrusted_frames``, the frames on which an online step was due but not taken for it, and
+    ``judged_frames``, those whose drift it judged (the others came too soon after the goal's
+    start, a refusal or a jump of the reference); a goal is *untrusted* while it holds the
+    precomputed reference so (a track goal's: follows its path's precomputed reference, the model
+    closing the CLIK). ``fraction``: the part of the
     estimated error the last online step took (1 on a measurement; less on an estimate whose
     uncertainty explains some of it, :meth:`~soft_arm_control.trust_region.TrustRegion.fraction`),
     ``uncertain_frames``: the frames whose step took less than all of it, or none (no correcting
@@ -107,6 +109,7 @@ class GoalReport:
     unseen_time: float = 0.0
     unseen_after: float = 0.0
     untrusted_frames: int = 0
+    judged_frames: int = 0
     distrusts: int = 0
     distrust: str | None = None
     distrust_time: float | None = None
@@ -181,7 +184,7 @@ class GoalReport:
         keys = ("target", "mode", "online_steps", "infeasible_steps", "held_steps", "closest_error",
                 "error", "stalled_steps", "saturated_steps", "closed", "shaped_mode", "learned_periods",
                 "backed_off_periods", "frozen_periods", "unseen_frames", "unseen_time", "untrusted_frames",
-                "distrusts", "distrust", "distrust_time", "fraction", "uncertain_frames")
+                "judged_frames", "distrusts", "distrust", "distrust_time", "fraction", "uncertain_frames")
         return {**{k: getattr(self, k) for k in keys}, "reached": self.reached, "status": self.status}
 
 
@@ -245,7 +248,9 @@ class OuterLoop:
         self._unseen_since = None       # frame time [s] since which the task's markers went unseen
         self._steps = 0
         self.trust = trust
-        self._fallback = start           # what a refused estimate returns the reference to
+        # what a refused estimate returns the reference to (a track goal's: where its path's
+        # precomputed reference is solved from)
+        self._fallback = start
         self._trusted_since = None       # frame time [s] since which the trust region accepts, holding
 
     @staticmethod
@@ -436,7 +441,8 @@ class OuterLoop:
         elif self.trust is not None:
             allowed, returned = self._trusted(t, x_measured, report)
             if not allowed and self._trajectory is not None:
-                return self._along_path(self._nominal_path(t), by_model=True) or moved
+                return self._along_path(self._nominal_path(t), by_model=True) or (
+                    self.command if returned else moved)
             if returned:
                 return self.command
             if not allowed:
@@ -496,8 +502,9 @@ class OuterLoop:
         model closes the CLIK's loop instead (its error term is the path less the model's task
         coordinates at the reference), so that the reference returns to the path's precomputed one
         at the task gain and goes on along it. A step projected onto the tension limits, or none
-        found, counts in the goal's report as an online one does. Returns the new command (None: no
-        feasible step, or no feedforward to follow: the reference holds)."""
+        found, counts in the goal's report as an online one does (without ``track_feedforward`` the
+        model's error term alone moves it then). Returns the new command (None: no feasible step,
+        or, not ``by_model``, no feedforward to follow: the reference holds)."""
         if not (self.track_feedforward or by_model):
             return None
         velocity = path[1] if self.track_feedforward else None
@@ -527,10 +534,14 @@ class OuterLoop:
 
     def _trusted(self, t: float, x_estimate, report: GoalReport) -> tuple[bool, bool]:
         """(whether an online step may be taken on the estimate at t [s], whether the reference
-        returned to the goal's fallback now). A step may be taken when the trust region accepts the
-        frame and, after a refusal, has accepted every frame for ``recover`` seconds; a refusal
-        returns the reference to the fallback and holds it there (``report.holding``)."""
+        returned now). A step may be taken when the trust region accepts the frame and, after a
+        refusal, has accepted every frame for ``recover`` seconds; a refusal returns the reference
+        to the goal's fallback and holds it there (a track goal's: to its path's precomputed
+        reference, :meth:`_on_path`, which the caller then moves along the path), and sets
+        ``report.holding``."""
+        judged = self.trust.judged
         reason = self.trust.judge(t, x_estimate, self.reference.x)
+        report.judged_frames += self.trust.judged - judged
         if reason is not None:
             report.untrusted_frames += 1
             report.distrust = reason

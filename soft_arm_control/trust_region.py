@@ -66,13 +66,17 @@ class TrustConfig:
 
 
 class TrustRegion:
-    """Judges an estimated feedback frame by frame (:meth:`judge`); :meth:`reset` forgets the
-    offsets (a new goal, a reference that jumped)."""
+    """Judges an estimated feedback frame by frame (:meth:`judge`); :meth:`new_goal` starts a goal,
+    :meth:`reset` forgets the offsets (a reference that jumped). ``judged`` counts the frames whose
+    drift was judged (the history long enough and gapless)."""
 
     def __init__(self, config: TrustConfig):
         self.config = config
-        self.period: float | None = None    # s: the current track goal's path period (None: a target)
-        self._history: deque = deque()      # (t [s], offset [m]) over the last three windows
+        self.period: float | None = None    # s: the path period the drift averages over (None: none)
+        # (t [s], offset [m]) over the last three windows (and a period and a quarter window more
+        # while averaging over a period)
+        self._history: deque = deque()
+        self.judged = 0
 
     def reset(self):
         self._history.clear()
@@ -83,8 +87,12 @@ class TrustRegion:
         amplitude of its own, so the offset swings with the path (by 13 mm on the fast circle,
         1.5 cm at 0.2 m/s), far beyond the drift; the drift is then judged on the offset averaged
         over the period before each frame, in which that swing and its harmonics cancel, so that a
-        walk under it is seen as one."""
-        self.period = None if period is None else float(period)
+        walk under it is seen as one. A path slower than two windows is judged as a fixed target
+        (its lag moves along the line the judge fits, and averaging over its period would leave the
+        drift unjudged for that long: the tracking task's slow circles take 20 s).
+        """
+        slow = period is None or period > 2.0 * self.config.window
+        self.period = None if slow else float(period)
         self.reset()
 
     def fraction(self, error, sigma) -> float:
@@ -131,6 +139,7 @@ class TrustRegion:
         counts = np.bincount(index[inside], minlength=12)
         if np.any(counts == 0):
             return None                      # a gap in the frames: nothing to compare
+        self.judged += 1
         means = np.stack([np.bincount(index[inside], offsets[inside, j], minlength=12)
                           for j in range(offsets.shape[1])], axis=1) / counts[:, None]
         # the second before as a straight line (the offset's slow trend) and the swing about it

@@ -119,11 +119,42 @@ def test_a_track_goal_refused_by_the_trust_region_follows_its_paths_precomputed_
     assert report.holding and report.distrusts == 1
     assert np.linalg.norm(loop.reference.x - loop.path_at((k - 1) / RATE)[0]) < 0.3e-3
     refused_at = loop.reference.x.copy()
-    for k in range(k, k + 96):                        # 0.4 s without the markers
+    for k in range(k, k + 48):                        # 0.2 s more of the estimate 0.2 m off
+        loop.frame(k / RATE, np.array(start.x) + [0.2, 0.0], np.full(2, 1e-4))
+    assert np.linalg.norm(loop.reference.x - loop.path_at(k / RATE)[0]) < 0.5e-3
+    for k in range(k + 1, k + 49):                    # then 0.2 s without the markers
         loop.frame(k / RATE, np.full(2, np.nan), np.full(2, 1e-4))
     assert np.linalg.norm(loop.reference.x - loop.path_at(k / RATE)[0]) < 0.5e-3
     assert np.linalg.norm(loop.reference.x - refused_at) > 0.015
     assert report.status == "untrusted" and report.holding
+
+
+def test_a_refused_track_goal_whose_path_point_is_not_solved_is_brought_back_by_the_model(clik_and_start):
+    """When the path's point of the moment cannot be solved (the solve made to fail here), the
+    refusal leaves the reference at the goal's start and the model's error term brings it back
+    to the path at the task gain (0.5/s): after 2 s of refused frames it is within half the
+    distance it started at, where steps on the feedforward alone would keep that distance."""
+    from soft_arm_control.clik import TargetError
+    clik, start = clik_and_start
+    path = Trajectory("circle", 0.01, 10.0)            # slow: the feedforward moves it little
+    loop = OuterLoop(clik, start, switch_delay=0.0, rate=RATE, trust=TrustRegion(TRUST))
+    loop.goal(0.0, np.array(start.x), "track", trajectory=path)
+    for k in range(1, 241):                           # 1 s on a good estimate: along the path
+        loop.frame(k / RATE, loop.reference.x, np.full(2, 1e-4))
+
+    def unsolvable(*args, **kwargs):
+        raise TargetError("made to fail")
+    loop.clik.precompute = unsolvable
+    report, k = loop.reports[-1], 241
+    while not report.holding and k < 241 + 48:
+        loop.frame(k / RATE, np.array(start.x) + [0.2, 0.0], np.full(2, 1e-4))
+        k += 1
+    assert report.holding and np.linalg.norm(loop.reference.x - start.x) < 1e-4    # one step from it
+    behind = np.linalg.norm(loop.reference.x - loop.path_at(k / RATE)[0])
+    assert behind > 2e-3
+    for k in range(k, k + 480):
+        loop.frame(k / RATE, np.array(start.x) + [0.2, 0.0], np.full(2, 1e-4))
+    assert np.linalg.norm(loop.reference.x - loop.path_at(k / RATE)[0]) < 0.5 * behind
 
 
 def test_a_lesson_that_moves_the_paths_mean_beyond_the_drift_starts_the_judge_afresh(clik_and_start):
