@@ -373,12 +373,10 @@ class OuterLoop:
     def path_at(self, t: float) -> tuple:
         """The reference path of the current track goal at time t [s]: (coordinates [m], velocity
         [m/s], acceleration [m/s^2]), its trajectory plus the learned correction."""
-        tau = t - self._t0
-        x, velocity = self._trajectory.at(self._x_d, tau)
-        acceleration = self._trajectory.acceleration(self._x_d.size, tau)
+        x, velocity, acceleration = self._nominal_path(t)
         if self.learner is None:
             return x, velocity, acceleration
-        c = self.learner.correction(tau)
+        c = self.learner.correction(t - self._t0)
         return x + c[0], velocity + c[1], acceleration + c[2]
 
     def target_at(self, t: float) -> tuple:
