@@ -36,11 +36,11 @@ milliseconds old when it arrives).
 Where the arm is not the model. The stiffness and friction are learnt from the tendons while the
 arm is at rest (every tendon slower than ``rest_speed`` at that sample), as the static estimate
 learns them, and in motion only with markers seen; on the tendons alone, in motion, they are
-considered (below). A sustained move is where the model's
-other errors (the tendons' friction reversing every half period, the damping) are largest, and
-the tendons alone cannot tell those from the stiffness and friction: learnt through the fast
-circle (1.5 cm at 0.2 m/s), they walked from 1.17 to 1.40 (the plant's 1.15) and 0.10 to 0.00-0.21
-in ten seconds, and the tip's estimate 6-8 mm off with them. The routing and the payload are not
+considered (below). A sustained move is where the model's other errors (the tendons' friction
+reversing every half period, the damping) are largest, and the tendons alone cannot tell those
+from the stiffness and friction: learnt through the fast circle (1.5 cm at 0.2 m/s), they walked
+from 1.17 to 1.40 (the plant's 1.15) and 0.10 to 0.00-0.21 in ten seconds, and the tip's estimate
+6-8 mm off with them. The routing and the payload are not
 learnt from the tendons at all: four lengths cannot tell a tendon running a few hundredths of a
 radius off its path from a different bend, nor a payload on the last few centimetres that no
 tendon reaches from the shape's own droop. Without markers they are

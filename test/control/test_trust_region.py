@@ -127,3 +127,16 @@ def test_along_a_periodic_path_a_bias_walking_at_5_mm_per_s_is_refused_within_a_
         return lag(t) + np.array([0.005, 0.0]) * max(0.0, t - start)
     caught = first_refusal(walking, 10.0, period=period)
     assert caught is not None and start < caught <= start + 1.0, caught
+
+
+def test_only_a_path_faster_than_two_windows_is_averaged_over_its_period():
+    """The fast circle (0.47 s) is judged on its period means; the slow circle (20 s), whose means
+    would leave the drift unjudged for 20 s, as a fixed target; a new goal forgets the period."""
+    region = TrustRegion(CONFIG)
+    region.new_goal(2 * np.pi * 0.015 / 0.2)
+    assert region.period == pytest.approx(2 * np.pi * 0.015 / 0.2)
+    region.new_goal(20.0)
+    assert region.period is None
+    region.new_goal(0.47)
+    region.new_goal(None)
+    assert region.period is None
