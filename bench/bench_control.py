@@ -3,7 +3,7 @@
     python bench/bench_control.py [--output bench/results/control.json]
 
 Measures, on one core, with the default configuration (config/*.yaml):
-- one inner-loop (P-satI-D+) step with the fitted thetabar_a map, all four tendons;
+- one inner-loop (P-satI-D+) step on the configured coordinates, all four tendons;
 - one online CLIK step of the 4D triangle task, with the Jacobian Z recomputed and with Z reused;
 - one online CLIK step projected onto the tension limits (the bounded least-squares step), on the
   coiling task at the edge of its workspace, heading for a target no tension within limits reaches;
@@ -92,8 +92,10 @@ def bench_steps():
             "clik_online_step_projected_ms": 1e3 * bench_projected_step(), "precompute": pre,
             **bench_estimator(),
             "seed_equilibria": len(seeds), "seed_equilibria_s": seed_time,
-            "actuation_map": {"rms_error_m": ctrl.actuation_map.rms_error,
-                              "max_error_m": ctrl.actuation_map.max_error}}
+            "inner_loop_coordinates": setup.control.inner_coordinates,
+            "actuation_map": None if ctrl.actuation_map.coef is None else {
+                "rms_error_m": ctrl.actuation_map.rms_error, "max_error_m": ctrl.actuation_map.max_error,
+                "slope_margin": ctrl.actuation_map.slope_margin}}
 
 
 def bench_estimator() -> dict:
@@ -169,7 +171,7 @@ def main():
     parser.add_argument("--output", default=results_path("control.json"))
     args = parser.parse_args()
     steps = bench_steps()
-    print(f"inner-loop step (P-satI-D+, thetabar_a map)  {steps['inner_loop_step_us']:8.1f} us"
+    print(f"inner-loop step (P-satI-D+)                 {steps['inner_loop_step_us']:8.1f} us"
           "   (target <= 100 us)")
     print(f"online CLIK step, Z recomputed              {steps['clik_online_step_ms']:8.3f} ms"
           "   (target <= 2 ms)")
@@ -203,8 +205,9 @@ def main():
     print(f"seed equilibria: {steps['seed_equilibria']} in {steps['seed_equilibria_s']:.2f} s "
           "(once per task)")
     am = steps["actuation_map"]
-    print(f"thetabar_a fit: validation RMS {am['rms_error_m'] * 1e3:.2f} mm, "
-          f"max {am['max_error_m'] * 1e3:.2f} mm")
+    fit = "" if am is None else (f": thetabar_a fit validation RMS {am['rms_error_m'] * 1e3:.2f} mm, max "
+                                 f"{am['max_error_m'] * 1e3:.2f} mm, slope margin {am['slope_margin']:.2f}")
+    print(f"inner loop on the {steps['inner_loop_coordinates']}{fit}")
     result, table = bench_table1()
     print()
     print(format_table(result.metrics, result.summary))

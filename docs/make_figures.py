@@ -68,7 +68,7 @@ def controller():
     ax.axis("off")
     _box(ax, 1.4, 3.4, "x_d\n(target)", w=1.6, color="#ffffff")
     _box(ax, 4.6, 3.4, "CLIK for\nunderactuated systems\n(precomputed, online)", w=2.8, h=1.2)
-    _box(ax, 8.4, 3.4, "P-satI-D+\non thetabar_a(s)", w=2.4, h=1.0)
+    _box(ax, 8.4, 3.4, "P-satI-D+\non shortenings s", w=2.4, h=1.0)
     _box(ax, 12.0, 3.4, "tendons, arm", w=2.0, color="#d5f0d5")
     _arrow(ax, (2.2, 3.4), (3.2, 3.4))
     _arrow(ax, (6.0, 3.4), (7.2, 3.4), "q_d: s_d, u_ff")

@@ -5,6 +5,13 @@ which cannot be measured. The paper observes that it depends mainly on the tendo
 ``thetabar_a(L_c)``. Here thetabar_a is a polynomial in the measured tendon shortenings
 s = L_c(0) - L_c [m], fitted by least squares to static equilibria of the model over a grid of
 tensions and checked on random equilibria that the fit did not see.
+
+The inner loop regulates the shortenings themselves unless asked for this map
+(``control.inner_loop.coordinates``): thetabar_a is not monotone in s. Its slope dthetabar_a/ds has a
+symmetric part with a negative eigenvalue (:attr:`ActuationMap.slope_margin`), so tensions
+proportional to thetabar_a(s_d) - thetabar_a(s) are no gradient of a potential in the shortenings:
+they can put energy into a cycle of the arm, and the loop can settle where thetabar_a(s) =
+thetabar_a(s_d) with s != s_d (docs/decisions/0021).
 """
 from __future__ import annotations
 
@@ -36,17 +43,20 @@ class ActuationMap:
 
     ``exponents`` (F, n_t) and ``coef`` (n_t, F) define the polynomial in s / SCALE. ``rms_error`` and
     ``max_error`` [m] are the validation errors against the model's exact theta_a; ``samples`` counts
-    the fitted equilibria. An identity map (friction off) has ``coef`` None.
+    the fitted equilibria; ``slope_margin`` is the smallest eigenvalue of the symmetric part of
+    dthetabar_a/ds over the validation equilibria (> 0: monotone there; the identity's is 1). An
+    identity map (the shortenings themselves) has ``coef`` None.
     """
     exponents: np.ndarray | None
     coef: np.ndarray | None
     rms_error: float
     max_error: float
     samples: int
+    slope_margin: float = 1.0
 
     @classmethod
     def identity(cls) -> "ActuationMap":
-        """theta_a = s: the exact actuation coordinates without friction."""
+        """theta_a = s: the shortenings, the exact actuation coordinates without friction."""
         return cls(None, None, 0.0, 0.0, 0)
 
     def __call__(self, s) -> np.ndarray:
@@ -142,14 +152,23 @@ def fit_actuation_map(model: ArmModel, levels, degree: int = 2, validation_sampl
     fit = ActuationMap(exps, coef.T, 0.0, 0.0, len(s))
     err = np.array([fit(x) - y for x, y in zip(s_v, th_v)])
     return ActuationMap(exps, coef.T, float(np.sqrt(np.mean(err ** 2))), float(np.abs(err).max()),
-                        len(s))
+                        len(s), slope_margin(fit, s_v))
+
+
+def slope_margin(fit: ActuationMap, shortenings) -> float:
+    """The smallest eigenvalue of the symmetric part of dthetabar_a/ds over ``shortenings`` (N, n_t)
+    [m]: positive where thetabar_a is monotone, the condition for tensions proportional to its error
+    to be the gradient of a convex potential."""
+    return float(min(np.linalg.eigvalsh(0.5 * (J + J.T)).min()
+                     for J in (fit.jacobian(s) for s in shortenings)))
 
 
 def actuation_map_for(model: ArmModel, control) -> ActuationMap:
-    """The map the controller configuration asks for (``control.yaml``): fitted with friction, the
-    identity without. A fit takes one to two seconds and is the same for the same arm, settings and
-    code, so it is kept (:func:`cached_fit`): every node and run of one arm fits it once."""
-    if not control.friction:
+    """The coordinates the controller configuration (``control.yaml``) has the inner loop regulate:
+    the fitted thetabar_a when it asks for the actuation map with friction, the shortenings (the
+    identity) otherwise. A fit takes one to two seconds and is the same for the same arm, settings
+    and code, so it is kept (:func:`cached_fit`): every node and run of one arm fits it once."""
+    if not (control.friction and control.inner_coordinates == "actuation_map"):
         return ActuationMap.identity()
     return cached_fit(model, tuple(control.map_levels), control.map_degree, control.map_validation_samples)
 
@@ -188,14 +207,14 @@ def cached_fit(model: ArmModel, levels, degree: int, samples: int) -> ActuationM
     try:
         with np.load(path) as f:
             fit = ActuationMap(f["exponents"], f["coef"], float(f["rms_error"]), float(f["max_error"]),
-                               int(f["samples"]))
+                               int(f["samples"]), float(f["slope_margin"]))
     except (OSError, KeyError, ValueError):
         fit = fit_actuation_map(model, levels, degree, samples)
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
             partial = path.with_suffix(f".{os.getpid()}.partial.npz")
             np.savez(partial, exponents=fit.exponents, coef=fit.coef, rms_error=fit.rms_error,
-                     max_error=fit.max_error, samples=fit.samples)
+                     max_error=fit.max_error, samples=fit.samples, slope_margin=fit.slope_margin)
             os.replace(partial, path)
         except OSError:
             pass

@@ -26,6 +26,7 @@ PHASE_MODES = ("clik", "replay", "precomputed", "online", "track")
 FEEDBACKS = ("mocap", "fused", "estimate")   # what the online CLIK closes its loop on
 SHAPED_MODES = ("clik", "replay", "precomputed")   # the goal modes that start with a reference step
 RATE_MODES = ("clik", "online", "track")           # the goal modes that move the reference online
+INNER_COORDINATES = ("shortenings", "actuation_map")  # what the inner loop regulates
 
 
 def _positive(v):
@@ -46,6 +47,7 @@ CONTROL_SCHEMA = {
                              "two or more tensions in [0, 100] N"),
     "actuation_map.validation_samples": ("int", lambda v: 1 <= v <= 10000, "a count in [1, 10000]"),
     "inner_loop.rate": ("float", lambda v: 1 <= v <= 10000, "a rate in [1, 10000] Hz"),
+    "inner_loop.coordinates": ("str", lambda v: v in INNER_COORDINATES, f"one of {list(INNER_COORDINATES)}"),
     "inner_loop.proportional": ("floats", _nonneg_list, "gains >= 0 N/m, one per tendon"),
     "inner_loop.derivative": ("floats", _nonneg_list, "gains >= 0 N s/m, one per tendon"),
     "inner_loop.integral": ("floats", _nonneg_list, "gains >= 0 N/(m s), one per tendon"),
@@ -197,6 +199,7 @@ class ControlConfig:
     clik_max_time_step: float = 1.0
     feedback: str = "mocap"
     trust: TrustConfig | None = None
+    inner_coordinates: str = "shortenings"
 
 
 def parse_control(v: dict, arm: ArmConfig) -> ControlConfig:
@@ -229,7 +232,8 @@ def parse_control(v: dict, arm: ArmConfig) -> ControlConfig:
         tuple(v["clik.shaping.modes"]), v["clik.track_feedforward"], v["clik.min_frequency"],
         tuple(v["clik.rate_modes"]), v["clik.track_dynamics"], v["clik.track_learning.gain"],
         v["clik.track_learning.harmonics"], v["clik.track_learning.settle_time"],
-        v["inner_loop.max_time_step"], v["clik.max_time_step"], v["clik.feedback"], TrustConfig.of(v))
+        v["inner_loop.max_time_step"], v["clik.max_time_step"], v["clik.feedback"], TrustConfig.of(v),
+        v["inner_loop.coordinates"])
 
 
 def load_control_config(arm: ArmConfig, path: str | None = None, overrides=None) -> ControlConfig:

@@ -5,9 +5,12 @@
 
 (paper eq. PID+; e_sat = 1 m is the paper's literal tanh of the error in metres, a smaller e_sat
 bounds the integrator rate to e_sat per second per tendon while keeping the small-error slope 1).
-theta = thetabar_a(s) from the measured shortenings s [m] (:mod:`.actuation_map`), thetadot by the
-chain rule from the measured shortening rates, theta_d = thetabar_a(s_d) from the reference
-shortenings, u_ff = K_theta_a(q_d) + F_theta_a(q_d) [N] from the outer loop. thetadot_d is the
+theta is what ``control.inner_loop.coordinates`` names: the measured shortenings s [m] themselves
+(the default: the motors' coordinates, in which the tensions' work u . sdot is exact, so that the
+proportional term is the gradient of a potential and the loop passive whatever the friction), or the
+paper's thetabar_a(s) (:mod:`.actuation_map`), which is not monotone in s (docs/decisions/0021).
+thetadot by the chain rule from the measured shortening rates, theta_d = theta(s_d) from the
+reference shortenings, u_ff = K_theta_a(q_d) + F_theta_a(q_d) [N] from the outer loop. thetadot_d is the
 reference's own rate, by the chain rule from the reference's shortening rates: zero for a fixed
 reference (the paper's law, -G_D thetadot), the online CLIK's rate while it moves the reference
 (a tracked trajectory), so that the derivative term damps the arm's motion about the moving

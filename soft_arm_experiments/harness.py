@@ -125,9 +125,9 @@ def setup_overrides(args) -> list:
 @dataclass
 class Record:
     """Time series of a run. Inner-loop rate: t_inner, tension, shortening (measured), shortening_ref,
-    theta (thetabar_a of the measured shortenings), theta_ref. Mocap rate: t_mocap (exposure times),
-    x (measured task coordinates, NaN where the markers were not seen), x_true, x_d, tip (the
-    measured tip coordinates the task controls; all three if it controls none), tip_true, tip_speed
+    theta (the inner loop's coordinates of the measured shortenings), theta_ref. Mocap rate: t_mocap
+    (exposure times), x (measured task coordinates, NaN where the markers were not seen), x_true, x_d,
+    tip (the measured tip coordinates the task controls; all three if it controls none), tip_true, tip_speed
     (true),
     window (index of the transition); with a shape estimator, at the same exposures: markers_true
     (n_markers, 3), markers_estimated and marker_covariance (n_markers, 3, 3) [m^2] (the estimate's)
@@ -169,9 +169,10 @@ class Transition:
 @dataclass
 class RunResult:
     """The outcome of :func:`run_experiment`: transitions, per-transition metrics, summary, record,
-    the actuation-map fit errors [m], the stored configurations per target, what the online CLIK
-    did per goal (:meth:`~soft_arm_control.outer_loop.GoalReport.as_dict`, in transition order)
-    and, with a pendulum, the strike: its ``plan``, what the ``simulated`` contact did
+    the coordinates the inner loop regulated (``actuation_map``: the identity for the shortenings),
+    the stored configurations per target, what the online CLIK did per goal
+    (:meth:`~soft_arm_control.outer_loop.GoalReport.as_dict`, in transition order) and, with a
+    pendulum, the strike: its ``plan``, what the ``simulated`` contact did
     (:func:`~.strike.strike_metrics`) and what the motion capture ``measured``
     (:func:`~.strike.measured_strike`); the track windows' figures
     (:class:`~.metrics.TrackingMetrics`), which the transitions and the summary leave out."""
@@ -179,8 +180,7 @@ class RunResult:
     metrics: list
     summary: object
     record: Record
-    map_rms: float
-    map_max: float
+    actuation_map: ActuationMap
     stored: dict
     goals: list
     strike: dict | None = None
@@ -457,6 +457,5 @@ def run_experiment(setup: Setup, progress=None, actuation_map: ActuationMap | No
             t_b, ball, markers = (np.array(v) for v in zip(*balls))
             strike["measured"] = measured_strike(task.pendulum, rig.strike.release_time, t_b, ball, markers,
                                                  setup.arm)
-    return RunResult(transitions, rows, summarise(rows), rec, ctrl.actuation_map.rms_error,
-                     ctrl.actuation_map.max_error, stored, [g.as_dict() for g in outer.reports], strike,
-                     tracking)
+    return RunResult(transitions, rows, summarise(rows), rec, ctrl.actuation_map, stored,
+                     [g.as_dict() for g in outer.reports], strike, tracking)

@@ -20,8 +20,8 @@ import numpy as np
 
 from .kernel_cache import clear_stale
 
-# One target of coiling for a fraction of a second: the plant, the inner loop, the actuation map, the
-# precomputed and the online CLIK and the shape estimator all run at least once.
+# One target of coiling for a fraction of a second: the plant, the inner loop, the precomputed and the
+# online CLIK and the shape estimator all run at least once.
 SHORT_RUN = ["tasks.coiling.phases=[upward]", "tasks.coiling.phase.upward.sequence=[1]",
              "tasks.coiling.phase.upward.window=0.6"]
 
@@ -47,8 +47,11 @@ def _model():
 
 
 def _controller_and_plant():
+    from soft_arm_control.actuation_map import fit_actuation_map
     from soft_arm_experiments.harness import load_setup, run_experiment
+    from soft_arm_model import build_model
     run_experiment(load_setup("coiling", overrides=SHORT_RUN), estimate=True)
+    fit_actuation_map(build_model(), (0.0, 5.0), 1, 2)     # thetabar_a, for an inner loop asked to use it
 
 
 def _mocap():

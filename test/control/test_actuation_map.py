@@ -48,6 +48,30 @@ def test_jacobian_matches_finite_differences_and_the_static_sensitivity(paper_mo
         assert np.linalg.eigvals(jac).real.min() > 0.3 and np.linalg.eigvals(true).real.min() > 0.3
 
 
+def test_the_fit_is_not_monotone_and_says_so(paper_model, fitted):
+    """thetabar_a's slope has a symmetric part with a negative eigenvalue (slope_margin, the smallest
+    over the validation equilibria), and the map is not even one-to-one where the arm goes: from
+    shortenings 15 mm off an equilibrium's, Newton's method finds other shortenings in the fitted
+    range with the same thetabar_a. A loop on it can rest there (docs/decisions/0021)."""
+    rng = np.random.default_rng(20)
+    S, _ = _sample(paper_model, rng.uniform(0, 5, (20, 4)))
+    margins = [np.linalg.eigvalsh(0.5 * (J + J.T)).min() for J in map(fitted.jacobian, S)]
+    assert fitted.slope_margin < 0 and min(margins) < 0
+    assert ActuationMap.identity().slope_margin > 0
+    others = 0
+    for s_d in S:
+        target = fitted(s_d)
+        for _ in range(10):
+            s = s_d + rng.normal(0.0, 0.015, 4)
+            for _ in range(50):
+                s = s - np.linalg.solve(fitted.jacobian(s), fitted(s) - target)
+            if (np.linalg.norm(fitted(s) - target) < 1e-10 and np.linalg.norm(s - s_d) > 5e-3
+                    and np.all(s > -3e-3) and np.all(s < S.max(axis=0))):
+                others += 1
+                break
+    assert others >= 2
+
+
 def test_identity_without_friction():
     ident = ActuationMap.identity()
     s = np.array([0.01, -0.02, 0.0, 0.005])

@@ -34,7 +34,9 @@ def moves():
 
 def test_through_fast_moves_the_tendons_alone_keep_the_tip_within_5_mm(moves):
     """95 % of the frames in motion within 5 mm; the static estimate's 95th percentile is more than
-    twice that (its balance lags a moving arm), and at rest it is no nearer than the dynamic one."""
+    twice that (its balance lags a moving arm). At rest the dynamic one is within 1.5 mm (median);
+    the static balance, exact at rest, is nearer there (1.10 against 1.19 mm on these windows, 0.67
+    against 1.08 mm with 6 s windows, where the arm rests longer)."""
     speed, error, _ = moves["dynamic"]
     moving = speed > REST_SPEED
     assert moving.sum() > 200 and speed.max() > 0.3
@@ -42,7 +44,7 @@ def test_through_fast_moves_the_tendons_alone_keep_the_tip_within_5_mm(moves):
     static = np.linalg.norm(moves["static"][1], axis=1)
     assert np.percentile(dynamic[moving], 95) <= 5e-3, np.percentile(dynamic[moving], 95)
     assert np.percentile(static[moving], 95) > 2 * np.percentile(dynamic[moving], 95)
-    assert np.median(dynamic[~moving]) <= np.median(static[~moving])
+    assert (~moving).sum() > 50 and np.median(dynamic[~moving]) <= 1.5e-3
 
 
 @pytest.mark.parametrize("frames", ["moving", "at rest"])

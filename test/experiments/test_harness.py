@@ -66,7 +66,7 @@ def test_cli_prints_metrics_as_json(capsys):
     assert out["task"] == "coiling" and len(out["transitions"]) == 1
     assert out["paper_peak_speed"] == 3.63                     # printed beside the simulated one
     assert out["transitions"][0]["window"] == pytest.approx(3.0)
-    assert out["actuation_map"]["rms_error"] > 0
+    assert out["inner_loop"] == {"coordinates": "shortenings"}
 
 
 def test_cli_reports_bad_configuration_with_status_2(capsys):
@@ -280,7 +280,8 @@ def test_a_circle_at_20_cm_s_is_learned_to_within_5_mm_where_the_unlearned_path_
     """The goal at 0.2 m/s: a 1.5 cm circle (0.47 s, 2.1 Hz, above the held arm's lowest
     mode, where the dynamic reference is wrong) on the declared plant. Unlearned the arm misses it
     by a centimetre; the learned path (control.clik.track_learning) comes to a few millimetres
-    within the window, and the goal's report counts the periods learned from."""
+    within the window, and the goal's report counts the periods learned from, and says so when the
+    tensions reached their limits (the learner does not learn from those periods)."""
     base = fast_circle(0.015, 0.2, 22)
     learned_run = run_experiment(load_setup("tracking", overrides=base))
     learned, = learned_run.tracking
@@ -290,4 +291,5 @@ def test_a_circle_at_20_cm_s_is_learned_to_within_5_mm_where_the_unlearned_path_
     assert unlearned.last_period_rms_error > 5e-3
     assert learned.last_period_rms_error < 2.5e-3 and learned.rms_error < 0.6 * unlearned.rms_error
     goal = learned_run.goals[-1]
-    assert goal["mode"] == "track" and goal["status"] == "ok" and goal["learned_periods"] >= 10
+    assert goal["mode"] == "track" and goal["learned_periods"] >= 3
+    assert (goal["status"] == "saturated") == (goal["saturated_steps"] > 0), goal

@@ -17,7 +17,7 @@ from soft_arm_experiments import harness
 from soft_arm_experiments.harness import load_setup, precompute_targets, run_experiment
 
 ONE_TARGET = ["tasks.coiling.phases=[upward]", "tasks.coiling.phase.upward.sequence=[3]",
-              "tasks.coiling.phase.upward.window=6.0"]
+              "tasks.coiling.phase.upward.window=8.0"]
 HELD_MARGIN = 1e-3          # m: an estimate the trust region refused ends within the hold's error + this
 MOCAP_LOST = ["plant.mocap.occlusion.blackout=[0.0, 1.0e6]"]
 DYNAMIC = ["estimator.process_model=dynamic"]
@@ -87,7 +87,7 @@ def test_without_the_mocap_the_uncertain_estimate_holds_the_reference_and_says_s
 def test_on_the_dynamic_estimate_the_blind_loop_steps_on_what_its_uncertainty_defends(runs):
     """The dynamic estimate (``estimator.process_model: dynamic``) is sure to a few millimetres on
     the tendons alone: the CLIK steps on the part of the error its uncertainty cannot explain and
-    ends nearer than holding the precomputed reference (5.63 against 5.98 mm on this target; the
+    ends nearer than holding the precomputed reference (5.38 against 8.22 mm on this target; the
     uncertainty includes the second opinion's gap at rest, so the loop takes less of the error than
     the filter's covariance alone would let it), then holds once what is left is within that
     uncertainty, and says so."""
@@ -198,10 +198,14 @@ def test_an_estimate_walking_away_is_refused_within_half_a_second_and_the_precom
     assert guarded.metrics[0].final_error <= runs["mocap"].metrics[0].final_error + HELD_MARGIN
 
 
-def test_without_the_trust_region_the_walking_estimate_drags_the_arm_away(walking, runs):
+def test_without_the_trust_region_the_walking_estimate_drags_the_arm_away(walking):
+    """Followed, the estimate's 15 mm walk takes the arm with it: at the end the tip is more than a
+    third of the walk from where the guarded loop holds it."""
     unguarded = walking[False]
     assert unguarded.goals[0]["distrusts"] == 0
-    assert unguarded.metrics[0].final_error > runs["mocap"].metrics[0].final_error + HELD_MARGIN
+    tips = [walking[on].record.arrays()["tip_true"][-1] for on in (True, False)]
+    walk = np.linalg.norm(WalkingEstimate.RATE) * (10.0 - WalkingEstimate.START)
+    assert np.linalg.norm(tips[1] - tips[0]) > walk / 3, (np.linalg.norm(tips[1] - tips[0]), walk)
 
 
 @pytest.fixture(scope="module")
