@@ -92,10 +92,8 @@ def bench_steps():
             "clik_online_step_projected_ms": 1e3 * bench_projected_step(), "precompute": pre,
             **bench_estimator(),
             "seed_equilibria": len(seeds), "seed_equilibria_s": seed_time,
-            "inner_loop_coordinates": setup.control.inner_coordinates,
-            "actuation_map": None if ctrl.actuation_map.coef is None else {
-                "rms_error_m": ctrl.actuation_map.rms_error, "max_error_m": ctrl.actuation_map.max_error,
-                "slope_margin": ctrl.actuation_map.slope_margin}}
+            "inner_loop": ctrl.actuation_map.report(),
+            "inner_loop_description": ctrl.actuation_map.describe()}
 
 
 def bench_estimator() -> dict:
@@ -204,10 +202,7 @@ def main():
               "   (target <= 1 s)")
     print(f"seed equilibria: {steps['seed_equilibria']} in {steps['seed_equilibria_s']:.2f} s "
           "(once per task)")
-    am = steps["actuation_map"]
-    fit = "" if am is None else (f": thetabar_a fit validation RMS {am['rms_error_m'] * 1e3:.2f} mm, max "
-                                 f"{am['max_error_m'] * 1e3:.2f} mm, slope margin {am['slope_margin']:.2f}")
-    print(f"inner loop on the {steps['inner_loop_coordinates']}{fit}")
+    print(f"inner loop on {steps['inner_loop_description']}")
     result, table = bench_table1()
     print()
     print(format_table(result.metrics, result.summary))

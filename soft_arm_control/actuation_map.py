@@ -59,6 +59,21 @@ class ActuationMap:
         """theta_a = s: the shortenings, the exact actuation coordinates without friction."""
         return cls(None, None, 0.0, 0.0, 0)
 
+    def report(self) -> dict:
+        """What an inner loop on these coordinates regulates, for reports: the shortenings, or the
+        fitted thetabar_a with its validation errors [m] and slope margin."""
+        if self.coef is None:
+            return {"coordinates": "shortenings"}
+        return {"coordinates": "actuation_map", "rms_error": self.rms_error, "max_error": self.max_error,
+                "slope_margin": self.slope_margin}
+
+    def describe(self) -> str:
+        """:meth:`report` in one line."""
+        if self.coef is None:
+            return "the tendon shortenings"
+        return (f"thetabar_a(L_c): validation RMS {self.rms_error * 1e3:.2f} mm, max "
+                f"{self.max_error * 1e3:.2f} mm, slope margin {self.slope_margin:.2f}")
+
     def __call__(self, s) -> np.ndarray:
         s = np.asarray(s, dtype=float)
         if self.coef is None:

@@ -62,18 +62,13 @@ class InnerLoopNode(Node):
         self.create_subscription(JointState, TOPICS["reference"], self.on_reference,
                                  QOS["tendon/reference"])
         self.create_subscription(JointState, TOPICS["state"], self.on_state, QOS["tendon/state"])
-        if actuation_map.coef is None:
-            self.get_logger().info("inner loop ready: regulating the tendon shortenings")
-        else:
-            self.get_logger().info(
-                f"inner loop ready: regulating thetabar_a, fit RMS {actuation_map.rms_error * 1e3:.2f} mm, "
-                f"slope margin {actuation_map.slope_margin:.2f}")
-            if actuation_map.slope_margin <= 0:
-                self.get_logger().warning(
-                    f"thetabar_a is not monotone on this arm (its slope's symmetric part has the "
-                    f"eigenvalue {actuation_map.slope_margin:.2f}): the loop can circulate energy and "
-                    "settle off its reference shortenings; control.inner_loop.coordinates: shortenings "
-                    "regulates the shortenings themselves")
+        self.get_logger().info(f"inner loop ready: regulating {actuation_map.describe()}")
+        if actuation_map.slope_margin <= 0:
+            self.get_logger().warning(
+                f"thetabar_a is not monotone on this arm (its slope's symmetric part has the "
+                f"eigenvalue {actuation_map.slope_margin:.2f}): the loop can circulate energy and "
+                "settle off its reference shortenings; control.inner_loop.coordinates: shortenings "
+                "regulates the shortenings themselves")
 
     def apply_gains(self, changes: dict):
         """Live parameter changes (full name -> checked value) into the inner loop's gains."""

@@ -26,15 +26,6 @@ from .metrics import format_table, format_tracking, to_json
 from .strike import format_strike
 
 
-def inner_loop_coordinates(amap) -> dict:
-    """What the inner loop regulated, for the JSON report: the shortenings, or the fitted thetabar_a
-    with its validation errors [m] and slope margin."""
-    if amap.coef is None:
-        return {"coordinates": "shortenings"}
-    return {"coordinates": "actuation_map", "rms_error": amap.rms_error, "max_error": amap.max_error,
-            "slope_margin": amap.slope_margin}
-
-
 def _progress(t, total):
     print(f"\r  simulated {t:6.1f} / {total:.1f} s", end="", file=sys.stderr, flush=True)
 
@@ -85,7 +76,7 @@ def main(argv=None) -> int:
     if args.json:
         out = to_json(result.metrics, result.summary)
         out.update(task=args.task, paper_peak_speed=setup.task.paper_peak_speed, simulated_s=simulated,
-                   wall_s=wall, targets=result.goals, inner_loop=inner_loop_coordinates(result.actuation_map))
+                   wall_s=wall, targets=result.goals, inner_loop=result.actuation_map.report())
         if result.strike is not None:
             out["strike"] = result.strike
         if result.tracking:
@@ -97,10 +88,7 @@ def main(argv=None) -> int:
             print("\n" + format_strike(result.strike))
         if result.tracking:
             print("\n" + format_tracking(result.tracking))
-        amap = result.actuation_map
-        print("\ninner loop on the tendon shortenings" if amap.coef is None else
-              f"\ninner loop on thetabar_a(L_c): validation RMS {amap.rms_error * 1e3:.2f} mm, "
-              f"max {amap.max_error * 1e3:.2f} mm, slope margin {amap.slope_margin:.2f}")
+        print(f"\ninner loop on {result.actuation_map.describe()}")
         print(f"simulated {simulated:.1f} s in {wall:.1f} s (real-time factor {simulated / wall:.1f})")
     if result.strike is not None and result.strike["plan"]["arm_time"] is None:
         print(f"soft-arm-harness: the rehearsed arm never touched the ball at its lowest point (it passed "

@@ -58,6 +58,8 @@ def test_the_fit_is_not_monotone_and_says_so(paper_model, fitted):
     margins = [np.linalg.eigvalsh(0.5 * (J + J.T)).min() for J in map(fitted.jacobian, S)]
     assert fitted.slope_margin < 0 and min(margins) < 0
     assert ActuationMap.identity().slope_margin > 0
+    assert ActuationMap.identity().report() == {"coordinates": "shortenings"}
+    assert fitted.report()["slope_margin"] == fitted.slope_margin and "slope margin -" in fitted.describe()
     others = 0
     for s_d in S:
         target = fitted(s_d)
