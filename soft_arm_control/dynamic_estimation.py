@@ -155,6 +155,7 @@ class DynamicShapeEstimator:
         self._L0 = np.array(model.rest_tendon_lengths)
         self._dA, self._dA0 = np.zeros((3, n, nt)), np.zeros((3, n, nt))
         self._dLc, self._dL0 = np.zeros((3, nt)), np.zeros((3, nt))
+        self._rest_at = None              # the routing that _L0 and _dL0 are of (they depend on nothing else)
         self._adot = np.zeros(nt)
         self._jac = np.zeros((n, n))
         self._dA_dmu = np.zeros((n, nt))
@@ -230,13 +231,21 @@ class DynamicShapeEstimator:
 
     def _routing_derivatives(self, q, with_rest: bool):
         """dA, dA0 and dL_c with respect to the routing at q (evaluated in self.data), and with
-        ``with_rest`` dL_0 and L_0 (the straight arm's)."""
+        ``with_rest`` dL_0 and L_0 (the straight arm's: computed again only when the routing has
+        changed since, which without markers it never does)."""
         m = self.model
         X, active, r0, taper, ends = self._geometry
+        routing = self.routing
+        if with_rest and self._rest_at is not None and np.array_equal(routing, self._rest_at):
+            with_rest = False
+        elif with_rest:
+            self._rest_at = None
         if not routing_derivatives(*self._routing_args, X, active, r0, taper, ends, m.friction_mu,
-                                   self.routing, self.data.xi, q, self._xi_rest, self._q_rest, with_rest,
+                                   routing, self.data.xi, q, self._xi_rest, self._q_rest, with_rest,
                                    self._L0, self._dA, self._dA0, self._dLc, self._dL0, self._routing_work):
             raise OutOfDomainError("a degenerate tendon tangent")
+        if with_rest:
+            self._rest_at = routing
 
     # --- prediction ------------------------------------------------------------------------------
 
@@ -387,23 +396,24 @@ class DynamicShapeEstimator:
             markers = np.asarray(markers, dtype=float)
             nm = m.marker_X.size
             report.marker_nis = np.full(nm, np.nan)
-            for j in range(nm):
-                if not np.all(np.isfinite(markers[j])):
-                    continue
-                Hj = np.zeros((3, N))
-                Hj[:, :n] = d.marker_R[j] @ d.marker_J[j][3:]
-                travel = np.linalg.norm(Hj[:, :n] @ v) * c.marker_age
-                var = c.marker ** 2 + travel ** 2
-                yj = markers[j] - d.marker_p[j]
-                Sj = Hj[:, :n] @ self.Pz[:n, :n] @ Hj[:, :n].T + var * np.eye(3)
-                d2 = float(yj @ np.linalg.solve(Sj, yj))
-                report.marker_nis[j] = d2
+            seen = np.flatnonzero(np.all(np.isfinite(markers), axis=1))
+            # every seen marker's position Jacobian, noise and innovation at once (k, 3, n)
+            Hq = d.marker_R[seen] @ d.marker_J[seen, 3:]
+            travel = np.linalg.norm(Hq @ v, axis=1) * c.marker_age
+            var = c.marker ** 2 + travel ** 2
+            ys = markers[seen] - d.marker_p[seen]
+            Ss = Hq @ self.Pz[:n, :n] @ Hq.transpose(0, 2, 1) + var[:, None, None] * np.eye(3)
+            nis = np.einsum("ka,ka->k", ys, np.linalg.solve(Ss, ys[:, :, None])[:, :, 0])
+            for i, j in enumerate(seen.tolist()):
+                report.marker_nis[j] = d2 = float(nis[i])
                 if not self._gate.takes(j, d2):
                     report.gated.append(j)
                     continue
+                Hj = np.zeros((3, N))
+                Hj[:, :n] = Hq[i]
                 rows_H.append(Hj)
-                rows_y.append(yj)
-                rows_r.append(np.full(3, var))
+                rows_y.append(ys[i])
+                rows_r.append(np.full(3, var[i]))
                 report.used.append(j)
             self.counts["markers_used"] += len(report.used)
             self.counts["markers_gated"] += len(report.gated)
@@ -417,8 +427,9 @@ class DynamicShapeEstimator:
             # covariance without the payload's share (which the Joseph form below keeps for this gain)
             gain_P = P - self.config.prior_payload ** 2 * np.outer(self._share, self._share)
         PHt = gain_P @ H.T
-        L = np.linalg.cholesky(H @ PHt + np.diag(r))
-        K = np.linalg.solve(L.T, np.linalg.solve(L, PHt.T)).T
+        S = H @ PHt + np.diag(r)
+        np.linalg.cholesky(S)             # raises where the covariance has lost its positive definiteness
+        K = np.linalg.solve(S, PHt.T).T
         if not report.used:               # the tendons alone do not tell the routing and the payload
             K[self._beta:] = 0.0          # from the rest: considered, not learnt; nor, in motion, the
             if not at_rest(sd, self.config.rest_speed):    # stiffness and friction (module docstring)
@@ -442,7 +453,7 @@ class DynamicShapeEstimator:
         held = self._evaluated_at
         if held is None or not np.array_equal(held[0], self.q):
             self._evaluate(self.q.copy(), self.qd.copy(), KINEMATICS, True)
-        H = np.einsum("kij,kjl->kil", d.marker_R, d.marker_J[:, 3:])
-        C = np.einsum("kij,jl,kml->kim", H, self.P, H) + marker_bias
+        H = d.marker_R @ d.marker_J[:, 3:]
+        C = H @ self.P @ H.transpose(0, 2, 1) + marker_bias
         return ShapeEstimate(self.t if self.t is not None else 0.0, self.q.copy(), self.P + q_bias,
                              d.marker_p.copy(), C, self.distrust)

@@ -10,7 +10,8 @@ from conftest import CHI2_3_99, nees_not_overconfident
 from soft_arm_control.dynamic_estimation import DynamicShapeEstimator
 from soft_arm_control.estimators import shape_estimator
 from soft_arm_control.shape_estimation import ShapeEstimator, load_estimator_config
-from soft_arm_model import ImexStepper, build_model, load_arm_config, solve_equilibrium
+from soft_arm_model import (ImexStepper, build_model, load_arm_config, marker_positions, solve_equilibrium,
+                            tendon_lengths)
 
 CONFIG = load_estimator_config()
 ROTOR = 0.6                     # kg: control.yaml's rotor_mass, the plant's 6e-5 kg m^2 / (0.01 m)^2
@@ -106,7 +107,6 @@ def test_with_markers_seen_the_routing_is_learnt_and_without_them_it_is_held(arm
     freedom, 0.1 %)."""
     from soft_arm_drivers.sim.plant_config import load_plant_config
     from soft_arm_drivers.sim.simulated_rig import SimulatedRig
-    from soft_arm_model import tendon_lengths
     off_path = {"mocap.occlusion.enabled": False, "tendon.offset_fraction": "[0.58, 0.62, 0.6, 0.61]",
                 "tendon.start_angle_error": "[0.03, -0.03, 0.02, -0.02]"}
     plant = load_plant_config(arm, overrides=off_path)
@@ -134,6 +134,26 @@ def test_with_markers_seen_the_routing_is_learnt_and_without_them_it_is_held(arm
     estimate = estimator.estimate()                   # the tip within its reported covariance
     error = estimate.markers[-1] - true[-1]
     assert error @ np.linalg.solve(estimate.marker_covariance[-1], error) <= 16.27
+
+
+def test_the_straight_arms_lengths_are_computed_again_only_when_the_routing_moves(model):
+    """The straight arm's tendon lengths and their routing derivatives depend on the routing alone,
+    so the filter keeps them until the routing moves. Markers 1 mm off the model's move the routing
+    at every update; a filter made to compute them at every update gives the same state bit for bit,
+    with the markers and then on the tendons alone (where the routing is held)."""
+    u = np.array([1.2, 0.3, 0.8, 0.5])
+    q = solve_equilibrium(model, u).q
+    s = model.rest_tendon_lengths - tendon_lengths(model, q)
+    markers = marker_positions(model, q) + 1e-3
+    kept, fresh = (DynamicShapeEstimator(model, CONFIG, ROTOR) for _ in range(2))
+    drawn = kept.routing.copy()
+    for i in range(40):
+        seen = markers if i < 20 else None
+        for estimator in (kept, fresh):
+            fresh._rest_at = None
+            estimator.update(i * PERIOD, s, np.zeros(4), u, seen)
+        assert np.array_equal(kept.z, fresh.z) and np.array_equal(kept.Pz, fresh.Pz), i
+    assert np.abs(kept.routing - drawn).max() > 1e-4        # the markers moved the routing
 
 
 def test_a_payload_the_tendons_cannot_tell_widens_the_covariance_and_leaves_the_estimate(model):
