@@ -149,9 +149,9 @@ def test_the_straight_arms_lengths_are_computed_again_only_when_the_routing_move
     drawn = kept.routing.copy()
     for i in range(40):
         seen = markers if i < 20 else None
-        for estimator in (kept, fresh):
-            fresh._rest_at = None
-            estimator.update(i * PERIOD, s, np.zeros(4), u, seen)
+        kept.update(i * PERIOD, s, np.zeros(4), u, seen)
+        fresh._rest_at = None                                 # forgets the lengths it computed
+        fresh.update(i * PERIOD, s, np.zeros(4), u, seen)
         assert np.array_equal(kept.z, fresh.z) and np.array_equal(kept.Pz, fresh.Pz), i
     assert np.abs(kept.routing - drawn).max() > 1e-4        # the markers moved the routing
 
