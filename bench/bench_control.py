@@ -34,7 +34,7 @@ from soft_arm_experiments.metrics import format_table, to_json
 from soft_arm_model import build_model, marker_positions, solve_equilibrium, tendon_lengths
 from soft_arm_model.statics import residual_jacobian_kernel
 
-from timing import best_of, results_path, write_results
+from timing import best_of, results_path, ticks, write_results
 
 PAPER = {"rms_error_mm": 0.67, "velocity_mm_band": 0.063, "velocity_cm_band": 0.384}
 
@@ -49,7 +49,7 @@ def bench_steps():
     ctrl.reference = ref
     s = ref.shortening + 1e-3
     sd = np.full(4, 0.01)
-    clock = iter(np.arange(0, 1e6, 2e-3))
+    clock = ticks(2e-3)
     inner = best_of(lambda: ctrl.inner(next(clock), s, sd), inner=2000)
     x_meas = x_d + 1e-3
     ctrl.clik.step(ref.q, x_d, 1 / 240, x_meas)
@@ -65,7 +65,7 @@ def bench_steps():
         walk[0] = point if point is not None else walk[0]
     operation = best_of(operating, inner=100)
     learner = HarmonicLearner(0.5, x_d.size)          # a track goal's, per CLIK step: correction, frame
-    tau = iter(np.arange(0, 1e6, 1 / 240))
+    tau = ticks(1 / 240)
 
     def learn():
         t = next(tau)
@@ -107,7 +107,7 @@ def bench_estimator() -> dict:
     s = model.rest_tendon_lengths - tendon_lengths(model, q)
     markers = marker_positions(model, q) + 2e-4
     estimator = ShapeEstimator(model, replace(setup.estimator, process_model="static"))
-    clock = iter(np.arange(0, 1e6, 1 / setup.estimator.rate))
+    clock = ticks(1 / setup.estimator.rate)
     zero = np.zeros(4)
     tendons = best_of(lambda: estimator.update(next(clock), s, zero, u), inner=50)
     fused = best_of(lambda: estimator.update(next(clock), s, zero, u, markers), inner=50)

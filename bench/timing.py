@@ -1,4 +1,5 @@
 """Helpers shared by the benchmark scripts: timing, writing the results, running the harness."""
+import itertools
 import json
 import os
 import subprocess
@@ -19,6 +20,12 @@ def best_of(fn, repeats: int = 7, inner: int = 500) -> float:
             fn()
         best = min(best, (time.perf_counter() - t0) / inner)
     return best
+
+
+def ticks(period: float):
+    """An endless clock for the steps being timed: 0, period, 2 period, ... [s], one at a time (an
+    array of them would be gigabytes, its allocation the bench's slowest part)."""
+    return (k * period for k in itertools.count())
 
 
 def results_path(name: str) -> str:

@@ -87,7 +87,7 @@ def build_collocated(model: ArmModel, active, held_tension: float = 0.0, frictio
     held = np.full(n_t, float(held_tension))
     held[list(active)] = 0.0
     S = coordinate_selector(model, active, friction=friction) if selector is None else \
-        np.array(selector, dtype=float)
+        np.array(selector, dtype=float, order="C")
     if S.shape != (model.n - len(active), model.n):
         raise ValueError(f"selector must have shape ({model.n - len(active)}, {model.n}), got {S.shape}")
     S.setflags(write=False)

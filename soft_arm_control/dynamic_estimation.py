@@ -96,6 +96,14 @@ PAYLOAD_BOUNDS = (0.0, 0.1)     # kg at the tip
 SECOND_OPINION_PERIOD = 1 / 60  # s: in motion the static filter updates at most this often
 
 
+def _read_only(a: np.ndarray) -> np.ndarray:
+    """A read-only view of ``a`` (which its owner still writes through ``a``): the compiled kernels
+    take the model's arrays read-only, and a writable one would compile each of them a second time."""
+    view = a.view()
+    view.setflags(write=False)
+    return view
+
+
 class DynamicShapeEstimator:
     """The filter for ``model`` (the controller's) with ``config`` and the rotors' reflected mass
     ``rotor_mass`` [kg] on every tendon. :meth:`update` once per sample; :attr:`q`, :attr:`qd` and
@@ -144,7 +152,7 @@ class DynamicShapeEstimator:
                           (g.tip_radius - g.base_radius) / g.length, tendon_ends(model.config))
         self._t_arrays = tuple(np.array(a) for a in (model.tendon_d, model.tendon_dp, model.tendon_dpp))
         args = list(model.kernel_args)
-        args[12:15] = self._t_arrays
+        args[12:15] = (_read_only(a) for a in self._t_arrays)
         self.args = tuple(args)
         a = model.kernel_args
         self._routing_args = (a[0], a[1], a[2], a[17], a[18], a[19], a[20])
@@ -259,8 +267,8 @@ class DynamicShapeEstimator:
         self._evaluate(q, v, DYNAMICS, True)
         rot = self.rotor
         if np.any(rot):
-            kernels.tendon_rate_bias(m.kernel_args[0], m.kernel_args[1], d.xi, v, self._t_arrays[0],
-                                     self._t_arrays[1], m.kernel_args[15], self._adot)
+            kernels.tendon_rate_bias(m.kernel_args[0], m.kernel_args[1], d.xi, v, self.args[12],
+                                     self.args[13], m.kernel_args[15], self._adot)
         kernels.static_tangent(*self.args, q, u, True, *d.kernel_args, self._jac, self._dA_dmu)
         self._routing_derivatives(q, False)
         A = d.A + self._dA_dmu * dmu[None, :]

@@ -21,7 +21,7 @@ import numpy as np
 from .kernel_cache import clear_stale
 
 # One target of coiling for a fraction of a second: the plant, the inner loop, the precomputed and the
-# online CLIK and the shape estimator all run at least once.
+# online CLIK and the shape estimator (on each of its process models) all run at least once.
 SHORT_RUN = ["tasks.coiling.phases=[upward]", "tasks.coiling.phase.upward.sequence=[1]",
              "tasks.coiling.phase.upward.window=0.6"]
 
@@ -50,7 +50,9 @@ def _controller_and_plant():
     from soft_arm_control.actuation_map import fit_actuation_map
     from soft_arm_experiments.harness import load_setup, run_experiment
     from soft_arm_model import build_model
-    run_experiment(load_setup("coiling", overrides=SHORT_RUN), estimate=True)
+    for process_model in ("static", "dynamic"):
+        setup = load_setup("coiling", overrides=SHORT_RUN + [f"estimator.process_model={process_model}"])
+        run_experiment(setup, estimate=True)
     fit_actuation_map(build_model(), (0.0, 5.0), 1, 2)     # thetabar_a, for an inner loop asked to use it
 
 
@@ -62,7 +64,7 @@ def _mocap():
 STEPS = (("the model's kernels (kinematics to Coriolis, statics, the IMEX and ROS2 steps, the "
           "identification's segment loop)", _model),
          ("the plant, the inner loop, the actuation map, the CLIK and the shape estimator (a short "
-          "coiling run)",
+          "coiling run on each of its process models)",
           _controller_and_plant),
          ("the mocap bridge's frame reader", _mocap))
 

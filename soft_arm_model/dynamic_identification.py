@@ -135,7 +135,8 @@ def simulate_changes(arm: ArmConfig, rotor_mass: float, data: SegmentData, times
     ds, dp = np.zeros_like(data.ds), np.zeros_like(data.dp)
     status = _simulate_segment(*stepper.compiled_args, d.Lc, d.marker_p, model.rest_tendon_lengths,
                                q.copy(), qd, data.t_start, timestep, data.t_input,
-                               np.ascontiguousarray(data.tension, dtype=float), data.t_s, data.t_m, ds,
+                               *(np.ascontiguousarray(a, dtype=float) for a in (data.tension, data.t_s,
+                                                                                data.t_m)), ds,
                                dp, s_ref, p_ref, np.zeros(model.n))
     if status == 1:
         raise OutOfDomainError("the state left the model's domain")

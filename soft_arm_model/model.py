@@ -206,12 +206,13 @@ def _basis_at(disc: Discretisation, n: int, X: float, division: int | None = Non
 
 
 def _substep(disc: Discretisation, n: int, X0: float, X1: float):
-    """Magnus sub-step data (h, B1, B2) from X0 to X1 (both in one division)."""
+    """Magnus sub-step data (h, B1, B2) from X0 to X1 (both in one division); B1 and B2 read-only,
+    as the model's (the kernels are compiled for those)."""
     h = X1 - X0
     d = _division_of(disc, 0.5 * (X0 + X1)) if h > 0 else _division_of(disc, X0)
     B1, _ = _basis_at(disc, n, X0 + _ZANNA_OFFSETS[0] * h, d)
     B2, _ = _basis_at(disc, n, X0 + _ZANNA_OFFSETS[1] * h, d)
-    return h, B1, B2
+    return h, _frozen(B1), _frozen(B2)
 
 
 def _points(disc: Discretisation):
@@ -262,7 +263,7 @@ def _tendon_arrays(config: ArmConfig, X, w):
     P, nt = X.size, len(config.tendons)
     d, dp, dpp = np.zeros((nt, P, 3)), np.zeros((nt, P, 3)), np.zeros((nt, P, 3))
     ends = tendon_ends(config)
-    active = ((w[None, :] > 0) & (X[None, :] < ends[:, None])).astype(float)
+    active = _frozen((w[None, :] > 0) & (X[None, :] < ends[:, None]))
     routing_arrays(X, active, g.base_radius, (g.tip_radius - g.base_radius) / g.length, routing_of(config),
                    ends, d, dp, dpp)
     return d, dp, dpp, active

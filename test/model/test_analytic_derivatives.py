@@ -54,7 +54,9 @@ class _Terms:
     the analytic tangent."""
 
     def __init__(self, model, mu):
-        self.args = model.kernel_args[:MU] + (np.asarray(mu, dtype=float),) + model.kernel_args[MU + 1:]
+        mu = np.array(mu, dtype=float)
+        mu.setflags(write=False)        # as the model's: a writable one would compile the kernels again
+        self.args = model.kernel_args[:MU] + (mu,) + model.kernel_args[MU + 1:]
         self.model = model
         self.data = ArmData(model)
 
