@@ -18,7 +18,7 @@ from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 
 from soft_arm_control.config import control_of
-from soft_arm_ros.contract import QOS, TOPICS
+from soft_arm_ros.contract import ALREADY_STARTED, QOS, TOPICS
 from soft_arm_ros.conversions import joint_state, stamp_to_seconds
 from soft_arm_ros.parameters import NodeParameters
 from soft_arm_ros.runtime import run_node
@@ -50,7 +50,7 @@ class ExcitationNode(Node):
 
     def on_start(self, request, response):
         response.success = not self.started
-        response.message = "already started" if self.started else \
+        response.message = ALREADY_STARTED if self.started else \
             "the identification experiment starts with the next tendon state"
         self.started = True
         return response

@@ -183,6 +183,22 @@ def _change_state(node, client, label: str, timeout: float = 10.0):
         raise RuntimeError(f"{label} of {name} failed: {exc} (see that node's log)") from None
 
 
+def _start(node, client, timeout: float = 10.0):
+    """Start the runner through its ``~/start`` ``client``; RuntimeError if it refuses. An answer
+    that does not come within ``timeout`` [s] was lost in discovery or the call never arrived: the
+    call is made again, and the runner's ALREADY_STARTED then says that the first one took effect."""
+    from std_srvs.srv import Trigger
+
+    from soft_arm_ros.contract import ALREADY_STARTED
+    try:
+        _call(node, client, Trigger.Request(), timeout)
+    except _NoAnswer as exc:
+        response = _call(node, client, Trigger.Request(), timeout, checked=False)
+        if not response.success and response.message != ALREADY_STARTED:
+            raise RuntimeError(f"{client.srv_name} refused: {response.message}") from None
+        print(f"soft-arm-experiment: {exc}; asked again, it is started: going on", file=sys.stderr)
+
+
 # the nodes of a process whose console script is not named after its one node
 _PROCESS_NODES = {"emulated_rig": ("motor_driver",)}
 
@@ -337,7 +353,7 @@ def run_processes(ros_args: list, out: dict, task: str = "", feedback: str = "mo
         if not STOP.is_set() and not begin.wait_for_service(timeout_sec=10.0):
             raise RuntimeError(f"service {begin.srv_name} is not available")
         if not STOP.is_set():
-            _call(node, begin, Trigger.Request())
+            _start(node, begin)
         while not STOP.is_set() and not os.path.exists(out["metrics"]):
             children.check()
             rclpy.spin_once(node, timeout_sec=0.2)
@@ -457,7 +473,7 @@ def run_emulated_hardware(ros_args: list, out: dict, duration: float,
             enabled_at = time.time()
             settling["motors_enabled_s"] = round(time.monotonic() - drivers_up, 3)
             driving = True
-            _call(node, begin, Trigger.Request())
+            _start(node, begin)
             deadline = time.monotonic() + duration + 60.0
             while not STOP.is_set() and not faults and not os.path.exists(out["metrics"]):
                 children.check()

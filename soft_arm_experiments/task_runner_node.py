@@ -30,7 +30,7 @@ from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 
 from soft_arm_control.config import control_of, task_of
-from soft_arm_ros.contract import FRAME, QOS, TOPICS
+from soft_arm_ros.contract import ALREADY_STARTED, FRAME, QOS, TOPICS
 from soft_arm_ros.conversions import markers_of, seconds_to_stamp, stamp_to_seconds, task_goal
 from soft_arm_ros.parameters import NodeParameters
 from soft_arm_ros.runtime import run_node
@@ -73,7 +73,7 @@ class TaskRunnerNode(Node):
 
     def on_start(self, request, response):
         response.success = not self.started
-        response.message = "already started" if self.started else \
+        response.message = ALREADY_STARTED if self.started else \
             f"task {self.core.task.name} starts with the next mocap frame"
         self.started = True
         return response

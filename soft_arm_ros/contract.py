@@ -19,6 +19,9 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from soft_arm_model.parameters import ConfigError
 
 FRAME = "arm_base"
+# a runner's ~/start (std_srvs/Trigger) called again answers success = False with this message: a
+# caller whose first answer was lost in discovery learns from it that the first call took effect
+ALREADY_STARTED = "already started"
 TOPICS = {
     "command": "tendon/command", "state": "tendon/state", "reference": "tendon/reference",
     "markers": "mocap/markers", "tip": "mocap/tip", "goal": "task/goal",

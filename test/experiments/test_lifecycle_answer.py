@@ -1,6 +1,7 @@
-"""A lifecycle transition whose answer is lost (the server answered before discovery matched the
-client) is judged by the node's state: the bring-up goes on when the node is where the transition
-leads, and fails naming the transition otherwise."""
+"""A lifecycle transition or a runner's start whose answer is lost (the server answered before
+discovery matched the client): a transition is judged by the node's state, the bring-up going on
+when the node is where the transition leads and failing naming the transition otherwise; a start is
+asked again, and the runner's "already started" says the first call took effect."""
 from types import SimpleNamespace
 
 import pytest
@@ -42,3 +43,49 @@ def test_a_lost_answer_of_a_transition_that_did_not_happen_fails(monkeypatch):
     with pytest.raises(RuntimeError, match="configure of motor_driver failed: service "
                                            "/motor_driver/change_state did not answer"):
         orchestration._change_state(_Node(), _client(), "configure")
+
+
+def _start_answers(*answers):
+    """A ``_call`` that gives ``answers`` in turn: None for an answer lost, else (success, message)."""
+    answers = list(answers)
+
+    def call(node, client, request, timeout=10.0, checked=True):
+        answer = answers.pop(0)
+        if answer is None:
+            raise orchestration._NoAnswer(f"service {client.srv_name} did not answer within {timeout:g} s")
+        if checked and not answer[0]:
+            raise RuntimeError(f"{client.srv_name} refused: {answer[1]}")
+        return SimpleNamespace(success=answer[0], message=answer[1])
+    return call
+
+
+def test_a_lost_answer_of_a_start_that_happened_goes_on(monkeypatch, capsys):
+    from soft_arm_ros.contract import ALREADY_STARTED
+    monkeypatch.setattr(orchestration, "_call", _start_answers(None, (False, ALREADY_STARTED)))
+    orchestration._start(_Node(), SimpleNamespace(srv_name="/excitation/start"))
+    assert "/excitation/start did not answer within 10 s; asked again, it is started" \
+        in capsys.readouterr().err
+
+
+def test_a_lost_answer_of_a_start_that_did_not_arrive_starts_it_on_the_second_call(monkeypatch):
+    answers = _start_answers(None, (True, "the identification experiment starts with the next tendon state"))
+    monkeypatch.setattr(orchestration, "_call", answers)
+    orchestration._start(_Node(), SimpleNamespace(srv_name="/excitation/start"))
+
+
+def test_a_start_refused_after_a_lost_answer_fails_with_the_refusal(monkeypatch):
+    monkeypatch.setattr(orchestration, "_call", _start_answers(None, (False, "no arm loaded")))
+    with pytest.raises(RuntimeError, match="/task_runner/start refused: no arm loaded"):
+        orchestration._start(_Node(), SimpleNamespace(srv_name="/task_runner/start"))
+
+
+def test_the_runners_answer_a_second_start_with_what_the_orchestration_looks_for():
+    """The runner nodes' ~/start, called twice: the second answer is the contract's ALREADY_STARTED."""
+    from soft_arm_experiments.excitation_node import ExcitationNode
+    from soft_arm_experiments.task_runner_node import TaskRunnerNode
+    from soft_arm_ros.contract import ALREADY_STARTED
+    for node_class in (ExcitationNode, TaskRunnerNode):
+        runner = SimpleNamespace(started=False, core=SimpleNamespace(task=SimpleNamespace(name="triangle")))
+        first = node_class.on_start(runner, None, SimpleNamespace(success=None, message=None))
+        second = node_class.on_start(runner, None, SimpleNamespace(success=None, message=None))
+        assert first.success and not second.success and second.message == ALREADY_STARTED
