@@ -151,8 +151,9 @@ class DynamicShapeEstimator:
         self._geometry = (model.X, model.tendon_active, g.base_radius,
                           (g.tip_radius - g.base_radius) / g.length, tendon_ends(model.config))
         self._t_arrays = tuple(np.array(a) for a in (model.tendon_d, model.tendon_dp, model.tendon_dpp))
+        self._t_read = tuple(_read_only(a) for a in self._t_arrays)     # what the kernels are given
         args = list(model.kernel_args)
-        args[12:15] = (_read_only(a) for a in self._t_arrays)
+        args[12:15] = self._t_read
         self.args = tuple(args)
         a = model.kernel_args
         self._routing_args = (a[0], a[1], a[2], a[17], a[18], a[19], a[20])
@@ -267,8 +268,8 @@ class DynamicShapeEstimator:
         self._evaluate(q, v, DYNAMICS, True)
         rot = self.rotor
         if np.any(rot):
-            kernels.tendon_rate_bias(m.kernel_args[0], m.kernel_args[1], d.xi, v, self.args[12],
-                                     self.args[13], m.kernel_args[15], self._adot)
+            kernels.tendon_rate_bias(m.kernel_args[0], m.kernel_args[1], d.xi, v, self._t_read[0],
+                                     self._t_read[1], m.kernel_args[15], self._adot)
         kernels.static_tangent(*self.args, q, u, True, *d.kernel_args, self._jac, self._dA_dmu)
         self._routing_derivatives(q, False)
         A = d.A + self._dA_dmu * dmu[None, :]

@@ -133,10 +133,11 @@ def simulate_changes(arm: ArmConfig, rotor_mass: float, data: SegmentData, times
     d = stepper.data
     s_ref, p_ref = (model.rest_tendon_lengths - d.Lc).copy(), d.marker_p.copy()
     ds, dp = np.zeros_like(data.ds), np.zeros_like(data.dp)
+    # contiguous, as the compiled loop's one specialisation takes them (a recording's samples are
+    # often every k-th one, strided views)
+    tension, t_s, t_m = (np.ascontiguousarray(a, dtype=float) for a in (data.tension, data.t_s, data.t_m))
     status = _simulate_segment(*stepper.compiled_args, d.Lc, d.marker_p, model.rest_tendon_lengths,
-                               q.copy(), qd, data.t_start, timestep, data.t_input,
-                               *(np.ascontiguousarray(a, dtype=float) for a in (data.tension, data.t_s,
-                                                                                data.t_m)), ds,
+                               q.copy(), qd, data.t_start, timestep, data.t_input, tension, t_s, t_m, ds,
                                dp, s_ref, p_ref, np.zeros(model.n))
     if status == 1:
         raise OutOfDomainError("the state left the model's domain")
