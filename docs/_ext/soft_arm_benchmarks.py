@@ -6,13 +6,19 @@ which commit it was measured (``bench/timing.py``). At ``builder-inited`` this w
 mappings flattened to dotted keys, lists of records as tables), and, for a campaign's folder
 (``bench/results/campaigns/*/``: ``summary.json``, ``summary.md`` and the plots), its summary
 tables and histograms. A results file that is not JSON, or lacks its header, stops the build.
+
+The role ``{bench}`file.json:dotted.key[*factor][:format][:min|max]``` puts one figure of a
+results file into a page's prose, so that a page quotes what the scripts measured last, not a copy
+of it (see :func:`figure`); the page is read again when the file changes.
 """
 from __future__ import annotations
 
 import json
+import re
 import shutil
 from pathlib import Path
 
+from docutils import nodes
 from sphinx.errors import ExtensionError
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -122,6 +128,94 @@ def generate(app):
         PAGE.write_text(text, encoding="utf-8")
 
 
+_FIGURE = re.compile(r"^(?P<file>[\w/.-]+\.json):(?P<key>[^:]+?)(?:\*(?P<factor>[0-9.eE+-]+))?"
+                     r"(?::(?P<format>[^:]*))?(?::(?P<extreme>min|max))?$")
+
+
+_ABSENT = object()        # a field a record lacks: its text matches no condition's
+
+
+def _field(record, name: str):
+    """A record's field by its dotted name (``spec.task``), or ``_ABSENT``."""
+    for part in name.split("."):
+        if not isinstance(record, dict) or part not in record:
+            return _ABSENT
+        record = record[part]
+    return record
+
+
+def _select(tree, keys: list, trail: str) -> list:
+    """The values at ``keys`` below ``tree``: a key ``*`` takes every element of a list or value of
+    a mapping; ``[name=a|b;other.inner=c]`` the records of a list whose fields (dotted: a field of a
+    field) match (as text, one of the alternatives, every condition); an integer indexes a list
+    (negative from its end)."""
+    if not keys:
+        return [tree]
+    key, rest = keys[0], keys[1:]
+    here = f"{trail}.{key}" if trail else key
+    if key == "*" and isinstance(tree, (list, dict)):
+        values = tree.values() if isinstance(tree, dict) else tree
+        return [v for value in values for v in _select(value, rest, here)]
+    if key.startswith("[") and key.endswith("]") and isinstance(tree, list):
+        conditions = [c.partition("=") for c in key[1:-1].split(";")]
+        records = [r for r in tree if all(str(_field(r, name)) in alternatives.split("|")
+                                          for name, _, alternatives in conditions)]
+        if not records:
+            raise KeyError(f"no record {here!r}")
+        return [v for record in records for v in _select(record, rest, here)]
+    if isinstance(tree, dict) and key in tree:
+        return _select(tree[key], rest, here)
+    if isinstance(tree, list) and re.fullmatch(r"-?\d+", key) and -len(tree) <= int(key) < len(tree):
+        return _select(tree[int(key)], rest, here)
+    raise KeyError(f"no {here!r}")
+
+
+def figure(spec: str, results: Path = RESULTS) -> str:
+    """The text of one figure of a results file, ``file.json:dotted.key[*factor][:format][:min|max]``:
+    the number at that key of ``bench/results/file.json`` (a path below it: a campaign's folder), times
+    ``factor`` (units: 1000 for m to mm), formatted by ``format`` (Python's format spec, ``.3g`` if
+    none). A key through ``*`` or a record filter (:func:`_select`: every draw, the runs of one
+    scenario) reads as the range of its values, ``low-high``, or one value where they agree at that
+    format, or its smallest or largest value alone (``:min``, ``:max``); values that are null (a
+    figure a draw did not reach) are left out.
+    Raises ValueError, naming the spec, for a malformed spec, a missing file or key, or no number."""
+    match = _FIGURE.match(spec.strip())
+    if match is None:
+        raise ValueError(f"{spec!r}: not file.json:dotted.key[*factor][:format][:min|max]")
+    if ".." in match["file"].split("/"):
+        raise ValueError(f"{spec!r}: a results file is under bench/results")
+    path = results / match["file"]
+    try:
+        tree = json.loads(path.read_text(encoding="utf-8"))
+        values = _select(tree, re.findall(r"\[[^\]]*\]|[^.]+", match["key"]), "")
+    except (OSError, ValueError, KeyError) as exc:
+        raise ValueError(f"{spec!r}: {exc}") from None
+    numbers = [v for v in values if v is not None]
+    if not numbers or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in numbers):
+        raise ValueError(f"{spec!r}: not a number: {str(values)[:120]}")
+    scale = (lambda v: float(match["factor"]) * v) if match["factor"] else (lambda v: v)
+    fmt = match["format"] or ".3g"
+    try:
+        low, high = (format(v, fmt) for v in sorted(scale(v) for v in (min(numbers), max(numbers))))
+    except ValueError as exc:
+        raise ValueError(f"{spec!r}: {exc}") from None
+    if match["extreme"]:
+        return low if match["extreme"] == "min" else high
+    return low if low == high else f"{low}-{high}"
+
+
+def _figure_role(name, rawtext, text, lineno, inliner, options=None, content=None):
+    match = _FIGURE.match(text.strip())
+    if match is not None:            # an incremental build reads the page again when the file changes
+        inliner.document.settings.env.note_dependency(str(RESULTS / match["file"]))
+    try:
+        return [nodes.Text(figure(text))], []
+    except ValueError as exc:
+        message = inliner.reporter.error(f"bench figure: {exc}", line=lineno)
+        return [inliner.problematic(rawtext, rawtext, message)], [message]
+
+
 def setup(app):
     app.connect("builder-inited", generate)
+    app.add_role("bench", _figure_role)
     return {"version": "1", "parallel_read_safe": True}
