@@ -1,9 +1,12 @@
 """The generated reference covers what the code declares: every schema of the packages is rendered,
-every key with a description of what it allows; a key without one stops the page."""
+every key with a description of what it allows; a key without one stops the page. The measured
+figures the pages quote are the results files' (the ``{bench}`` role), and so is the README's
+sample output."""
 import ast
-import re
 import importlib
+import json
 import pkgutil
+import re
 import sys
 from pathlib import Path
 
@@ -13,6 +16,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "docs" / "_ext"))
 
 import soft_arm_reference  # noqa: E402
+from soft_arm_benchmarks import figure  # noqa: E402
 
 PACKAGES = ("soft_arm_model", "soft_arm_ros", "soft_arm_control", "soft_arm_drivers", "soft_arm_experiments")
 
@@ -80,7 +84,6 @@ def test_every_command_has_its_help():
 
 
 def _results(tmp_path):
-    import json
     (tmp_path / "bench.json").write_text(json.dumps({
         "measured": {"date": "d", "commit": "c", "machine": {}},
         "steps": {"update_us": 7.2194, "rms_m": 0.000399},
@@ -93,36 +96,32 @@ def _results(tmp_path):
 
 
 def test_a_bench_figure_is_the_results_files_number_scaled_and_formatted(tmp_path):
-    import soft_arm_benchmarks
     results = _results(tmp_path)
-    assert soft_arm_benchmarks.figure("bench.json:steps.update_us:.1f", results) == "7.2"
-    assert soft_arm_benchmarks.figure("bench.json:steps.rms_m*1000:.2f", results) == "0.40"
-    assert soft_arm_benchmarks.figure("bench.json:steps.update_us", results) == "7.22"
+    assert figure("bench.json:steps.update_us:.1f", results) == "7.2"
+    assert figure("bench.json:steps.rms_m*1000:.2f", results) == "0.40"
+    assert figure("bench.json:steps.update_us", results) == "7.22"
 
 
 def test_a_bench_figure_over_every_draw_is_their_range_without_the_nulls(tmp_path):
-    import soft_arm_benchmarks
     results = _results(tmp_path)
-    assert soft_arm_benchmarks.figure("bench.json:draws.*.rest.-1*1000:.1f", results) == "0.8-2.6"
-    assert soft_arm_benchmarks.figure("bench.json:draws.*.mm:.2f", results) == "0.21-0.27"
-    assert soft_arm_benchmarks.figure("bench.json:draws.1.rest.0:.1f", results) == "0.2"
-    assert soft_arm_benchmarks.figure("bench.json:draws.*.rest.0*0:.1f", results) == "0.0"
-    assert soft_arm_benchmarks.figure("bench.json:draws.*.rest.0*-1:.1f", results) == "-0.3--0.1"
+    assert figure("bench.json:draws.*.rest.-1*1000:.1f", results) == "0.8-2.6"
+    assert figure("bench.json:draws.*.mm:.2f", results) == "0.21-0.27"
+    assert figure("bench.json:draws.1.rest.0:.1f", results) == "0.2"
+    assert figure("bench.json:draws.*.rest.0*0:.1f", results) == "0.0"
+    assert figure("bench.json:draws.*.rest.0*-1:.1f", results) == "-0.3--0.1"
 
 
 def test_a_bench_figure_of_some_records_is_read_through_a_filter(tmp_path):
-    import soft_arm_benchmarks
     results = _results(tmp_path)
-    figure = soft_arm_benchmarks.figure
     assert figure("bench.json:runs.[task=coiling;feedback=fused].rms:.2f", results) == "0.35"
     assert figure("bench.json:runs.[feedback=fused|estimate].rms:.2f", results) == "0.35-0.47"
     assert figure("bench.json:runs.[feedback=fused|estimate].rms:.2f:max", results) == "0.47"
     assert figure("bench.json:runs.*.rms*-1::min", results) == "-0.47"
     assert figure("bench.json:runs.[spec.draw=3].rms:.2f", results) == "0.47"
-    assert soft_arm_benchmarks.figure("bench.json:runs.[dt=0.002].rms:.2f", results) == "0.47"
-    assert soft_arm_benchmarks.figure("bench.json:runs.[loop=core, sleep].rms:.2f", results) == "0.35"
+    assert figure("bench.json:runs.[dt=0.002].rms:.2f", results) == "0.47"
+    assert figure("bench.json:runs.[loop=core, sleep].rms:.2f", results) == "0.35"
     with pytest.raises(ValueError, match="no record 'runs.\\[task=pendulum\\]'"):
-        soft_arm_benchmarks.figure("bench.json:runs.[task=pendulum].rms", results)
+        figure("bench.json:runs.[task=pendulum].rms", results)
 
 
 @pytest.mark.parametrize("spec, says", [
@@ -132,25 +131,18 @@ def test_a_bench_figure_of_some_records_is_read_through_a_filter(tmp_path):
     ("bench.json:steps.rms_m:.2q", "Unknown format code"),
     ("../bench.json:steps.rms_m", "under bench/results")])
 def test_a_bench_figure_that_is_not_there_says_which_and_why(tmp_path, spec, says):
-    import soft_arm_benchmarks
     with pytest.raises(ValueError, match=re.escape(says)) as caught:
-        soft_arm_benchmarks.figure(spec, _results(tmp_path))
+        figure(spec, _results(tmp_path))
     assert repr(spec) in str(caught.value)
 
 
 @pytest.mark.parametrize("page", ["README.md", "docs/getting-started.md"])
 def test_the_main_commands_sample_output_is_what_its_bench_measured_last(page):
     """The Table 1 row the README shows ``soft-arm-experiment triangle`` printing is the row
-    ``bench/bench_graph.py`` measured last on the same command (``graph.json``), as the command
-    prints it."""
-    import json
+    ``bench/bench_graph.py`` measured last on the same command (``graph.json``), as the command's
+    own formatter prints it."""
+    from soft_arm_experiments.metrics import Summary, format_table
     row = json.loads((ROOT / "bench/results/graph.json").read_text(encoding="utf-8"))["triangle"]["graph"]
-    shown = re.search(r"task-space RMS error \[mm\] +(\S+)\n"
-                      r" +task velocity, mm band \[m/s\] +(\S+) \((\d+)/(\d+) transitions reached\)\n"
-                      r" +task velocity, cm band \[m/s\] +(\S+) \((\d+)/(\d+) transitions reached\)\n"
-                      r" +peak tip speed \[m/s\] +(\S+)", (ROOT / page).read_text(encoding="utf-8"))
-    assert shown is not None, f"{page} shows no Table 1 row"
-    assert shown.groups() == (
-        f"{row['rms_error'] * 1e3:.2f}", f"{row['velocity_mm']:.3f}", str(row["reached_mm"]),
-        str(row["transitions"]), f"{row['velocity_cm']:.3f}", str(row["reached_cm"]),
-        str(row["transitions"]), f"{row['peak_speed']:.2f}")
+    printed = format_table([], Summary(**row)).split("\n\n", 1)[1].splitlines()
+    shown = (ROOT / page).read_text(encoding="utf-8")
+    assert [line for line in printed if line not in shown] == []

@@ -170,6 +170,16 @@ def _select(tree, keys: list, trail: str) -> list:
     raise KeyError(f"no {here!r}")
 
 
+def _parse(spec: str) -> re.Match:
+    """The parts of a figure's spec; ValueError, naming it, if malformed or outside bench/results."""
+    match = _FIGURE.match(spec.strip())
+    if match is None:
+        raise ValueError(f"{spec!r}: not file.json:dotted.key[*factor][:format][:min|max]")
+    if ".." in match["file"].split("/"):
+        raise ValueError(f"{spec!r}: a results file is under bench/results")
+    return match
+
+
 def figure(spec: str, results: Path = RESULTS) -> str:
     """The text of one figure of a results file, ``file.json:dotted.key[*factor][:format][:min|max]``:
     the number at that key of ``bench/results/file.json`` (a path below it: a campaign's folder), times
@@ -179,11 +189,7 @@ def figure(spec: str, results: Path = RESULTS) -> str:
     format, or its smallest or largest value alone (``:min``, ``:max``); values that are null (a
     figure a draw did not reach) are left out.
     Raises ValueError, naming the spec, for a malformed spec, a missing file or key, or no number."""
-    match = _FIGURE.match(spec.strip())
-    if match is None:
-        raise ValueError(f"{spec!r}: not file.json:dotted.key[*factor][:format][:min|max]")
-    if ".." in match["file"].split("/"):
-        raise ValueError(f"{spec!r}: a results file is under bench/results")
+    match = _parse(spec)
     path = results / match["file"]
     try:
         tree = json.loads(path.read_text(encoding="utf-8"))
@@ -205,10 +211,9 @@ def figure(spec: str, results: Path = RESULTS) -> str:
 
 
 def _figure_role(name, rawtext, text, lineno, inliner, options=None, content=None):
-    match = _FIGURE.match(text.strip())
-    if match is not None:            # an incremental build reads the page again when the file changes
-        inliner.document.settings.env.note_dependency(str(RESULTS / match["file"]))
     try:
+        # an incremental build reads the page again when the file changes
+        inliner.document.settings.env.note_dependency(str(RESULTS / _parse(text)["file"]))
         return [nodes.Text(figure(text))], []
     except ValueError as exc:
         message = inliner.reporter.error(f"bench figure: {exc}", line=lineno)
