@@ -24,6 +24,7 @@ process of its own, :mod:`.live_launch`) and writes the same view into ``view.mc
 from __future__ import annotations
 
 import argparse
+import contextlib
 import datetime
 import json
 import os
@@ -284,7 +285,13 @@ def main(argv=None) -> int:
     STOP.clear()
     previous = {sig: signal.signal(sig, request_stop) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
-        with live_view(args.live, ros_args, os.path.join(run_dir, "view.mcap")) as address:
+        with contextlib.ExitStack() as stack:
+            try:
+                view = live_view(args.live, ros_args, os.path.join(run_dir, "view.mcap"), stopped=STOP.is_set)
+                address = stack.enter_context(view)
+            except RuntimeError as exc:
+                print(f"soft-arm-experiment: --live {args.live}: {exc}", file=sys.stderr)
+                return 2
             if address is not None:
                 print(f"soft-arm-experiment: live view on {address} (Foxglove app: Open connection, "
                       "Foxglove WebSocket; layout config/foxglove_layout.json)", file=sys.stderr)

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import select
 import signal
 import subprocess
 import sys
@@ -39,21 +40,38 @@ def live_arguments(host: str, port: int, record: str = "") -> list:
     return out if is_loopback(host) else out + ["-p", "view.remote:=true"]
 
 
+READY_FD = "SOFT_ARM_LIVE_READY_FD"    # environment: the pipe the live_view process writes its
+#                                       address to, once set up (:func:`report_ready`)
+READY_TIMEOUT = 60.0                   # s: the longest a run waits for its live view to be set up
+
+
 @contextlib.contextmanager
-def live_view(address: str | None, ros_args: list, record: str = ""):
+def live_view(address: str | None, ros_args: list, record: str = "", timeout: float = READY_TIMEOUT,
+              stopped=lambda: False):
     """The live_view process for the run while the context lasts (nothing when ``address`` is None),
-    writing the view into ``record`` too; yields the address to open. It is asked to stop (SIGINT)
-    at the end and killed after 5 s."""
+    writing the view into ``record`` too; yields the address to open once the node is set up (its
+    server listening, its subscriptions made), so that the run starts after it and a viewer sees
+    all of it: the process starts under SCHED_IDLE and, beside a graph coming up, would otherwise
+    be set up only when the run is all but over. RuntimeError, naming what it waited for, if the
+    process ends first (its log says why: a port in use, a bad parameter), if it is not set up
+    within ``timeout`` s or if ``stopped()`` (polled every 0.1 s) turns true. It is asked to stop
+    (SIGINT) at the end and killed after 5 s."""
     if address is None:
         yield None
         return
     host, port = parse_address(address)
     command = [sys.executable, "-m", "soft_arm_experiments.live_view_node", "--ros-args", *ros_args,
                *live_arguments(host, port, record)]
-    process = subprocess.Popen(command, start_new_session=True, env=dict(os.environ))
+    read, write = os.pipe()
     try:
-        yield f"ws://{host}:{port}"
+        process = subprocess.Popen(command, start_new_session=True, pass_fds=(write,),
+                                   env=dict(os.environ, **{READY_FD: str(write)}))
     finally:
+        os.close(write)                  # the process's end is its own: EOF once it exits
+    try:
+        yield _served(process, read, f"{host}:{port}", timeout, stopped)
+    finally:
+        os.close(read)
         if process.poll() is None:
             os.killpg(process.pid, signal.SIGINT)
             try:
@@ -61,6 +79,46 @@ def live_view(address: str | None, ros_args: list, record: str = ""):
             except subprocess.TimeoutExpired:
                 os.killpg(process.pid, signal.SIGKILL)
                 process.wait()
+
+
+def _served(process, read: int, asked: str, timeout: float, stopped) -> str:
+    """The address the live_view ``process`` writes to the pipe ``read`` once set up."""
+    deadline, line = time.monotonic() + timeout, b""
+    while not line.endswith(b"\n"):
+        if stopped():
+            raise RuntimeError(f"stopped while waiting for the live view on {asked} to be set up: "
+                               "nothing ran")
+        left = deadline - time.monotonic()
+        if left <= 0:
+            raise RuntimeError(f"the live view on {asked} was not set up within {timeout:g} s")
+        if select.select([read], [], [], min(0.1, left))[0]:
+            chunk = os.read(read, 256)
+            if not chunk:
+                try:
+                    status = process.wait(timeout=5.0)
+                except subprocess.TimeoutExpired:
+                    status = "none yet"
+                raise RuntimeError(f"the live view on {asked} ended before it was set up (exit status "
+                                   f"{status}; its log says why)")
+            line += chunk
+    return line.decode().strip()
+
+
+def report_ready(address: str, environ=os.environ) -> bool:
+    """Write ``address`` to the pipe :func:`live_view` waits on (named by ``READY_FD`` in
+    ``environ``, taken out of it) and close it; False when no launcher waits (the rig's
+    ``ros2 run``). ValueError if the variable names no open file descriptor."""
+    fd = environ.pop(READY_FD, None)
+    if fd is None:
+        return False
+    try:
+        number = int(fd)
+        os.write(number, f"{address}\n".encode())
+        os.close(number)
+    except (ValueError, OSError) as exc:
+        raise ValueError(f"{READY_FD}={fd!r} names no pipe to report the live view's address on: {exc}") \
+            from None
+    return True
 
 
 class HarnessView:

@@ -46,6 +46,7 @@ from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import JointState
 from soft_arm_interfaces.msg import ConfigurationReference
 from soft_arm_model import KINEMATICS, ArmData, OutOfDomainError, build_model, evaluate
+from soft_arm_model.parameters import ConfigError
 from visualization_msgs.msg import MarkerArray
 
 from soft_arm_ros.contract import QOS, TOPICS
@@ -54,6 +55,7 @@ from soft_arm_ros.parameters import NodeParameters
 from soft_arm_ros.runtime import run_node
 
 from . import realtime
+from .live_launch import report_ready
 from .live_view import VIEW_SCHEMA, LiveServer, LiveView
 
 SHAPE_FRESH = 1.0       # s (wall): a shape this recent is the backbone (arm/shape before estimate/shape
@@ -106,7 +108,11 @@ class LiveViewNode(Node):
         view = params.section("view", VIEW_SCHEMA)
         geometry = params.arm.geometry
         self.view = LiveView(geometry.base_radius, geometry.tip_radius, view["trail"])
-        self.live = LiveServer(view["host"], view["port"], view["remote"], view["backlog"], view["record"])
+        try:
+            self.live = LiveServer(view["host"], view["port"], view["remote"], view["backlog"],
+                                   view["record"])
+        except (ValueError, RuntimeError) as exc:    # beyond loopback unasked; the SDK's: a port in use
+            raise ConfigError(f"the live view cannot serve {view['host']}:{view['port']}: {exc}") from None
         self.latest = {}                 # series name -> the latest value, logged at the view's rate
         self.pending = {}                # key of RAW -> the latest serialized message not yet viewed
         self.shape_at = {"shape": -np.inf, "estimate_shape": -np.inf}   # monotonic [s], last viewed
@@ -205,6 +211,10 @@ class LiveViewNode(Node):
 def _set_up() -> LiveViewNode:
     node = LiveViewNode()
     lift_middleware()                    # its threads exist once the node does
+    try:
+        report_ready(node.live.address)  # to a run's --live waiting on it, if any
+    except ValueError as exc:
+        node.get_logger().error(str(exc))
     return node
 
 

@@ -122,3 +122,54 @@ def test_the_task_series_is_the_target_less_what_the_mocap_measured():
     task = view.task()
     assert task["labels"] == ["marker2.x", "marker1.z"] and task["target"] == [0.05, -0.1]
     assert np.isnan(task["measured"][0]) and task["error"][1] == pytest.approx(-0.02)
+
+
+def test_the_launcher_waits_for_its_live_view_and_names_what_it_waited_for():
+    """``live_view``'s wait (:func:`~.live_launch._served`): the address the process writes once set
+    up; a process that ends first, one that never reports, and a stop asked for meanwhile each end
+    the wait with a RuntimeError naming the address it waited on."""
+    import os
+    import subprocess
+    import sys
+
+    from soft_arm_experiments.live_launch import _served
+
+    def waiting(code: str, timeout: float = 10.0, stopped=lambda: False):
+        read, write = os.pipe()
+        process = subprocess.Popen([sys.executable, "-c", code.format(fd=write)], pass_fds=(write,))
+        os.close(write)
+        try:
+            return _served(process, read, "127.0.0.1:9", timeout, stopped)
+        finally:
+            os.close(read)
+            process.kill()
+            process.wait()
+
+    import_os = "import os, time; "
+    assert waiting(import_os + "os.write({fd}, b'ws://127.0.0.1:'); time.sleep(0.2); "
+                   "os.write({fd}, b'4242\\n'); time.sleep(30)") == "ws://127.0.0.1:4242"
+    with pytest.raises(RuntimeError, match=r"127.0.0.1:9 ended before it was set up \(exit status 3"):
+        waiting("raise SystemExit(3)")
+    with pytest.raises(RuntimeError, match=r"127.0.0.1:9 was not set up within 0.5 s"):
+        waiting(import_os + "time.sleep(30)", timeout=0.5)
+    with pytest.raises(RuntimeError, match="stopped while waiting for the live view on 127.0.0.1:9"):
+        waiting(import_os + "time.sleep(30)", stopped=lambda: True)
+
+
+def test_the_live_view_reports_its_address_only_to_a_launcher_that_waits():
+    import os
+
+    from soft_arm_experiments.live_launch import READY_FD, report_ready
+
+    assert report_ready("ws://127.0.0.1:1", {}) is False          # the rig's ros2 run: no one waits
+    read, write = os.pipe()
+    environ = {READY_FD: str(write)}
+    try:
+        assert report_ready("ws://127.0.0.1:4242", environ) is True
+        assert os.read(read, 100) == b"ws://127.0.0.1:4242\n" and READY_FD not in environ
+        assert os.read(read, 100) == b""                          # and the pipe closed: EOF
+        for bad in ("x", str(write)):                             # not a number; closed already
+            with pytest.raises(ValueError, match=f"{READY_FD}='{bad}' names no pipe"):
+                report_ready("ws://127.0.0.1:4242", {READY_FD: bad})
+    finally:
+        os.close(read)

@@ -267,10 +267,32 @@ def test_a_run_with_live_serves_itself_to_a_viewer(tmp_path, module):
     assert {"/view/scene", "/view/tendons"} <= topics, topics
 
 
+def test_a_run_whose_live_view_cannot_serve_stops_before_anything_moves(tmp_path):
+    """``soft-arm-experiment --live`` on a port another program holds: the live view's own error,
+    the run's refusal naming the address, exit status 2 and no run (no bag)."""
+    import socket
+    import subprocess
+    import sys
+
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        done = subprocess.run([sys.executable, "-m", "soft_arm_experiments.experiment", "coiling", "--quiet",
+                               "--live", f"127.0.0.1:{port}", "--output", str(tmp_path / "run")],
+                              capture_output=True, text=True, timeout=300)
+    assert done.returncode == 2, done.stderr[-3000:]
+    assert f"--live 127.0.0.1:{port}: the live view on 127.0.0.1:{port} ended before it was set up" \
+        in done.stderr
+    assert "Address already in use" in done.stderr
+    assert not (tmp_path / "run" / "bag").exists()
+
+
 def test_the_live_view_process_takes_only_the_cpu_the_graph_leaves():
-    """The live_view process ``--live`` starts: every thread under SCHED_IDLE but the middleware's
-    (``dds.*``), which run under SCHED_FIFO like those of the graph's other processes outside the
-    loop; where SCHED_FIFO is not permitted, every thread at niceness 19."""
+    """The live_view process ``--live`` starts, as soon as it says it is set up: every thread under
+    SCHED_IDLE but the middleware's (``dds.*``), which run under SCHED_FIFO like those of the
+    graph's other processes outside the loop; where SCHED_FIFO is not permitted, every thread at
+    niceness 19."""
     import os
     import socket
 
@@ -293,24 +315,12 @@ def test_the_live_view_process_takes_only_the_cpu_the_graph_leaves():
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
     permitted = realtime.permitted(realtime.MIDDLEWARE_PRIORITY)
-    with live_view(f"127.0.0.1:{port}", []):
-        deadline, up = time.monotonic() + 120.0, None
-        while up is None and time.monotonic() < deadline:         # its server is up: the node is
-            try:                                                  # all but set up
-                socket.create_connection(("127.0.0.1", port), timeout=1.0).close()
-                up = time.monotonic()
-            except OSError:
-                time.sleep(0.2)
-        assert up is not None, "no live view server"
+    with live_view(f"127.0.0.1:{port}", []) as address:         # once the node is set up
+        assert address == f"ws://127.0.0.1:{port}"
         pid = next(p for p in realtime.child_processes(os.getpid())
                    if "live_view_node" in open(f"/proc/{p}/cmdline", encoding="utf-8").read())
-        while True:                                   # and its middleware lifted, within 10 s
-            seen = scheduling(pid)
-            middleware = [s for (_, name), s in seen.items() if name.startswith("dds.")]
-            lifted = middleware and all(s[0] == os.SCHED_FIFO for s in middleware)
-            if lifted or not permitted or time.monotonic() > up + 10.0:
-                break
-            time.sleep(0.2)
+        seen = scheduling(pid)
+        middleware = [s for (_, name), s in seen.items() if name.startswith("dds.")]
     others = [s for (_, name), s in seen.items() if not name.startswith("dds.")]
     assert middleware and others, seen
     if permitted:
