@@ -119,6 +119,7 @@ def test_a_bench_figure_of_some_records_is_read_through_a_filter(tmp_path):
     assert figure("bench.json:runs.*.rms*-1::min", results) == "-0.47"
     assert figure("bench.json:runs.[spec.draw=3].rms:.2f", results) == "0.47"
     assert figure("bench.json:runs.[dt=0.002].rms:.2f", results) == "0.47"
+    assert figure("bench.json:runs[dt=0.002;feedback=estimate].rms:.2f", results) == "0.47"   # no dot
     assert figure("bench.json:runs.[loop=core, sleep].rms:.2f", results) == "0.35"
     with pytest.raises(ValueError, match="no record 'runs.\\[task=pendulum\\]'"):
         figure("bench.json:runs.[task=pendulum].rms", results)

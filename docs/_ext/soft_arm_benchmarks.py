@@ -170,6 +170,13 @@ def _select(tree, keys: list, trail: str) -> list:
     raise KeyError(f"no {here!r}")
 
 
+def _keys(key: str) -> list:
+    """The steps of a dotted key: its dot-separated parts, a record filter ``[...]`` one step of its
+    own whether a dot comes before it or not (``runs.[method=imex]``, ``runs[method=imex]``), dots
+    inside the filter kept (``[dt_s=0.001]``)."""
+    return re.findall(r"\[[^\]]*\]|[^.\[]+", key)
+
+
 def _parse(spec: str) -> re.Match:
     """The parts of a figure's spec; ValueError, naming it, if malformed or outside bench/results."""
     match = _FIGURE.match(spec.strip())
@@ -193,7 +200,7 @@ def figure(spec: str, results: Path = RESULTS) -> str:
     path = results / match["file"]
     try:
         tree = json.loads(path.read_text(encoding="utf-8"))
-        values = _select(tree, re.findall(r"\[[^\]]*\]|[^.]+", match["key"]), "")
+        values = _select(tree, _keys(match["key"]), "")
     except (OSError, ValueError, KeyError) as exc:
         raise ValueError(f"{spec!r}: {exc}") from None
     numbers = [v for v in values if v is not None]
