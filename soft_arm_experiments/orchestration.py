@@ -151,8 +151,8 @@ def _wait_for_services(node, children, clients, timeout: float = BRINGUP_TIMEOUT
 
 
 # the state a lifecycle transition ends in, by its label
-_GOAL_STATES = {"configure": "inactive", "activate": "active", "deactivate": "inactive",
-                "cleanup": "unconfigured"}
+GOAL_STATES = {"configure": "inactive", "activate": "active", "deactivate": "inactive",
+               "cleanup": "unconfigured"}
 
 
 def _change_state(node, client, label: str, timeout: float = 10.0):
@@ -175,7 +175,7 @@ def _change_state(node, client, label: str, timeout: float = 10.0):
             state = None
         finally:
             node.destroy_client(getter)
-        if state != _GOAL_STATES.get(label):
+        if state != GOAL_STATES.get(label):
             raise RuntimeError(f"{label} of {name} failed: {exc} (see that node's log)") from None
         print(f"soft-arm-experiment: {label} of {name}: no answer within {timeout:g} s, but {name} is "
               f"{state}: going on", file=sys.stderr)

@@ -223,10 +223,6 @@ def spin_until(executor, predicate, timeout: float = 10.0, unless_ended=None):
     raise AssertionError(f"timed out after {timeout} s")
 
 
-GOAL_STATES = {"configure": "inactive", "activate": "active", "deactivate": "inactive",
-               "cleanup": "unconfigured", "shutdown": "finalized"}
-
-
 def change_state(executor, client, label: str, timeout: float = 10.0) -> bool:
     """Ask a managed node for the lifecycle transition ``label`` through its change_state service
     (``client``, as ``ros2 lifecycle set`` does), spinning ``executor``; whether it succeeded. An
@@ -236,6 +232,8 @@ def change_state(executor, client, label: str, timeout: float = 10.0) -> bool:
     ``orchestration._change_state``)."""
     from lifecycle_msgs.msg import Transition
     from lifecycle_msgs.srv import GetState
+
+    from soft_arm_experiments.orchestration import GOAL_STATES
     spin_until(executor, client.service_is_ready)
     future = client.call_async(client.srv_type.Request(transition=Transition(label=label)))
     try:
