@@ -95,34 +95,25 @@ def _results(tmp_path):
     return tmp_path
 
 
-def test_a_bench_figure_is_the_results_files_number_scaled_and_formatted(tmp_path):
-    results = _results(tmp_path)
-    assert figure("bench.json:steps.update_us:.1f", results) == "7.2"
-    assert figure("bench.json:steps.rms_m*1000:.2f", results) == "0.40"
-    assert figure("bench.json:steps.update_us", results) == "7.22"
-
-
-def test_a_bench_figure_over_every_draw_is_their_range_without_the_nulls(tmp_path):
-    results = _results(tmp_path)
-    assert figure("bench.json:draws.*.rest.-1*1000:.1f", results) == "0.8-2.6"
-    assert figure("bench.json:draws.*.mm:.2f", results) == "0.21-0.27"
-    assert figure("bench.json:draws.1.rest.0:.1f", results) == "0.2"
-    assert figure("bench.json:draws.*.rest.0*0:.1f", results) == "0.0"
-    assert figure("bench.json:draws.*.rest.0*-1:.1f", results) == "-0.3--0.1"
-
-
-def test_a_bench_figure_of_some_records_is_read_through_a_filter(tmp_path):
-    results = _results(tmp_path)
-    assert figure("bench.json:runs.[task=coiling;feedback=fused].rms:.2f", results) == "0.35"
-    assert figure("bench.json:runs.[feedback=fused|estimate].rms:.2f", results) == "0.35-0.47"
-    assert figure("bench.json:runs.[feedback=fused|estimate].rms:.2f:max", results) == "0.47"
-    assert figure("bench.json:runs.*.rms*-1::min", results) == "-0.47"
-    assert figure("bench.json:runs.[spec.draw=3].rms:.2f", results) == "0.47"
-    assert figure("bench.json:runs.[dt=0.002].rms:.2f", results) == "0.47"
-    assert figure("bench.json:runs[dt=0.002;feedback=estimate].rms:.2f", results) == "0.47"   # no dot
-    assert figure("bench.json:runs.[loop=core, sleep].rms:.2f", results) == "0.35"
-    with pytest.raises(ValueError, match="no record 'runs.\\[task=pendulum\\]'"):
-        figure("bench.json:runs.[task=pendulum].rms", results)
+@pytest.mark.parametrize("spec, text", [
+    ("bench.json:steps.update_us:.1f", "7.2"),                      # a number, formatted
+    ("bench.json:steps.rms_m*1000:.2f", "0.40"),                    # scaled (m to mm)
+    ("bench.json:steps.update_us", "7.22"),                         # .3g when no format
+    ("bench.json:draws.*.rest.-1*1000:.1f", "0.8-2.6"),             # every draw: their range
+    ("bench.json:draws.*.mm:.2f", "0.21-0.27"),                     # the nulls left out
+    ("bench.json:draws.1.rest.0:.1f", "0.2"),                       # list indices
+    ("bench.json:draws.*.rest.0*0:.1f", "0.0"),                     # one value where they agree
+    ("bench.json:draws.*.rest.0*-1:.1f", "-0.3--0.1"),              # a negative factor
+    ("bench.json:runs.[task=coiling;feedback=fused].rms:.2f", "0.35"),     # records, every condition
+    ("bench.json:runs.[feedback=fused|estimate].rms:.2f", "0.35-0.47"),   # alternatives
+    ("bench.json:runs.[feedback=fused|estimate].rms:.2f:max", "0.47"),    # the largest alone
+    ("bench.json:runs.*.rms*-1::min", "-0.47"),                     # the smallest, default format
+    ("bench.json:runs.[spec.draw=3].rms:.2f", "0.47"),              # a field of a field
+    ("bench.json:runs.[dt=0.002].rms:.2f", "0.47"),                 # a dot inside the filter
+    ("bench.json:runs[dt=0.002;feedback=estimate].rms:.2f", "0.47"),      # no dot before it
+    ("bench.json:runs.[loop=core, sleep].rms:.2f", "0.35")])       # text with a comma and a space
+def test_a_bench_figure_is_the_results_files_number_scaled_ranged_or_filtered(tmp_path, spec, text):
+    assert figure(spec, _results(tmp_path)) == text
 
 
 @pytest.mark.parametrize("spec, says", [
@@ -130,7 +121,8 @@ def test_a_bench_figure_of_some_records_is_read_through_a_filter(tmp_path):
     ("bench.json:steps", "not a number"), ("bench.json:draws.5.mm", "no 'draws.5'"),
     ("bench.json:draws.1.mm", "not a number"), ("bench.json steps.rms_m", "not file.json:"),
     ("bench.json:steps.rms_m:.2q", "Unknown format code"),
-    ("../bench.json:steps.rms_m", "under bench/results")])
+    ("../bench.json:steps.rms_m", "under bench/results"),
+    ("bench.json:runs.[task=pendulum].rms", "no record 'runs.[task=pendulum]'")])
 def test_a_bench_figure_that_is_not_there_says_which_and_why(tmp_path, spec, says):
     with pytest.raises(ValueError, match=re.escape(says)) as caught:
         figure(spec, _results(tmp_path))
