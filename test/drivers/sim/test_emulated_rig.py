@@ -254,6 +254,16 @@ def _child(parent: int, name: str) -> int:
     raise LookupError(f"no child of {parent} named {name}")
 
 
+def _timing_fault(output: str):
+    """The fault a run's driver latched on its own timing (a stale command, a silent motor, a held
+    cycle: a loaded machine's hiccup, caught), None if it latched none of those."""
+    logged = re.search(r"fault, all motors at zero torque: (.*)", output)
+    if logged is None:
+        return None
+    reason = logged.group(1)
+    return reason if re.match(r"stale command|cycle held|motor \d+ silent", reason) else None
+
+
 def _stopped_after_activation(proc, name: str) -> tuple[str, int]:
     """The run's output until the motor driver's activation, then 2 s on, node ``name``'s process
     stopped (SIGSTOP): (that output, its pid)."""
@@ -401,15 +411,24 @@ def test_motors_flashed_with_another_firmware_stop_the_run_naming_the_preset(tmp
     tree = yaml.safe_load((flashed / "emulator.yaml").read_text())
     tree["/**"]["ros__parameters"]["rig"]["emulator"]["firmware"] = "AK80-9-fw1.1"
     (flashed / "emulator.yaml").write_text(yaml.safe_dump(tree))
-    out = tmp_path / "run"
-    proc = _experiment(str(flashed), out, "--quiet")
-    with killed_on_exit(proc):
-        output = proc.communicate(timeout=240)[0]
-    assert proc.returncode == 1, output
-    assert "the preset AK80-9 (+-50 rad/s) is not its firmware's" in output
-    assert "the preset AK80-9-fw1.1 would fit" in output and "rms[mm]" not in output
+    held = ""
+    for attempt in ("run", "rerun"):
+        out = tmp_path / attempt
+        proc = _experiment(str(flashed), out, "--quiet")
+        with killed_on_exit(proc):
+            output = proc.communicate(timeout=240)[0]
+        hiccup = _timing_fault(output)
+        if hiccup is None or "is not its firmware's" in output:
+            break
+        # the machine held a node before the arm had moved enough to judge the scale: the driver
+        # caught it, and the claim is unproven by that run; one more, and both runs are shown if
+        # it fails too
+        held = f"the first run ended on a timing fault ({hiccup}); its output:\n{output}\n"
+    assert proc.returncode == 1, held + output
+    assert "the preset AK80-9 (+-50 rad/s) is not its firmware's" in output, held + output
+    assert "the preset AK80-9-fw1.1 would fit" in output and "rms[mm]" not in output, held + output
     with open(out / "metrics.json", encoding="utf-8") as fh:
         metrics = json.load(fh)
-    assert metrics["valid"] is False and "AK80-9-fw1.1 would fit" in metrics["failure"]
+    assert metrics["valid"] is False and "AK80-9-fw1.1 would fit" in metrics["failure"], metrics
     fault, = metrics["run"]["driver_faults"]
     assert fault["time_s"] < 3.0                 # at the first move, not after the task
