@@ -10,6 +10,7 @@ import signal
 import subprocess
 import sys
 import time
+import warnings
 
 import numpy as np
 import pytest
@@ -100,14 +101,19 @@ def test_emulator_config_is_validated_and_laid_over_the_rig():
 
 def test_closed_loop_through_the_emulated_hardware_reaches_the_target_like_the_simulator(
         tmp_path, config_dir):
-    out = tmp_path / "hil"
     sets = [a for s in ONE_TARGET for a in ("--set", s)]
-    before = time.time()
-    assert main(["coiling", "--emulated-hardware", "--quiet", "--config", config_dir, "--output", str(out)]
-                + sets) == 0
-    after = time.time()
-    with open(out / "metrics.json", encoding="utf-8") as fh:
-        hil = json.load(fh)
+    for attempt in ("hil", "hil_rerun"):
+        out = tmp_path / attempt
+        before = time.time()
+        status = main(["coiling", "--emulated-hardware", "--quiet", "--config", config_dir,
+                       "--output", str(out)] + sets)
+        after = time.time()
+        with open(out / "metrics.json", encoding="utf-8") as fh:
+            hil = json.load(fh)
+        if not _rerun_after_a_hiccup(attempt, _timing_fault("\n".join(
+                f["message"] for f in hil["run"]["driver_faults"]))):
+            break
+    assert status == 0, hil
     assert hil["run"]["emulated_hardware"] and hil["run"]["driver_faults"] == []
     # the enable follows the run's own nodes' last change by the settle (the nodes' start-up is the
     # machine's: seconds more under load)
@@ -254,42 +260,64 @@ def _child(parent: int, name: str) -> int:
     raise LookupError(f"no child of {parent} named {name}")
 
 
+class RigHiccup(UserWarning):
+    """A run of the emulated rig ended on a timing fault that its test did not cause, and ran again."""
+
+
 def _timing_fault(output: str):
     """The fault a run's driver latched on its own timing (a stale command, a silent motor, a held
-    cycle: a loaded machine's hiccup, caught), None if it latched none of those."""
-    logged = re.search(r"fault, all motors at zero torque: (.*)", output)
+    cycle: a loaded machine's hiccup, caught) in its log or its metrics' faults, None if none."""
+    logged = re.search(r"\bfault(?:, all motors at zero torque)?: (.*)", output)
     if logged is None:
         return None
     reason = logged.group(1)
     return reason if re.match(r"stale command|cycle held|motor \d+ silent", reason) else None
 
 
-def _stopped_after_activation(proc, name: str) -> tuple[str, int]:
-    """The run's output until the motor driver's activation, then 2 s on, node ``name``'s process
-    stopped (SIGSTOP): (that output, its pid)."""
-    seen = wait_for_output(proc, "[motor_driver]: activated", timeout=120)
-    time.sleep(2.0)
-    try:
-        pid = _child(proc.pid, name)
-    except LookupError as missing:        # say what the run was doing, not only that the node is gone
-        raise AssertionError(f"{missing} 2 s after the driver's activation (the run's status: "
-                             f"{proc.poll()}); its output so far:\n{seen}") from missing
-    os.kill(pid, signal.SIGSTOP)
-    return seen, pid
+def _rerun_after_a_hiccup(attempt: str, hiccup) -> bool:
+    """Whether a run that ended on the timing fault ``hiccup`` (None: it did not) runs once more: it
+    proves nothing of the claim, since the driver caught the machine holding a node, which is the
+    driver's job; a second such run fails its test. Each rerun is said (a RigHiccup warning in
+    pytest's summary), never passed over: a machine where they recur is too slow for this rig."""
+    if hiccup is None or attempt.endswith("rerun"):
+        return False
+    warnings.warn(RigHiccup(f"the emulated rig's run ended on a timing fault ({hiccup}); once more"))
+    return True
+
+
+def _with_node_stopped(config_dir, tmp_path, name: str, hold: float):
+    """A run whose node ``name`` is stopped (SIGSTOP) 2 s after the motor driver's activation, for
+    ``hold`` [s], then continued: (its whole output, its status, its results' directory). A run that
+    a timing fault ended before the stop runs once more (:func:`_rerun_after_a_hiccup`)."""
+    for attempt in ("run", "rerun"):
+        out = tmp_path / attempt
+        proc = _experiment(config_dir, out, "--quiet")
+        with killed_on_exit(proc):
+            seen = wait_for_output(proc, "[motor_driver]: activated", timeout=120)
+            time.sleep(2.0)
+            try:
+                pid = _child(proc.pid, name)
+            except LookupError as missing:      # the run ended already: say how
+                output = seen + proc.communicate(timeout=60)[0]
+                if _rerun_after_a_hiccup(attempt, _timing_fault(output)):
+                    continue
+                raise AssertionError(f"{missing} 2 s after the driver's activation; the run's "
+                                     f"output:\n{output}") from missing
+            os.kill(pid, signal.SIGSTOP)
+            try:
+                time.sleep(hold)
+            finally:
+                os.kill(pid, signal.SIGCONT)
+            return seen + proc.communicate(timeout=60)[0], proc.returncode, out
+    raise AssertionError("unreachable: the rerun returns or raises")
 
 
 def test_a_command_gap_faults_the_driver_and_the_run_is_no_result(tmp_path, config_dir):
     """The inner loop held for three watchdog periods while the motors are enabled: the driver's
     watchdog trips, the run ends at once with status 1, the motors are disabled, the bag stays
     readable and metrics.json is marked invalid with the fault and its time; no Table 1 row."""
-    out = tmp_path / "run"
-    proc = _experiment(config_dir, out, "--quiet")
-    with killed_on_exit(proc):
-        seen, inner_loop = _stopped_after_activation(proc, "inner_loop")
-        time.sleep(3 * TIMEOUT)
-        os.kill(inner_loop, signal.SIGCONT)
-        output = seen + proc.communicate(timeout=60)[0]
-    assert proc.returncode == 1, output
+    output, status, out = _with_node_stopped(config_dir, tmp_path, "inner_loop", 3 * TIMEOUT)
+    assert status == 1, output
     assert "no result" in output and "[motor_driver]: deactivated" in output
     logged = re.search(r"fault, all motors at zero torque: (.*)", output)
     if logged is not None and logged.group(1).startswith("cycle held"):
@@ -324,19 +352,11 @@ def test_a_stopped_driver_process_leaves_the_motors_to_their_firmware_timeout(tm
     process, cannot act; the motors' firmware timeout zeroes their command FIRMWARE_TIMEOUT after
     the last frame, in the hardware's own process. When the driver comes back its watchdog trips and
     the run is no result."""
-    out = tmp_path / "run"
-    proc = _experiment(config_dir, out, "--quiet")
-    with killed_on_exit(proc):
-        seen, driver = _stopped_after_activation(proc, "emulated_rig")
-        try:
-            time.sleep(FIRMWARE_TIMEOUT + 0.3)
-        finally:
-            os.kill(driver, signal.SIGCONT)
-        output = seen + proc.communicate(timeout=60)[0]
+    output, status, out = _with_node_stopped(config_dir, tmp_path, "emulated_rig", FIRMWARE_TIMEOUT + 0.3)
     silences = [float(s) for s in re.findall(r"heard no frame for ([0-9.]+) s: command zeroed", output)]
     assert len(silences) == 4, output                            # every motor, once
     assert all(FIRMWARE_TIMEOUT <= s < FIRMWARE_TIMEOUT + 0.05 for s in silences), silences
-    assert proc.returncode == 1 and "no result" in output, output
+    assert status == 1 and "no result" in output, output
     with open(out / "metrics.json", encoding="utf-8") as fh:
         metrics = json.load(fh)
     held = re.fullmatch(r"fault: cycle held: ([0-9.]+) s since the previous cycle, the motors unwatched "
@@ -417,13 +437,10 @@ def test_motors_flashed_with_another_firmware_stop_the_run_naming_the_preset(tmp
         proc = _experiment(str(flashed), out, "--quiet")
         with killed_on_exit(proc):
             output = proc.communicate(timeout=240)[0]
-        hiccup = _timing_fault(output)
-        if hiccup is None or "is not its firmware's" in output:
+        # a timing fault before the arm had moved enough to judge the scale leaves the claim unproven
+        if "is not its firmware's" in output or not _rerun_after_a_hiccup(attempt, _timing_fault(output)):
             break
-        # the machine held a node before the arm had moved enough to judge the scale: the driver
-        # caught it, and the claim is unproven by that run; one more, and both runs are shown if
-        # it fails too
-        held = f"the first run ended on a timing fault ({hiccup}); its output:\n{output}\n"
+        held = f"the first run ended on a timing fault; its output:\n{output}\n"
     assert proc.returncode == 1, held + output
     assert "the preset AK80-9 (+-50 rad/s) is not its firmware's" in output, held + output
     assert "the preset AK80-9-fw1.1 would fit" in output and "rms[mm]" not in output, held + output
