@@ -91,7 +91,8 @@ def _simulate_segment(prepare_args, advance_args, Lc, marker_p, rest_lengths, q,
                       t_input, tension, t_s, t_m, ds, dp, s_ref, p_ref, no_force):
     """The loop of :func:`simulate_changes`, compiled: from (q, qd) prepared at t_start, sample the
     shortening and marker changes at t_s and t_m into ds and dp, stepping under the tensions held
-    from t_input. Returns 0, 1 if a state left the model's domain, 2 if the dynamics diverged."""
+    from t_input. Returns 0, 1 if a state left the model's domain, 2 if the dynamics diverged (or a
+    step's matrix was singular)."""
     model_args, data_args, rotor_mass, adot = prepare_args
     n = q.shape[0]
     q_next = np.empty(n)
@@ -112,7 +113,8 @@ def _simulate_segment(prepare_args, advance_args, Lc, marker_p, rest_lengths, q,
         if i_s >= t_s.shape[0] and i_m >= t_m.shape[0]:
             break
         j = max(0, np.searchsorted(t_input, t, side="right") - 1)
-        _imex_advance(*advance_args, q, qd, tension[j], no_force, h, q_next, qd_next)
+        if not _imex_advance(*advance_args, q, qd, tension[j], no_force, h, q_next, qd_next):
+            return 2
         q, q_next = q_next, q
         qd, qd_next = qd_next, qd
         if not np.all(np.isfinite(q)):

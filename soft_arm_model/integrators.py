@@ -62,31 +62,45 @@ def _imex_prepare(model_args, data_args, rotor_mass, q, qd, markers, adot_qd):
 
 
 @njit(cache=True, nogil=True)
-def _imex_advance(M, Cqd, Fg, Fel, Kt, Au, A0, D, rotor_mass, adot_qd, q, qd, u, f_ext, h, q_out,
+def _imex_advance(M, Cqd, Fg, Fel, Kt, Au, A0, D, rotor_mass, adot_qd, work, q, qd, u, f_ext, h, q_out,
                   qd_out):
     """The IMEX update from the prepared workspace (M .. A0 at (q, qd); Au: A or A0); f_ext: an
-    external generalised force, taken explicitly."""
+    external generalised force, taken explicitly. ``work``: (the step's matrix and its LU factors
+    (2, n, n), its right-hand side (n,), the pivots (n,) int). False if the step's matrix is
+    singular. The system is solved by :func:`~soft_arm_model.statics._lu_solve`, as the statics'
+    are: nothing allocated per step, and the same rounding whatever kernels the BLAS picks."""
+    mats, rhs, piv = work
+    lhs, lu = mats[0], mats[1]
     n = q.shape[0]
     n_t = u.shape[0]
-    lhs = M + h * D + (h * h) * Kt
-    rhs = M @ qd
-    force = u + rotor_mass * adot_qd
-    s_rate = A0.T @ qd
     for a in range(n):
-        for b in range(n):
-            acc = 0.0
-            for k in range(n_t):
-                acc += Au[a, k] * rotor_mass[k] * A0[b, k]
-            lhs[a, b] += acc
         acc = 0.0
-        for k in range(n_t):
-            acc += Au[a, k] * rotor_mass[k] * s_rate[k]
-        rhs[a] += acc
-    rhs += h * (Fg - Cqd - Fel - Au @ force + f_ext)
-    v = np.linalg.solve(lhs, rhs)
+        for b in range(n):
+            lhs[a, b] = M[a, b] + h * D[a, b] + (h * h) * Kt[a, b]
+            acc += M[a, b] * qd[b]
+        rhs[a] = acc
+    for k in range(n_t):              # the rotors' reflected mass on the tendon coordinates
+        m = rotor_mass[k]
+        if m == 0.0:
+            continue
+        s_rate = 0.0
+        for b in range(n):
+            s_rate += A0[b, k] * qd[b]
+        for a in range(n):
+            f = Au[a, k] * m
+            for b in range(n):
+                lhs[a, b] += f * A0[b, k]
+            rhs[a] += f * s_rate
     for a in range(n):
-        qd_out[a] = v[a]
-        q_out[a] = q[a] + h * v[a]
+        acc = Fg[a] - Cqd[a] - Fel[a] + f_ext[a]
+        for k in range(n_t):
+            acc -= Au[a, k] * (u[k] + rotor_mass[k] * adot_qd[k])
+        rhs[a] += h * acc
+    if not _lu_solve(lhs, rhs, qd_out, lu, piv):
+        return False
+    for a in range(n):
+        q_out[a] = q[a] + h * qd_out[a]
+    return True
 
 
 ROS2_GAMMA = 1.0 + 1.0 / np.sqrt(2.0)
@@ -162,6 +176,31 @@ def _ros2_advance(model_args, data_args, rotor_mass, adot_qd, M, Cqd, Fg, Fel, K
     return True
 
 
+@njit(cache=True, nogil=True)
+def _run_imex(prepare_args, advance_args, f_ext, h, u, q, qd):
+    """Euler steps from (q[0], qd[0]) under the tensions u[i] held over step i, into the rows of q
+    and qd; the number of steps taken (see :meth:`ImexStepper.run`)."""
+    model_args, data_args, rotor_mass, adot = prepare_args
+    for i in range(u.shape[0] - 1):
+        if not _imex_prepare(model_args, data_args, rotor_mass, q[i], qd[i], False, adot):
+            return i
+        if not _imex_advance(*advance_args, q[i], qd[i], u[i], f_ext, h, q[i + 1], qd[i + 1]):
+            return i
+    return u.shape[0] - 1
+
+
+@njit(cache=True, nogil=True)
+def _run_ros2(prepare_args, ros2_args, f_ext, h, u, q, qd):
+    """ROS2 steps as :func:`_run_imex` takes Euler steps."""
+    model_args, data_args, rotor_mass, adot = prepare_args
+    for i in range(u.shape[0] - 1):
+        if not _imex_prepare(model_args, data_args, rotor_mass, q[i], qd[i], False, adot):
+            return i
+        if not _ros2_advance(*ros2_args, q[i], qd[i], u[i], f_ext, h, q[i + 1], qd[i + 1]):
+            return i
+    return u.shape[0] - 1
+
+
 class ImexStepper:
     """Advances (q, qd) by fixed steps ``dt`` [s] under tendon tensions u [N]; owns its workspace.
 
@@ -182,16 +221,19 @@ class ImexStepper:
         self._adot = np.zeros(model.n_tendons)
         self._no_force = np.zeros(model.n)
         self._prepare_args = (model.kernel_args, d.kernel_args, rotor)
+        n = model.n
         self._advance_args = (d.M, d.Cqd, d.Fg, d.Fel, d.Kt, d.A if friction else d.A0, d.A0,
-                              model.D, rotor, self._adot)
+                              model.D, rotor, self._adot,
+                              (np.zeros((2, n, n)), np.zeros(n), np.zeros(n, dtype=np.int64)))
         self._state = None
 
     @property
     def compiled_args(self) -> tuple:
         """(prepare arguments, advance arguments) of the compiled halves of the step,
         ``_imex_prepare(*prepare_args[:3], q, qd, markers, prepare_args[3])`` and
-        ``_imex_advance(*advance_args, q, qd, u, f_ext, dt, q_out, qd_out)``: for a compiled loop
-        that steps without Python in between (the workspace is ``data``'s)."""
+        ``_imex_advance(*advance_args, q, qd, u, f_ext, dt, q_out, qd_out)`` (False: the step's
+        matrix is singular): for a compiled loop that steps without Python in between (the
+        workspace is ``data``'s)."""
         return self._prepare_args + (self._adot,), self._advance_args
 
     def prepare(self, q, qd, markers: bool = False):
@@ -220,14 +262,21 @@ class ImexStepper:
 
     def _advance_kernel(self, q, qd, u, f_ext, q_out, qd_out) -> bool:
         """The step from the prepared workspace into q_out, qd_out; False if it cannot be taken."""
-        _imex_advance(*self._advance_args, q, qd, u, f_ext, self.dt, q_out, qd_out)
-        return True
+        return _imex_advance(*self._advance_args, q, qd, u, f_ext, self.dt, q_out, qd_out)
 
     def step(self, q, qd, u):
         """Return (q, qd) one step later (new arrays). Raises OutOfDomainError if the state leaves
         the model's domain."""
         self.prepare(q, qd)
         return self.advance(u)
+
+    def run(self, q, qd, u) -> int:
+        """Step from (q[0], qd[0]) under the tensions u[i] [N] held over step i (u: (N + 1, n_t)),
+        into the rows 1..N of q and qd ((N + 1, n) each, C-ordered), in one compiled loop; the
+        number of steps taken: fewer than N if a state left the model's domain or a step's linear
+        system was singular (the rows after it are left as they were)."""
+        return _run_imex(self._prepare_args + (self._adot,), self._advance_args, self._no_force, self.dt,
+                         u, q, qd)
 
 
 class Ros2Stepper(ImexStepper):
@@ -250,6 +299,11 @@ class Ros2Stepper(ImexStepper):
         """The ROS2 step from the prepared workspace; False if its second stage is outside the
         model's domain or a linear system is singular."""
         return _ros2_advance(*self._ros2_args, q, qd, u, f_ext, self.dt, q_out, qd_out)
+
+    def run(self, q, qd, u) -> int:
+        """ROS2 steps as :meth:`ImexStepper.run` takes Euler steps."""
+        return _run_ros2(self._prepare_args + (self._adot,), self._ros2_args, self._no_force, self.dt,
+                         u, q, qd)
 
 
 STEPPERS = {"imex": ImexStepper, "ros2": Ros2Stepper}
@@ -278,8 +332,10 @@ def simulate(model: ArmModel, q0, qd0, tension, duration: float, dt: float = 1e-
     qd = np.zeros((steps + 1, model.n))
     u = np.zeros((steps + 1, model.n_tendons))
     q[0], qd[0] = q0, qd0
-    for i in range(steps):
+    for i in range(steps + 1):        # open loop: the tensions depend on time alone
         u[i] = tension(t[i])
-        q[i + 1], qd[i + 1] = stepper.step(q[i], qd[i], u[i])
-    u[-1] = tension(t[-1])
+    taken = stepper.run(q, qd, u)
+    if taken < steps:
+        raise OutOfDomainError(f"the state left the model's domain, or a step's linear system is singular, "
+                               f"at t = {t[taken]:.6g} s")
     return Trajectory(t, q, qd, u)

@@ -30,12 +30,13 @@ import numpy as np
 from numba import njit
 
 from .lie import (TANGENT_SCRATCH, ad_apply, ad_apply_columns, ad_matrix, expmap, inverse_adjoint_apply,
-                  matmul_into, tangent, tangent_rate, tangent_rate_apply, tangent_weights)
+                  inverse_adjoint_apply_vector, matmul_into, nonallocating, tangent, tangent_rate,
+                  tangent_rate_apply, tangent_weights)
 
 ZANNA = np.sqrt(3.0) / 12.0  # coefficient of the commutator in the 4th-order Magnus step
 
 
-@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
+@nonallocating
 def _strain(xi_star, Bx, q, out):
     for r in range(6):
         acc = xi_star[r]
@@ -44,7 +45,7 @@ def _strain(xi_star, Bx, q, out):
         out[r] = acc
 
 
-@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
+@nonallocating
 def _matvec(Bx, v, out):
     for r in range(Bx.shape[0]):
         acc = 0.0
@@ -61,7 +62,7 @@ def new_scratch(n):
             np.zeros((1, 3, 3)))
 
 
-@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
+@nonallocating
 def _magnus_step(q, qd, xi_star, h, B1, B2, R_prev, p_prev, J_prev, R_out, p_out, J_out,
                  rates, eta_prev, psi_prev, Jd_prev, eta_out, psi_out, Jd_out, scratch, omega, Z, S):
     """One Zanna step of length h from the previous section frame.
@@ -120,7 +121,7 @@ def _magnus_step(q, qd, xi_star, h, B1, B2, R_prev, p_prev, J_prev, R_out, p_out
     _matvec(T, omega_dot, V)
     for r in range(6):
         tw[r] = eta_prev[r] + V[r]
-    inverse_adjoint_apply(Rs, ps, tw.reshape((6, 1)), eta_out.reshape((6, 1)))
+    inverse_adjoint_apply_vector(Rs, ps, tw, eta_out)
     tangent_rate_apply(omega, omega_dot, tw, sq)        # tw = Tdot Omegadot
     ad_apply(xi1d, xi2d, com)
     for r in range(6):
@@ -131,7 +132,7 @@ def _magnus_step(q, qd, xi_star, h, B1, B2, R_prev, p_prev, J_prev, R_out, p_out
     ad_apply(eta_prev, V, com)
     for r in range(6):
         tw[r] += com[r]
-    inverse_adjoint_apply(Rs, ps, tw.reshape((6, 1)), psi_out.reshape((6, 1)))
+    inverse_adjoint_apply_vector(Rs, ps, tw, psi_out)
     if rates == 1:
         return
     tangent_rate(omega, omega_dot, Tdot, sq)
@@ -148,14 +149,14 @@ def _magnus_step(q, qd, xi_star, h, B1, B2, R_prev, p_prev, J_prev, R_out, p_out
     inverse_adjoint_apply(Rs, ps, G, Jd_out)
 
 
-@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
+@nonallocating
 def _cross(a, b, out):
     out[0] = a[1] * b[2] - a[2] * b[1]
     out[1] = a[2] * b[0] - a[0] * b[2]
     out[2] = a[0] * b[1] - a[1] * b[0]
 
 
-@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
+@nonallocating
 def _column_rows(Bp, lo, hi, rows):
     """rows[a] = the strain row r where Bp[r, a] != 0 for the columns a in [lo, hi), -1 where the
     column is zero at this point. Each coordinate is one strain mode's polynomial
@@ -167,17 +168,16 @@ def _column_rows(Bp, lo, hi, rows):
                 rows[a] = r
 
 
-@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
-def _elastic(w, B, xi, stiff_diag, neo_axial, col_lo, col_hi, Fel, Kt, energies):
-    """Elastic force F_el = sum w B^T sigma(xi - xi*), tangent K_t, energy; False if stretch <= 0."""
+@nonallocating
+def _elastic(w, B, xi, stiff_diag, neo_axial, col_lo, col_hi, Fel, Kt, energies, work):
+    """Elastic force F_el = sum w B^T sigma(xi - xi*), tangent K_t, energy; False if stretch <= 0.
+    ``work``: :func:`new_force_work`."""
     n = Fel.shape[0]
     P = w.shape[0]
     Fel[:] = 0.0
     Kt[:, :] = 0.0
     energy = 0.0
-    sig = np.empty(6)
-    dsig = np.empty(6)
-    rows = np.empty(n, dtype=np.int64)
+    sig, dsig = work[0][0], work[0][1]
     for pt in range(P):
         if w[pt] == 0.0:
             continue
@@ -196,6 +196,7 @@ def _elastic(w, B, xi, stiff_diag, neo_axial, col_lo, col_hi, Fel, Kt, energies)
             else:
                 energy += w[pt] * 0.5 * stiff_diag[pt, r] * e * e
         lo, hi = col_lo[pt], col_hi[pt]      # B is zero outside the point's division
+        rows = work[3][pt]
         _column_rows(B[pt], lo, hi, rows)
         # one strain mode per coordinate: B^T diag(dsig) B couples only coordinates of one mode
         for a in range(lo, hi):
@@ -213,14 +214,14 @@ def _elastic(w, B, xi, stiff_diag, neo_axial, col_lo, col_hi, Fel, Kt, energies)
     return True
 
 
-@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
-def _gravity(lumped, gravity, R, p, J, Fg, energies):
+@nonallocating
+def _gravity(lumped, gravity, R, p, J, Fg, energies, work):
     """F_g = sum m J_lin^T R^T g over the points' lumped masses m (quadrature weight included, the
     tip point mass too); the gravity potential energy into energies[2]."""
     n = Fg.shape[0]
     Fg[:] = 0.0
     ug = 0.0
-    a_body = np.empty(3)
+    a_body = work[0][2]
     for pt in range(lumped.shape[0]):
         m = lumped[pt, 3]
         if m == 0.0:
@@ -233,29 +234,25 @@ def _gravity(lumped, gravity, R, p, J, Fg, energies):
     energies[2] = ug
 
 
-@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
+@nonallocating
 def _tendons(w, B, Bd, xi, q, t_d, t_dp, t_dpp, t_active, t_mu, Q, smoothing, col_lo, col_hi,
-             A, A0, Lc, theta, wrap, phi):
-    """Tendon columns with and without friction, lengths and friction-aware integrals."""
+             A, A0, Lc, theta, wrap, phi, work):
+    """Tendon columns with and without friction, lengths and friction-aware integrals. ``work``:
+    :func:`new_force_work`."""
     n_t = t_d.shape[0]
     P = w.shape[0]
     A[:, :] = 0.0
     A0[:, :] = 0.0
-    tang = np.empty((P, 3))
-    ntau = np.zeros(P)
+    vec, per_point, ntau, rows = work[0], work[1], work[2], work[3]
+    tang = per_point[0]
     # per point, whatever the tendon: the strain's rate of change along the arm xi' = Bd q, and
-    # the one strain row of each coordinate
-    xid_all = np.zeros((P, 6))
-    rows = np.full((P, q.shape[0]), -1, dtype=np.int64)
+    # the one strain row of each coordinate (only the points with weight are read)
+    xid_all = per_point[1]
     for pt in range(P):
         if w[pt] != 0.0:
             _matvec(Bd[pt], q, xid_all[pt])
             _column_rows(B[pt], col_lo[pt], col_hi[pt], rows[pt])
-    tau = np.empty(3)
-    taud = np.empty(3)
-    tmp = np.empty(3)
-    v = np.empty(3)
-    phi_w = np.empty(6)
+    tau, taud, tmp, v, phi_w = vec[2][0:3], vec[3][0:3], vec[4][0:3], vec[5][0:3], vec[6]
     for k in range(n_t):
         Lc[k] = 0.0
         theta[k] = 0.0
@@ -347,7 +344,7 @@ def tendon_rate_bias(w, B, xi, qd, t_d, t_dp, t_active, out):
         out[k] = acc
 
 
-@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
+@nonallocating
 def _ad_transpose_apply(x, y, out):
     """``out = ad(x)^T y`` = [-(w x a) - (v x b); -(w x b)] for x = [w; v], y = [a; b]."""
     w0, w1, w2, v0, v1, v2 = x[0], x[1], x[2], x[3], x[4], x[5]
@@ -361,15 +358,41 @@ def _ad_transpose_apply(x, y, out):
 
 
 @njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
-def _mass_bias(lumped, J, eta, psi, col_hi, M, Cqd, energies):
+def _mass_bias(lumped, J, eta, psi, col_hi, M, Cqd, energies, work):
     """M = sum J^T Mc J; C qd = sum J^T [Mc psi - ad_eta^T Mc eta] over the points' lumped inertias
-    Mc; kinetic energy."""
+    Mc; kinetic energy. ``work``: :func:`new_force_work`."""
     n = M.shape[0]
-    M[:, :] = 0.0
+    _bias(lumped, J, eta, psi, col_hi, Cqd, energies, work)
+    # M = G^T (Mc G) with G the points' Jacobians stacked (6 P x n; a massless point's rows add
+    # nothing): one matrix product, which the BLAS vectorises where sums per point and row did not
+    G = J.reshape((J.shape[0] * 6, n))
+    W = work[4]
+    _weigh_rows(lumped, G, W)
+    np.dot(G.T, W, M)
+    for a in range(n):                # exactly symmetric: the product's rounding need not be
+        for b in range(a):
+            M[a, b] = M[b, a]
+
+
+@nonallocating
+def _weigh_rows(lumped, G, W):
+    """W = diag(lumped, stacked by point) G."""
+    P = lumped.shape[0]
+    for pt in range(P):
+        for r in range(6):
+            m = lumped[pt, r]
+            for j in range(G.shape[1]):
+                W[6 * pt + r, j] = m * G[6 * pt + r, j]
+
+
+@nonallocating
+def _bias(lumped, J, eta, psi, col_hi, Cqd, energies, work):
+    """C qd = sum J^T [Mc psi - ad_eta^T Mc eta] over the points' lumped inertias Mc, and the kinetic
+    energy into energies[0]."""
+    n = Cqd.shape[0]
     Cqd[:] = 0.0
     kin = 0.0
-    y = np.empty(6)
-    f = np.empty(6)
+    y, f = work[0][0], work[0][1]
     for pt in range(lumped.shape[0]):
         if lumped[pt, 3] == 0.0:
             continue
@@ -388,14 +411,6 @@ def _mass_bias(lumped, J, eta, psi, col_hi, M, Cqd, energies):
             for r in range(6):
                 acc += Jp[r, a] * f[r]
             Cqd[a] += acc
-    # M = G^T (Mc G) with G the points' Jacobians stacked (6 P x n; a massless point's rows add
-    # nothing): one matrix product, which the BLAS vectorises where sums per point and row did not
-    G = J.reshape((J.shape[0] * 6, n))
-    W = lumped.reshape((lumped.shape[0] * 6, 1)) * G
-    np.dot(G.T, W, M)
-    for a in range(n):                # exactly symmetric: the product's rounding need not be
-        for b in range(a):
-            M[a, b] = M[b, a]
     energies[0] = kin
 
 
@@ -430,27 +445,23 @@ def _coriolis_matrix(lumped, J, eta, Jd, C):
                 C[a, b] += acc
 
 
-@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
-def evaluate(w, B, Bd, h, B1, B2, xi_star, lumped, stiff_diag, neo_axial, R0, gravity,
-             t_d, t_dp, t_dpp, t_active, t_mu, Q, smoothing, col_lo, col_hi,
-             m_point, m_h, m_B1, m_B2,
-             q, qd, level, markers,
-             xi, R, p, J, eta, psi, Jd, mR, mp, mJ,
-             M, C, Cqd, Fg, Fel, Kt, A, A0, Lc, theta, wrap, phi, energies, Om, Zs, Ss, tangent_work):
-    """Fill the workspace arrays for (q, qd) up to ``level`` (0 kinematics, 1 statics, 2 dynamics,
-    3 Coriolis matrix), markers if ``markers``; returns False outside the model's domain.
-    ``tangent_work`` is :func:`static_tangent`'s scratch (unused here)."""
-    P = w.shape[0]
-    rates = 0 if level < 2 else (1 if level == 2 else 2)
+@nonallocating
+def _kinematics(B, h, B1, B2, xi_star, R0, m_point, m_h, m_B1, m_B2, q, qd, rates, markers, xi, R, p, J,
+                eta, psi, Jd, mR, mp, mJ, Om, Zs, Ss, scratch):
+    """The strains at the points, the frames and Jacobians along the arm (with the twists and
+    their rates as ``rates`` asks: see :func:`_magnus_step`), and the markers' if ``markers``."""
+    P = xi.shape[0]
     for pt in range(P):
         _strain(xi_star, B[pt], q, xi[pt])
-    R[0] = R0
-    p[0, :] = 0.0
+    # element by element: a whole-array assignment may copy its source, which needs the runtime
+    for a in range(3):
+        p[0, a] = 0.0
+        for b in range(3):
+            R[0, a, b] = R0[a, b]
     J[0] = 0.0
     eta[0, :] = 0.0
     psi[0, :] = 0.0
     Jd[0] = 0.0
-    scratch = new_scratch(q.shape[0])
     for i in range(P - 1):
         _magnus_step(q, qd, xi_star, h[i], B1[i], B2[i], R[i], p[i], J[i], R[i + 1], p[i + 1],
                      J[i + 1], rates, eta[i], psi[i], Jd[i], eta[i + 1], psi[i + 1], Jd[i + 1],
@@ -459,23 +470,43 @@ def evaluate(w, B, Bd, h, B1, B2, xi_star, lumped, stiff_diag, neo_axial, R0, gr
         for m in range(m_point.shape[0]):
             pt = m_point[m]
             if m_h[m] == 0.0:
-                mR[m] = R[pt]
-                mp[m] = p[pt]
-                mJ[m] = J[pt]
+                for a in range(3):
+                    mp[m, a] = p[pt, a]
+                    for b in range(3):
+                        mR[m, a, b] = R[pt, a, b]
+                for a in range(6):
+                    for b in range(J.shape[2]):
+                        mJ[m, a, b] = J[pt, a, b]
             else:
                 _magnus_step(q, qd, xi_star, m_h[m], m_B1[m], m_B2[m], R[pt], p[pt], J[pt], mR[m],
                              mp[m], mJ[m], 0, eta[pt], psi[pt], Jd[pt], eta[pt], psi[pt], Jd[pt],
                              scratch, scratch[0][3], scratch[1][0], scratch[1][1])
+
+
+@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
+def evaluate(w, B, Bd, h, B1, B2, xi_star, lumped, stiff_diag, neo_axial, R0, gravity,
+             t_d, t_dp, t_dpp, t_active, t_mu, Q, smoothing, col_lo, col_hi,
+             m_point, m_h, m_B1, m_B2,
+             q, qd, level, markers,
+             xi, R, p, J, eta, psi, Jd, mR, mp, mJ,
+             M, C, Cqd, Fg, Fel, Kt, A, A0, Lc, theta, wrap, phi, energies, Om, Zs, Ss, work):
+    """Fill the workspace arrays for (q, qd) up to ``level`` (0 kinematics, 1 statics, 2 dynamics,
+    3 Coriolis matrix), markers if ``markers``; returns False outside the model's domain.
+    ``work``: the kernels' scratch (:func:`new_work`)."""
+    rates = 0 if level < 2 else (1 if level == 2 else 2)
+    _kinematics(B, h, B1, B2, xi_star, R0, m_point, m_h, m_B1, m_B2, q, qd, rates, markers, xi, R, p, J,
+                eta, psi, Jd, mR, mp, mJ, Om, Zs, Ss, work[0])
     if level < 1:
         return True
-    if not _elastic(w, B, xi, stiff_diag, neo_axial, col_lo, col_hi, Fel, Kt, energies):
+    forces = work[2]
+    if not _elastic(w, B, xi, stiff_diag, neo_axial, col_lo, col_hi, Fel, Kt, energies, forces):
         return False
-    _gravity(lumped, gravity, R, p, J, Fg, energies)
+    _gravity(lumped, gravity, R, p, J, Fg, energies, forces)
     if not _tendons(w, B, Bd, xi, q, t_d, t_dp, t_dpp, t_active, t_mu, Q, smoothing, col_lo, col_hi,
-                    A, A0, Lc, theta, wrap, phi):
+                    A, A0, Lc, theta, wrap, phi, forces):
         return False
     if level >= 2:
-        _mass_bias(lumped, J, eta, psi, col_hi, M, Cqd, energies)
+        _mass_bias(lumped, J, eta, psi, col_hi, M, Cqd, energies, forces)
     if level >= 3:
         _coriolis_matrix(lumped, J, eta, Jd, C)
     return True
@@ -486,6 +517,24 @@ def evaluate(w, B, Bd, h, B1, B2, xi_star, lumped, stiff_diag, neo_axial, R0, gr
 
 
 @njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
+def new_work(P, n):
+    """The kernels' scratch, allocated once with a workspace (``ArmData.work``): (the Magnus step's
+    (:func:`new_scratch`), :func:`static_tangent`'s (:func:`new_tangent_work`), the forces'
+    (:func:`new_force_work`)), for a model of ``P`` points and ``n`` coordinates."""
+    return (new_scratch(n), new_tangent_work(P, n), new_force_work(P, n))
+
+
+@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
+def new_force_work(P, n):
+    """Scratch for the forces (:func:`_elastic`, :func:`_gravity`, :func:`_tendons`,
+    :func:`_mass_bias`): vectors (8, 6); per point (2, P, 6) (a tendon's unit tangent, the
+    strains' rates along the arm); per point (P,) (a tendon's norm(tau)); the strain row of each
+    column per point (P, n), int; the mass-weighted Jacobians (6 P, n)."""
+    return (np.zeros((8, 6)), np.zeros((2, P, 6)), np.zeros(P), np.full((P, n), -1, dtype=np.int64),
+            np.zeros((6 * P, n)))
+
+
+@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
 def new_tangent_work(P, n):
     """Scratch for :func:`static_tangent`: (6 x n matrices (6, 6, n), P x n matrices (2, P, n),
     6x6 (TANGENT_SCRATCH + 8, 6, 6), vectors (16, 6))."""
@@ -493,7 +542,7 @@ def new_tangent_work(P, n):
             np.zeros((16, 6)))
 
 
-@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
+@nonallocating
 def _pi_matrix(U, out):
     """``out[d, v] = U^T ad(e_d) e_v``: the bilinear form (delta, v) -> U^T ad(delta) v of the wrench
     U = [a; b], i.e. [[-a~, -b~], [-b~, 0]] (skew: U^T ad(x) y = -U^T ad(y) x)."""
@@ -508,7 +557,7 @@ def _pi_matrix(U, out):
         out[3 + i, j] = bv
 
 
-@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
+@nonallocating
 def _step_columns(col_lo, col_hi, i):
     """Columns [lo, hi) of the division the Magnus step from point i to i + 1 lies in."""
     if col_hi[i] > col_lo[i]:
@@ -516,7 +565,7 @@ def _step_columns(col_lo, col_hi, i):
     return col_lo[i + 1], col_hi[i + 1]
 
 
-@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
+@nonallocating
 def _gravity_tangent(h, B1, B2, lumped, gravity, col_lo, col_hi, R, p, J, Om, Zs, Ss, jac, work):
     """jac -= dF_g/dq, by one backward pass over the Magnus steps.
 
@@ -658,7 +707,7 @@ def _gravity_tangent(h, B1, B2, lumped, gravity, col_lo, col_hi, R, p, J, Om, Zs
                         jac[b, a] -= ba * PB[r, b]
 
 
-@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
+@nonallocating
 def _turning_rate_gradient(k, w, B, Bd, xi, q, t_d, t_dp, t_dpp, t_active, smoothing, col_lo, col_hi,
                            Gphi, sq, vec):
     """Gphi[j, :] = d phi_k(X_j)/dq: the gradient of tendon k's smoothed turning rate
@@ -726,7 +775,7 @@ def _turning_rate_gradient(k, w, B, Bd, xi, q, t_d, t_dp, t_dpp, t_active, smoot
             Gphi[j, b] = acc
 
 
-@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
+@nonallocating
 def _tendon_tangent(w, B, Bd, xi, q, t_d, t_dp, t_dpp, t_active, t_mu, Q, smoothing, col_lo, col_hi,
                     wrap, u, friction, jac, dA_dmu, work):
     """jac += d(A u)/dq (A with the friction weight if ``friction``, else A0), and the derivative
@@ -840,14 +889,14 @@ def _tendon_tangent(w, B, Bd, xi, q, t_d, t_dp, t_dpp, t_active, t_mu, Q, smooth
                         jac[a, b] += f * dwrap[pt, b]
 
 
-@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
+@nonallocating
 def static_tangent(w, B, Bd, h, B1, B2, xi_star, lumped, stiff_diag, neo_axial, R0, gravity,
                    t_d, t_dp, t_dpp, t_active, t_mu, Q, smoothing, col_lo, col_hi,
                    m_point, m_h, m_B1, m_B2,
                    q, u, friction,
                    xi, R, p, J, eta, psi, Jd, mR, mp, mJ,
                    M, C, Cqd, Fg, Fel, Kt, A, A0, Lc, theta, wrap, phi, energies, Om, Zs, Ss,
-                   tangent_work, jac, dA_dmu):
+                   work, jac, dA_dmu):
     """The analytic tangent of the static residual, dR/dq = K_t - dF_g/dq + d(A u)/dq, into jac
     (A with the friction weight if ``friction``, else A0), and dA/d mu into dA_dmu (n, n_t; column k
     is dA_k/dmu_k, so d(A u)/d mu = dA_dmu diag(u)),
@@ -856,7 +905,6 @@ def static_tangent(w, B, Bd, h, B1, B2, xi_star, lumped, stiff_diag, neo_axial, 
     for a in range(n):
         for b in range(n):
             jac[a, b] = Kt[a, b]
-    _gravity_tangent(h, B1, B2, lumped, gravity, col_lo, col_hi, R, p, J, Om, Zs, Ss, jac,
-                     tangent_work)
+    _gravity_tangent(h, B1, B2, lumped, gravity, col_lo, col_hi, R, p, J, Om, Zs, Ss, jac, work[1])
     _tendon_tangent(w, B, Bd, xi, q, t_d, t_dp, t_dpp, t_active, t_mu, Q, smoothing, col_lo, col_hi,
-                    wrap, u, friction, jac, dA_dmu, tangent_work)
+                    wrap, u, friction, jac, dA_dmu, work[1])

@@ -13,6 +13,13 @@ Conventions:
 import numpy as np
 from numba import njit
 
+# The decorator of every kernel that allocates nothing and keeps no reference to its arrays (the
+# functions here, and most of :mod:`soft_arm_model.kernels`): compiled without numba's reference
+# counting, the views they take of their arguments and pass on cost nothing, where each view's
+# atomic increment and decrement took a fifth of an evaluation of the model
+# (``bench/bench_model.py``). Its arrays live in the caller, which holds them for the call.
+nonallocating = njit(cache=True, nogil=True, fastmath=True, error_model="numpy", _nrt=False)
+
 # Below these angles the closed forms lose digits to cancellation; even power series are used instead.
 _EXP_SERIES_BELOW = 0.1
 _TANGENT_SERIES_BELOW = 0.5
@@ -33,7 +40,7 @@ _G_SERIES = np.array([
 ])
 
 
-@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
+@nonallocating
 def _even_series(coeffs, theta2):
     acc = 0.0
     for k in range(coeffs.shape[0] - 1, -1, -1):
@@ -41,7 +48,7 @@ def _even_series(coeffs, theta2):
     return acc
 
 
-@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
+@nonallocating
 def ad_matrix(x, out):
     """Write the 6x6 adjoint ``ad(x)`` of twist ``x = [w; v]`` into ``out``."""
     out[:, :] = 0.0
@@ -62,7 +69,7 @@ def ad_matrix(x, out):
     out[5, 1] = v0
 
 
-@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
+@nonallocating
 def ad_apply(x, y, out):
     """``out = ad(x) y`` for twists x, y (out must not alias x or y)."""
     w0, w1, w2, v0, v1, v2 = x[0], x[1], x[2], x[3], x[4], x[5]
@@ -74,7 +81,7 @@ def ad_apply(x, y, out):
     out[5] = w0 * y[4] - w1 * y[3] + v0 * y[1] - v1 * y[0]
 
 
-@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
+@nonallocating
 def ad_apply_columns(x, Y, out, scale, accumulate):
     """``out (+)= scale * ad(x) Y`` for a 6 x n matrix ``Y`` (row-wise loops, out must not alias Y)."""
     w0, w1, w2 = scale * x[0], scale * x[1], scale * x[2]
@@ -96,7 +103,7 @@ def ad_apply_columns(x, Y, out, scale, accumulate):
         out[5, j] += w0 * Y[4, j] - w1 * Y[3, j] + v0 * Y[1, j] - v1 * Y[0, j]
 
 
-@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
+@nonallocating
 def matmul_into(A, B, out):
     """``out = A @ B`` for small dense matrices (plain loops; out must not alias A or B)."""
     for i in range(A.shape[0]):
@@ -107,7 +114,7 @@ def matmul_into(A, B, out):
             out[i, j] = acc
 
 
-@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
+@nonallocating
 def expmap(omega, R, p):
     """Closed-form SE(3) exponential of the twist ``omega``: rotation ``R`` and translation ``p``."""
     wx, wy, wz = omega[0], omega[1], omega[2]
@@ -143,7 +150,7 @@ def expmap(omega, R, p):
         p[i] = acc
 
 
-@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
+@nonallocating
 def tangent_weights(theta2, f, g):
     """Weights f1..f4 of ``T = I + f1 ad + f2 ad^2 + f3 ad^3 + f4 ad^4`` and g_i = f_i'/theta."""
     if theta2 < _TANGENT_SERIES_BELOW * _TANGENT_SERIES_BELOW:
@@ -171,7 +178,7 @@ def tangent_weights(theta2, f, g):
 TANGENT_SCRATCH = 11  # number of 6x6 scratch matrices the tangent functions share
 
 
-@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
+@nonallocating
 def tangent(omega, T, work):
     """Tangent operator ``T(omega)``. Leaves the weights f, g in work[10] for ``tangent_rate`` and
     ``tangent_rate_apply``; ``work`` has shape (TANGENT_SCRATCH, 6, 6).
@@ -210,7 +217,7 @@ def tangent(omega, T, work):
             T[i + 3, j] = a * Vij + b * P1ij - 2.0 * wv * (f[2] * Wij + f[3] * W2ij)
 
 
-@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
+@nonallocating
 def _ad_powers(omega, work):
     """ad(omega)^1..4 into work[0:4]."""
     ad_matrix(omega, work[0])
@@ -219,7 +226,7 @@ def _ad_powers(omega, work):
     matmul_into(work[2], work[0], work[3])
 
 
-@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
+@nonallocating
 def tangent_rate(omega, omega_dot, Tdot, work):
     """Time derivative of ``T(omega)`` for ``d omega/dt = omega_dot`` (call ``tangent`` first)."""
     f = work[10, 0, 0:4]
@@ -246,7 +253,7 @@ def tangent_rate(omega, omega_dot, Tdot, work):
                 + f[0] * E[i, j] + f[1] * d2[i, j] + f[2] * d3[i, j] + f[3] * d4[i, j]
 
 
-@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
+@nonallocating
 def tangent_rate_apply(omega, omega_dot, out, work):
     """``out = (dT/dt) omega_dot`` without forming dT/dt (call ``tangent`` first).
 
@@ -278,7 +285,7 @@ def tangent_rate_apply(omega, omega_dot, out, work):
             + f[1] * e1[r] + f[2] * d3[r] + f[3] * d4[r]
 
 
-@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
+@nonallocating
 def inverse_adjoint_apply(R, p, X, out):
     """``out = Ad_{g^-1} X`` for g = (R, p) and a 6 x n matrix X (out must not alias X).
 
@@ -297,3 +304,15 @@ def inverse_adjoint_apply(R, p, X, out):
         for j in range(n):
             out[3 + i, j] = r0 * X[3, j] + r1 * X[4, j] + r2 * X[5, j] \
                 + c0 * X[0, j] + c1 * X[1, j] + c2 * X[2, j]
+
+
+@nonallocating
+def inverse_adjoint_apply_vector(R, p, x, out):
+    """``out = Ad_{g^-1} x`` for g = (R, p) and a twist x (out must not alias x): the one-column
+    case of :func:`inverse_adjoint_apply`, without reshaping the vectors into matrices."""
+    p0, p1, p2 = p[0], p[1], p[2]
+    for i in range(3):
+        r0, r1, r2 = R[0, i], R[1, i], R[2, i]
+        out[i] = r0 * x[0] + r1 * x[1] + r2 * x[2]
+        out[3 + i] = r0 * x[3] + r1 * x[4] + r2 * x[5] \
+            + (p1 * r2 - p2 * r1) * x[0] + (p2 * r0 - p0 * r2) * x[1] + (p0 * r1 - p1 * r0) * x[2]

@@ -131,16 +131,16 @@ class ArmData:
         self.phi = np.zeros((nt, P))
         self.energies = np.zeros(3)  # kinetic, elastic, gravitational [J]
         # per Magnus step: its exponent Omega, Z = dOmega/dq and S = T(Omega) Z, kept for the
-        # analytic derivatives (kernels.static_tangent), and that kernel's scratch
+        # analytic derivatives (kernels.static_tangent); and the kernels' scratch
         self.Om = np.zeros((P - 1, 6))
         self.Z = np.zeros((P - 1, 6, n))
         self.S = np.zeros((P - 1, 6, n))
-        self.tangent_work = kernels.new_tangent_work(P, n)
+        self.work = kernels.new_work(P, n)
         self.kernel_args = (self.xi, self.R, self.p, self.J, self.eta, self.psi, self.Jd,
                             self.marker_R, self.marker_p, self.marker_J, self.M, self.C, self.Cqd,
                             self.Fg, self.Fel, self.Kt,
                             self.A, self.A0, self.Lc, self.theta, self.wrap, self.phi, self.energies,
-                            self.Om, self.Z, self.S, self.tangent_work)
+                            self.Om, self.Z, self.S, self.work)
 
 
 # ---------------------------------------------------------------------------------------------------

@@ -72,11 +72,12 @@ def _tendon_routing(X, active, base_radius, taper, fraction, start, end_angle, e
 
 
 def new_routing_work(model) -> tuple:
-    """Scratch of :func:`routing_derivatives` for ``model``: one tendon's arrays."""
+    """Scratch of :func:`routing_derivatives` for ``model``: one tendon's arrays, and the tendon
+    kernel's own scratch."""
     P, n = model.X.size, model.n
     return (np.zeros((1, P, 3)), np.zeros((1, P, 3)), np.zeros((1, P, 3)), np.zeros((1, P)), np.zeros(1),
             np.zeros((n, 1)), np.zeros((n, 1)), np.zeros(1), np.zeros(1), np.zeros((1, P)),
-            np.zeros((1, P)))
+            np.zeros((1, P)), kernels.new_force_work(P, n))
 
 
 @njit(cache=True, nogil=True)
@@ -84,7 +85,7 @@ def _one_tendon(w, B, Bd, xi, q, d, dp, dpp, active, mu, Q, smoothing, col_lo, c
     """Tendon terms of the one tendon in work's arrays (d, dp, dpp given) at strains xi: A, A0 and
     L_c land in work[5], work[6], work[7]; False at a degenerate tendon tangent."""
     return kernels._tendons(w, B, Bd, xi, q, d, dp, dpp, active, mu, Q, smoothing, col_lo, col_hi,
-                            work[5], work[6], work[7], work[8], work[9], work[10])
+                            work[5], work[6], work[7], work[8], work[9], work[10], work[11])
 
 
 @njit(cache=True, nogil=True)

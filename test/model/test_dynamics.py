@@ -123,3 +123,34 @@ def test_rotor_inertia_conserves_energy_and_matches_the_stepper(model_factory):
 def test_rotor_mass_is_checked(paper_model):
     with pytest.raises(ValueError, match="rotor_mass must be 4 masses"):
         ImexStepper(paper_model, 1e-3, rotor_mass=[1.0, -1.0, 0.0, 0.0])
+
+
+@pytest.mark.parametrize("method", ["imex", "ros2"])
+def test_simulate_takes_the_steps_the_stepper_takes_one_by_one(paper_model, method):
+    """simulate() steps in one compiled loop (Stepper.run): the same arithmetic as step() called
+    step by step, with the rotors' term and tensions that change over the run."""
+    from soft_arm_model.integrators import STEPPERS
+    m = paper_model
+    rotor = [0.6, 0.0, 0.3, 0.0]
+
+    def tension(t):
+        return np.array([2.0 + 3.0 * np.sin(20.0 * t), 0.0, 1.0 + t, 0.5])
+
+    q0 = _released(m)
+    traj = simulate(m, q0, np.zeros(m.n), tension, 0.05, dt=2e-3, rotor_mass=rotor, method=method)
+    stepper = STEPPERS[method](m, 2e-3, rotor_mass=rotor)
+    q, qd = q0, np.zeros(m.n)
+    for i in range(traj.t.size - 1):
+        q, qd = stepper.step(q, qd, tension(traj.t[i]))
+        np.testing.assert_array_equal(traj.q[i + 1], q)
+        np.testing.assert_array_equal(traj.qd[i + 1], qd)
+    assert np.abs(traj.q[-1] - q0).max() > 1e-3          # it did move
+
+
+def test_simulate_names_the_time_a_state_left_the_models_domain(model_factory):
+    """A soft arm crushed by its tendons (the neo-Hookean stretch driven through zero): the run
+    stops at the step that left the domain and says when, instead of returning a trajectory."""
+    from soft_arm_model import OutOfDomainError
+    m = model_factory(**{"material.youngs_modulus": 2e3})
+    with pytest.raises(OutOfDomainError, match=r"left the model's domain.* at t = [0-9.e-]+ s"):
+        simulate(m, np.zeros(m.n), np.zeros(m.n), lambda t: np.full(4, 500.0 * t), 2.0, dt=1e-3)

@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 from scipy.linalg import expm
 
-from soft_arm_model.lie import (TANGENT_SCRATCH, ad_matrix, expmap, inverse_adjoint_apply, tangent,
-                                tangent_rate, tangent_rate_apply)
+from soft_arm_model.lie import (TANGENT_SCRATCH, ad_matrix, expmap, inverse_adjoint_apply,
+                                inverse_adjoint_apply_vector, tangent, tangent_rate, tangent_rate_apply)
 
 
 def _hat(x):
@@ -57,3 +57,6 @@ def test_inverse_adjoint():
     out = np.empty_like(X)
     inverse_adjoint_apply(R, p, X, out)
     np.testing.assert_allclose(out, Ad_inv @ X, atol=1e-14)
+    v = np.empty(6)
+    inverse_adjoint_apply_vector(R, p, X[:, 2].copy(), v)
+    np.testing.assert_allclose(v, Ad_inv @ X[:, 2], atol=1e-14)
