@@ -382,11 +382,9 @@ def test_the_bridge_takes_the_mocap_calibration_of_the_arm_file(interrupted):
     assert np.all(np.abs(offset[:2]) < 0.008), offset
 
 
-def test_a_driver_deactivated_from_elsewhere_ends_the_run_as_no_result(tmp_path, context, config_dir):
-    """``ros2 lifecycle set /motor_driver deactivate`` from another terminal while the task runs: no
-    fault latches (a deactivation is not one), but the motors no longer follow the controller, so
-    the run ends at once, status 1, metrics.json invalid naming it."""
-    out = tmp_path / "run"
+def _deactivated_from_elsewhere(config_dir, out, context):
+    """A run whose motor driver another node asks to deactivate 1 s after its activation: (whether
+    it was deactivated, the run's whole output, its status)."""
     proc = _experiment(config_dir, out, "--quiet")
     with killed_on_exit(proc):
         seen = wait_for_output(proc, "[motor_driver]: activated", timeout=120)
@@ -406,15 +404,23 @@ def test_a_driver_deactivated_from_elsewhere_ends_the_run_as_no_result(tmp_path,
             executor.shutdown()
             operator.destroy_node()
         output = seen + proc.communicate(timeout=60)[0]
-    # the claim is about a deactivation: a run that a fault ended before it could be done proves
-    # nothing of it (said, as a skip: a loaded machine's hiccup, which the driver caught), and a
-    # deactivation refused or unanswered otherwise is a failure
-    if not deactivated and "motor_driver fault" in output:
-        pytest.skip("a driver fault ended the run before the deactivation from elsewhere: "
-                    + output.partition("motor_driver fault: ")[2].partition("\n")[0])
+    return deactivated, output, proc.returncode
+
+
+def test_a_driver_deactivated_from_elsewhere_ends_the_run_as_no_result(tmp_path, context, config_dir):
+    """``ros2 lifecycle set /motor_driver deactivate`` from another terminal while the task runs: no
+    fault latches (a deactivation is not one), but the motors no longer follow the controller, so
+    the run ends at once, status 1, metrics.json invalid naming it."""
+    for attempt in ("run", "rerun"):
+        out = tmp_path / attempt
+        deactivated, output, status = _deactivated_from_elsewhere(config_dir, out, context)
+        # the claim is about a deactivation: a run that a timing fault ended before it could be
+        # done proves nothing of it; a deactivation refused or unanswered otherwise is a failure
+        if deactivated or not _rerun_after_a_hiccup(attempt, _timing_fault(output)):
+            break
     assert deactivated, ("the driver was not deactivated from elsewhere (not found, unanswered or "
                          f"refused):\n{output}")
-    assert proc.returncode == 1, output
+    assert status == 1, output
     assert "rms[mm]" not in output
     with open(out / "metrics.json", encoding="utf-8") as fh:
         metrics = json.load(fh)
