@@ -13,8 +13,8 @@ The measurement model (units and frames) is the estimator module's.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
 
+from soft_arm_model.lie import nonallocating_strict
 from soft_arm_model.statics import residual_jacobian_kernel
 
 # tendon_update's status
@@ -34,7 +34,7 @@ def new_work(n: int, n_tendons: int, n_markers: int) -> tuple:
             np.zeros(rows), np.zeros((N, N)), np.zeros((N, N)))   # y, HP, S, L, w, I - KH, (I - KH) P
 
 
-@njit(cache=True, nogil=True)
+@nonallocating_strict
 def _cholesky(S, L, m) -> bool:
     """L L^T = S over the leading m x m block (L lower); False unless it is positive definite."""
     for j in range(m):
@@ -53,7 +53,7 @@ def _cholesky(S, L, m) -> bool:
     return True
 
 
-@njit(cache=True, nogil=True)
+@nonallocating_strict
 def _forward(L, b, x, m):
     """x[:m] = L[:m, :m]^-1 b[:m] (forward substitution)."""
     for i in range(m):
@@ -63,7 +63,7 @@ def _forward(L, b, x, m):
         x[i] = acc / L[i, i]
 
 
-@njit(cache=True, nogil=True)
+@nonallocating_strict
 def _backward(L, b, x, m):
     """x[:m] = L[:m, :m]^-T b[:m] (back substitution)."""
     for i in range(m - 1, -1, -1):
@@ -73,7 +73,7 @@ def _backward(L, b, x, m):
         x[i] = acc / L[i, i]
 
 
-@njit(cache=True, nogil=True)
+@nonallocating_strict
 def _factor(H, P, noise, rows, HP, S, L) -> bool:
     """HP = H P and the Cholesky factor L of S = H P H^T + diag(noise) over the first ``rows``
     rows of H; False unless S is positive definite."""
@@ -95,7 +95,7 @@ def _factor(H, P, noise, rows, HP, S, L) -> bool:
     return _cholesky(S, L, rows)
 
 
-@njit(cache=True, nogil=True)
+@nonallocating_strict
 def _step(HP, L, innovation, rows, free, z_prior, z, x, w) -> float:
     """z = z_prior + K innovation with K = P H^T S^-1 (its rows from ``free`` on zero), as
     z_prior + HP^T S^-1 innovation without forming K; returns the innovation's normalised square
@@ -114,7 +114,7 @@ def _step(HP, L, innovation, rows, free, z_prior, z, x, w) -> float:
     return nis
 
 
-@njit(cache=True, nogil=True)
+@nonallocating_strict
 def _gain(HP, L, rows, free, K, y, w):
     """The Kalman gain K (N, rows) = P H^T S^-1 from :func:`_factor`'s HP and L; its rows from
     ``free`` on are zero (states the measurement does not move)."""
@@ -132,7 +132,7 @@ def _gain(HP, L, rows, free, K, y, w):
             K[j, i] = y[i]
 
 
-@njit(cache=True, nogil=True)
+@nonallocating_strict
 def _joseph(P, K, H, noise, rows, IKH, tmp):
     """P <- (I - KH) P (I - KH)^T + K diag(noise) K^T over the first ``rows`` measurements,
     symmetric to the last bit (Joseph form: positive whatever the gain)."""
@@ -160,7 +160,7 @@ def _joseph(P, K, H, noise, rows, IKH, tmp):
             P[j, i] = acc
 
 
-@njit(cache=True, nogil=True)
+@nonallocating_strict
 def _converged(z, last, P) -> bool:
     """No state moved from ``last`` to ``z`` by more than :data:`CONVERGED` of its standard deviation
     in ``P``."""
@@ -171,7 +171,7 @@ def _converged(z, last, P) -> bool:
     return True
 
 
-@njit(cache=True, nogil=True)
+@nonallocating_strict
 def tendon_update(model_args, data_args, Fg, Fel, A, A0, Kt, Lc, rest_lengths, s, u, z_prior, P,
                   iterations, balance, balance_floor, inflation, shortening_var, moving,
                   z, K, H, noise, innovation, work):
@@ -249,7 +249,7 @@ def tendon_update(model_args, data_args, Fg, Fel, A, A0, Kt, Lc, rest_lengths, s
     return UPDATED, nis, shortening_nis
 
 
-@njit(cache=True, nogil=True)
+@nonallocating_strict
 def marker_moments(marker_R, marker_J, P, H, C, work):
     """Each marker's position Jacobian and covariance at the evaluated workspace: H[k] (3, n) =
     R_k J_k[3:6], d(marker k in arm_base)/dq [m], and C[k] (3, 3) = H_k P H_k^T [m^2] with P the
@@ -278,7 +278,7 @@ def marker_moments(marker_R, marker_J, P, H, C, work):
                 C[k, j, i] = acc
 
 
-@njit(cache=True, nogil=True)
+@nonallocating_strict
 def marker_innovations(C, markers, predicted, noise_var, innovation, nis, work):
     """Each seen marker's innovation (measured - predicted) [m] and its normalised square
     nu^T (C_k + noise_var I)^-1 nu, by a 3 x 3 Cholesky factor; NaN for a marker not seen (a row of
@@ -303,7 +303,7 @@ def marker_innovations(C, markers, predicted, noise_var, innovation, nis, work):
         nis[k] = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]
 
 
-@njit(cache=True, nogil=True)
+@nonallocating_strict
 def marker_update(H, innovation, rows, noise_var, n, z, P, K, noise, work) -> bool:
     """The update with the markers taken: the first ``rows`` rows of ``H`` (rows, N) (their
     Jacobians d(marker position)/dq, zero on the parameters) and of ``innovation`` [m], each of

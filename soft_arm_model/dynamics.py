@@ -78,9 +78,10 @@ def frame_at(model: ArmModel, q, X: float, data: ArmData | None = None) -> Frame
     J = np.empty((6, model.n))
     q = np.ascontiguousarray(q, dtype=float)
     scratch = kernels.new_scratch(model.n)
-    kernels._magnus_step(q, q, XI_STAR, h, B1, B2, data.R[pt], data.p[pt], data.J[pt],
-                         R, p, J, 0, data.eta[pt], data.psi[pt], data.Jd[pt], data.eta[pt],
-                         data.psi[pt], data.Jd[pt], scratch, scratch[0][3], scratch[1][0], scratch[1][1])
+    kernels._magnus_step(q, q, XI_STAR, h, B1, B2, np.uint64(0), np.uint64(model.n), data.R[pt],
+                         data.p[pt], data.J[pt], R, p, J, 0, data.eta[pt], data.psi[pt], data.Jd[pt],
+                         data.eta[pt], data.psi[pt], data.Jd[pt], scratch, scratch[0][3], scratch[1][0],
+                         scratch[1][1])
     return Frame(R, p, J)
 
 

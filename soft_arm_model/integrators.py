@@ -37,22 +37,23 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
 
 from soft_arm_model import kernels
 
 from .dynamics import OutOfDomainError
+from .lie import nonallocating_strict
 from .model import ArmData, ArmModel
 from .statics import _lu_solve
 
 
-@njit(cache=True, nogil=True)
+@nonallocating_strict
 def _imex_prepare(model_args, data_args, rotor_mass, q, qd, markers, adot_qd):
     """Evaluate the workspace at (q, qd) (dynamics level, markers if asked) and, with rotors, the
     tendon acceleration term Adot0^T qd into adot_qd."""
     if not kernels.evaluate(*model_args, q, qd, 2, markers, *data_args):
         return False
-    adot_qd[:] = 0.0
+    for k in range(adot_qd.shape[0]):
+        adot_qd[k] = 0.0
     for k in range(rotor_mass.shape[0]):
         if rotor_mass[k] != 0.0:
             kernels.tendon_rate_bias(model_args[0], model_args[1], data_args[0], qd, model_args[12],
@@ -61,16 +62,18 @@ def _imex_prepare(model_args, data_args, rotor_mass, q, qd, markers, adot_qd):
     return True
 
 
-@njit(cache=True, nogil=True)
-def _imex_advance(M, Cqd, Fg, Fel, Kt, Au, A0, D, rotor_mass, adot_qd, work, q, qd, u, f_ext, h, q_out,
-                  qd_out):
+@nonallocating_strict
+def _imex_advance(model_args, data_args, rotor_mass, adot_qd, M, Cqd, Fg, Fel, Kt, Au, A0, D, work,
+                  q, qd, u, f_ext, h, q_out, qd_out):
     """The IMEX update from the prepared workspace (M .. A0 at (q, qd); Au: A or A0); f_ext: an
     external generalised force, taken explicitly. ``work``: (the step's matrix and its LU factors
-    (2, n, n), its right-hand side (n,), the pivots (n,) int). False if the step's matrix is
+    (2, n, n), its right-hand side (1, n), the pivots (n,) int). False if the step's matrix is
     singular. The system is solved by :func:`~soft_arm_model.statics._lu_solve`, as the statics'
-    are: nothing allocated per step, and the same rounding whatever kernels the BLAS picks."""
-    mats, rhs, piv = work
-    lhs, lu = mats[0], mats[1]
+    are: nothing allocated per step, and the same rounding whatever kernels the BLAS picks. The
+    arguments are :func:`_ros2_advance`'s, so that one compiled loop (:func:`_run`) takes either
+    step; the model's and the workspace's (``model_args``, ``data_args``) are not needed here."""
+    mats, vecs, piv = work
+    lhs, lu, rhs = mats[0], mats[1], vecs[0]
     n = q.shape[0]
     n_t = u.shape[0]
     for a in range(n):
@@ -106,7 +109,7 @@ def _imex_advance(M, Cqd, Fg, Fel, Kt, Au, A0, D, rotor_mass, adot_qd, work, q, 
 ROS2_GAMMA = 1.0 + 1.0 / np.sqrt(2.0)
 
 
-@njit(cache=True, nogil=True)
+@nonallocating_strict
 def _ros2_balance(M, Cqd, Fg, Fel, Au, A0, D, rotor_mass, adot_qd, qd, u, f_ext, M_eff, force):
     """At the evaluated state: M_eff = M + Au diag(m) A0^T (the mass with the rotors' reflected
     mass) and force = F_g - C qd - F_el - D qd - Au (u + m Adot0^T qd) + f_ext."""
@@ -127,7 +130,7 @@ def _ros2_balance(M, Cqd, Fg, Fel, Au, A0, D, rotor_mass, adot_qd, qd, u, f_ext,
                     M_eff[a, b] += s * A0[b, k]
 
 
-@njit(cache=True, nogil=True)
+@nonallocating_strict
 def _ros2_advance(model_args, data_args, rotor_mass, adot_qd, M, Cqd, Fg, Fel, Kt, Au, A0, D, work,
                   q, qd, u, f_ext, h, q_out, qd_out):
     """One ROS2 step from the prepared workspace (at (q, qd)); evaluates the workspace again at the
@@ -176,27 +179,20 @@ def _ros2_advance(model_args, data_args, rotor_mass, adot_qd, M, Cqd, Fg, Fel, K
     return True
 
 
-@njit(cache=True, nogil=True)
-def _run_imex(prepare_args, advance_args, f_ext, h, u, q, qd):
-    """Euler steps from (q[0], qd[0]) under the tensions u[i] held over step i, into the rows of q
-    and qd; the number of steps taken (see :meth:`ImexStepper.run`)."""
+@nonallocating_strict
+def _run(prepare_args, advance_args, second_order, f_ext, h, u, q, qd):
+    """Steps from (q[0], qd[0]) under the tensions u[i] held over step i, into the rows of q and qd:
+    ROS2 steps if ``second_order``, else Euler steps; the number of steps taken (see
+    :meth:`ImexStepper.run`)."""
     model_args, data_args, rotor_mass, adot = prepare_args
     for i in range(u.shape[0] - 1):
         if not _imex_prepare(model_args, data_args, rotor_mass, q[i], qd[i], False, adot):
             return i
-        if not _imex_advance(*advance_args, q[i], qd[i], u[i], f_ext, h, q[i + 1], qd[i + 1]):
-            return i
-    return u.shape[0] - 1
-
-
-@njit(cache=True, nogil=True)
-def _run_ros2(prepare_args, ros2_args, f_ext, h, u, q, qd):
-    """ROS2 steps as :func:`_run_imex` takes Euler steps."""
-    model_args, data_args, rotor_mass, adot = prepare_args
-    for i in range(u.shape[0] - 1):
-        if not _imex_prepare(model_args, data_args, rotor_mass, q[i], qd[i], False, adot):
-            return i
-        if not _ros2_advance(*ros2_args, q[i], qd[i], u[i], f_ext, h, q[i + 1], qd[i + 1]):
+        if second_order:
+            ok = _ros2_advance(*advance_args, q[i], qd[i], u[i], f_ext, h, q[i + 1], qd[i + 1])
+        else:
+            ok = _imex_advance(*advance_args, q[i], qd[i], u[i], f_ext, h, q[i + 1], qd[i + 1])
+        if not ok:
             return i
     return u.shape[0] - 1
 
@@ -221,11 +217,17 @@ class ImexStepper:
         self._adot = np.zeros(model.n_tendons)
         self._no_force = np.zeros(model.n)
         self._prepare_args = (model.kernel_args, d.kernel_args, rotor)
-        n = model.n
-        self._advance_args = (d.M, d.Cqd, d.Fg, d.Fel, d.Kt, d.A if friction else d.A0, d.A0,
-                              model.D, rotor, self._adot,
-                              (np.zeros((2, n, n)), np.zeros(n), np.zeros(n, dtype=np.int64)))
+        self._advance_args = (model.kernel_args, d.kernel_args, rotor, self._adot, d.M, d.Cqd, d.Fg,
+                              d.Fel, d.Kt, d.A if friction else d.A0, d.A0, model.D,
+                              self._new_work(model.n))
         self._state = None
+
+    second_order = False      # the compiled loop's choice of step (:func:`_run`)
+
+    @staticmethod
+    def _new_work(n: int) -> tuple:
+        """The step's scratch: (n x n matrices, n-vectors, n pivots), as its advance kernel reads it."""
+        return np.zeros((2, n, n)), np.zeros((1, n)), np.zeros(n, dtype=np.int64)
 
     @property
     def compiled_args(self) -> tuple:
@@ -275,8 +277,8 @@ class ImexStepper:
         into the rows 1..N of q and qd ((N + 1, n) each, C-ordered), in one compiled loop; the
         number of steps taken: fewer than N if a state left the model's domain or a step's linear
         system was singular (the rows after it are left as they were)."""
-        return _run_imex(self._prepare_args + (self._adot,), self._advance_args, self._no_force, self.dt,
-                         u, q, qd)
+        return _run(self._prepare_args + (self._adot,), self._advance_args, self.second_order,
+                    self._no_force, self.dt, u, q, qd)
 
 
 class Ros2Stepper(ImexStepper):
@@ -287,23 +289,16 @@ class Ros2Stepper(ImexStepper):
     prepared state only until then.
     """
 
-    def __init__(self, model: ArmModel, dt: float, friction: bool = True, rotor_mass=None):
-        super().__init__(model, dt, friction, rotor_mass)
-        d = self.data
-        n = model.n
-        work = (np.zeros((5, n, n)), np.zeros((8, n)), np.zeros(n, dtype=np.int64))
-        self._ros2_args = (model.kernel_args, d.kernel_args, self._prepare_args[2], self._adot, d.M,
-                           d.Cqd, d.Fg, d.Fel, d.Kt, d.A if friction else d.A0, d.A0, model.D, work)
+    second_order = True
+
+    @staticmethod
+    def _new_work(n: int) -> tuple:
+        return np.zeros((5, n, n)), np.zeros((8, n)), np.zeros(n, dtype=np.int64)
 
     def _advance_kernel(self, q, qd, u, f_ext, q_out, qd_out) -> bool:
         """The ROS2 step from the prepared workspace; False if its second stage is outside the
         model's domain or a linear system is singular."""
-        return _ros2_advance(*self._ros2_args, q, qd, u, f_ext, self.dt, q_out, qd_out)
-
-    def run(self, q, qd, u) -> int:
-        """ROS2 steps as :meth:`ImexStepper.run` takes Euler steps."""
-        return _run_ros2(self._prepare_args + (self._adot,), self._ros2_args, self._no_force, self.dt,
-                         u, q, qd)
+        return _ros2_advance(*self._advance_args, q, qd, u, f_ext, self.dt, q_out, qd_out)
 
 
 STEPPERS = {"imex": ImexStepper, "ros2": Ros2Stepper}

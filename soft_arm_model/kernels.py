@@ -27,11 +27,10 @@ The kernels compile with ``fastmath``: 7-10 % faster, and no less reproducible a
 than the BLAS already makes them (docs/decisions/0015-the-kernels-keep-fastmath.md).
 """
 import numpy as np
-from numba import njit
 
-from .lie import (TANGENT_SCRATCH, ad_apply, ad_apply_columns, ad_matrix, expmap, inverse_adjoint_apply,
-                  inverse_adjoint_apply_vector, matmul_into, nonallocating, tangent, tangent_rate,
-                  tangent_rate_apply, tangent_weights)
+from .lie import (TANGENT_SCRATCH, ad_apply, ad_apply_columns, ad_matrix, allocating, expmap,
+                  inverse_adjoint_apply, inverse_adjoint_apply_vector, matmul_into, nonallocating, tangent,
+                  tangent_rate, tangent_rate_apply, tangent_weights)
 
 ZANNA = np.sqrt(3.0) / 12.0  # coefficient of the commutator in the 4th-order Magnus step
 
@@ -54,7 +53,7 @@ def _matvec(Bx, v, out):
         out[r] = acc
 
 
-@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
+@allocating
 def new_scratch(n):
     """Scratch for ``_magnus_step``: (vectors (10, 6), 6 x n matrices (6, 6, n), 6x6 (13, 6, 6),
     3x3 (1, 3, 3)). Allocated once per evaluation."""
@@ -63,7 +62,7 @@ def new_scratch(n):
 
 
 @nonallocating
-def _magnus_step(q, qd, xi_star, h, B1, B2, R_prev, p_prev, J_prev, R_out, p_out, J_out,
+def _magnus_step(q, qd, xi_star, h, B1, B2, lo, hi, R_prev, p_prev, J_prev, R_out, p_out, J_out,
                  rates, eta_prev, psi_prev, Jd_prev, eta_out, psi_out, Jd_out, scratch, omega, Z, S):
     """One Zanna step of length h from the previous section frame.
 
@@ -71,9 +70,14 @@ def _magnus_step(q, qd, xi_star, h, B1, B2, R_prev, p_prev, J_prev, R_out, p_out
     exponent Omega, its q-derivative Z and S = T(Omega) Z go to ``omega``, ``Z`` and ``S`` (the
     workspace keeps them for the analytic derivatives; scratch's own vec[3], mat[0], mat[1] do
     where nobody needs them).
+
+    [lo, hi) are the columns of the step's division: B1 and B2 are zero outside them, so Z and S
+    are written there only, and J_prev and Jd_prev are zero from hi on (the coordinates of the
+    divisions beyond the step do not move its frames), so J_out and Jd_out are computed on [0, hi)
+    and zeroed beyond. The whole arm as one division is lo = 0, hi = n.
     """
     vec, mat, sq, m3 = scratch
-    n = q.shape[0]
+    ulo, uhi = np.uint64(lo), np.uint64(hi)     # unsigned column loops vectorise: see _columns
     c = ZANNA * h * h
     xi1, xi2, com, ps, omega_dot, V, xi1d, xi2d, tw = (
         vec[0], vec[1], vec[2], vec[4], vec[5], vec[6], vec[7], vec[8], vec[9])
@@ -86,10 +90,10 @@ def _magnus_step(q, qd, xi_star, h, B1, B2, R_prev, p_prev, J_prev, R_out, p_out
     for r in range(6):
         omega[r] = 0.5 * h * (xi1[r] + xi2[r]) + c * com[r]
     for r in range(6):
-        for j in range(n):
+        for j in range(ulo, uhi):
             Z[r, j] = 0.5 * h * (B1[r, j] + B2[r, j])
-    ad_apply_columns(xi1, B2, Z, c, True)
-    ad_apply_columns(xi2, B1, Z, -c, True)
+    ad_apply_columns(xi1, B2, Z, c, True, lo, hi)
+    ad_apply_columns(xi2, B1, Z, -c, True, lo, hi)
     expmap(omega, Rs, ps[0:3])
     for a in range(3):
         acc = p_prev[a]
@@ -101,23 +105,28 @@ def _magnus_step(q, qd, xi_star, h, B1, B2, R_prev, p_prev, J_prev, R_out, p_out
             R_out[a, b] = s
         p_out[a] = acc
     tangent(omega, T, sq)
-    for r in range(6):                  # S = T Z, the inner loop along Z's rows (vectorised)
-        for j in range(n):
+    # S = T Z with T = [[T_w, 0], [T_v, T_w]]: the angular rows take Z's angular rows only; the
+    # inner loop runs along Z's rows (vectorised)
+    for r in range(6):
+        for j in range(ulo, uhi):
             S[r, j] = 0.0
-        for k in range(6):
+        for k in range(3 if r < 3 else 6):
             t = T[r, k]
-            for j in range(n):
+            for j in range(ulo, uhi):
                 S[r, j] += t * Z[k, j]
-        for j in range(n):
+        for j in range(lo):
+            JS[r, j] = J_prev[r, j]
+        for j in range(ulo, uhi):
             JS[r, j] = J_prev[r, j] + S[r, j]
-    inverse_adjoint_apply(Rs, ps, JS, J_out)
+    inverse_adjoint_apply(Rs, ps, JS, J_out, hi)
+    _zero_columns(J_out, hi)
     if rates == 0:
         return
     # eta+ = Ad^-1 (eta + V), V = T Omegadot;
     # psi+ = Ad^-1 (psi + ad_eta V + Tdot Omegadot + T Zdot qd), Zdot qd = 2 c ad(xi1d) xi2d
-    _matvec(Z, qd, omega_dot)
-    _matvec(B1, qd, xi1d)
-    _matvec(B2, qd, xi2d)
+    _matvec_columns(Z, qd, lo, hi, omega_dot)
+    _matvec_columns(B1, qd, lo, hi, xi1d)
+    _matvec_columns(B2, qd, lo, hi, xi2d)
     _matvec(T, omega_dot, V)
     for r in range(6):
         tw[r] = eta_prev[r] + V[r]
@@ -136,17 +145,39 @@ def _magnus_step(q, qd, xi_star, h, B1, B2, R_prev, p_prev, J_prev, R_out, p_out
     if rates == 1:
         return
     tangent_rate(omega, omega_dot, Tdot, sq)
-    ad_apply_columns(xi1d, B2, Zd, c, False)
-    ad_apply_columns(xi2d, B1, Zd, -c, True)
+    ad_apply_columns(xi1d, B2, Zd, c, False, lo, hi)
+    ad_apply_columns(xi2d, B1, Zd, -c, True, lo, hi)
     # G = Jdot_prev + Tdot Z + T Zdot - ad(V)(J_prev + S)
     for r in range(6):
-        for j in range(n):
-            acc = Jd_prev[r, j]
-            for k in range(6):
-                acc += Tdot[r, k] * Z[k, j] + T[r, k] * Zd[k, j]
-            G[r, j] = acc
-    ad_apply_columns(V, JS, G, -1.0, True)
-    inverse_adjoint_apply(Rs, ps, G, Jd_out)
+        for j in range(hi):
+            G[r, j] = Jd_prev[r, j]
+        for k in range(6):
+            td, t = Tdot[r, k], T[r, k]
+            for j in range(ulo, uhi):
+                G[r, j] += td * Z[k, j] + t * Zd[k, j]
+    ad_apply_columns(V, JS, G, -1.0, True, 0, hi)
+    inverse_adjoint_apply(Rs, ps, G, Jd_out, hi)
+    _zero_columns(Jd_out, hi)
+
+
+@nonallocating
+def _zero_columns(X, lo):
+    """X[:, lo:] = 0, element by element."""
+    ulo, un = np.uint64(lo), np.uint64(X.shape[1])
+    for r in range(X.shape[0]):
+        for j in range(ulo, un):
+            X[r, j] = 0.0
+
+
+@nonallocating
+def _matvec_columns(Bx, v, lo, hi, out):
+    """out = Bx[:, lo:hi] v[lo:hi]."""
+    ulo, uhi = np.uint64(lo), np.uint64(hi)
+    for r in range(Bx.shape[0]):
+        acc = 0.0
+        for j in range(ulo, uhi):
+            acc += Bx[r, j] * v[j]
+        out[r] = acc
 
 
 @nonallocating
@@ -161,7 +192,7 @@ def _column_rows(Bp, lo, hi, rows):
     """rows[a] = the strain row r where Bp[r, a] != 0 for the columns a in [lo, hi), -1 where the
     column is zero at this point. Each coordinate is one strain mode's polynomial
     (``model._basis_at``): a column of B has at most one non-zero row."""
-    for a in range(lo, hi):
+    for a in range(np.uint64(lo), np.uint64(hi)):
         rows[a] = -1
         for r in range(6):
             if Bp[r, a] != 0.0:
@@ -195,7 +226,7 @@ def _elastic(w, B, xi, stiff_diag, neo_axial, col_lo, col_hi, Fel, Kt, energies,
                 energy += w[pt] * k3 * (0.5 * lam * lam + 1.0 / lam - 1.5)
             else:
                 energy += w[pt] * 0.5 * stiff_diag[pt, r] * e * e
-        lo, hi = col_lo[pt], col_hi[pt]      # B is zero outside the point's division
+        lo, hi = _columns(col_lo, col_hi, pt)      # B is zero outside the point's division
         rows = work[3][pt]
         _column_rows(B[pt], lo, hi, rows)
         # one strain mode per coordinate: B^T diag(dsig) B couples only coordinates of one mode
@@ -300,7 +331,8 @@ def _tendons(w, B, Bd, xi, q, t_d, t_dp, t_dpp, t_active, t_mu, Q, smoothing, co
                 phi_w[r] = tmp[r]
                 phi_w[3 + r] = t[r]
             wa = w[pt] * t_active[k, pt]
-            for a in range(col_lo[pt], col_hi[pt]):
+            lo, hi = _columns(col_lo, col_hi, pt)
+            for a in range(lo, hi):
                 r = rows[pt, a]
                 acc = B[pt, r, a] * phi_w[r] if r >= 0 else 0.0
                 A0[a, k] += wa * acc
@@ -310,7 +342,7 @@ def _tendons(w, B, Bd, xi, q, t_d, t_dp, t_dpp, t_active, t_mu, Q, smoothing, co
     return True
 
 
-@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
+@nonallocating
 def tendon_rate_bias(w, B, xi, qd, t_d, t_dp, t_active, out):
     """out[k] = (dA0_k/dt)^T qd = qd^T (d A0_k/dq) qd [m/s^2]: the part of tendon k's length
     acceleration that the rates alone give (its rate of change with qdd = 0), at the strains ``xi``
@@ -320,28 +352,37 @@ def tendon_rate_bias(w, B, xi, qd, t_d, t_dp, t_active, out):
     ``tau' = kappa' x d + gamma'`` and ``(kappa'; gamma') = B qd``: exact, and local like the tendon
     terms (no kinematics). Call it after a successful :func:`evaluate` at q (its strains, and
     ``norm(tau) > 0``, which that checks)."""
-    P = w.shape[0]
-    rate = np.empty((P, 6))
-    for pt in range(P):
-        _matvec(B[pt], qd, rate[pt])
-    tau = np.empty(3)
-    taud = np.empty(3)
-    for k in range(t_d.shape[0]):
-        acc = 0.0
-        for pt in range(P):
+    n_t = t_d.shape[0]
+    for k in range(n_t):
+        out[k] = 0.0
+    for pt in range(w.shape[0]):
+        if w[pt] == 0.0:
+            continue
+        # (kappa'; gamma') = B qd at the point
+        r0 = r1 = r2 = r3 = r4 = r5 = 0.0
+        for j in range(qd.shape[0]):
+            v = qd[j]
+            r0 += B[pt, 0, j] * v
+            r1 += B[pt, 1, j] * v
+            r2 += B[pt, 2, j] * v
+            r3 += B[pt, 3, j] * v
+            r4 += B[pt, 4, j] * v
+            r5 += B[pt, 5, j] * v
+        k0, k1, k2 = xi[pt, 0], xi[pt, 1], xi[pt, 2]
+        for k in range(n_t):
             wa = w[pt] * t_active[k, pt]
             if wa == 0.0:
                 continue
-            d = t_d[k, pt]
-            _cross(xi[pt, 0:3], d, tau)
-            _cross(rate[pt, 0:3], d, taud)
-            for r in range(3):
-                tau[r] += xi[pt, 3 + r] + t_dp[k, pt, r]
-                taud[r] += rate[pt, 3 + r]
-            nt = np.sqrt(tau[0] ** 2 + tau[1] ** 2 + tau[2] ** 2)
-            along = (tau[0] * taud[0] + tau[1] * taud[1] + tau[2] * taud[2]) / nt
-            acc += wa * (taud[0] ** 2 + taud[1] ** 2 + taud[2] ** 2 - along * along) / nt
-        out[k] = acc
+            d0, d1, d2 = t_d[k, pt, 0], t_d[k, pt, 1], t_d[k, pt, 2]
+            a0 = k1 * d2 - k2 * d1 + xi[pt, 3] + t_dp[k, pt, 0]
+            a1 = k2 * d0 - k0 * d2 + xi[pt, 4] + t_dp[k, pt, 1]
+            a2 = k0 * d1 - k1 * d0 + xi[pt, 5] + t_dp[k, pt, 2]
+            b0 = r1 * d2 - r2 * d1 + r3
+            b1 = r2 * d0 - r0 * d2 + r4
+            b2 = r0 * d1 - r1 * d0 + r5
+            nt = np.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
+            along = (a0 * b0 + a1 * b1 + a2 * b2) / nt
+            out[k] += wa * (b0 * b0 + b1 * b1 + b2 * b2 - along * along) / nt
 
 
 @nonallocating
@@ -357,7 +398,7 @@ def _ad_transpose_apply(x, y, out):
     out[5] = -(w0 * b1 - w1 * b0)
 
 
-@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
+@allocating
 def _mass_bias(lumped, J, eta, psi, col_hi, M, Cqd, energies, work):
     """M = sum J^T Mc J; C qd = sum J^T [Mc psi - ad_eta^T Mc eta] over the points' lumped inertias
     Mc; kinetic energy. ``work``: :func:`new_force_work`."""
@@ -414,7 +455,7 @@ def _bias(lumped, J, eta, psi, col_hi, Cqd, energies, work):
     energies[0] = kin
 
 
-@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
+@allocating
 def _coriolis_matrix(lumped, J, eta, Jd, C):
     """C = sum J^T [Mc Jdot + (Mc ad_eta - ad_eta^T Mc) J] over the points' lumped inertias Mc, so
     that Mdot = C + C^T."""
@@ -430,7 +471,7 @@ def _coriolis_matrix(lumped, J, eta, Jd, C):
         mc = lumped[pt]
         et = eta[pt]
         Jp = J[pt]
-        ad_apply_columns(et, Jp, adJ, 1.0, False)
+        ad_apply_columns(et, Jp, adJ, 1.0, False, 0, n)
         for j in range(n):
             for r in range(6):
                 y[r] = mc[r] * Jp[r, j]
@@ -446,8 +487,8 @@ def _coriolis_matrix(lumped, J, eta, Jd, C):
 
 
 @nonallocating
-def _kinematics(B, h, B1, B2, xi_star, R0, m_point, m_h, m_B1, m_B2, q, qd, rates, markers, xi, R, p, J,
-                eta, psi, Jd, mR, mp, mJ, Om, Zs, Ss, scratch):
+def _kinematics(B, h, B1, B2, xi_star, R0, col_lo, col_hi, m_point, m_h, m_B1, m_B2, q, qd, rates, markers,
+                xi, R, p, J, eta, psi, Jd, mR, mp, mJ, Om, Zs, Ss, scratch):
     """The strains at the points, the frames and Jacobians along the arm (with the twists and
     their rates as ``rates`` asks: see :func:`_magnus_step`), and the markers' if ``markers``."""
     P = xi.shape[0]
@@ -462,8 +503,10 @@ def _kinematics(B, h, B1, B2, xi_star, R0, m_point, m_h, m_B1, m_B2, q, qd, rate
     eta[0, :] = 0.0
     psi[0, :] = 0.0
     Jd[0] = 0.0
+    n = q.shape[0]
     for i in range(P - 1):
-        _magnus_step(q, qd, xi_star, h[i], B1[i], B2[i], R[i], p[i], J[i], R[i + 1], p[i + 1],
+        lo, hi = _step_columns(col_lo, col_hi, i)
+        _magnus_step(q, qd, xi_star, h[i], B1[i], B2[i], lo, hi, R[i], p[i], J[i], R[i + 1], p[i + 1],
                      J[i + 1], rates, eta[i], psi[i], Jd[i], eta[i + 1], psi[i + 1], Jd[i + 1],
                      scratch, Om[i], Zs[i], Ss[i])
     if markers:
@@ -478,12 +521,12 @@ def _kinematics(B, h, B1, B2, xi_star, R0, m_point, m_h, m_B1, m_B2, q, qd, rate
                     for b in range(J.shape[2]):
                         mJ[m, a, b] = J[pt, a, b]
             else:
-                _magnus_step(q, qd, xi_star, m_h[m], m_B1[m], m_B2[m], R[pt], p[pt], J[pt], mR[m],
-                             mp[m], mJ[m], 0, eta[pt], psi[pt], Jd[pt], eta[pt], psi[pt], Jd[pt],
-                             scratch, scratch[0][3], scratch[1][0], scratch[1][1])
+                _magnus_step(q, qd, xi_star, m_h[m], m_B1[m], m_B2[m], np.uint64(0), np.uint64(n), R[pt],
+                             p[pt], J[pt], mR[m], mp[m], mJ[m], 0, eta[pt], psi[pt], Jd[pt], eta[pt],
+                             psi[pt], Jd[pt], scratch, scratch[0][3], scratch[1][0], scratch[1][1])
 
 
-@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
+@nonallocating
 def evaluate(w, B, Bd, h, B1, B2, xi_star, lumped, stiff_diag, neo_axial, R0, gravity,
              t_d, t_dp, t_dpp, t_active, t_mu, Q, smoothing, col_lo, col_hi,
              m_point, m_h, m_B1, m_B2,
@@ -492,10 +535,12 @@ def evaluate(w, B, Bd, h, B1, B2, xi_star, lumped, stiff_diag, neo_axial, R0, gr
              M, C, Cqd, Fg, Fel, Kt, A, A0, Lc, theta, wrap, phi, energies, Om, Zs, Ss, work):
     """Fill the workspace arrays for (q, qd) up to ``level`` (0 kinematics, 1 statics, 2 dynamics,
     3 Coriolis matrix), markers if ``markers``; returns False outside the model's domain.
-    ``work``: the kernels' scratch (:func:`new_work`)."""
+    ``work``: the kernels' scratch (:func:`new_work`). Compiled without reference counting, as
+    its callers that unpack the workspace into it are; the mass matrix's product (the BLAS) and
+    the Coriolis matrix count their own."""
     rates = 0 if level < 2 else (1 if level == 2 else 2)
-    _kinematics(B, h, B1, B2, xi_star, R0, m_point, m_h, m_B1, m_B2, q, qd, rates, markers, xi, R, p, J,
-                eta, psi, Jd, mR, mp, mJ, Om, Zs, Ss, work[0])
+    _kinematics(B, h, B1, B2, xi_star, R0, col_lo, col_hi, m_point, m_h, m_B1, m_B2, q, qd, rates, markers,
+                xi, R, p, J, eta, psi, Jd, mR, mp, mJ, Om, Zs, Ss, work[0])
     if level < 1:
         return True
     forces = work[2]
@@ -516,7 +561,7 @@ def evaluate(w, B, Bd, h, B1, B2, xi_star, lumped, stiff_diag, neo_axial, R0, gr
 # Analytic tangent of the static balance R(q) = F_el(q) - F_g(q) + A(q) u.
 
 
-@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
+@allocating
 def new_work(P, n):
     """The kernels' scratch, allocated once with a workspace (``ArmData.work``): (the Magnus step's
     (:func:`new_scratch`), :func:`static_tangent`'s (:func:`new_tangent_work`), the forces'
@@ -524,7 +569,7 @@ def new_work(P, n):
     return (new_scratch(n), new_tangent_work(P, n), new_force_work(P, n))
 
 
-@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
+@allocating
 def new_force_work(P, n):
     """Scratch for the forces (:func:`_elastic`, :func:`_gravity`, :func:`_tendons`,
     :func:`_mass_bias`): vectors (8, 6); per point (2, P, 6) (a tendon's unit tangent, the
@@ -534,7 +579,7 @@ def new_force_work(P, n):
             np.zeros((6 * P, n)))
 
 
-@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
+@allocating
 def new_tangent_work(P, n):
     """Scratch for :func:`static_tangent`: (6 x n matrices (6, 6, n), P x n matrices (2, P, n),
     6x6 (TANGENT_SCRATCH + 8, 6, 6), vectors (16, 6))."""
@@ -559,10 +604,19 @@ def _pi_matrix(U, out):
 
 @nonallocating
 def _step_columns(col_lo, col_hi, i):
-    """Columns [lo, hi) of the division the Magnus step from point i to i + 1 lies in."""
+    """Columns [lo, hi) of the division the Magnus step from point i to i + 1 lies in (unsigned,
+    as :func:`_columns`)."""
     if col_hi[i] > col_lo[i]:
-        return col_lo[i], col_hi[i]
-    return col_lo[i + 1], col_hi[i + 1]
+        return _columns(col_lo, col_hi, i)
+    return _columns(col_lo, col_hi, i + 1)
+
+
+@nonallocating
+def _columns(col_lo, col_hi, pt):
+    """Columns [lo, hi) of point pt's division, as unsigned integers: a loop from a signed start
+    that the compiler cannot prove non-negative keeps numba's negative-index wraparound in its
+    body, which stops it vectorising (three times slower on these short rows)."""
+    return np.uint64(col_lo[pt]), np.uint64(col_hi[pt])
 
 
 @nonallocating
@@ -768,7 +822,8 @@ def _turning_rate_gradient(k, w, B, Bd, xi, q, t_d, t_dp, t_dpp, t_active, smoot
         for r in range(3):
             gphi[1, r] = tmp[r]
             gphi[1, 3 + r] = s3[r]
-        for b in range(col_lo[j], col_hi[j]):
+        lo, hi = _columns(col_lo, col_hi, j)
+        for b in range(lo, hi):
             acc = 0.0
             for r in range(6):
                 acc += gphi[0, r] * B[j, r, b] + gphi[1, r] * Bd[j, r, b]
@@ -794,7 +849,7 @@ def _tendon_tangent(w, B, Bd, xi, q, t_d, t_dp, t_dpp, t_active, t_mu, Q, smooth
     for pt in range(P):
         if w[pt] == 0.0:
             continue
-        lo, hi = col_lo[pt], col_hi[pt]
+        lo, hi = _columns(col_lo, col_hi, pt)
         Dt[:, :] = 0.0
         any_t = False
         for k in range(n_t):
@@ -857,7 +912,7 @@ def _tendon_tangent(w, B, Bd, xi, q, t_d, t_dp, t_dpp, t_active, t_mu, Q, smooth
         for pt in range(P):
             if w[pt] == 0.0 or t_active[k, pt] == 0.0:
                 continue
-            lo, hi = col_lo[pt], col_hi[pt]
+            lo, hi = _columns(col_lo, col_hi, pt)
             if stiff:
                 for b in range(hi):
                     dwrap[pt, b] = 0.0

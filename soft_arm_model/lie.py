@@ -19,6 +19,16 @@ from numba import njit
 # atomic increment and decrement took a fifth of an evaluation of the model
 # (``bench/bench_model.py``). Its arrays live in the caller, which holds them for the call.
 nonallocating = njit(cache=True, nogil=True, fastmath=True, error_model="numpy", _nrt=False)
+# The same with strict IEEE arithmetic: the solvers and the time steppers that call the kernels
+# (the statics' Newton step and LU, the IMEX and ROS2 steps, the estimator's update), whose results
+# must not owe their rounding to the processor's vector width. Without reference counting, the
+# tuples of workspace arrays they unpack into each evaluation cost nothing: counted, they took a
+# third of a compiled IMEX step.
+nonallocating_strict = njit(cache=True, nogil=True, _nrt=False)
+# The kernels that allocate (their results, or the mass matrix's product through the BLAS) say that
+# they count references, explicitly: a kernel that leaves it unsaid inherits its first caller's
+# setting in numba, so that one compiled first under a nonallocating caller would fail to compile.
+allocating = njit(cache=True, nogil=True, fastmath=True, error_model="numpy", _nrt=True)
 
 # Below these angles the closed forms lose digits to cancellation; even power series are used instead.
 _EXP_SERIES_BELOW = 0.1
@@ -82,24 +92,27 @@ def ad_apply(x, y, out):
 
 
 @nonallocating
-def ad_apply_columns(x, Y, out, scale, accumulate):
-    """``out (+)= scale * ad(x) Y`` for a 6 x n matrix ``Y`` (row-wise loops, out must not alias Y)."""
+def ad_apply_columns(x, Y, out, scale, accumulate, lo, hi):
+    """``out (+)= scale * ad(x) Y`` on the columns [lo, hi) of a 6 x n matrix ``Y`` (row-wise loops,
+    out must not alias Y); out's other columns are left as they are."""
     w0, w1, w2 = scale * x[0], scale * x[1], scale * x[2]
     v0, v1, v2 = scale * x[3], scale * x[4], scale * x[5]
+    ulo, uhi = np.uint64(lo), np.uint64(hi)   # unsigned: no negative-index wraparound, so it vectorises
     if not accumulate:
-        out[:, :] = 0.0
-    n = Y.shape[1]
-    for j in range(n):
+        for r in range(6):
+            for j in range(ulo, uhi):
+                out[r, j] = 0.0
+    for j in range(ulo, uhi):
         out[0, j] += w1 * Y[2, j] - w2 * Y[1, j]
-    for j in range(n):
+    for j in range(ulo, uhi):
         out[1, j] += w2 * Y[0, j] - w0 * Y[2, j]
-    for j in range(n):
+    for j in range(ulo, uhi):
         out[2, j] += w0 * Y[1, j] - w1 * Y[0, j]
-    for j in range(n):
+    for j in range(ulo, uhi):
         out[3, j] += w1 * Y[5, j] - w2 * Y[4, j] + v1 * Y[2, j] - v2 * Y[1, j]
-    for j in range(n):
+    for j in range(ulo, uhi):
         out[4, j] += w2 * Y[3, j] - w0 * Y[5, j] + v2 * Y[0, j] - v0 * Y[2, j]
-    for j in range(n):
+    for j in range(ulo, uhi):
         out[5, j] += w0 * Y[4, j] - w1 * Y[3, j] + v0 * Y[1, j] - v1 * Y[0, j]
 
 
@@ -286,12 +299,12 @@ def tangent_rate_apply(omega, omega_dot, out, work):
 
 
 @nonallocating
-def inverse_adjoint_apply(R, p, X, out):
-    """``out = Ad_{g^-1} X`` for g = (R, p) and a 6 x n matrix X (out must not alias X).
+def inverse_adjoint_apply(R, p, X, out, hi):
+    """``out = Ad_{g^-1} X`` on the columns [0, hi) of a 6 x n matrix X, for g = (R, p) (out must
+    not alias X); out's other columns are left as they are.
 
     ``Ad_{g^-1} = [[R^T, 0], [-R^T p~, R^T]]``, i.e. [R^T w; R^T (v - p x w)] per column.
     """
-    n = X.shape[1]
     p0, p1, p2 = p[0], p[1], p[2]
     for i in range(3):
         r0, r1, r2 = R[0, i], R[1, i], R[2, i]
@@ -299,9 +312,9 @@ def inverse_adjoint_apply(R, p, X, out):
         c0 = p1 * r2 - p2 * r1
         c1 = p2 * r0 - p0 * r2
         c2 = p0 * r1 - p1 * r0
-        for j in range(n):
+        for j in range(hi):
             out[i, j] = r0 * X[0, j] + r1 * X[1, j] + r2 * X[2, j]
-        for j in range(n):
+        for j in range(hi):
             out[3 + i, j] = r0 * X[3, j] + r1 * X[4, j] + r2 * X[5, j] \
                 + c0 * X[0, j] + c1 * X[1, j] + c2 * X[2, j]
 

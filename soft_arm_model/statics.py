@@ -19,6 +19,7 @@ from numba import njit
 from soft_arm_model import kernels
 
 from .dynamics import OutOfDomainError
+from .lie import nonallocating_strict
 from .model import ArmData, ArmModel
 
 
@@ -43,7 +44,7 @@ class Equilibrium:
     jacobian: np.ndarray
 
 
-@njit(cache=True, nogil=True)
+@nonallocating_strict
 def _residual_kernel(model_args, data_args, Fg, Fel, Au, q, u, out):
     """out = F_el - F_g + A u at q; Fg, Fel and Au (A or A0) are the workspace arrays in data_args."""
     if not kernels.evaluate(*model_args, q, q, 1, False, *data_args):
@@ -56,7 +57,7 @@ def _residual_kernel(model_args, data_args, Fg, Fel, Au, q, u, out):
     return True
 
 
-@njit(cache=True, nogil=True)
+@nonallocating_strict
 def residual_jacobian_kernel(model_args, data_args, Fg, Fel, Au, q, u, friction, r0, jac, dA_dmu):
     """Residual at q into r0, its analytic Jacobian dR/dq into jac and dA/d mu into dA_dmu
     (kernels.static_tangent: one evaluation and one backward pass); False outside the domain."""
@@ -90,14 +91,17 @@ def _fd_jacobian_oracle(model_args, data_args, Fg, Fel, Au, q, u, r0, jac):
     return True
 
 
-@njit(cache=True, nogil=True)
+@nonallocating_strict
 def _lu_solve(A, b, x, lu, piv):
     """x = A^-1 b by LU with partial pivoting (LAPACK's dgesv's algorithm, unblocked); False if a
     pivot is exactly zero (A singular), as dgesv reports it. Written out rather than
     np.linalg.solve: nothing allocated per Newton iteration, and its rounding is the same whatever
     kernels the machine's BLAS picks (the equilibria every figure starts from do not move with
-    the processor)."""
-    n = b.shape[0]
+    the processor). The loops run over unsigned indices, which numba need not check for negative
+    values: the elimination's row update vectorises (element by element, so the rounding is the
+    same)."""
+    n = np.uint64(b.shape[0])
+    one = np.uint64(1)
     for i in range(n):
         for j in range(n):
             lu[i, j] = A[i, j]
@@ -105,7 +109,7 @@ def _lu_solve(A, b, x, lu, piv):
     for k in range(n):
         pk = k
         big = abs(lu[k, k])
-        for i in range(k + 1, n):
+        for i in range(k + one, n):
             if abs(lu[i, k]) > big:
                 big = abs(lu[i, k])
                 pk = i
@@ -121,24 +125,25 @@ def _lu_solve(A, b, x, lu, piv):
             x[k] = x[pk]
             x[pk] = tmp
         inv = 1.0 / lu[k, k]
-        for i in range(k + 1, n):
+        for i in range(k + one, n):
             f = lu[i, k] * inv
             if f != 0.0:
                 lu[i, k] = f
-                for j in range(k + 1, n):
+                for j in range(k + one, n):
                     lu[i, j] -= f * lu[k, j]
                 x[i] -= f * x[k]
             else:
                 lu[i, k] = 0.0
-    for i in range(n - 1, -1, -1):
+    for ii in range(n):
+        i = n - one - ii
         acc = x[i]
-        for j in range(i + 1, n):
+        for j in range(i + one, n):
             acc -= lu[i, j] * x[j]
         x[i] = acc / lu[i, i]
     return True
 
 
-@njit(cache=True, nogil=True)
+@nonallocating_strict
 def _norm(v):
     acc = 0.0
     for i in range(v.shape[0]):
@@ -146,7 +151,7 @@ def _norm(v):
     return np.sqrt(acc)
 
 
-@njit(cache=True, nogil=True)
+@nonallocating_strict
 def _newton_kernel(model_args, data_args, Fg, Fel, Au, friction, q, u, tol, max_iter, floor,
                    r, jac, dA_dmu, r_new, q_new, dq, lu, piv):
     """Damped Newton from q (overwritten with the solution): the number of iterations, or 0 when

@@ -154,3 +154,42 @@ def test_simulate_names_the_time_a_state_left_the_models_domain(model_factory):
     m = model_factory(**{"material.youngs_modulus": 2e3})
     with pytest.raises(OutOfDomainError, match=r"left the model's domain.* at t = [0-9.e-]+ s"):
         simulate(m, np.zeros(m.n), np.zeros(m.n), lambda t: np.full(4, 500.0 * t), 2.0, dt=1e-3)
+
+
+@pytest.mark.parametrize("which", ["paper_model", "full_model"])
+def test_the_magnus_steps_on_their_divisions_columns_match_steps_over_every_column(which, request):
+    """The kinematics pass steps each division on its own columns (Z and S there, J and Jdot up to
+    the division's end and zero beyond); stepping every column gives the same frames, Jacobians,
+    twists and rates, and the columns beyond a point's division stay exactly zero."""
+    from soft_arm_model import kernels
+    from soft_arm_model.model import XI_STAR
+    from soft_arm_model.dynamics import CORIOLIS
+    model = request.getfixturevalue(which)
+    rng = np.random.default_rng(3)
+    q = solve_equilibrium(model, [1.5, 0.5, 2.0, 0.0]).q + 0.05 * rng.normal(size=model.n)
+    qd = rng.normal(size=model.n)
+    d = evaluate(model, ArmData(model), q, qd, level=CORIOLIS)
+    n, P = model.n, model.X.size
+    R, p, J = d.R[0].copy(), d.p[0].copy(), d.J[0].copy()
+    eta, psi, Jd = d.eta[0].copy(), d.psi[0].copy(), d.Jd[0].copy()
+    h, B1, B2 = model.kernel_args[3], model.kernel_args[4], model.kernel_args[5]
+    col_hi = model.kernel_args[20]
+    scratch = kernels.new_scratch(n)
+    full = np.uint64(n)
+    inside = 0                         # points whose division ends before the last column
+    for i in range(P - 1):
+        R1, p1, J1 = np.empty((3, 3)), np.empty(3), np.empty((6, n))
+        eta1, psi1, Jd1 = np.empty(6), np.empty(6), np.empty((6, n))
+        kernels._magnus_step(q, qd, XI_STAR, h[i], B1[i], B2[i], np.uint64(0), full, R, p, J, R1, p1, J1,
+                             2, eta, psi, Jd, eta1, psi1, Jd1, scratch, np.empty(6), np.empty((6, n)),
+                             np.empty((6, n)))
+        R, p, J, eta, psi, Jd = R1, p1, J1, eta1, psi1, Jd1
+        for mine, reference in ((d.R[i + 1], R), (d.p[i + 1], p), (d.J[i + 1], J), (d.eta[i + 1], eta),
+                                (d.psi[i + 1], psi), (d.Jd[i + 1], Jd)):
+            scale = max(1.0, np.abs(reference).max())
+            np.testing.assert_allclose(mine, reference, rtol=1e-12, atol=1e-12 * scale)
+        hi = col_hi[i + 1]
+        if 0 < hi < n:                 # a point inside the first division: nothing beyond it moves it
+            inside += 1
+            assert np.all(d.J[i + 1][:, hi:] == 0.0) and np.all(d.Jd[i + 1][:, hi:] == 0.0)
+    assert inside > 0                  # both models have a division that ends before the last column

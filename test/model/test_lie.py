@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from scipy.linalg import expm
 
-from soft_arm_model.lie import (TANGENT_SCRATCH, ad_matrix, expmap, inverse_adjoint_apply,
+from soft_arm_model.lie import (TANGENT_SCRATCH, ad_apply_columns, ad_matrix, expmap, inverse_adjoint_apply,
                                 inverse_adjoint_apply_vector, tangent, tangent_rate, tangent_rate_apply)
 
 
@@ -55,8 +55,27 @@ def test_inverse_adjoint():
     Ad_inv = np.block([[R.T, np.zeros((3, 3))], [-R.T @ P, R.T]])
     X = rng.normal(size=(6, 5))
     out = np.empty_like(X)
-    inverse_adjoint_apply(R, p, X, out)
+    inverse_adjoint_apply(R, p, X, out, 5)
     np.testing.assert_allclose(out, Ad_inv @ X, atol=1e-14)
+    out[:] = 7.0                      # only the columns asked for are written
+    inverse_adjoint_apply(R, p, X, out, 3)
+    np.testing.assert_allclose(out[:, :3], Ad_inv @ X[:, :3], atol=1e-14)
+    assert np.all(out[:, 3:] == 7.0)
     v = np.empty(6)
     inverse_adjoint_apply_vector(R, p, X[:, 2].copy(), v)
     np.testing.assert_allclose(v, Ad_inv @ X[:, 2], atol=1e-14)
+
+
+def test_ad_apply_columns_writes_the_columns_asked_for():
+    rng = np.random.default_rng(1)
+    x = rng.normal(size=6)
+    Y = rng.normal(size=(6, 7))
+    ad = np.empty((6, 6))
+    ad_matrix(x, ad)
+    out = np.full((6, 7), 3.0)
+    ad_apply_columns(x, Y, out, -0.5, False, 2, 5)
+    np.testing.assert_allclose(out[:, 2:5], -0.5 * ad @ Y[:, 2:5], atol=1e-14)
+    assert np.all(out[:, :2] == 3.0) and np.all(out[:, 5:] == 3.0)
+    ad_apply_columns(x, Y, out, 1.0, True, 0, 7)
+    np.testing.assert_allclose(out[:, 2:5], 0.5 * ad @ Y[:, 2:5], atol=1e-13)
+    np.testing.assert_allclose(out[:, 5:], 3.0 + ad @ Y[:, 5:], atol=1e-13)
