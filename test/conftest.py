@@ -1,4 +1,5 @@
 """Shared fixtures. Every rclpy process in the suite stays on loopback with its own domain id."""
+import codecs
 import gc
 import os
 import pathlib
@@ -160,21 +161,48 @@ def rng():
 
 
 def wait_for_output(proc, text: str, timeout: float = 60.0) -> str:
-    """Read a process's text output (stdout, stderr merged) line by line until ``text`` appears;
-    what was read. AssertionError with the output if it ends or ``timeout`` [s] passes first."""
-    seen = []
+    """Read a process's text output (stdout, stderr merged, a pipe) until a line with ``text`` has
+    appeared: what was read, which may run past that line (so that what was read, then
+    ``proc.communicate()``'s or :func:`stop`'s output, is the whole output). AssertionError with
+    the output if it ends or ``timeout`` [s] passes first. A later wait on the same process also
+    searches what this one read past its line.
+
+    The pipe's descriptor is read directly. A buffered ``readline`` takes whatever the pipe holds and
+    returns one line, so that a ``select`` on the descriptor waits for the process's next write while
+    the line looked for sits unread in the buffer: seen seconds late, after the run it announced."""
+    fd = proc.stdout.fileno()
+    decoder = codecs.getincrementaldecoder("utf-8")("replace")
+    searched = getattr(proc, "output_past_the_last_wait", "")
+    read = []
     deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
+    ended = False
+    while True:
+        end = _end_of_line_with(searched, text, ended)
+        if end >= 0:
+            proc.output_past_the_last_wait = searched[end:]
+            return "".join(read)
+        left = deadline - time.monotonic()
         # never a read that blocks past the deadline: a silent process fails the wait on time
-        if not select.select([proc.stdout], [], [], max(0.0, deadline - time.monotonic()))[0]:
+        if ended or left <= 0 or not select.select([fd], [], [], left)[0]:
             break
-        line = proc.stdout.readline()
-        if not line and proc.poll() is not None:
-            break
-        seen.append(line)
-        if text in line:
-            return "".join(seen)
-    raise AssertionError(f"{text!r} not seen within {timeout:g} s; output:\n{''.join(seen)}")
+        chunk = os.read(fd, 65536)
+        ended = not chunk
+        piece = decoder.decode(chunk, final=ended)
+        read.append(piece)
+        searched += piece
+    raise AssertionError(f"{text!r} not seen within {timeout:g} s; output:\n{''.join(read)}")
+
+
+def _end_of_line_with(output: str, text: str, ended: bool) -> int:
+    """The index past the first line of ``output`` that holds ``text`` (the line's newline
+    included; a last line without one only once the output has ``ended``), or -1."""
+    at = output.find(text)
+    if at < 0:
+        return -1
+    newline = output.find("\n", at + len(text))
+    if newline >= 0:
+        return newline + 1
+    return len(output) if ended else -1
 
 
 @contextmanager
