@@ -14,7 +14,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
 
 from soft_arm_model import kernels
 
@@ -67,16 +66,17 @@ def residual_jacobian_kernel(model_args, data_args, Fg, Fel, Au, q, u, friction,
     return True
 
 
-@njit(cache=True, nogil=True)
-def _fd_jacobian_oracle(model_args, data_args, Fg, Fel, Au, q, u, r0, jac):
+@nonallocating_strict
+def _fd_jacobian_oracle(model_args, data_args, Fg, Fel, Au, q, u, r0, jac, qp, rp):
     """Test oracle, not used by the solvers: the residual at q into r0 and its forward-difference
-    Jacobian into jac (n + 1 evaluations, relative step 1e-7); False outside the domain. The
-    workspace is left at the last perturbed state."""
+    Jacobian into jac (n + 1 evaluations, relative step 1e-7); False outside the domain. ``qp``
+    and ``rp`` (n,): scratch for the perturbed state and its residual. The workspace is left at
+    the last perturbed state."""
     n = q.shape[0]
     if not _residual_kernel(model_args, data_args, Fg, Fel, Au, q, u, r0):
         return False
-    qp = q.copy()
-    rp = np.empty(n)
+    for b in range(n):
+        qp[b] = q[b]
     for b in range(n):
         step = 1e-7 * max(1.0, abs(q[b]))
         qp[b] = q[b] + step
@@ -202,6 +202,7 @@ class _Problem:
         n = model.n
         self.newton_work = (np.zeros(n), np.zeros(n), np.zeros(n), np.zeros((n, n)),
                             np.zeros(n, dtype=np.int64))
+        self.oracle_work = (np.zeros(n), np.zeros(n))   # the oracle's perturbed state and residual
         # residual changes below this floor count as no increase in the line search
         self.residual_floor = float(np.abs(model.K).max()) * 1e-12
 
@@ -211,7 +212,7 @@ class _Problem:
 
     def linearise(self, q, u):
         if self.oracle:
-            ok = _fd_jacobian_oracle(*self.args, q, u, self.r, self.jac)
+            ok = _fd_jacobian_oracle(*self.args, q, u, self.r, self.jac, *self.oracle_work)
         else:
             ok = residual_jacobian_kernel(*self.args, q, u, self.friction, self.r, self.jac, self.dA_dmu)
         return (self.r.copy(), self.jac.copy()) if ok else (None, None)

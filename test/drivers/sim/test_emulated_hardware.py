@@ -77,7 +77,11 @@ def test_the_driver_drives_the_motors_of_another_process_and_faults_when_it_dies
         driver.enable()
         cycle = _run(driver, 1.5, 0.5)
         assert driver.fault is None and cycle.diagnostics.mode == "enabled"
-        assert np.all(cycle.state.fresh) and np.all(cycle.state.tension > 0.3), cycle.state.tension
+        # every motor answers the cycles (a reply from the other process may land just after the
+        # last one: its freshness is a race, its age is not)
+        answered = cycle.diagnostics.motors
+        assert all(m.reply_age < spec.driver.reply_timeout and m.replies > 100 for m in answered), answered
+        assert np.all(cycle.state.tension > 0.3), cycle.state.tension
         os.kill(hardware.pid, signal.SIGKILL)
         killed = time.monotonic()
         _run(driver, 0.5, 0.5)
