@@ -20,9 +20,10 @@ Feasibility. An online step whose end point would need equilibrium tensions outs
 is not dropped: it is replaced by the bounded least-squares step. On the equilibrium set the tension
 rate is linear in the task velocity v, ``udot = P v + c`` (``P = dG_theta_a/dq Z^-1[:, :m]``, c from
 the equilibrium term), so the step solves ``min |v - Gamma_Z e|`` subject to the tensions of its end
-point staying within the limits (``scipy.optimize.lsq_linear`` on the tension rate). Its fixed point
-is where the task error is orthogonal to every direction the free tensions can still move the task:
-the closest feasible point, to first order. Such steps are reported (``ClikStep.constrained``).
+point staying within the limits (exactly, on the tension rate: :mod:`.box_least_squares`). Its
+fixed point is where the task error is orthogonal to every direction the free tensions can still
+move the task: the closest feasible point, to first order. Such steps are reported
+(``ClikStep.constrained``).
 """
 from __future__ import annotations
 
@@ -30,11 +31,11 @@ import itertools
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import least_squares, lsq_linear
 
 from soft_arm_model import (DYNAMICS, STATICS, ArmData, EquilibriumError, OutOfDomainError, evaluate,
                             solve_equilibrium)
 
+from .box_least_squares import box_least_squares
 from .collocated import (CollocatedData, CollocatedModel, collocated_jacobian, evaluate_collocated,
                          full_tensions)
 from .task_space import TaskSpace
@@ -271,7 +272,7 @@ class Clik:
         lo = (self.u_min + margin - u0) / dt
         hi = (self.u_max - margin - u0) / dt
         wanted = self.gains.task * info.error + (0.0 if xd_dot is None else np.asarray(xd_dot, dtype=float))
-        udot = lsq_linear(A, wanted + A @ c, bounds=(lo, hi)).x
+        udot = box_least_squares(A, wanted + A @ c, lo, hi)
         return task_columns @ (A @ (udot - c)) + qdot_eq
 
     def equilibrium_of_tensions(self, q_start):
@@ -305,6 +306,8 @@ class Clik:
         implicit function theorem. Local: the best over ``starts`` (configurations; their
         equilibrium tensions, clipped into the box, start the search). x_d itself when it is
         feasible and reachable from a start."""
+        from scipy.optimize import least_squares   # here: 0.1-0.2 s of every CLIK node's start-up
+
         margin = _LIMIT_MARGIN * (self.u_max - self.u_min) if margin is None else float(margin)
         lo, hi = self.u_min + margin, self.u_max - margin
         x_d = np.asarray(x_d, dtype=float)

@@ -16,7 +16,6 @@ import numpy as np
 from soft_arm_model.config import ArmConfig
 from soft_arm_model.parameters import ConfigError, default_config_dir, load_section
 
-from .input_shaping import SHAPERS
 from .pendulum_geometry import PendulumConfig
 from .trajectories import SHAPES, Trajectory
 from .task_space import AXES, TaskSpace
@@ -25,6 +24,9 @@ from .trust_region import TrustConfig
 PHASE_MODES = ("clik", "replay", "precomputed", "online", "track")
 FEEDBACKS = ("mocap", "fused", "estimate")   # what the online CLIK closes its loop on
 SHAPED_MODES = ("clik", "replay", "precomputed")   # the goal modes that start with a reference step
+# The input shapers (:mod:`.input_shaping`), named here so that loading the configuration does not
+# import the model's kernels.
+SHAPERS = ("none", "zv", "zvd")
 RATE_MODES = ("clik", "online", "track")           # the goal modes that move the reference online
 INNER_COORDINATES = ("shortenings", "actuation_map")  # what the inner loop regulates
 

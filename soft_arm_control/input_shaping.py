@@ -36,9 +36,8 @@ from soft_arm_model.dynamics import mass_matrix
 
 from .clik import ClikPoint
 from .collocated import CollocatedModel, held_stiffness
+from .config import SHAPERS
 from .task_space import TaskSpace
-
-SHAPERS = ("none", "zv", "zvd")
 
 
 def impulses(shaper: str, frequency: float, damping: float) -> tuple[np.ndarray, np.ndarray]:

@@ -28,7 +28,6 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
-import scipy.interpolate
 
 from soft_arm_control.actuation_map import actuation_map_for
 from soft_arm_control.clik import ClikPoint
@@ -198,6 +197,8 @@ def marker_backbone(arm, markers) -> tuple[np.ndarray, np.ndarray]:
     spline in arc length through the base (arm_base's origin, leaving it along -z, clamped) and the
     markers, with no curvature at the free tip; (points (BACKBONE_SAMPLES, 3) [m], the cone's
     radius at each [m])."""
+    import scipy.interpolate   # here: 0.15 s of the task runner node's start-up
+
     g = arm.geometry
     X = np.concatenate([[0.0], arm.marker_positions])
     spline = scipy.interpolate.CubicSpline(X, np.vstack([np.zeros(3), markers]),

@@ -20,9 +20,10 @@ from typing import Any, Mapping
 import yaml
 
 
-class _RosYamlLoader(yaml.SafeLoader):
+class _RosYamlLoader(getattr(yaml, "CSafeLoader", yaml.SafeLoader)):
     """Safe YAML loader that reads ``1.5e5`` as a float, as ROS 2's parameter parser does
-    (PyYAML's YAML 1.1 resolver would read it as a string)."""
+    (PyYAML's YAML 1.1 resolver would read it as a string). On libyaml's parser where PyYAML has
+    it (its wheels do), ten times the pure-Python one's speed."""
 
 
 _RosYamlLoader.add_implicit_resolver(

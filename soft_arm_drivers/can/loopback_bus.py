@@ -20,6 +20,7 @@ are delivered in the order they were sent.
 from __future__ import annotations
 
 import os
+import random
 import select
 import socket
 import struct
@@ -35,11 +36,29 @@ _EXTENDED, _REMOTE, _ERROR = 1, 2, 4
 # bytes of the socket's receive buffer (the kernel caps it at net.core.rmem_max): some 1300 frames,
 # over half a second of the rig's 2000 frames/s, so that a reader that stalls loses none
 RECEIVE_BUFFER = 1 << 20
+_LOWEST_DRAWN = 20000       # free_udp_ports draws above it (below: registered services' ports)
 
 
 def free_udp_ports(n: int = 2) -> list:
-    """``n`` UDP ports of 127.0.0.1 free a moment ago (bound to port 0 together, then released): a
-    channel's two ends, an emulated server's port."""
+    """``n`` different UDP ports of 127.0.0.1, each free a moment ago: a channel's two ends, an
+    emulated server's port.
+
+    They are drawn below the kernel's ephemeral range (``net.ipv4.ip_local_port_range``), where no
+    socket bound to port 0 is given a port: a port drawn in that range is handed to any other
+    process's socket between this call and the bind of whoever it is for (a graph's node binds it
+    seconds later, after its imports), and that bind then fails. Where the range leaves too little
+    below it, the ports are the kernel's (bound to port 0 together, then released)."""
+    low = _ephemeral_low()
+    rng = random.SystemRandom()
+    ports = []
+    for _ in range(64 * n):
+        if len(ports) == n or low - _LOWEST_DRAWN < 1000:
+            break
+        port = rng.randrange(_LOWEST_DRAWN, low)
+        if port not in ports and _bindable(port):
+            ports.append(port)
+    if len(ports) == n:
+        return ports
     socks = [socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(n)]
     try:
         for sock in socks:
@@ -48,6 +67,24 @@ def free_udp_ports(n: int = 2) -> list:
     finally:
         for sock in socks:
             sock.close()
+
+
+def _ephemeral_low(path: str = "/proc/sys/net/ipv4/ip_local_port_range") -> int:
+    """The first port of the kernel's ephemeral range (32768, Linux's default, if unreadable)."""
+    try:
+        with open(path, encoding="ascii") as fh:
+            return int(fh.read().split()[0])
+    except (OSError, ValueError, IndexError):
+        return 32768
+
+
+def _bindable(port: int) -> bool:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        try:
+            sock.bind((HOST, port))
+        except OSError:
+            return False
+    return True
 
 
 def parse_channel(channel) -> tuple[int, int]:

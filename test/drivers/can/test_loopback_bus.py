@@ -10,7 +10,29 @@ import can
 import pytest
 
 from soft_arm_drivers.can.driver_config import load_driver_config
+from soft_arm_drivers.can import loopback_bus
 from soft_arm_drivers.can.loopback_bus import INTERFACE, LoopbackBus, free_udp_ports
+
+
+def test_free_ports_are_drawn_below_the_ephemeral_range_where_no_other_socket_is_given_them():
+    low = loopback_bus._ephemeral_low()
+    for _ in range(20):
+        ports = free_udp_ports(3)
+        assert len(set(ports)) == 3
+        assert all(loopback_bus._LOWEST_DRAWN <= p < low for p in ports)
+        assert all(loopback_bus._bindable(p) for p in ports)
+
+
+def test_the_ephemeral_range_is_read_and_defaults_to_linux_s(tmp_path):
+    assert loopback_bus._ephemeral_low(str(tmp_path / "nothing")) == 32768
+    (tmp_path / "range").write_text("40000\t60999\n")
+    assert loopback_bus._ephemeral_low(str(tmp_path / "range")) == 40000
+
+
+def test_a_range_that_leaves_no_room_below_it_gives_the_kernels_ports(monkeypatch):
+    monkeypatch.setattr(loopback_bus, "_ephemeral_low", lambda: loopback_bus._LOWEST_DRAWN + 10)
+    ports = free_udp_ports(2)
+    assert len(set(ports)) == 2 and all(p >= loopback_bus._LOWEST_DRAWN + 10 for p in ports)
 
 
 def test_frames_cross_whole_both_ways_with_their_stamps():
