@@ -306,7 +306,7 @@ class Clik:
         implicit function theorem. Local: the best over ``starts`` (configurations; their
         equilibrium tensions, clipped into the box, start the search). x_d itself when it is
         feasible and reachable from a start."""
-        from scipy.optimize import least_squares   # here: 0.1-0.2 s of every CLIK node's start-up
+        from scipy.optimize import least_squares   # here: at import, 0.1-0.25 s of a CLIK node's start
 
         margin = _LIMIT_MARGIN * (self.u_max - self.u_min) if margin is None else float(margin)
         lo, hi = self.u_min + margin, self.u_max - margin

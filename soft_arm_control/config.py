@@ -25,7 +25,7 @@ PHASE_MODES = ("clik", "replay", "precomputed", "online", "track")
 FEEDBACKS = ("mocap", "fused", "estimate")   # what the online CLIK closes its loop on
 SHAPED_MODES = ("clik", "replay", "precomputed")   # the goal modes that start with a reference step
 # The input shapers (:mod:`.input_shaping`), named here so that loading the configuration does not
-# import the model's kernels.
+# import the shaping, the CLIK and scipy's linear algebra.
 SHAPERS = ("none", "zv", "zvd")
 RATE_MODES = ("clik", "online", "track")           # the goal modes that move the reference online
 INNER_COORDINATES = ("shortenings", "actuation_map")  # what the inner loop regulates

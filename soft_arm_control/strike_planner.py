@@ -153,7 +153,7 @@ def fit_levels(shooter: StrikeShooter, target, hold, duration: float, guess, bou
             raise _Reached(z.reshape(shape).copy(), miss)
         return x - target
 
-    import scipy.optimize   # here: 0.1 s of every CLIK node's start-up
+    import scipy.optimize   # here: at import, 0.1-0.25 s of a CLIK node's start
 
     try:
         sol = scipy.optimize.least_squares(residual, np.ravel(guess), bounds=bounds, diff_step=1e-3,

@@ -197,7 +197,7 @@ def marker_backbone(arm, markers) -> tuple[np.ndarray, np.ndarray]:
     spline in arc length through the base (arm_base's origin, leaving it along -z, clamped) and the
     markers, with no curvature at the free tip; (points (BACKBONE_SAMPLES, 3) [m], the cone's
     radius at each [m])."""
-    import scipy.interpolate   # here: 0.15 s of the task runner node's start-up
+    import scipy.interpolate   # here: at import, 0.15 s of a task runner node's start
 
     g = arm.geometry
     X = np.concatenate([[0.0], arm.marker_positions])

@@ -117,7 +117,7 @@ def apply_overrides(params: dict, overrides: Mapping[str, Any] | None, schema: M
         if isinstance(value, str):
             try:
                 value = parse_yaml(value)
-            except yaml.YAMLError as exc:
+            except (yaml.YAMLError, UnicodeError) as exc:     # libyaml: bytes not UTF-8 (surrogates)
                 raise ConfigError(f"{namespace}.{key}: cannot parse {value!r}: {exc}") from None
         node = out
         *parents, leaf = key.split(".")

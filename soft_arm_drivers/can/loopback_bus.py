@@ -36,7 +36,11 @@ _EXTENDED, _REMOTE, _ERROR = 1, 2, 4
 # bytes of the socket's receive buffer (the kernel caps it at net.core.rmem_max): some 1300 frames,
 # over half a second of the rig's 2000 frames/s, so that a reader that stalls loses none
 RECEIVE_BUFFER = 1 << 20
-_LOWEST_DRAWN = 20000       # free_udp_ports draws above it (below: registered services' ports)
+_LOWEST_DRAWN = 20000       # free_udp_ports draws from here up to the ephemeral range
+# DDS (RTPS) binds 7400 + 250 d + offset for domain d: 0-1 multicast, 10 + 2 p and 11 + 2 p unicast
+# for participant p. The ports drawn keep clear of the offsets of the first 60 participants of any
+# domain (the draw's range holds domains 51-101's, where a test run or a lab may be).
+_DDS_BASE, _DDS_DOMAIN_GAIN, _DDS_OFFSETS = 7400, 250, 130
 
 
 def free_udp_ports(n: int = 2) -> list:
@@ -44,10 +48,12 @@ def free_udp_ports(n: int = 2) -> list:
     emulated server's port.
 
     They are drawn below the kernel's ephemeral range (``net.ipv4.ip_local_port_range``), where no
-    socket bound to port 0 is given a port: a port drawn in that range is handed to any other
-    process's socket between this call and the bind of whoever it is for (a graph's node binds it
-    seconds later, after its imports), and that bind then fails. Where the range leaves too little
-    below it, the ports are the kernel's (bound to port 0 together, then released)."""
+    socket bound to port 0 is given a port, and clear of the ports DDS binds: a port drawn in the
+    ephemeral range is handed to any other process's socket between this call and the bind of
+    whoever it is for (a graph's node binds it seconds later, after its imports), and that bind then
+    fails. Two callers can still draw the same port (about one chance in 6000 per pair). Where the
+    range leaves too little below it, the ports are the kernel's (bound to port 0 together, then
+    released)."""
     low = _ephemeral_low()
     rng = random.SystemRandom()
     ports = []
@@ -55,6 +61,8 @@ def free_udp_ports(n: int = 2) -> list:
         if len(ports) == n or low - _LOWEST_DRAWN < 1000:
             break
         port = rng.randrange(_LOWEST_DRAWN, low)
+        if (port - _DDS_BASE) % _DDS_DOMAIN_GAIN < _DDS_OFFSETS:
+            continue
         if port not in ports and _bindable(port):
             ports.append(port)
     if len(ports) == n:

@@ -11,9 +11,9 @@ from soft_arm_control.box_least_squares import box_least_squares
 
 def _problem(seed: int, square: bool):
     rng = np.random.default_rng(seed)
-    n = int(rng.integers(1, 5))
-    k = n if square else int(rng.integers(1, 6))
-    A = rng.normal(size=(k, n)) * 10.0 ** rng.uniform(-3, 3)
+    n = int(rng.integers(1, 7))
+    k = n if square else int(rng.integers(1, 8))
+    A = rng.normal(size=(k, n)) * 10.0 ** rng.uniform(-3, 3) * 10.0 ** rng.uniform(-1, 1, size=n)
     b = rng.normal(size=k) * 10.0 ** rng.uniform(-2, 2)
     lo = rng.normal(size=n)
     return A, b, lo, lo + rng.uniform(0.0, 2.0, size=n)
@@ -56,8 +56,7 @@ def test_a_solution_inside_the_box_is_the_plain_least_squares():
     np.testing.assert_allclose(box_least_squares(A, b, plain - 1.0, plain + 1.0), plain, rtol=1e-12)
 
 
-def test_one_bound_active_gives_the_least_squares_of_the_rest():
-    """Identity A: the minimum is b clipped into the box, variable by variable."""
+def test_with_an_identity_a_the_minimum_is_b_clipped_into_the_box():
     b = np.array([2.0, -0.5, -3.0])
     u = box_least_squares(np.eye(3), b, -np.ones(3), np.ones(3))
     np.testing.assert_allclose(u, [1.0, -0.5, -1.0], rtol=0, atol=1e-15)
@@ -73,6 +72,15 @@ def test_a_rank_deficient_problem_returns_a_minimiser():
     assert _cost(A, b, u) < 1e-24
 
 
+def test_a_zero_column_leaves_a_small_one_its_own_least_squares():
+    """A singular free block sends each pattern to its own least-squares solve: a column 1e7 times
+    shorter than the longest is not cut off with the zero one."""
+    A = np.diag([1e4, 1e-3, 0.0])
+    u = box_least_squares(A, np.array([0.0, 5e-4, 0.0]), -np.ones(3), np.ones(3))
+    np.testing.assert_allclose(u[:2], [0.0, 0.5], rtol=0, atol=1e-9)
+    assert -1.0 <= u[2] <= 1.0
+
+
 def test_a_degenerate_box_holds_the_variable():
     u = box_least_squares(np.eye(2), np.array([5.0, 5.0]), np.array([0.3, 0.0]), np.array([0.3, 9.0]))
     np.testing.assert_allclose(u, [0.3, 5.0], rtol=0, atol=1e-14)
@@ -85,6 +93,8 @@ def test_a_degenerate_box_holds_the_variable():
     (np.ones((2, 2)), np.ones(2), np.zeros(3), np.ones(3), "lo and hi"),
     (np.ones((2, 2)), np.ones(2), np.ones(2), np.zeros(2), "lo <= hi"),
     (np.ones((2, 2)), np.ones(2), np.zeros(2), np.array([1.0, np.inf]), "finite"),
+    (np.ones((2, 2)), np.array([np.nan, 1.0]), np.zeros(2), np.ones(2), "A and b must be finite"),
+    (np.array([[1.0, np.inf], [0.0, 1.0]]), np.ones(2), np.zeros(2), np.ones(2), "A and b must be finite"),
 ])
 def test_bad_input_is_refused_with_the_reason(A, b, lo, hi, message):
     with pytest.raises(ValueError, match=message):

@@ -55,6 +55,12 @@ def test_overrides_parse_like_ros_parameters():
     assert [t.friction for t in cfg.tendons] == [0, 0, 0.2, 0.2]
 
 
+@pytest.mark.parametrize("value", ["[0, 0", "\udcff"])     # bad YAML; bytes not UTF-8 (a --set)
+def test_an_override_that_does_not_parse_is_a_config_error(value):
+    with pytest.raises(ConfigError, match="material.youngs_modulus: cannot parse"):
+        load_arm_config(overrides={"material.youngs_modulus": value})
+
+
 def test_not_a_parameter_file(tmp_path):
     path = tmp_path / "x.yaml"
     path.write_text("arm: {}\n")
