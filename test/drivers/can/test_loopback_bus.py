@@ -17,7 +17,7 @@ from soft_arm_drivers.can.loopback_bus import INTERFACE, LoopbackBus, free_udp_p
 def test_free_ports_are_drawn_below_the_ephemeral_range_and_clear_of_dds():
     low = loopback_bus._ephemeral_low()
     if low - loopback_bus._LOWEST_DRAWN < 1000:
-        pytest.skip(f"this machine's ephemeral range starts at {low}: the kernel's ports are used")
+        pytest.skip(f"the ephemeral range starts at {low}, leaving no room below it: the kernel's ports")
     for _ in range(20):
         ports = free_udp_ports(3)
         assert len(set(ports)) == 3
