@@ -55,18 +55,16 @@ def free_udp_ports(n: int = 2) -> list:
     range leaves too little below it, the ports are the kernel's (bound to port 0 together, then
     released)."""
     low = _ephemeral_low()
-    rng = random.SystemRandom()
-    ports = []
-    for _ in range(64 * n):
-        if len(ports) == n or low - _LOWEST_DRAWN < 1000:
-            break
-        port = rng.randrange(_LOWEST_DRAWN, low)
-        if (port - _DDS_BASE) % _DDS_DOMAIN_GAIN < _DDS_OFFSETS:
-            continue
-        if port not in ports and _bindable(port):
-            ports.append(port)
-    if len(ports) == n:
-        return ports
+    if low - _LOWEST_DRAWN >= 1000:
+        rng = random.SystemRandom()
+        ports = []
+        for _ in range(64 * n):
+            port = rng.randrange(_LOWEST_DRAWN, low)
+            if (port - _DDS_BASE) % _DDS_DOMAIN_GAIN >= _DDS_OFFSETS and port not in ports \
+                    and _bindable(port):
+                ports.append(port)
+                if len(ports) == n:
+                    return ports
     socks = [socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(n)]
     try:
         for sock in socks:
