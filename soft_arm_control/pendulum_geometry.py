@@ -8,7 +8,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.special
 
 GRAVITY = np.array([0.0, 0.0, -9.81])      # m/s^2 in arm_base (z up)
 
@@ -41,6 +40,7 @@ class PendulumConfig:
         """Time [s] from the release to the lowest point of a free swing: a quarter of the exact
         period, sqrt(L / g) K(sin^2(angle / 2)) (K the complete elliptic integral of the first
         kind), not the small-angle one."""
+        import scipy.special        # here: every node imports this module, few swing a pendulum
         m = np.sin(self.release_angle / 2.0) ** 2
         return float(np.sqrt(self.length / np.linalg.norm(GRAVITY)) * scipy.special.ellipk(m))
 

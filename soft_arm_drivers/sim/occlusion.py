@@ -128,10 +128,7 @@ def cameras_seeing(config: OcclusionConfig, markers, marker_arcs=None, points=No
     occlude = bool(config.self_occlusion and points is not None)
     if occlude:
         points, radii, arcs = (np.ascontiguousarray(v, dtype=float) for v in (points, radii, arcs))
-        marker_arcs = np.asarray(marker_arcs, dtype=float).reshape(-1)
-        ring = 2.0 * np.interp(marker_arcs, arcs, radii)    # half-width of the marker's ring
-        low, high = marker_arcs - ring, marker_arcs + ring
-        capsule_radii = np.maximum(radii[:-1], radii[1:])
+        low, high, capsule_radii = _rings(marker_arcs, arcs, radii)
     else:
         points = np.zeros((1, 3))
         arcs = np.zeros(1)
@@ -140,15 +137,32 @@ def cameras_seeing(config: OcclusionConfig, markers, marker_arcs=None, points=No
     return _seeing(cameras, axes, cos_half, markers, low, high, points, capsule_radii, arcs, occlude)
 
 
-def body(model, data) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The arm's body as the cameras see it, from a workspace ``data`` of ``model`` evaluated with
-    its markers: backbone points (P, 3) [m] in arm_base ordered by arc length (the model's points
-    and the markers), the cone's radius at each (P,) [m] and their arc lengths (P,) [m]."""
+def _rings(marker_arcs, arcs, radii) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The arc spans [m] of the markers' rings (low, high: two local radii either side of each
+    marker's arc length ``marker_arcs``) and the capsules' radii (P - 1,) [m] (the larger of their
+    ends') of a body whose points lie at ``arcs`` with cone radius ``radii``."""
+    marker_arcs = np.asarray(marker_arcs, dtype=float).reshape(-1)
+    ring = 2.0 * np.interp(marker_arcs, arcs, radii)
+    return marker_arcs - ring, marker_arcs + ring, np.maximum(radii[:-1], radii[1:])
+
+
+def _arc_layout(model) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The order that sorts the model's points then markers by arc length, their arc lengths in
+    that order (P,) [m] and the cone's radius at each (P,) [m]: what :func:`body` takes from the
+    model, which does not change between frames."""
     X = np.concatenate([model.X, model.marker_X])
     order = np.argsort(X, kind="stable")
     g = model.config.geometry
     arcs = X[order]
     radii = g.base_radius + (g.tip_radius - g.base_radius) * arcs / g.length
+    return order, arcs, radii
+
+
+def body(model, data) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The arm's body as the cameras see it, from a workspace ``data`` of ``model`` evaluated with
+    its markers: backbone points (P, 3) [m] in arm_base ordered by arc length (the model's points
+    and the markers), the cone's radius at each (P,) [m] and their arc lengths (P,) [m]."""
+    order, arcs, radii = _arc_layout(model)
     return np.concatenate([data.p, data.marker_p])[order], radii, arcs
 
 
@@ -165,6 +179,7 @@ class Occlusions:
         self.p_end = min(1.0, frame_period / config.burst_duration)
         self.p_start = np.minimum(1.0, fraction / np.maximum(1.0 - fraction, _EPS) * self.p_end)
         self.in_burst = self.rng.random(n_markers) < fraction          # the chain's stationary state
+        self._arm = None       # (model, order, arcs, ring lows, ring highs, capsule radii) of of_arm
 
     @classmethod
     def for_plant(cls, plant, n_markers: int) -> "Occlusions | None":
@@ -182,16 +197,33 @@ class Occlusions:
         c = self.config
         if t is not None and c.blackout[0] <= t < c.blackout[1]:
             return np.zeros(len(markers), bool)
-        geometric = cameras_seeing(c, markers, marker_arcs, points, radii, arcs) >= c.min_cameras
+        return self._losses(cameras_seeing(c, markers, marker_arcs, points, radii, arcs) >= c.min_cameras)
+
+    def of_arm(self, model, data, t: float | None = None) -> np.ndarray:
+        """:meth:`visible` at ``t`` [s] for the markers of ``model`` at its workspace ``data``
+        (evaluated with markers). What depends on the model alone (the points' order by arc length,
+        the rings, the capsules' radii) is computed at the first frame of a model and kept: a frame
+        then costs the line-of-sight tests and the random draws."""
+        c = self.config
+        if t is not None and c.blackout[0] <= t < c.blackout[1]:
+            return np.zeros(model.marker_X.size, bool)
+        if self._arm is None or self._arm[0] is not model:
+            order, arcs, radii = _arc_layout(model)
+            self._arm = (model, order, arcs) + _rings(model.marker_X, arcs, radii)
+        _, order, arcs, low, high, capsule_radii = self._arm
+        cameras, axes, cos_half = _layout(c)
+        points = np.concatenate([data.p, data.marker_p])[order]
+        seen = _seeing(cameras, axes, cos_half, np.ascontiguousarray(data.marker_p), low, high, points,
+                       capsule_radii, arcs, bool(c.self_occlusion))
+        return self._losses(seen >= c.min_cameras)
+
+    def _losses(self, geometric) -> np.ndarray:
+        """The markers of ``geometric`` (M,) bool (those the cameras' geometry lets through) that
+        this frame's random dropouts and bursts leave; advances the random losses by one frame."""
+        c = self.config
         n = geometric.size
         dropped = self.rng.random(n) < c.dropout if c.dropout > 0 else np.zeros(n, bool)
         if self.p_start.any() or self.in_burst.any():
             draw = self.rng.random(n)
             self.in_burst = np.where(self.in_burst, draw >= self.p_end, draw < self.p_start)
         return geometric & ~dropped & ~self.in_burst
-
-    def of_arm(self, model, data, t: float | None = None) -> np.ndarray:
-        """:meth:`visible` at ``t`` [s] for the markers of ``model`` at its workspace ``data``
-        (evaluated with markers)."""
-        points, radii, arcs = body(model, data)
-        return self.visible(data.marker_p, model.marker_X, points, radii, arcs, t)

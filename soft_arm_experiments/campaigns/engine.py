@@ -104,7 +104,7 @@ class Outcome:
 def run_campaign(folder, function: str, specs: Iterable[dict], *, scheduler: Optional[str] = None,
                  workers: Optional[int] = None, describe: Optional[dict] = None,
                  progress: Optional[Callable[[dict], None]] = None, upload: Iterable[str] = (),
-                 retry_failed: bool = False) -> Outcome:
+                 retry_failed: bool = False, warm_up: bool = True) -> Outcome:
     """Run ``function`` (``module:name``) on every specification of ``specs`` that ``folder`` has no
     record of yet, on a new ``LocalCluster`` of ``workers`` processes (default: the cores) or on
     the cluster of ``scheduler``; append each record to ``folder/records.jsonl`` as it arrives.
@@ -114,7 +114,9 @@ def run_campaign(folder, function: str, specs: Iterable[dict], *, scheduler: Opt
     ``running``, ``pending``, ``total``, ``eta_s``, ``dashboard``). ``upload``:
     files the workers import ``function`` from (a bench script). ``retry_failed``: run again the
     specifications whose record says failed (the last record of a key is the one that counts).
-    Ctrl-C stops it: the runs in flight
+    ``warm_up``: every worker loads the package's compiled kernels when it starts (:class:`WarmUp`,
+    some 2 s of CPU each), so that no run's time includes them; False for a ``function`` that calls
+    none of them. Ctrl-C stops it: the runs in flight
     are cancelled, everything finished is kept (``interrupted``)."""
     from distributed import Client, LocalCluster, as_completed
 
@@ -138,7 +140,8 @@ def run_campaign(folder, function: str, specs: Iterable[dict], *, scheduler: Opt
     try:
         for path in upload:
             client.upload_file(path)
-        client.register_plugin(WarmUp())
+        if warm_up:
+            client.register_plugin(WarmUp())
         n_workers = max(1, len(client.scheduler_info()["workers"]))
         futures = {client.submit(_run, function, spec, key=f"soft-arm-{key}", pure=False): key
                    for key, spec in todo}

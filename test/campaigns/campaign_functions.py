@@ -21,3 +21,10 @@ def raising(spec: dict) -> dict:
     if spec["x"] == 2:
         raise ValueError("the plant of x = 2 cannot be built")
     return {"value": spec["x"] ** 2}
+
+
+def kernels_loaded(spec: dict) -> dict:
+    """Whether this worker had the plant's compiled step loaded before the run asked for it."""
+    import sys
+    integrators = sys.modules.get("soft_arm_model.integrators")
+    return {"loaded": bool(integrators is not None and integrators._imex_prepare.signatures)}

@@ -34,7 +34,7 @@ def test_a_record_cut_by_a_kill_is_ignored_and_the_rest_read(tmp_path):
 
 def test_a_raising_run_is_recorded_as_failed_with_its_error_and_counted(tmp_path):
     specs = [{"x": x} for x in range(4)]
-    out = engine.run_campaign(tmp_path, function("raising"), specs, workers=2)
+    out = engine.run_campaign(tmp_path, function("raising"), specs, workers=2, warm_up=False)
     assert (out.ran, out.failed, out.interrupted) == (4, 1, False)
     by_x = {r["spec"]["x"]: r for r in out.records}
     assert by_x[2]["status"] == "failed" and by_x[2]["result"] is None
@@ -43,25 +43,36 @@ def test_a_raising_run_is_recorded_as_failed_with_its_error_and_counted(tmp_path
     assert all(by_x[x]["status"] == "ok" for x in (0, 1, 3))
     # kept on disk too, and a restart runs nothing (a failure is a result) unless told to retry
     assert len(engine.read_records(tmp_path)) == 4
-    again = engine.run_campaign(tmp_path, function("raising"), specs, workers=1)
+    again = engine.run_campaign(tmp_path, function("raising"), specs, workers=1, warm_up=False)
     assert (again.ran, again.failed) == (0, 1)
-    retried = engine.run_campaign(tmp_path, function("raising"), specs, workers=1, retry_failed=True)
+    retried = engine.run_campaign(tmp_path, function("raising"), specs, workers=1, retry_failed=True,
+                                  warm_up=False)
     assert (retried.ran, retried.failed) == (1, 1)
     assert len(retried.records) == 4
 
 
+def test_workers_load_the_kernels_before_the_first_run_unless_told_the_function_needs_none(tmp_path):
+    warmed = engine.run_campaign(tmp_path / "warm", function("kernels_loaded"), [{"x": 0}], workers=1)
+    cold = engine.run_campaign(tmp_path / "cold", function("kernels_loaded"), [{"x": 0}], workers=1,
+                               warm_up=False)
+    assert warmed.records[0]["result"]["loaded"] is True
+    assert cold.records[0]["result"]["loaded"] is False
+
+
 def test_a_restarted_campaign_runs_only_the_missing_specifications(tmp_path):
-    first = engine.run_campaign(tmp_path, function("square"), [{"x": x} for x in range(3)], workers=1)
+    first = engine.run_campaign(tmp_path, function("square"), [{"x": x} for x in range(3)], workers=1,
+                                warm_up=False)
     assert first.ran == 3
     more = [{"x": x} for x in range(5)]
-    second = engine.run_campaign(tmp_path, function("square"), more, workers=1)
+    second = engine.run_campaign(tmp_path, function("square"), more, workers=1, warm_up=False)
     assert second.ran == 2
     assert [r["spec"]["x"] for r in second.records] == [0, 1, 2, 3, 4]
     assert len(engine.read_records(tmp_path)) == 5
 
 
 def test_a_folder_of_another_campaign_is_refused(tmp_path):
-    engine.run_campaign(tmp_path, function("square"), [{"x": 1}], workers=1, describe={"kind": "sweep"})
+    engine.run_campaign(tmp_path, function("square"), [{"x": 1}], workers=1, describe={"kind": "sweep"},
+                        warm_up=False)
     with pytest.raises(ValueError, match="holds another campaign"):
         engine.run_campaign(tmp_path, function("square"), [{"x": 1}], workers=1,
                             describe={"kind": "robustness"})
@@ -85,7 +96,7 @@ def test_a_worker_killed_mid_run_has_its_run_done_elsewhere_and_every_record_arr
 
     killer = threading.Thread(target=kill_the_first_to_start)
     killer.start()
-    out = engine.run_campaign(tmp_path / "campaign", function("slow"), specs, workers=2)
+    out = engine.run_campaign(tmp_path / "campaign", function("slow"), specs, workers=2, warm_up=False)
     killer.join()
     assert killed, "no run started"
     assert (out.ran, out.failed) == (4, 0)

@@ -2,6 +2,7 @@
 dropouts and bursts, their configuration, and the frames of the simulated rig."""
 import math
 import time
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -10,6 +11,7 @@ from soft_arm_drivers.sim.occlusion import OcclusionConfig, Occlusions, body, ca
 from soft_arm_drivers.sim.plant_config import load_plant_config
 from soft_arm_drivers.sim.simulated_rig import SimulatedRig
 from soft_arm_model import ArmData, build_model, load_arm_config, marker_positions, solve_equilibrium
+from soft_arm_model.config import with_basis
 from soft_arm_model.parameters import ConfigError
 
 # eight cameras 0.3 m around the z axis, 1 m above a horizontal rod along x at z = 0
@@ -78,6 +80,36 @@ def test_the_hanging_arm_is_seen_by_most_of_the_default_ring():
     assert np.all(np.diff(arcs) >= 0) and points.shape == (arcs.size, 3)
     seen = cameras_seeing(plant.occlusion, data.marker_p, model.marker_X, points, radii, arcs)
     assert np.all(seen >= 6), seen
+
+
+def test_of_arm_is_visible_on_the_arms_body_frame_for_frame():
+    """of_arm (the model's layout kept between frames) gives what visible gives on body()'s points,
+    frame for frame with the same random losses, through bent poses (markers hidden by the arm),
+    for a second model and inside a blackout."""
+    arm = load_arm_config()
+    config = load_plant_config(arm).occlusion
+    config = OcclusionConfig(**{**config.__dict__, "dropout": 0.1, "burst_fraction": (0.1, 0.2, 0.1, 0.3),
+                                "blackout": (0.5, 0.6)})
+    d = arm.discretisation
+    other = with_basis(replace(arm, geometry=replace(arm.geometry, tip_radius=0.5 * arm.geometry.tip_radius)),
+                       d.legendre_order, tuple(g + 2 for g in d.gauss_points))
+    models = [build_model(arm), build_model(other)]
+    assert models[1].X.size != models[0].X.size
+    fast, plain = (Occlusions(config, 4, 1 / 240, 7) for _ in range(2))
+    rng = np.random.default_rng(2)
+    hidden = 0
+    for frame in range(120):
+        model = models[frame // 60]
+        data = ArmData(model)
+        u = rng.uniform(0.0, 4.0, 4)
+        marker_positions(model, solve_equilibrium(model, u).q, data)
+        t = frame / 100
+        seen = fast.of_arm(model, data, t)
+        points, radii, arcs = body(model, data)
+        assert np.array_equal(seen, plain.visible(data.marker_p, model.marker_X, points, radii, arcs, t))
+        hidden += int((cameras_seeing(config, data.marker_p, model.marker_X, points, radii, arcs)
+                       < config.min_cameras).sum())
+    assert hidden > 0          # some poses hide a marker from the cameras, not only the random losses
 
 
 def test_dropouts_and_bursts_have_the_configured_rate_and_length():
