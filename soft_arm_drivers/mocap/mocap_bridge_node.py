@@ -23,6 +23,7 @@ status 2). The rig runs on the system clock (no ``use_sim_time``).
 """
 from __future__ import annotations
 
+import gc
 import os
 import sys
 import threading
@@ -103,6 +104,11 @@ class MocapBridgeNode(ManagedHardwareNode):
             return self.refuse("configure", f"no NatNet server answered at {c.server_address}:"
                                             f"{c.command_port} within {c.timeout:g} s (is Motive streaming?)")
         self.bridge = bridge
+        # The set-up loaded the frame reader's compiled code (numba's registries, some 10^4 objects)
+        # after run_node froze the process's start-up: frozen too, so that no collection in the
+        # receive thread walks them (docs/decisions/0001)
+        gc.collect()
+        gc.freeze()
         self._stop.clear()
         self._thread = threading.Thread(target=self._receive, name="natnet", daemon=True)
         self._thread.start()

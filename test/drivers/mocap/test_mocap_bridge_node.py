@@ -2,6 +2,7 @@
 streaming the simulated arm: its lifecycle (configure finds the server, only an active bridge
 publishes), mocap/markers and mocap/tip as the simulator publishes them, /diagnostics with the
 counters, and bad parameters stopping it with the key and status 2."""
+import gc
 import os
 import signal
 import socket
@@ -84,6 +85,8 @@ def test_node_publishes_the_arms_markers_in_arm_base(ros, plant):
         try:
             # configured: the stream is received and counted, nothing is published
             assert bridge.trigger_configure() == TransitionCallbackReturn.SUCCESS
+            # what the set-up allocated is out of the collector's generations (frozen)
+            assert not any(o is bridge.bridge for o in gc.get_objects())
             spin_until(executor, lambda: bridge.received >= 20)
             assert not got["markers"] and bridge.published == 0
             spin_until(executor, lambda: got["diagnostics"])
