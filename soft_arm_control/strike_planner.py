@@ -103,27 +103,32 @@ class StrikeShooter:
     def run(self, levels: np.ndarray, hold: np.ndarray, duration: float, record: bool = False):
         """Simulate to the duration: (task coordinates there [m] (nan if the state left the model's
         domain), the tip speed there [m/s], and with ``record`` (times, tensions, shortenings,
-        rates) at every step, else None)."""
+        rates) at every step, else None). Without ``record`` (the fit's runs) the steps go in one
+        compiled loop and only the end state is read."""
         u = self.commands(levels, hold, duration)
-        q, qd = self.q0.copy(), np.zeros(self.model.n)
-        d, m = self.stepper.data, self.model
         last = u.shape[0] - 1
+        q, qd = np.empty((last + 1, self.model.n)), np.empty((last + 1, self.model.n))
+        q[0], qd[0] = self.q0, 0.0
+        d = self.stepper.data
         s, sd = [], []
         try:
-            for k in range(last + 1):
-                self.stepper.prepare(q, qd, markers=k == last)
-                if record:
-                    s.append(m.rest_tendon_lengths - d.Lc)
-                    sd.append(-(d.A0.T @ qd))
-                if k == last:
-                    break
-                q, qd = self.stepper.advance(u[k])
+            if record:
+                for k in range(last):
+                    self.stepper.prepare(q[k], qd[k])
+                    s.append(self.model.rest_tendon_lengths - d.Lc)
+                    sd.append(-(d.A0.T @ qd[k]))
+                    q[k + 1], qd[k + 1] = self.stepper.advance(u[k])
+            elif self.stepper.run(q, qd, u) < last:
+                raise OutOfDomainError("the strike's run left the model's domain")
+            self.stepper.prepare(q[last], qd[last], markers=True)
         except OutOfDomainError:
             return np.full(self.space.m, np.nan), np.nan, None
         x = self.space.from_markers(d.marker_p)
-        speed = float(np.linalg.norm(d.marker_R[-1] @ (d.marker_J[-1][3:] @ qd)))
+        speed = float(np.linalg.norm(d.marker_R[-1] @ (d.marker_J[-1][3:] @ qd[last])))
         if not record:
             return x, speed, None
+        s.append(self.model.rest_tendon_lengths - d.Lc)
+        sd.append(-(d.A0.T @ qd[last]))
         return x, speed, (np.arange(last + 1) * self.timestep, u, np.array(s), np.array(sd))
 
 

@@ -129,6 +129,30 @@ def test_the_fit_ends_at_the_first_levels_within_enough(strike):
     assert exact < miss and len(misses) > stopped
 
 
+def test_a_run_without_its_record_ends_where_the_recorded_run_ends(strike):
+    """The fit's runs (one compiled loop, the end read once) end where the recorded runs (stepped
+    one at a time from Python, every sample read) end, to rounding (the same kernels: bit for bit
+    where the compiler inlines them alike), with and without a rate limit; a run that leaves the
+    model's domain is NaN in both."""
+    model, control, task, _, goal = strike
+    hold = np.asarray(goal.u_ff)
+    for limit in (0.0, 20.0):
+        shooter = StrikeShooter(model, task.space, task.tendons, control.tension_min, control.rotor_mass,
+                                FIT_STEP, limit)
+        for level in (0.5, 2.0, 5.0):
+            levels = np.array([[level, 0.05, level, 0.05], [0.05, level, 0.05, level]])
+            x, speed, samples = shooter.run(levels, hold, 0.3)
+            x_rec, speed_rec, recorded = shooter.run(levels, hold, 0.3, record=True)
+            assert samples is None
+            assert np.allclose(x, x_rec, rtol=0, atol=1e-12) and speed == pytest.approx(speed_rec, rel=1e-9)
+            assert np.all(np.isfinite(x)) and recorded[2].shape == (recorded[0].size, model.n_tendons)
+    free = StrikeShooter(model, task.space, task.tendons, control.tension_min, control.rotor_mass, FIT_STEP)
+    away = np.full((2, 4), 1000.0)                      # a kN on every tendon: out of the domain
+    for record in (False, True):
+        x, speed, samples = free.run(away, hold, 0.3, record=record)
+        assert np.all(np.isnan(x)) and np.isnan(speed) and samples is None
+
+
 def _recorded_off_by(monkeypatch, offset, below: float):
     """The planner's recorded runs (``record=True``) shifted by ``offset`` [m] on every task
     coordinate when shorter than ``below`` [s]: a finer step that moves the arm's end point
