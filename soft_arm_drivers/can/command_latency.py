@@ -16,6 +16,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .order_statistics import percentile
+
 WINDOW = 1000           # answers the statistics look back over (2 s at 500 Hz)
 REMEMBERED = 64         # published states an answer is matched against (128 ms at 500 Hz)
 STAMP_TOLERANCE = 1e-6  # s: a command's stamp matches a state's within this (stamps are rounded to ns)
@@ -76,10 +78,11 @@ class CommandLatency:
         recent = self._latencies[:min(self.answers, self._latencies.size)]
         if recent.size == 0:
             return LatencyStatistics(0, math.nan, math.nan, math.nan, self.unmatched)
-        p50, p99 = np.percentile(recent, [50, 99])
+        ascending = np.sort(recent)
+        p50, p99 = percentile(ascending, 50), percentile(ascending, 99)
         below = np.cumsum(self._run_counts)            # answers in this bin or a shorter one
-        # the bin of the sample np.percentile's interpolated p99 reaches up to (0-based rank)
+        # the bin of the sample the interpolated p99 reaches up to (0-based rank)
         k = int(np.searchsorted(below, math.ceil(0.99 * (self.answers - 1)) + 1))
         run_p99 = self._run_max if k >= below.size - 1 else min((k + 1) * RUN_BIN, self._run_max)
-        return LatencyStatistics(int(recent.size), float(p50), float(p99), float(recent.max()),
+        return LatencyStatistics(int(recent.size), p50, p99, float(ascending[-1]),
                                  self.unmatched, self.answers, float(run_p99), float(self._run_max))

@@ -57,6 +57,7 @@ import numpy as np
 from .driver_config import DriverConfig, Motor, open_bus
 from .mit_protocol import (ENTER_MOTOR_MODE, EXIT_MOTOR_MODE, MOTOR_ERRORS, REPLY_LENGTHS, SET_ZERO_POSITION,
                            decode_reply, torque_frame)
+from .order_statistics import percentile
 from .velocity_scale import VelocityScaleCheck
 
 __all__ = ["Cycle", "Diagnostics", "DriverState", "HOST_ID", "MotorDiagnostics", "MotorDriver",
@@ -350,10 +351,10 @@ class MotorDriver:
         periods = self._periods[:min(max(self.cycles - 1, 0), PERIOD_WINDOW)]
         if periods.size == 0:
             return CycleStatistics(0, math.nan, math.nan, math.nan, math.nan, self.late_cycles)
-        p50, p99 = np.percentile(periods, [50, 99])
-        error = np.percentile(np.abs(periods - 1.0 / self.config.rate), 99)
-        return CycleStatistics(int(periods.size), float(p50), float(p99), float(periods.max()),
-                               float(error), self.late_cycles)
+        ordered = np.sort(periods)
+        error = np.sort(np.abs(periods - 1.0 / self.config.rate))
+        return CycleStatistics(int(periods.size), percentile(ordered, 50), percentile(ordered, 99),
+                               float(ordered[-1]), percentile(error, 99), self.late_cycles)
 
     def _read(self, now: float) -> np.ndarray:
         """Take every frame waiting on the bus; update the readings of the motors that replied."""

@@ -2,6 +2,9 @@
 lockstep with explicit time: conversions, zeroing, reply matching, every safety case, determinism;
 the emulator's protocol behaviour; the ``rig.motors`` configuration."""
 import math
+import os
+import subprocess
+import sys
 
 import can
 import numpy as np
@@ -10,6 +13,7 @@ import pytest
 from soft_arm_drivers.can.driver_config import Motor, load_driver_config
 from soft_arm_drivers.can.mit_protocol import MOTOR_PRESETS, decode_command, encode_command, encode_reply
 from soft_arm_drivers.can.motor_driver import PERIOD_WINDOW, MotorDriver, tension_frame
+from soft_arm_drivers.can.order_statistics import percentile
 from soft_arm_drivers.sim.can_emulator import CanMotorEmulator, arm_plant
 from soft_arm_model.parameters import ConfigError
 
@@ -395,6 +399,51 @@ def test_cycle_statistics_show_a_delayed_cycle_and_look_back_a_window(make_rig):
     stats = rig.driver.cycle_statistics()
     assert stats.cycles == PERIOD_WINDOW and stats.deadline_misses == 1     # a count, not a window
     assert stats.period_max == pytest.approx(period, abs=1e-9)
+
+
+def test_the_percentiles_are_numpys():
+    rng = np.random.default_rng(4)
+    for n in (1, 2, 3, 10, 999, PERIOD_WINDOW):
+        values = np.sort(rng.exponential(2e-3, n))
+        for q in (0, 1, 50, 99, 100):
+            assert percentile(values, q) == pytest.approx(np.percentile(values, q), rel=1e-12, abs=1e-18)
+
+
+_CYCLES_IMPORT_NOTHING = """
+import sys
+from can_rig import Rig, driver_config
+from soft_arm_drivers.can.command_latency import CommandLatency
+rig = Rig(driver_config())
+latency = CommandLatency()
+rig.step(2)
+rig.driver.enable()
+rig.step(2, [1.0, 1.0, 1.0, 1.0])
+before = set(sys.modules)
+for k in range(600):
+    latency.published(k * 0.002, k * 0.002)
+    latency.answered(k * 0.002, k * 0.002 + 1e-3)
+    rig.step(1, [2.0, 1.0, 2.0, 1.0])
+rig.driver.diagnostics()
+rig.driver.cycle_statistics()
+latency.statistics()
+rig.driver.disable()
+rig.step(2)
+print(sorted(set(sys.modules) - before))
+rig.close()
+"""
+
+
+def test_cycles_commands_and_reports_import_nothing_once_running():
+    """A module imported in the cycle thread holds the interpreter for the whole import (numpy
+    imports numpy.ma at np.percentile's first call: 0.3 s on a loaded machine, past the watchdog):
+    once enabled, cycles, commands, the diagnostics, the cycle statistics and the command latency's
+    import no module. In a fresh process, whose modules are the driver's own (this one has imported
+    the whole suite's)."""
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([os.path.dirname(__file__)] + sys.path))
+    out = subprocess.run([sys.executable, "-c", _CYCLES_IMPORT_NOTHING], env=env, capture_output=True,
+                         text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "[]", out.stdout
 
 
 # -- the emulator ------------------------------------------------------------------------------------

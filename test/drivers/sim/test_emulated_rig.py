@@ -99,8 +99,43 @@ def test_emulator_config_is_validated_and_laid_over_the_rig():
         load_emulator_config(overrides={"reply_dealy": 0.001})
 
 
+# Loaded by every Python process of a run through PYTHONPATH: once a process has frozen its set-up
+# (run_node, the emulated hardware), a module imported by a thread other than the main one (a
+# driver's cycle, the mocap's receive thread, the motors' loop) is written down. Such an import
+# holds the interpreter for all of it, 0.3 s on a loaded machine: past the watchdogs.
+_LATE_IMPORT_PROBE = """
+import gc, os, sys, threading
+_freeze, _frozen = gc.freeze, []
+
+
+def _freeze_marked():
+    _frozen.append(True)
+    _freeze()
+
+
+def _audit(event, args):
+    if event == "import" and _frozen and threading.current_thread() is not threading.main_thread():
+        name = " ".join(sys.orig_argv[1:3])
+        with open(os.path.join(os.environ["SOFT_ARM_LATE_IMPORTS"], str(os.getpid())), "a") as fh:
+            fh.write(f"{name} [{threading.current_thread().name}]: {args[0]}\\n")
+
+
+gc.freeze = _freeze_marked
+sys.addaudithook(_audit)
+"""
+
+
 def test_closed_loop_through_the_emulated_hardware_reaches_the_target_like_the_simulator(
-        tmp_path, config_dir):
+        tmp_path, config_dir, monkeypatch):
+    """The one target through the emulated hardware as on the simulator; no process of the run
+    imports a module from a thread other than its main one once running (:data:`_LATE_IMPORT_PROBE`)."""
+    probe, late = tmp_path / "probe", tmp_path / "late_imports"
+    probe.mkdir()
+    late.mkdir()
+    (probe / "sitecustomize.py").write_text(_LATE_IMPORT_PROBE, encoding="utf-8")
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join(filter(None, [str(probe),
+                                                                   os.environ.get("PYTHONPATH")])))
+    monkeypatch.setenv("SOFT_ARM_LATE_IMPORTS", str(late))
     sets = [a for s in ONE_TARGET for a in ("--set", s)]
     for attempt in ("hil", "hil_rerun"):
         out = tmp_path / attempt
@@ -115,6 +150,7 @@ def test_closed_loop_through_the_emulated_hardware_reaches_the_target_like_the_s
             break
     assert status == 0, hil
     assert hil["run"]["emulated_hardware"] and hil["run"]["driver_faults"] == []
+    assert not list(late.iterdir()), "".join(p.read_text() for p in late.iterdir())
     # the enable follows the run's own nodes' last change by the settle (the nodes' start-up is the
     # machine's: seconds more under load)
     assert hil["run"]["motors_enabled_s"] - hil["run"]["graph_quiet_s"] <= GRAPH_SETTLE + 5.0, hil["run"]
