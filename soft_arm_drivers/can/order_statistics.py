@@ -2,7 +2,7 @@
 
 Not ``np.percentile``: its first call in a process imports ``numpy.ma`` (``np.unique`` asks
 whether the array is masked), and an import in the cycle thread holds the interpreter until it is
-done, 0.3 s on a loaded machine: past the watchdog, the motors were left unwatched.
+done, 0.3 s on a loaded machine: past the watchdog, which then faults the run.
 """
 from __future__ import annotations
 
