@@ -14,27 +14,10 @@ import numpy as np
 
 from soft_arm_drivers.mocap.bridge_config import load_mocap_config
 from soft_arm_model.config import ArmConfig, load_arm_config, with_basis
+from soft_arm_model.lie import expmap
 from soft_arm_model.parameters import ConfigError, default_config_dir, load_section
 
 from .occlusion import OcclusionConfig
-
-
-def rotation_matrix(rotvec) -> np.ndarray:
-    """The rotation (3, 3) of a rotation vector (3,) [rad] (axis times angle), by Rodrigues' formula:
-    I + sin(a)/a K + (1 - cos(a))/a^2 K^2, K the cross-product matrix of the vector, a its norm
-    (the second coefficient as 2 sin^2(a/2)/a^2, which does not cancel; both as series below
-    1e-4 rad). Written out rather than scipy's Rotation, whose import (0.1-0.2 s) every simulator
-    and emulated-rig process would pay for this one matrix."""
-    w = np.asarray(rotvec, dtype=float).reshape(3)
-    a2 = float(w @ w)
-    if a2 < 1e-8:
-        first, second = 1.0 - a2 / 6.0, 0.5 - a2 / 24.0
-    else:
-        a = math.sqrt(a2)
-        first, second = math.sin(a) / a, 2.0 * (math.sin(0.5 * a) / a) ** 2
-    K = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
-    return np.eye(3) + first * K + second * (K @ K)
-
 
 PLANT_SCHEMA = {
     "plant_file": ("str", None, "the path of a complete arm description in the schema of arm.yaml, "
@@ -176,7 +159,10 @@ class PlantConfig:
         """(A (3, 3), b [m] (3,)): ``mocap_frame_error`` then ``bridge_correction`` as one affine map
         p -> A p + b, composed once (every simulated mocap frame applies it)."""
         rotvec, translation = self.mocap_frame_error
-        R = rotation_matrix(rotvec)
+        # the rotation vector's exponential by the model's own kernel: scipy's Rotation would cost
+        # every simulator and emulated-rig process 0.1-0.2 s to import
+        R, _ = np.empty((3, 3)), np.empty(3)
+        expmap(np.concatenate([np.asarray(rotvec, dtype=float), np.zeros(3)]), R, _)
         rotation, shift = (np.asarray(a, dtype=float) for a in self.bridge_correction)
         return rotation @ R, rotation @ np.asarray(translation, dtype=float) + shift
 

@@ -156,18 +156,3 @@ def test_the_plant_stays_the_same_arm_whatever_arm_file_the_controller_is_given(
                        arm_file=_identified_arm_file(tmp_path / "arm.yaml", believed))
     assert other.arm.material.youngs_modulus == pytest.approx(2 * truth.material.youngs_modulus)
     assert other.plant.plant_arm(other.arm) == truth
-
-
-def test_the_rotation_of_a_rotation_vector_is_scipys_at_every_angle():
-    """rotation_matrix (Rodrigues' formula, the series near zero) against scipy's Rotation, from
-    the identity through 1e-9 .. 1e-3 rad (both sides of the series' switch) to a half turn."""
-    from scipy.spatial.transform import Rotation
-    from soft_arm_drivers.sim.plant_config import rotation_matrix
-    rng = np.random.default_rng(5)
-    assert np.array_equal(rotation_matrix([0.0, 0.0, 0.0]), np.eye(3))
-    for angle in (1e-9, 1e-5, 9.9e-5, 1.01e-4, 1e-3, 0.1, 1.0, 3.0, math.pi):
-        for axis in rng.normal(size=(5, 3)):
-            w = angle * axis / np.linalg.norm(axis)
-            R = rotation_matrix(w)
-            assert np.allclose(R, Rotation.from_rotvec(w).as_matrix(), rtol=0, atol=1e-14)
-            assert np.allclose(R @ R.T, np.eye(3), rtol=0, atol=1e-14)
