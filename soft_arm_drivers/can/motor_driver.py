@@ -296,10 +296,15 @@ class MotorDriver:
         return fresh
 
     # -- the cycle -----------------------------------------------------------------------------
-    def cycle(self) -> Cycle:
+    def cycle(self, publish_time: float = 0.0) -> Cycle:
         """One period, now on the driver's clock: read the replies, check the safety conditions,
         send a frame to every motor; the state and diagnostics. A clock that runs backwards is not
-        monotonic: RuntimeError (the node's cycle thread ends on it, the motors at zero torque)."""
+        monotonic: RuntimeError (the node's cycle thread ends on it, the motors at zero torque).
+
+        ``publish_time`` [s]: how long the caller's publishing after the previous cycle took (its
+        state, diagnostics, logs), so that a ``cycle held`` fault says when most of the hold was
+        spent there: the middleware can hold a publish, and with it every thread of the Python
+        process (docs/decisions/0005)."""
         if self._closed:
             raise RuntimeError("the driver is closed")
         now = float(self.clock())
@@ -314,7 +319,8 @@ class MotorDriver:
             self._watch_from = now
         fresh = self._read(now)
         # unwatched since the previous cycle or since enable(), whichever came later
-        self._check(now, 0.0 if self._last_cycle is None else now - max(self._last_cycle, self._watch_from))
+        self._check(now, 0.0 if self._last_cycle is None else now - max(self._last_cycle, self._watch_from),
+                    publish_time)
         if self.mode == "enabled":
             step = self.config.tension_rate_limit * dt
             self._applied = self._applied + np.clip(self._target - self._applied, -step, step)
@@ -399,17 +405,20 @@ class MotorDriver:
                 self._trip(f"motor {motor.can_id}: {mismatch} (rig.motors.models)")
         return fresh
 
-    def _check(self, now: float, gap: float):
+    def _check(self, now: float, gap: float, publish_time: float):
         """Reply timeouts (every mode), the command watchdog and the watchdog's own deadline
         (enabled): ``gap`` [s] since the previous cycle (or since enable(), if later) longer than
         ``watchdog_timeout`` means nothing watched the enabled motors that long (the cycle held:
         its process stopped, swapped out or stuck in the middleware, or the hardware lock held),
         whatever the command's age reads now; the motors' firmware timeout may have zeroed them
-        meanwhile."""
+        meanwhile. The fault names the previous cycle's publishing when it took half the gap or
+        more (``publish_time`` [s])."""
         c = self.config
         if self.mode == "enabled" and gap > c.watchdog_timeout:
+            where = (f"; {publish_time:.4f} s of it in the node's publishing after the previous cycle"
+                     if publish_time >= 0.5 * gap else "")
             self._trip(f"cycle held: {gap:.4f} s since the previous cycle, the motors unwatched "
-                       f"(watchdog_timeout {c.watchdog_timeout:g} s)")
+                       f"(watchdog_timeout {c.watchdog_timeout:g} s){where}")
         silence = now - np.maximum(self._reply_time, self._watch_from)
         for i in np.flatnonzero(silence > c.reply_timeout):
             self._trip(f"motor {c.motors[i].can_id} silent for {silence[i]:.4f} s "

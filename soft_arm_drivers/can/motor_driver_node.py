@@ -101,6 +101,7 @@ class MotorDriverNode(ManagedHardwareNode):
         self.latency = CommandLatency()
         self.activated_at = self.first_command_after = None    # monotonic [s]; activate -> command [s]
         self._status, self._last_diagnostics = None, -float("inf")
+        self._publish_time = 0.0        # [s] the previous tick's publishing, for the driver's watchdog
         self.state_pub = self.create_publisher(JointState, TOPICS["state"], QOS["tendon/state"])
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.command_sub = self.create_subscription(JointState, TOPICS["command"], self.on_command,
@@ -235,8 +236,10 @@ class MotorDriverNode(ManagedHardwareNode):
 
     def tick(self, now: float):
         """One driver cycle, from the cycle thread at ``now`` [s, monotonic], holding the hardware
-        lock; the driver reads its own clock (the same monotonic clock)."""
-        state, diagnostics = self.driver.cycle()
+        lock; the driver reads its own clock (the same monotonic clock). What follows the cycle
+        (publishing, logging, a deactivation) is timed for the next cycle's watchdog to name."""
+        state, diagnostics = self.driver.cycle(self._publish_time)
+        published = time.monotonic()
         if state.complete:
             self.state_pub.publish(joint_state(self.names, state.stamp, position=state.shortening,
                                                velocity=state.rate, effort=state.tension))
@@ -246,6 +249,7 @@ class MotorDriverNode(ManagedHardwareNode):
         self._report(diagnostics)
         if diagnostics.fault is not None and self.lifecycle_state == "active":
             self.trigger_deactivate()          # zero torque already; the node says it drives nothing
+        self._publish_time = time.monotonic() - published
 
     def _report(self, diagnostics: Diagnostics, force: bool = False):
         """Publish /diagnostics if forced, on a change of mode or fault, or every DIAGNOSTICS_PERIOD."""

@@ -330,15 +330,43 @@ def test_diagnostics_report_a_delayed_cycle_as_a_deadline_miss(rig):
     before = int(values()["deadline_misses"])
     cycle, held = node.driver.cycle, []
 
-    def held_once():
+    def held_once(*args):
         if not held:
             held.append(time.monotonic())
             time.sleep(0.025)
-        return cycle()
+        return cycle(*args)
     node.driver.cycle = held_once
     spin_until(executor, lambda: held and int(values()["deadline_misses"]) > before)
     assert float(values()["period_max_ms"]) >= 25.0
     assert 1.5 < float(values()["period_p50_ms"]) < 3.0
+
+
+def test_a_publish_that_holds_the_cycle_past_the_watchdog_is_named_in_the_fault(rig):
+    """The state's publish held for 0.3 s while the motors pull (what the middleware does when it
+    opens a new reader's shared-memory port: decision 0005): the next cycle trips the watchdog, and
+    the fault says the hold was spent in the node's publishing."""
+    executor, node, harness, emulator = rig
+    assert change(executor, harness, "configure")
+    harness.tension = [2.0, 0.0, 0.0, 0.0]
+    assert change(executor, harness, "activate") and node.lifecycle_state == "active"
+    start = len(harness.states)
+    spin_until(executor, lambda: len(harness.states) > start + 50)
+    assert node.driver.fault is None
+    publish, held = node.state_pub.publish, []
+
+    def held_once(msg):
+        if not held:
+            held.append(time.monotonic())
+            time.sleep(0.3)
+        publish(msg)
+    node.state_pub.publish = held_once
+    spin_until(executor, lambda: node.driver.fault is not None)
+    fault = re.fullmatch(r"cycle held: ([0-9.]+) s since the previous cycle, the motors unwatched "
+                         r"\(watchdog_timeout 0.2 s\); ([0-9.]+) s of it in the node's publishing after "
+                         r"the previous cycle", node.driver.fault)
+    assert fault is not None, node.driver.fault
+    assert 0.3 <= float(fault.group(2)) <= float(fault.group(1))
+    spin_until(executor, lambda: not any(m.motor_mode for m in emulator.motors))
 
 
 def test_rig_yaml_parses_with_the_ros_parameter_parser():
@@ -479,14 +507,14 @@ FAILING_CYCLE = """
 from soft_arm_drivers.can.motor_driver import MotorDriver
 cycle, enabled_at = MotorDriver.cycle, []
 
-def failing(self):
+def failing(self, *args):
     # raises 0.2 s after the enable, in whatever mode: a fault latched meanwhile (a loaded machine's
     # late reply) must not leave the injection waiting for an enabled cycle that never comes
     if self.mode == "enabled" and not enabled_at:
         enabled_at.append(self.clock())
     if enabled_at and self.clock() - enabled_at[0] > 0.2:
         raise RuntimeError("injected: the bus vanished")
-    return cycle(self)
+    return cycle(self, *args)
 MotorDriver.cycle = failing
 """
 

@@ -395,8 +395,10 @@ def test_a_stopped_driver_process_leaves_the_motors_to_their_firmware_timeout(tm
     assert status == 1 and "no result" in output, output
     with open(out / "metrics.json", encoding="utf-8") as fh:
         metrics = json.load(fh)
+    # (the stop may come while the cycle thread publishes: then the fault says where it was held)
     held = re.fullmatch(r"fault: cycle held: ([0-9.]+) s since the previous cycle, the motors unwatched "
-                        r"\(watchdog_timeout 0.25 s\)", metrics["run"]["driver_faults"][0]["message"])
+                        r"\(watchdog_timeout 0.25 s\)(; [0-9.]+ s of it in the node's publishing after "
+                        r"the previous cycle)?", metrics["run"]["driver_faults"][0]["message"])
     assert metrics["valid"] is False and held is not None, metrics["run"]["driver_faults"]
     assert FIRMWARE_TIMEOUT + 0.3 <= float(held.group(1)) < FIRMWARE_TIMEOUT + 0.6
 
@@ -420,17 +422,20 @@ def test_the_bridge_takes_the_mocap_calibration_of_the_arm_file(interrupted):
 
 def _deactivated_from_elsewhere(config_dir, out, context):
     """A run whose motor driver another node asks to deactivate 1 s after its activation: (whether
-    it was deactivated, the run's whole output, its status)."""
+    it was deactivated, the run's whole output, its status). The other node and its client join
+    the graph before the activation, as the rig's docs ask of every tool: this test's process has
+    long been up, and a reader it adds mid-run can hold the driver's process for a third of a second
+    (docs/decisions/0005), which the driver's watchdog rightly reports as a held cycle."""
     proc = _experiment(config_dir, out, "--quiet")
     with killed_on_exit(proc):
-        seen = wait_for_output(proc, "[motor_driver]: activated", timeout=120)
         operator = rclpy.create_node("operator", context=context)
         executor = SingleThreadedExecutor(context=context)
         executor.add_node(operator)
         try:
-            time.sleep(1.0)
             client = operator.create_client(ChangeState, "/motor_driver/change_state")
-            spin_until(executor, client.service_is_ready, 30.0, unless_ended=proc)
+            spin_until(executor, client.service_is_ready, 60.0, unless_ended=proc)
+            seen = wait_for_output(proc, "[motor_driver]: activated", timeout=120)
+            time.sleep(1.0)
             deactivated = False
             if client.service_is_ready():
                 future = client.call_async(ChangeState.Request(transition=Transition(label="deactivate")))
