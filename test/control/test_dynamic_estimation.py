@@ -204,7 +204,8 @@ def test_a_payload_beyond_its_linear_share_is_covered_at_rest_by_its_sigma_point
     does not reach (the droop turns as it grows): without the payload's spread the tip's NEES is far
     beyond the chi-square bound; with it (the static filter on the model with the payload's sigma
     points at the tip) within it. With the markers seen the spread shrinks to a fraction of a
-    millimetre (they pin the tip), and a filter told of no payload runs no sigma point."""
+    millimetre (they pin the tip), and a filter told of no payload runs no sigma point. The spread
+    is held through a move."""
     sigma, payload, u = 0.0029, 0.0046, np.array([1.2, 0.3, 0.8, 0.5])
     plant = build_model(replace(arm, tip_mass=arm.tip_mass + payload))
     q = solve_equilibrium(plant, u).q
@@ -231,6 +232,10 @@ def test_a_payload_beyond_its_linear_share_is_covered_at_rest_by_its_sigma_point
     assert np.sqrt(np.linalg.eigvalsh(seen_spread)[-1]) < 5e-4, seen_spread
     untold = DynamicShapeEstimator(model, replace(CONFIG, prior_payload=0.0), ROTOR)
     assert not untold._payload_filters
+    # held through a move (samples whose tendons are faster than rest_speed), as the gap is
+    for k in range(301, 311):
+        blind.update(k / CONFIG.rate, s + 1e-4 * (k - 300), rest + 10 * CONFIG.rest_speed, u)
+    assert all(np.array_equal(a, b) for a, b in zip(spread, blind.payload_spread))
 
 
 def test_at_rest_the_static_balance_is_a_second_opinion_the_covariance_carries(model):
