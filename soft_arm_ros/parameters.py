@@ -38,6 +38,8 @@ GRAPH_SCHEMA = {
     "simulator.mode": ("str", lambda v: v in ("lockstep", "realtime"), "lockstep or realtime"),
     "simulator.command_timeout": ("float", lambda v: 0 < v <= 10,
                                   "a time in (0, 10] s after which a command is stale"),
+    "simulator.max_real_time_factor": ("float", lambda v: 0 <= v <= 1000,
+                                       "a factor in [0, 1000] (0: as fast as the graph answers)"),
     "simulator.shape_rate": ("float", lambda v: 0 <= v <= 1000, "a rate in [0, 1000] Hz (0: off)"),
     "recorder.topics": ("strs", lambda v: len(v) >= 1, "one or more topic names"),
     "recorder.chunk_size": ("int", lambda v: 1024 <= v <= 1 << 30, "a size in [1 KiB, 1 GiB] bytes"),

@@ -34,6 +34,7 @@ SERIAL = ("drivers/sim/test_emulated_rig.py", "drivers/sim/test_emulated_hardwar
           "drivers/mocap/test_mocap_bridge_node.py", "drivers/mocap/test_mocap_bridge.py",
           "drivers/recording/test_recorder_node.py",
           "graph/test_nodes.py::test_simulator_in_realtime_holds_the_tension_and_counts_missing_commands",
+          "graph/test_nodes.py::test_simulator_in_lockstep_keeps_to_its_real_time_factor",
           "graph/test_nodes.py::test_a_slow_clik_takes_a_goal_at_once_and_drops_the_frames_it_cannot_"
           "keep_up_with",
           "graph/test_nodes.py::test_ctrl_c_stops_the_experiment_and_keeps_the_bag",

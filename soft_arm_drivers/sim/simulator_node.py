@@ -12,7 +12,9 @@ rig the mocap bridge publishes it as a second rigid body) and it is released at 
 ``pendulum/release`` message (std_msgs/Header).
 
 Modes (``graph.simulator.mode``): ``lockstep`` advances one inner-loop period per received command
-(deterministic, as fast as the graph answers); ``realtime`` advances on the wall clock. A command
+(deterministic, as fast as the graph answers, and at most ``graph.simulator.max_real_time_factor``
+times as fast as the wall clock, so that the nodes outside the lock get the rig's time budget:
+:mod:`.real_time_limit`); ``realtime`` advances on the wall clock. A command
 that is missing (lockstep: none within ``command_timeout`` of wall time; realtime: older than
 ``command_timeout`` of sim time) or malformed holds the last tension and is counted, never a crash.
 The plant's parameters are ``plant.*`` over ``arm.*``, so plant and controller models differ;
@@ -42,13 +44,16 @@ from soft_arm_ros.parameters import NodeParameters, parameter_overrides
 from soft_arm_ros.runtime import run_node
 
 from .plant_config import describe_plant, plant_of, with_bridge_calibration
+from .real_time_limit import RealTimeLimit
 from .simulated_rig import SimulatedRig
 
 
 class SimulatorNode(Node):
-    def __init__(self, config_dir: str | None = None, watchdog: bool = True, **node_options):
+    def __init__(self, config_dir: str | None = None, watchdog: bool = True, paced: bool = True,
+                 **node_options):
         """``watchdog``: in lockstep, step on the held tension when no command comes within
-        ``command_timeout`` of wall time (off when a wave executor guarantees delivery)."""
+        ``command_timeout`` of wall time; ``paced``: in lockstep, keep to
+        ``max_real_time_factor`` (both off when a wave executor runs every node in the lock)."""
         super().__init__("simulator", allow_undeclared_parameters=True,
                          automatically_declare_parameters_from_overrides=True, **node_options)
         params = NodeParameters(self, config_dir)
@@ -71,6 +76,8 @@ class SimulatorNode(Node):
         self.names = model.tendon_names
         self.steps_per_command = max(1, int(round(1.0 / (control.inner_rate * plant.timestep))))
         self.mode = graph["simulator.mode"]
+        self.limit = RealTimeLimit(graph["simulator.max_real_time_factor"]
+                                   if paced and self.mode == "lockstep" else 0.0)
         self.timeout = graph["simulator.command_timeout"]
         shape_rate = graph["simulator.shape_rate"]
         self.shape_every = max(1, int(round(1.0 / (shape_rate * plant.timestep)))) if shape_rate else 0
@@ -144,6 +151,7 @@ class SimulatorNode(Node):
             self.missing_commands += 1
         for _ in range(self.steps_per_command):
             self._step()
+        self.limit.hold(self.steps_per_command * self.plant.timestep)
         self.publish_state()
 
     def _publish_frames(self, frames):

@@ -159,9 +159,8 @@ def test_processes_mode_runs_each_node_as_its_own_process(tmp_path, monkeypatch)
     with open(out / "metrics.json", encoding="utf-8") as fh:
         metrics = json.load(fh)
     # the precomputed step leaves ~7 mm on this plant; 4 s of online refinement at 0.5/s close it.
-    # The window leaves them whatever the start: the lockstep simulator and the inner loop take both
-    # cores, and the CLIK's first reference for a goal comes up to 3 s of simulated time late in
-    # about one run of six
+    # The simulator keeps to real time (graph.simulator.max_real_time_factor), so that a CLIK step
+    # slowed by a loaded computer costs the simulated time it would cost on the rig
     assert metrics["transitions"][0]["final_error"] < 3e-3
     assert sorted(p.name for p in (out / "figures").iterdir()) == [
         "actuation.png", "task_error.png", "tensions.png"]

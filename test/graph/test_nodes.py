@@ -162,6 +162,56 @@ def test_simulator_in_realtime_holds_the_tension_and_counts_missing_commands():
         rclpy.try_shutdown()
 
 
+def _lockstep_run(wall: float, factor: float, paced: bool = True) -> float:
+    """Simulated seconds [s] a lockstep simulator (``max_real_time_factor`` = ``factor``) makes in
+    ``wall`` seconds against a peer that answers every state at once."""
+    import rclpy
+    from geometry_msgs.msg import PoseArray
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.parameter import Parameter
+    from sensor_msgs.msg import JointState
+
+    from soft_arm_drivers.sim.simulator_node import SimulatorNode
+    from soft_arm_ros.contract import QOS
+    from soft_arm_ros.conversions import joint_state
+    rclpy.init()
+    try:
+        sim = SimulatorNode(paced=paced, parameter_overrides=[
+            Parameter("graph.task", value="coiling"),
+            Parameter("graph.simulator.max_real_time_factor", value=factor)])
+        peer = rclpy.create_node("peer")
+        command = peer.create_publisher(JointState, "tendon/command", QOS["tendon/command"])
+        peer.create_subscription(JointState, "tendon/state", lambda msg: command.publish(
+            joint_state(sim.names, 0.0, effort=[0.05] * 4)), QOS["tendon/state"])
+        peer.create_subscription(PoseArray, "mocap/markers", lambda msg: None, QOS["mocap/markers"])
+        executor = SingleThreadedExecutor()
+        executor.add_node(sim)
+        executor.add_node(peer)
+        deadline = time.monotonic() + 20.0
+        while sim.rig.t == 0.0:                        # until the peer's first answer
+            assert time.monotonic() < deadline, "no command answered the simulator's first state"
+            executor.spin_once(timeout_sec=0.01)
+        start, t0 = time.monotonic(), sim.rig.t
+        while time.monotonic() < start + wall:
+            executor.spin_once(timeout_sec=0.01)
+        simulated = sim.rig.t - t0
+        executor.shutdown()
+        sim.destroy_node()
+        peer.destroy_node()
+        return simulated
+    finally:
+        rclpy.try_shutdown()
+
+
+def test_simulator_in_lockstep_keeps_to_its_real_time_factor():
+    """Answered at once, a lockstep simulator runs faster than a quarter of real time unpaced
+    (the composed run's wave executor), and at most a quarter (plus one step) with
+    ``max_real_time_factor`` 0.25, not far below it either."""
+    assert _lockstep_run(1.0, 0.25, paced=False) > 0.5
+    simulated = _lockstep_run(1.0, 0.25)
+    assert 0.15 < simulated <= 0.25 * (1.0 + 0.01) + 0.002
+
+
 def _clik(task, sent, **parameters):
     """A clik node for ``task`` with more ``parameters`` (dotted name: value), its references
     appended to ``sent`` instead of published (rclpy initialised by the caller)."""
