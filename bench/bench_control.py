@@ -126,7 +126,7 @@ def bench_estimator() -> dict:
     dynamic_rest = best_of(lambda: dynamic.update(next(clock), s, zero, u), inner=50)
     dynamic_rest_fused = best_of(lambda: dynamic.update(next(clock), s, zero, u, markers), inner=50)
     # told of a payload (an identified arm's uncertainty, the robustness campaign's 2.9 g): at rest
-    # the payload's sigma points run beside the second opinion
+    # the payload's sigma point's filter runs beside the second opinion, every fourth sample
     told = DynamicShapeEstimator(model, replace(setup.estimator, prior_payload=0.0029),
                                  setup.control.rotor_mass)
     payload_rest = best_of(lambda: told.update(next(clock), s, zero, u), inner=50)
@@ -201,7 +201,7 @@ def main():
           f" / {at_rest[1]:.3f} ms with 4 markers   (with the static filter's second opinion)")
     payload = steps["dynamic_estimator_update_at_rest_payload_ms"]
     print(f"dynamic shape estimator update, at rest     {payload:8.3f} ms"
-          "   (told of a payload: its sigma points beside the second opinion)")
+          "   (told of a payload: its sigma point's filter beside the second opinion)")
     print(f"dynamic shape estimator update, 4 markers   {dynamic[1]:8.3f} ms"
           f"   ({100 * steps['dynamic_estimator_core_share']:.0f} % of a core at "
           f"{steps['estimator_rate_hz']:g} Hz; target <= 1 ms)")

@@ -202,10 +202,10 @@ def test_a_payload_beyond_its_linear_share_is_covered_at_rest_by_its_sigma_point
     filter's ``prior.payload``, 2.9 g: the robustness campaign's spread), at rest at a bend, the
     tendons alone. The tip is 37 mm from the estimate, in a direction the payload's linearised share
     does not reach (the droop turns as it grows): without the payload's spread the tip's NEES is far
-    beyond the chi-square bound; with it (the static filter on the model with the payload's sigma
-    points at the tip) within it. With the markers seen the spread shrinks to a fraction of a
-    millimetre (they pin the tip), and a filter told of no payload runs no sigma point. The spread
-    is held through a move."""
+    beyond the chi-square bound; with it (a filter of the same kind on the model with the payload's
+    sigma point at the tip, without a second opinion of its own) within it. With the markers seen
+    the spread shrinks to a fraction of a millimetre (they pin the tip), and a filter told of no
+    payload runs no sigma point. The spread is held through a move."""
     sigma, payload, u = 0.0029, 0.0046, np.array([1.2, 0.3, 0.8, 0.5])
     plant = build_model(replace(arm, tip_mass=arm.tip_mass + payload))
     q = solve_equilibrium(plant, u).q
@@ -230,8 +230,10 @@ def test_a_payload_beyond_its_linear_share_is_covered_at_rest_by_its_sigma_point
     assert np.sqrt(np.linalg.eigvalsh(spread[1][-1])[-1]) > 0.005
     seen_spread = filters[True].payload_spread[1][-1]
     assert np.sqrt(np.linalg.eigvalsh(seen_spread)[-1]) < 5e-4, seen_spread
+    heavier = blind._payload_filter
+    assert heavier.second is None and heavier._payload_filter is None
     untold = DynamicShapeEstimator(model, replace(CONFIG, prior_payload=0.0), ROTOR)
-    assert not untold._payload_filters
+    assert untold._payload_filter is None
     # held through a move (samples whose tendons are faster than rest_speed), as the gap is
     for k in range(301, 311):
         blind.update(k / CONFIG.rate, s + 1e-4 * (k - 300), rest + 10 * CONFIG.rest_speed, u)
