@@ -19,11 +19,12 @@ on sim time and on the rig alike; the stamps are checked as they enter
 (:class:`~soft_arm_control.loop_clock.LoopClock`): a frame whose stamp is no number is dropped, and
 a clock step (a stamp more than ``control.clik.max_time_step`` ahead, or one that goes back)
 advances the CLIK's time by one frame period, counted (``clock_steps`` on ``/diagnostics``) and
-logged, so that no stamp can hold the CLIK's steps off. Messages are stamped with the latest frame's
-own stamp. A frame that arrived while the last one was processed is dropped (a CLIK step that
-outlasts the frame period on a loaded computer would otherwise queue the frames, and the goals and
-timers behind them, for seconds: :mod:`soft_arm_ros.backlog`); its time is taken, the count is on
-``/diagnostics`` (``frames_dropped``) and in a warning.
+logged (seen on a frame dropped behind the node's own step, with that step's wall time: the other
+cause of such a jump), so that no stamp can hold the CLIK's steps off. Messages are stamped with
+the latest frame's own stamp. A frame that arrived while the last one was processed is dropped (a
+CLIK step that outlasts the frame period on a loaded computer would otherwise queue the frames, and
+the goals and timers behind them, for seconds: :mod:`soft_arm_ros.backlog`); its time is taken, the
+count is on ``/diagnostics`` (``frames_dropped``) and in a warning.
 """
 from __future__ import annotations
 
@@ -155,11 +156,12 @@ class ClikNode(Node):
     def on_frame(self, msg: PoseArray):
         """A mocap frame: processed (:meth:`on_markers`); then the frames that arrived meanwhile
         are dropped, their time taken (module docstring)."""
+        started = time.monotonic()
         self.on_markers(msg)
         self.frames.processed_one()
         late = self.frames.drain(self._take_frame)
         if late is not None:
-            self._take_time(late)
+            self._take_time(late, time.monotonic() - started)
         if self.frames.dropped > self._drop_warned and time.monotonic() >= self._drop_warned_at + 5.0:
             # throttled here: rclpy's throttle inspects the caller's frame on every call
             self._drop_warned, self._drop_warned_at = self.frames.dropped, time.monotonic()
@@ -177,9 +179,11 @@ class ClikNode(Node):
             return None
         return None if taken is None else taken[0]
 
-    def _take_time(self, msg: PoseArray) -> bool:
+    def _take_time(self, msg: PoseArray, step_wall: float | None = None) -> bool:
         """The frame's stamp into the CLIK's time (:attr:`now`); False, the frame dropped, when the
-        stamp is no number."""
+        stamp is no number. ``step_wall`` [s]: for a frame that arrived during this node's own
+        step, how long that step took on the wall clock (a clock step seen on it may be the node's
+        own lateness, and its warning says so)."""
         stamp, steps = stamp_to_seconds(msg.header.stamp), self.frame_clock.steps
         try:
             self.now = self.frame_clock.advance(stamp)
@@ -189,8 +193,13 @@ class ClikNode(Node):
             return False
         self.stamp = stamp
         if self.frame_clock.steps != steps:
+            lateness = ""
+            if step_wall is not None and self.frame_clock.last_step[0] == "forward":
+                lateness = (f"; seen on a frame that arrived during this node's own step of "
+                            f"{step_wall:.3g} s (wall): if the mocap's clock did not step, the CLIK "
+                            "fell that far behind its frames")
             self.get_logger().warning(f"the mocap frames' clock stepped, the CLIK goes on: "
-                                      f"{self.frame_clock.describe()}")
+                                      f"{self.frame_clock.describe()}{lateness}")
         return True
 
     def on_markers(self, msg: PoseArray):

@@ -582,6 +582,45 @@ def test_clik_node_keeps_stepping_through_a_clock_step_of_the_frames(jump):
         rclpy.try_shutdown()
 
 
+def test_a_clock_step_seen_on_a_frame_dropped_behind_a_slow_step_names_the_step():
+    """The frames' stamps jump 2 s forward: on a frame the node processes the warning names the
+    mocap's clock alone; on a frame that arrived during the node's own 50 ms step (dropped behind
+    it) it also names that step and its wall time, the node's lateness being the other cause."""
+    import re
+    import rclpy
+
+    from soft_arm_ros.conversions import pose_array
+    from soft_arm_model import marker_positions, solve_equilibrium
+    rclpy.init()
+    try:
+        node = _clik("coiling", [])
+        warnings = []
+
+        class Logger:
+            def warning(self, text, **_):
+                warnings.append(text)
+        node.get_logger = Logger
+        hanging = marker_positions(node.model, solve_equilibrium(node.model, [0.05] * 4).q)
+        for k in range(10):
+            node.on_markers(pose_array(hanging, 100.0 + k / 240.0))
+        node.on_markers(pose_array(hanging, 102.0))
+        assert len(warnings) == 1 and "forward by 1.9625 s" in warnings[0] and "own step" not in warnings[0]
+        late = [pose_array(hanging, 104.0)]
+        node._take_frame = lambda: late.pop() if late else None
+
+        def slow_step(t, x, sigma=None):
+            time.sleep(0.05)
+        node.outer.frame = slow_step
+        node.on_frame(pose_array(hanging, 102.0 + 1 / 240.0))
+        assert len(warnings) == 3 and "forward by 1.99583 s" in warnings[1], warnings
+        assert "1 of 2 dropped" in warnings[2]                  # the late frame, counted
+        step = re.search(r"during this node's own step of ([0-9.e-]+) s \(wall\)", warnings[1])
+        assert step is not None and 0.05 <= float(step.group(1)) < 1.0, warnings[1]
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown()
+
+
 @pytest.mark.parametrize("variance, stepped", [(None, False), (1e-4, False), (0.0, True)])
 def test_on_an_estimate_the_clik_node_steps_only_on_what_the_tip_covariance_defends(variance, stepped):
     """The clik node on ``control.clik.feedback: estimate``, an online goal 10 mm off the hanging
