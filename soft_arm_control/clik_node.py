@@ -160,11 +160,12 @@ class ClikNode(Node):
         self.on_markers(msg)
         self.frames.processed_one()
         late = self.frames.drain(self._take_frame)
+        ended = time.monotonic()
         if late is not None:
-            self._take_time(late, time.monotonic() - started)
-        if self.frames.dropped > self._drop_warned and time.monotonic() >= self._drop_warned_at + 5.0:
+            self._take_time(late, ended - started)
+        if self.frames.dropped > self._drop_warned and ended >= self._drop_warned_at + 5.0:
             # throttled here: rclpy's throttle inspects the caller's frame on every call
-            self._drop_warned, self._drop_warned_at = self.frames.dropped, time.monotonic()
+            self._drop_warned, self._drop_warned_at = self.frames.dropped, ended
             self.get_logger().warning(
                 f"the CLIK falls behind the mocap frames: {self.frames.dropped} of "
                 f"{self.frames.dropped + self.frames.processed} dropped so far")

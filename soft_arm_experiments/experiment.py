@@ -129,7 +129,7 @@ def run_composed(ros_args: list, out: dict, progress=None, config_dir: str | Non
         def options(name):
             return {"start_parameter_services": False, "cli_args": node_args.get(name)}
 
-        sim = SimulatorNode(config_dir, watchdog=False, paced=False, **options("simulator"))
+        sim = SimulatorNode(config_dir, in_waves=True, **options("simulator"))
         nodes.append(sim)
         nodes += [classes[name](config_dir, **options(name)) for name in controller]
         runner = classes[runner_name](config_dir, parameter_overrides=[

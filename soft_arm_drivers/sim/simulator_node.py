@@ -49,11 +49,10 @@ from .simulated_rig import SimulatedRig
 
 
 class SimulatorNode(Node):
-    def __init__(self, config_dir: str | None = None, watchdog: bool = True, paced: bool = True,
-                 **node_options):
-        """``watchdog``: in lockstep, step on the held tension when no command comes within
-        ``command_timeout`` of wall time; ``paced``: in lockstep, keep to
-        ``max_real_time_factor`` (both off when a wave executor runs every node in the lock)."""
+    def __init__(self, config_dir: str | None = None, in_waves: bool = False, **node_options):
+        """In lockstep, the simulator steps on the held tension when no command comes within
+        ``command_timeout`` of wall time, and keeps to ``max_real_time_factor``; neither with
+        ``in_waves`` (a wave executor runs every node in the lock and delivers every message)."""
         super().__init__("simulator", allow_undeclared_parameters=True,
                          automatically_declare_parameters_from_overrides=True, **node_options)
         params = NodeParameters(self, config_dir)
@@ -77,7 +76,7 @@ class SimulatorNode(Node):
         self.steps_per_command = max(1, int(round(1.0 / (control.inner_rate * plant.timestep))))
         self.mode = graph["simulator.mode"]
         self.limit = RealTimeLimit(graph["simulator.max_real_time_factor"]
-                                   if paced and self.mode == "lockstep" else 0.0)
+                                   if self.mode == "lockstep" and not in_waves else 0.0)
         self.timeout = graph["simulator.command_timeout"]
         shape_rate = graph["simulator.shape_rate"]
         self.shape_every = max(1, int(round(1.0 / (shape_rate * plant.timestep)))) if shape_rate else 0
@@ -100,7 +99,7 @@ class SimulatorNode(Node):
         period = 1.0 / control.inner_rate
         if self.mode == "realtime":
             self.create_timer(period, self.advance)
-        elif watchdog:
+        elif not in_waves:
             self.create_timer(self.timeout, self.watchdog)
         self._started = False
         self.start_timer = self.create_timer(0.01, self.start)

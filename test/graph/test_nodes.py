@@ -162,7 +162,7 @@ def test_simulator_in_realtime_holds_the_tension_and_counts_missing_commands():
         rclpy.try_shutdown()
 
 
-def _lockstep_run(wall: float, factor: float, paced: bool = True) -> float:
+def _lockstep_run(wall: float, factor: float, in_waves: bool = False) -> float:
     """Simulated seconds [s] a lockstep simulator (``max_real_time_factor`` = ``factor``) makes in
     ``wall`` seconds against a peer that answers every state at once."""
     import rclpy
@@ -176,7 +176,7 @@ def _lockstep_run(wall: float, factor: float, paced: bool = True) -> float:
     from soft_arm_ros.conversions import joint_state
     rclpy.init()
     try:
-        sim = SimulatorNode(paced=paced, parameter_overrides=[
+        sim = SimulatorNode(in_waves=in_waves, parameter_overrides=[
             Parameter("graph.task", value="coiling"),
             Parameter("graph.simulator.max_real_time_factor", value=factor)])
         peer = rclpy.create_node("peer")
@@ -207,7 +207,7 @@ def test_simulator_in_lockstep_keeps_to_its_real_time_factor():
     """Answered at once, a lockstep simulator runs faster than a quarter of real time unpaced
     (the composed run's wave executor), and at most a quarter (plus one step) with
     ``max_real_time_factor`` 0.25, not far below it either."""
-    assert _lockstep_run(1.0, 0.25, paced=False) > 0.5
+    assert _lockstep_run(1.0, 0.25, in_waves=True) > 0.5
     simulated = _lockstep_run(1.0, 0.25)
     assert 0.15 < simulated <= 0.25 * (1.0 + 0.01) + 0.002
 
