@@ -5,7 +5,9 @@ A ring of ``rows`` entries (time [s], q) on one float64 array: private memory, o
 that a second process opens (:meth:`ConfigurationHistory.shared`, :meth:`ConfigurationHistory.open`).
 One writer appends on a uniform time grid (one row per plant step); readers look a time up in
 O(1) and never block the writer. A row the writer overwrites while a reader copies it is detected
-by its time stamp and read again.
+by its time stamp and read again. The writer is a simulation in real time that a loaded machine
+holds now and then: :meth:`ConfigurationHistory.reached` tells a reader whether the configuration at
+a time is written yet, or is still the plant's future.
 """
 from __future__ import annotations
 
@@ -23,7 +25,8 @@ class ConfigurationHistory:
     """The last ``rows`` configurations q (``n`` coordinates) with the times [s] they were reached.
 
     ``append(t, q)`` (one writer, times on a grid of ``dt`` [s]); ``at(t)``: the latest at or before
-    ``t`` (the oldest kept if ``t`` is older, the latest if ``t`` is newer).
+    ``t`` (the oldest kept if ``t`` is older, the latest if ``t`` is newer); ``reached(t)``: whether
+    ``at(t)`` is final.
     """
 
     def __init__(self, n: int, rows: int, dt: float, buffer: np.ndarray | None = None,
@@ -80,6 +83,12 @@ class ConfigurationHistory:
         row[1:] = q
         row[0] = t
         self._count[0] = c + 1              # published after the row is complete
+
+    def reached(self, t: float) -> bool:
+        """Whether the writer has stepped to ``t`` [s]: the configuration at ``t`` is written and
+        :meth:`at` will not change its answer (the next step comes after ``t``)."""
+        c = int(self._count[0])
+        return c > 0 and float(self._ring[(c - 1) % self.rows][0]) + self.dt * (1.0 - _TOLERANCE) > t
 
     def at(self, t: float) -> np.ndarray:
         """A copy of the latest configuration at or before ``t`` [s]; LookupError if none was

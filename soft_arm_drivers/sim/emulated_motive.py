@@ -8,8 +8,10 @@ which reads the arm's configurations from the motors' shared
 :class:`~.configuration_history.ConfigurationHistory`. It runs under the normal scheduling policy
 whatever its parent's (the cameras' frames are stamped with their exposure times, so a frame sent
 late is still right), and so takes nothing from the real-time budget of the CPU that steps the
-plant (:mod:`soft_arm_experiments.realtime`). It ends when its standard input closes: when
-the hardware's process closes it or dies.
+plant (:mod:`soft_arm_experiments.realtime`). That plant runs below the nodes on its CPU and falls
+behind real time now and then (by up to 27 ms under a busy two-core machine's load), so each frame
+waits until the plant has stepped to its exposure (``NatNetEmulator``'s ``reached``). It ends when
+its standard input closes: when the hardware's process closes it or dies.
 """
 from __future__ import annotations
 
@@ -36,11 +38,13 @@ from .simulated_rig import Plant
 _READY, _ERROR = "ready", "error"
 
 
-def start_motive(spec, model, configuration_at: Callable[[float], np.ndarray]) -> NatNetEmulator:
+def start_motive(spec, model, configuration_at: Callable[[float], np.ndarray],
+                 reached: Callable[[float], bool] | None = None) -> NatNetEmulator:
     """The NatNet server emulator of ``spec`` (a :class:`~.emulated_hardware.HardwareSpec`) streaming
     the markers of the plant ``model`` at ``configuration_at(t)`` (t: exposure time [s, system
-    time]), as the miscalibrated mocap reports them, with the plant's noise (seeded). ConfigError
-    when the Motive server's address cannot be bound."""
+    time]), as the miscalibrated mocap reports them, with the plant's noise (seeded); each frame once
+    ``reached(t)`` says the plant has stepped to its exposure (None: at once). ConfigError when the
+    Motive server's address cannot be bound."""
     p, mocap, emulator = spec.plant, spec.mocap, spec.emulator
     data = ArmData(model)
     marker_positions(model, configuration_at(time.time()), data)    # compiled before the stream
@@ -63,7 +67,7 @@ def start_motive(spec, model, configuration_at: Callable[[float], np.ndarray]) -
         return NatNetEmulator(
             markers, version=emulator["natnet_version"], rate=p.mocap_rate, layout="both",
             calibration=mocap.calibration, address=mocap.server_address,
-            command_port=mocap.command_port, latency=p.mocap_latency, **ids).start()
+            command_port=mocap.command_port, latency=p.mocap_latency, reached=reached, **ids).start()
     except OSError as exc:
         raise ConfigError(f"rig.mocap.command_port = {mocap.command_port}: the emulated Motive "
                           f"server cannot bind {mocap.server_address}:{mocap.command_port}: "
@@ -147,7 +151,7 @@ def main() -> int:
     spec, path, n, rows, dt = pickle.load(sys.stdin.buffer)
     try:
         history = ConfigurationHistory.open(path, n, rows, dt)
-        natnet = start_motive(spec, Plant.of(spec.arm, spec.plant).model, history.at)
+        natnet = start_motive(spec, Plant.of(spec.arm, spec.plant).model, history.at, history.reached)
     except Exception as exc:  # noqa: BLE001 - reported to the hardware's process, which raises it
         reason = str(exc) if isinstance(exc, ConfigError) else f"{type(exc).__name__}: {exc}"
         print(_ERROR, " ".join(reason.split()), flush=True)

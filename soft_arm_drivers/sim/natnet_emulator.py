@@ -27,6 +27,14 @@ bit, position zero); :func:`plant_markers` reads a :class:`~.simulated_rig.Plant
 thread (real time), or ``start(stream=False)`` only serves requests and the caller sends each frame
 with :meth:`NatNetEmulator.send_frame` (stepped, e.g. once per exposure of a ``SimulatedRig``). The
 stream exposes on a fixed grid of ``1 / rate`` and sends each frame ``latency`` later.
+
+A simulated arm in real time is held now and then by a loaded machine, and then catches up: at an
+exposure time it may not be there yet. A real camera never sees an arm behind its stamp, so given
+``reached(t)`` (whether the simulation has reached time t) the stream reads an exposure's markers
+only once it has, and sends its frame then if that is after its due time; a frame whose exposure the
+simulation does not reach within ``reach_timeout`` is not sent (counted ``unreached``). Markers read
+early instead would be the arm of some milliseconds before the stamp, and the next frame's the arm
+caught up: a jump that the bridge measures as a speed the arm never had.
 """
 from __future__ import annotations
 
@@ -57,6 +65,7 @@ _OTHER_ASSET = 2           # asset of the extra markers
 _TICK_BASE = 987_654_321   # the server clock's tick count at start (anything but zero)
 _EXPOSURE_LOG = 4096       # frames whose exposure time is kept for exposure_time()
 _OCCLUDED = 0x01           # labelled marker params bit 0
+_REACH_POLL = 5e-4         # s: how often a frame waiting for the arm to reach its exposure looks again
 
 
 @dataclass(frozen=True)
@@ -101,6 +110,8 @@ class NatNetEmulator:
     ``clock_frequency`` [ticks/s] of the emulated server clock; ``latency`` [s]: mid-exposure to
     transmit (Motive's processing). ``accept_bitstream``: whether version requests are honoured.
     ``client_timeout`` [s]: clients silent for longer (no keep-alive) get no more frames.
+    ``reached(t)``: whether the arm has reached time ``t`` [s, emulator clock] (None: always);
+    ``reach_timeout`` [s]: how long a streamed frame waits for it (see the module doc).
     Counters: :attr:`counters`.
 
     Wired to the bridge as the tests do (loopback, ephemeral ports)::
@@ -123,7 +134,8 @@ class NatNetEmulator:
                  address: str = "127.0.0.1", command_port: int = 0, data_port: Optional[int] = None,
                  clock: Callable[[], float] = time.time, clock_frequency: int = 10_000_000,
                  latency: float = 0.004, faults: Faults = Faults(), accept_bitstream: bool = True,
-                 client_timeout: float = 10.0, app_name: str = "soft_arm NatNet emulator"):
+                 client_timeout: float = 10.0, app_name: str = "soft_arm NatNet emulator",
+                 reached: Optional[Callable[[float], bool]] = None, reach_timeout: float = 0.5):
         self.version = _version(version)
         if not 1.0 <= rate <= 1000.0:
             raise ValueError(f"rate must be in [1, 1000] Hz, got {rate!r}")
@@ -133,8 +145,11 @@ class NatNetEmulator:
             raise ValueError(f"the emulator serves loopback addresses only, got {address!r}")
         if not 0.0 <= latency <= 1.0 or clock_frequency <= 0 or extra_markers < 0:
             raise ValueError("latency must be in [0, 1] s, clock_frequency > 0, extra_markers >= 0")
+        if not 0.0 < reach_timeout <= 10.0:
+            raise ValueError(f"reach_timeout must be in (0, 10] s, got {reach_timeout!r}")
         self._markers = markers
         self._clock = clock
+        self._reached, self.reach_timeout = reached, float(reach_timeout)
         self.n_markers = len(self._arm_markers(clock()))
         self.rigid_body_ids = tuple(rigid_body_ids or range(1, self.n_markers + 1))
         self.labeled_marker_ids = tuple(labeled_marker_ids or (
@@ -149,7 +164,7 @@ class NatNetEmulator:
         self.client_timeout, self.app_name = client_timeout, app_name
         self.counters = dict.fromkeys(("connects", "requests", "bad_requests", "frames", "sent",
                                        "dropped", "duplicated", "reordered", "occluded", "absent",
-                                       "missed"), 0)
+                                       "missed", "unreached"), 0)
         self._rng = random.Random(faults.seed)
         self._start = clock()
         self._frame_number = 0
@@ -207,13 +222,15 @@ class NatNetEmulator:
 
     def _run(self, stream: bool):
         """Serve requests; streaming, expose a frame on a fixed grid of periods, as cameras do
-        (markers read when the thread wakes for it, stamped with the grid time; exposures the
-        thread slept through are counted as missed) and send it ``latency`` later."""
+        (stamped with the grid time; exposures the thread slept through are counted as missed) and
+        send it ``latency`` later, or once the arm has reached its exposure (module doc)."""
         period = 1.0 / self.rate
         due = time.monotonic()
-        pending: deque = deque()                 # (send time [monotonic s], markers, exposure time)
+        pending: deque = deque()    # [send time [monotonic s], exposure time [s], markers or None]
         while not self._stop.is_set():
             wake = min(due, pending[0][0]) if pending else due
+            if pending and pending[0][2] is None:      # its arm not there yet: look again shortly
+                wake = min(due, max(wake, time.monotonic() + _REACH_POLL))
             wait = max(0.0, wake - time.monotonic()) if stream else 0.05
             try:
                 ready, _, _ = select.select([self._socket], [], [], wait)
@@ -230,12 +247,20 @@ class NatNetEmulator:
                     missed = int(late // period)
                     self.counters["missed"] += missed
                     due, late = due + missed * period, late - missed * period
-                exposure = self._clock() - late    # on the camera's grid; markers as read now
-                pending.append((due + self.latency, self._arm_markers(exposure), exposure))
+                exposure = self._clock() - late    # on the camera's grid
+                pending.append([due + self.latency, exposure, self._exposed(exposure)])
                 due += period
             while pending and time.monotonic() >= pending[0][0]:
-                _, markers, exposure = pending.popleft()
-                self.send_frame(markers, exposure)
+                send_at, exposure, markers = pending[0]
+                if markers is None:
+                    markers = pending[0][2] = self._exposed(exposure)
+                if markers is None:
+                    if time.monotonic() - send_at < self.reach_timeout:
+                        break
+                    self.counters["unreached"] += 1
+                else:
+                    self.send_frame(markers, exposure)
+                pending.popleft()
 
     # -- requests --
 
@@ -332,6 +357,12 @@ class NatNetEmulator:
                     self._socket.sendto(datagram, destination)
                     self.counters["sent"] += 1
         return number
+
+    def _exposed(self, t: float) -> Optional[np.ndarray]:
+        """The arm's markers at exposure time ``t`` [s], None while the arm has not reached it."""
+        if self._reached is not None and not self._reached(t):
+            return None
+        return self._arm_markers(t)
 
     def _arm_markers(self, t: float) -> np.ndarray:
         arm = np.asarray(self._markers(t), dtype=float)

@@ -2,6 +2,7 @@
 handshake and version request, frames of every stream version, marker selection and ordering,
 calibration, mid-exposure stamps, occlusion, packet faults, foreign and random packets, config."""
 import contextlib
+import math
 import random
 import socket
 import time
@@ -327,6 +328,80 @@ def test_stamps_are_mid_exposure_on_the_local_clock():
     # stalled offset, their latency short by the stall
     assert all(f.latency >= 0.0039 for f in settled)
     assert np.median([f.latency for f in frames]) < 0.05
+
+
+class HeldArm:
+    """An arm moving at SPEED along x in real time from its start, that the machine holds still
+    ``hold`` [s] after :meth:`begin` for ``length`` [s] and that then catches up at once: the
+    emulated hardware's plant on a loaded machine. ``markers(t)``, ``reached(t)`` [s, system time]
+    as the emulated Motive reads its plant (the latest configuration at or before t)."""
+    SPEED = 1.0                                                # m/s
+
+    def __init__(self, hold: float, length: float):
+        self.start = time.time()
+        self.hold, self._after, self.length = math.inf, hold, length
+
+    def begin(self):
+        """Count the hold from now."""
+        self.hold = time.time() + self._after
+
+    def now(self) -> float:
+        """The time [s] the arm has reached."""
+        t = time.time()
+        return self.hold if self.hold <= t < self.hold + self.length else t
+
+    def markers(self, t: float) -> np.ndarray:
+        return TRUE + [self.SPEED * (min(t, self.now()) - self.start), 0.0, 0.0]
+
+    def reached(self, t: float) -> bool:
+        return self.now() >= t
+
+
+def _streamed_from(arm, seconds, **emulator_kw):
+    """(frames, their exposure times [s], the emulator's counters) of ``seconds`` of streaming the
+    moving ``arm``."""
+    calibration = Calibration(rotation_matrix(Y_UP), SHIFT)
+    with NatNetEmulator(arm.markers, calibration=calibration, latency=0.004, **emulator_kw) as emulator:
+        with MocapBridge(config(emulator)) as bridge:
+            emulator.start()
+            bridge.connect()
+            pump(bridge, lambda: bridge.state == "streaming")
+            arm.begin()
+            end = time.monotonic() + seconds
+            frames = pump(bridge, lambda: time.monotonic() > end)
+            exposures = np.array([emulator.exposure_time(f.frame_number) for f in frames])
+            return frames, exposures, dict(emulator.counters)
+
+
+def test_an_arm_held_behind_its_cameras_is_seen_where_it_is_at_each_frames_exposure():
+    """A simulated arm that the machine holds for 0.15 s is seen at each frame's exposure time, its
+    frames of the hold sent once it has caught up, never the held arm under a later stamp: that
+    would be a jump of 0.15 m between two frames (9 m/s at 240 Hz), a speed the arm never had;
+    without ``reached`` the stream shows it."""
+    arm = HeldArm(hold=0.2, length=0.15)
+    frames, exposures, counters = _streamed_from(arm, 0.8, reached=arm.reached)
+    moved = np.array([f.markers[0, 0] - TRUE[0, 0] for f in frames])
+    np.testing.assert_allclose(moved, HeldArm.SPEED * (exposures - arm.start), atol=1e-5)
+    during = (exposures >= arm.hold) & (exposures < arm.hold + arm.length)
+    assert np.count_nonzero(during) >= 0.8 * arm.length * 240       # delayed, not lost
+    assert all(f.received_at >= arm.hold + arm.length for f, d in zip(frames, during) if d)
+    assert counters["unreached"] == 0
+
+    blind = HeldArm(hold=0.2, length=0.15)
+    frames, exposures, _ = _streamed_from(blind, 0.8)
+    moved = np.array([f.markers[0, 0] - TRUE[0, 0] for f in frames])
+    assert np.max(np.abs(moved - HeldArm.SPEED * (exposures - blind.start))) > 0.1
+
+
+def test_frames_of_an_arm_that_never_reaches_their_exposure_are_not_sent():
+    """An arm stopped for good (its simulation ended): each frame waits ``reach_timeout`` for it,
+    then is dropped and counted; what was sent was the arm at its frame's exposure."""
+    arm = HeldArm(hold=0.2, length=math.inf)
+    frames, exposures, counters = _streamed_from(arm, 0.6, reached=arm.reached, reach_timeout=0.1)
+    assert len(frames) > 0.1 * 240 and np.all(exposures < arm.hold)
+    assert counters["unreached"] > 0.2 * 240
+    with pytest.raises(ValueError, match="reach_timeout"):
+        NatNetEmulator(static, reach_timeout=0.0)
 
 
 def test_clock_map_takes_the_smallest_delay_in_its_window():

@@ -34,6 +34,21 @@ def test_the_latest_configuration_at_or_before_a_time():
     np.testing.assert_array_equal(history.at(T0 - 1.0), [0, 0, 0])              # older: the oldest
 
 
+def test_a_time_is_reached_once_the_step_at_or_before_it_is_the_last_before_it():
+    """reached(t): at(t) is final. Before any step nothing is; up to step k every time before step
+    k + 1 is (within the tolerance at() rounds with), later ones are the plant's future."""
+    history = ConfigurationHistory(3, 50, DT)
+    assert not history.reached(T0 - 1.0)
+    _filled(history, 20)
+    assert history.reached(T0 - 1.0) and history.reached(T0 + 19 * DT)
+    assert history.reached(T0 + 19.99 * DT) and not history.reached(T0 + 20 * DT)
+    assert not history.reached(T0 + 1.0)
+    q = history.at(T0 + 19.5 * DT)
+    _filled(history, 1, T0 + 20 * DT)                       # the next step does not change it
+    np.testing.assert_array_equal(history.at(T0 + 19.5 * DT), q)
+    assert history.reached(T0 + 20.5 * DT)
+
+
 def test_the_ring_keeps_all_but_the_row_the_writer_reuses_next():
     history = ConfigurationHistory(3, 8, DT)
     _filled(history, 30)
