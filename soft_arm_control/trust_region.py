@@ -39,7 +39,6 @@ accepts. Times are the caller's [s], coordinates [m] in arm_base.
 """
 from __future__ import annotations
 
-from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -73,9 +72,9 @@ class TrustRegion:
     def __init__(self, config: TrustConfig):
         self.config = config
         self.period: float | None = None    # s: the path period the drift averages over (None: none)
-        # (t [s], offset [m]) over the last three windows (and a period and a quarter window more
-        # while averaging over a period)
-        self._history: deque = deque()
+        # the offsets over the last three windows (and a period and a quarter window more while
+        # averaging over a period)
+        self._history = _OffsetHistory()
         self.judged = 0
 
     def reset(self):
@@ -112,14 +111,9 @@ class TrustRegion:
         reference [m]); None when it is within the trust region, otherwise why not."""
         c = self.config
         offset = np.asarray(x_estimate, dtype=float) - np.asarray(x_model, dtype=float)
-        history = self._history
-        history.append((float(t), offset))
         # three windows, and on a periodic path a period and a quarter window more to average over
         span = 3.0 * c.window + (0.0 if self.period is None else self.period + 0.25 * c.window)
-        while history and history[0][0] < t - span - 1e-9:
-            history.popleft()
-        times = np.fromiter((h[0] for h in history), float, len(history))
-        offsets = np.stack([h[1] for h in history])
+        times, offsets = self._history.append(float(t), offset, t - span - 1e-9)
         recent = offsets[times >= t - c.window - 1e-9]
         mean = recent.mean(axis=0)
         if np.linalg.norm(mean) > c.radius:
@@ -162,6 +156,42 @@ class TrustRegion:
                     f"explains (allowed {c.drift * 1e3:.1f} mm + the arm's swing {swing * 1e3:.1f} mm "
                     f"over {c.window:.2f} s): a bias, or a loop the estimate does not follow")
         return None
+
+
+class _OffsetHistory:
+    """The judged frames' times [s] and offsets [m], oldest first, in arrays that a frame appends to
+    in place: a frame's judgement reads the last three windows (some 700 frames at 240 Hz) as views,
+    without building them again from a queue each frame."""
+
+    def __init__(self, capacity: int = 1024):
+        self._t = np.empty(capacity)
+        self._x: np.ndarray | None = None
+        self._head = self._tail = 0
+
+    def clear(self):
+        self._head = self._tail = 0
+
+    def append(self, t: float, offset: np.ndarray, oldest: float) -> tuple[np.ndarray, np.ndarray]:
+        """Add the frame at ``t`` [s] with its ``offset`` (d,) [m], forget the frames before
+        ``oldest`` [s] (from the oldest on, as they came); the frames kept: (times (k,), offsets
+        (k, d)), views valid until the next append or clear."""
+        if self._x is None or self._x.shape[1] != offset.size:
+            self._x = np.empty((self._t.size, offset.size))
+            self.clear()
+        if self._tail == self._t.size:
+            kept = self._tail - self._head
+            if kept > self._t.size // 2:                 # more than half full: twice the room
+                self._t = np.concatenate([self._t, np.empty(self._t.size)])
+                self._x = np.concatenate([self._x, np.empty_like(self._x)])
+            self._t[:kept] = self._t[self._head:self._tail]
+            self._x[:kept] = self._x[self._head:self._tail]
+            self._head, self._tail = 0, kept
+        self._t[self._tail] = t
+        self._x[self._tail] = offset
+        self._tail += 1
+        while self._t[self._head] < oldest:
+            self._head += 1
+        return self._t[self._head:self._tail], self._x[self._head:self._tail]
 
 
 def defensible_fraction(error, sigma, confidence: float) -> float:

@@ -4,7 +4,7 @@ estimate that leaves the arm (an offset beyond the radius) or walks away from it
 import numpy as np
 import pytest
 
-from soft_arm_control.trust_region import TrustConfig, TrustRegion, defensible_fraction
+from soft_arm_control.trust_region import TrustConfig, TrustRegion, _OffsetHistory, defensible_fraction
 
 RATE = 240.0
 CONFIG = TrustConfig(radius=0.04, drift=0.001, window=0.5, recover=2.0)
@@ -77,6 +77,28 @@ def test_reset_forgets_the_offsets():
     region.reset()
     # a jump of the offset right after a reset (the reference returned) is judged on its own
     assert region.judge(1.0, X_MODEL + MODEL_ERROR + 0.01, X_MODEL) is None
+
+
+@pytest.mark.parametrize("span", [0.3, 6.0])
+def test_the_offsets_kept_are_the_frames_of_the_span_through_every_compaction_and_growth(span):
+    """The history a frame's judgement reads is exactly the frames since ``t - span``, in order, as
+    its arrays fill, are compacted (a short span) and grow (a long one: more frames than they
+    hold); a clear forgets them."""
+    history, frames = _OffsetHistory(capacity=64), []
+    rng = np.random.default_rng(3)
+    t = 0.0
+    for k in range(3000):
+        t += rng.choice([1 / 240, 1 / 120, 0.05])
+        offset = rng.normal(size=2)
+        frames.append((t, offset))
+        times, offsets = history.append(t, offset, t - span)
+        kept = [(s, o) for s, o in frames if s >= t - span]
+        np.testing.assert_array_equal(times, [s for s, _ in kept])
+        np.testing.assert_array_equal(offsets, np.array([o for _, o in kept]))
+        if k == 1500:
+            history.clear()
+            frames.clear()
+    assert (history._t.size == 64) == (span < 1.0), history._t.size
 
 
 def test_a_step_on_the_defended_fraction_never_ends_further_from_the_target_whatever_the_bias():
