@@ -74,21 +74,21 @@ covariance, which the gate weighs, is its steady state at the estimator's rate).
 
 The payload's spread at rest. The payload's share above is linear, the estimate's derivative with
 respect to the payload, and the droop of a few grams at a bend is not: it turns as it grows (4.6 g
-at the tip, 1.6 of the robustness campaign's standard deviations: the tip 37 mm from the estimate
-in a direction the share does not reach, a NEES of 88 against a 99 % bound of 11). The second
-opinion cannot see it, since it shares the model. Where the filter is told of a payload
-(``prior.payload`` above zero), a second filter of this kind runs beside it on the model with the
-payload's sigma point at the tip, its payload known: :data:`PAYLOAD_POINT` standard deviations
-above the model's tip mass, on the one side a payload can be (it only adds mass; the model's tip
-mass is the part that is known), with the weight :data:`PAYLOAD_WEIGHT` that carries the prior's
-second moment. It is this filter and not the static one, because the spread must be the reported
-estimate's own answer to the payload: this filter weighs the shortenings against the routing's
-uncertainty and rests nearer the payload-free balance, so that the static filter's answer is two to
-three times smaller (on robustness draw 4, the routing a few hundredths of a radius off, it left a
-NEES of 14 at a bend where this one leaves 2.4). It updates on the second opinion's samples but at
-most every :data:`SECOND_OPINION_PERIOD`, at rest too, one dynamics step between them (its
-estimates count, not its covariance, and at rest a sample differs little from the next); at rest,
-whenever it updates and both stand by their estimates, the weighted outer product of its
+at the tip, 1.6 of the robustness campaign's standard deviations: the tip 37 mm from the estimate in
+a direction the share does not reach, a NEES of 66 after 300 samples at rest against a 99 % bound of
+11). The second opinion cannot see it, since it shares the model. Where the filter is told of a
+payload (``prior.payload`` above zero), a second filter of this kind runs beside it on the model
+with the payload's sigma point at the tip, its payload known: :data:`PAYLOAD_POINT` standard
+deviations above the model's tip mass, on the one side a payload can be (it only adds mass; the
+model's tip mass is the part that is known), with the weight :data:`PAYLOAD_WEIGHT` that carries the
+prior's second moment. It is this filter and not the static one, because the spread must be the
+reported estimate's own answer to the payload: this filter weighs the shortenings against the
+routing's uncertainty and rests nearer the payload-free balance, so that the static filter's answer
+is two to three times smaller (on robustness draw 4, the routing a few hundredths of a radius off,
+it left a NEES of 14 at a bend where this one leaves 2.4). It updates on the second opinion's
+samples but at most every :data:`SECOND_OPINION_PERIOD`, at rest too, one dynamics step between them
+(its estimates count, not its covariance, and at rest a sample differs little from the next); at
+rest, whenever it updates and both stand by their estimates, the weighted outer product of its
 difference from this estimate is the payload's spread (:attr:`payload_spread`, in q and at every
 marker), held through the moves and added to the reported covariances as the gap is. The filter's
 own state and gain are not changed. With the markers seen the spread shrinks to what they leave
