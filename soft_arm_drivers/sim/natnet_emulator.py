@@ -32,7 +32,9 @@ A simulated arm in real time is held now and then by a loaded machine, and then 
 exposure time it may not be there yet. A real camera never sees an arm behind its stamp, so given
 ``reached(t)`` (whether the simulation has reached time t) the stream reads an exposure's markers
 only once it has, and sends its frame then if that is after its due time; a frame whose exposure the
-simulation does not reach within ``reach_timeout`` is not sent (counted ``unreached``). Markers read
+simulation does not reach within ``reach_timeout`` is not sent (counted ``unreached``; like an
+exposure the stream's thread slept through, counted ``missed``, it takes its frame number, so that a
+client sees the gap and counts the frame lost). Markers read
 early instead would be the arm of some milliseconds before the stamp, and the next frame's the arm
 caught up: a jump that the bridge measures as a speed the arm never had.
 """
@@ -226,7 +228,8 @@ class NatNetEmulator:
         send it ``latency`` later, or once the arm has reached its exposure (module doc)."""
         period = 1.0 / self.rate
         due = time.monotonic()
-        pending: deque = deque()    # [send time [monotonic s], exposure time [s], markers or None]
+        # [send time [monotonic s], exposure time [s], markers or None, frame number]
+        pending: deque = deque()
         while not self._stop.is_set():
             wake = min(due, pending[0][0]) if pending else due
             if pending and pending[0][2] is None:      # its arm not there yet: look again shortly
@@ -246,12 +249,13 @@ class NatNetEmulator:
                 if late >= period:             # held past whole periods: those exposures are lost
                     missed = int(late // period)
                     self.counters["missed"] += missed
+                    self._numbers(missed)
                     due, late = due + missed * period, late - missed * period
                 exposure = self._clock() - late    # on the camera's grid
-                pending.append([due + self.latency, exposure, self._exposed(exposure)])
+                pending.append([due + self.latency, exposure, self._exposed(exposure), self._numbers(1)])
                 due += period
             while pending and time.monotonic() >= pending[0][0]:
-                send_at, exposure, markers = pending[0]
+                send_at, exposure, markers, number = pending[0]
                 if markers is None:
                     markers = pending[0][2] = self._exposed(exposure)
                 if markers is None:
@@ -259,7 +263,7 @@ class NatNetEmulator:
                         break
                     self.counters["unreached"] += 1
                 else:
-                    self.send_frame(markers, exposure)
+                    self._send(number, markers, exposure, self._clock())
                 pending.popleft()
 
     # -- requests --
@@ -341,9 +345,21 @@ class NatNetEmulator:
         arm = self._arm_markers(exposure) if markers is None else np.asarray(markers, dtype=float)
         if arm.shape != (self.n_markers, 3):
             raise ValueError(f"markers must be ({self.n_markers}, 3) [m], got {arm.shape}")
+        return self._send(self._numbers(1), arm, exposure, now, transmit_offset)
+
+    def _numbers(self, count: int) -> int:
+        """Take the next ``count`` frame numbers; the last. Frames of the stream's grid that are
+        not sent take theirs all the same, as Motive's do: a client sees the gap and counts them
+        lost."""
         with self._lock:
-            self._frame_number += 1
-            number = self._frame_number
+            self._frame_number += count
+            return self._frame_number
+
+    def _send(self, number: int, arm: np.ndarray, exposure: float, now: float,
+              transmit_offset: float = 0.0) -> int:
+        """Build frame ``number`` of ``arm`` exposed at ``exposure`` [s] and send it to every client
+        (faults permitting); its number."""
+        with self._lock:
             self._exposures[number] = exposure
             if len(self._exposures) > _EXPOSURE_LOG:
                 self._exposures.popitem(last=False)
@@ -366,8 +382,10 @@ class NatNetEmulator:
 
     def _arm_markers(self, t: float) -> np.ndarray:
         arm = np.asarray(self._markers(t), dtype=float)
-        if arm.ndim != 2 or arm.shape[1] != 3 or len(arm) == 0:
-            raise ValueError(f"markers(t) must return (n, 3) positions [m], got shape {arm.shape}")
+        if arm.ndim != 2 or arm.shape[1] != 3 or len(arm) != getattr(self, "n_markers", len(arm)) \
+                or len(arm) == 0:
+            raise ValueError(f"markers(t) must return (n, 3) positions [m] of the same n, got shape "
+                             f"{arm.shape}")
         return arm
 
     def _expire_clients(self):

@@ -241,13 +241,19 @@ def test_stepped_without_threads_follows_a_moving_simulated_arm():
             emulator.serve_requests()
             pump(bridge, lambda: bridge.state == "streaming")
             emulator.serve_requests()                         # the first keep-alive
+            # the clock map's first samples: were the first frame read a millisecond later than the
+            # next (a loaded machine), the next would be stamped after it came and skipped
+            for _ in range(5):
+                emulator.send_frame(exposure_time=time.time())
+                pump(bridge, lambda: frame_packets(bridge) == emulator.counters["sent"])
+            before = bridge.counters["delivered"]
             truth, delivered = [], []
             for k in range(40):
                 plant.sense(markers=True)
                 if k % 4 == 0:                                # a 250 Hz camera on a 1 kHz plant
                     truth.append(plant.markers()[0])
                     emulator.send_frame(exposure_time=time.time())
-                    delivered += pump(bridge, lambda: bridge.counters["delivered"] > len(delivered))
+                    delivered += pump(bridge, lambda: bridge.counters["delivered"] > before + len(delivered))
                 plant.step([3.0, 0.0, 0.0, 0.0])
     assert len(delivered) == 10
     for frame, markers in zip(delivered, truth):
@@ -358,8 +364,8 @@ class HeldArm:
 
 
 def _streamed_from(arm, seconds, **emulator_kw):
-    """(frames, their exposure times [s], the emulator's counters) of ``seconds`` of streaming the
-    moving ``arm``."""
+    """(frames, their exposure times [s], the emulator's counters, the bridge's) of ``seconds`` of
+    streaming the moving ``arm``."""
     calibration = Calibration(rotation_matrix(Y_UP), SHIFT)
     with NatNetEmulator(arm.markers, calibration=calibration, latency=0.004, **emulator_kw) as emulator:
         with MocapBridge(config(emulator)) as bridge:
@@ -370,7 +376,12 @@ def _streamed_from(arm, seconds, **emulator_kw):
             end = time.monotonic() + seconds
             frames = pump(bridge, lambda: time.monotonic() > end)
             exposures = np.array([emulator.exposure_time(f.frame_number) for f in frames])
-            return frames, exposures, dict(emulator.counters)
+            return frames, exposures, dict(emulator.counters), dict(bridge.counters)
+
+
+def _moved(frames) -> np.ndarray:
+    """How far [m] each frame shows the arm moved along x."""
+    return np.array([f.markers[0, 0] - TRUE[0, 0] for f in frames])
 
 
 def test_an_arm_held_behind_its_cameras_is_seen_where_it_is_at_each_frames_exposure():
@@ -379,29 +390,55 @@ def test_an_arm_held_behind_its_cameras_is_seen_where_it_is_at_each_frames_expos
     would be a jump of 0.15 m between two frames (9 m/s at 240 Hz), a speed the arm never had;
     without ``reached`` the stream shows it."""
     arm = HeldArm(hold=0.2, length=0.15)
-    frames, exposures, counters = _streamed_from(arm, 0.8, reached=arm.reached)
-    moved = np.array([f.markers[0, 0] - TRUE[0, 0] for f in frames])
-    np.testing.assert_allclose(moved, HeldArm.SPEED * (exposures - arm.start), atol=1e-5)
+    frames, exposures, counters, _ = _streamed_from(arm, 0.8, reached=arm.reached)
+    np.testing.assert_allclose(_moved(frames), HeldArm.SPEED * (exposures - arm.start), atol=1e-5)
     during = (exposures >= arm.hold) & (exposures < arm.hold + arm.length)
     assert np.count_nonzero(during) >= 0.8 * arm.length * 240       # delayed, not lost
     assert all(f.received_at >= arm.hold + arm.length for f, d in zip(frames, during) if d)
     assert counters["unreached"] == 0
 
     blind = HeldArm(hold=0.2, length=0.15)
-    frames, exposures, _ = _streamed_from(blind, 0.8)
-    moved = np.array([f.markers[0, 0] - TRUE[0, 0] for f in frames])
-    assert np.max(np.abs(moved - HeldArm.SPEED * (exposures - blind.start))) > 0.1
+    frames, exposures, _, _ = _streamed_from(blind, 0.8)
+    assert np.max(np.abs(_moved(frames) - HeldArm.SPEED * (exposures - blind.start))) > 0.1
 
 
-def test_frames_of_an_arm_that_never_reaches_their_exposure_are_not_sent():
-    """An arm stopped for good (its simulation ended): each frame waits ``reach_timeout`` for it,
-    then is dropped and counted; what was sent was the arm at its frame's exposure."""
-    arm = HeldArm(hold=0.2, length=math.inf)
-    frames, exposures, counters = _streamed_from(arm, 0.6, reached=arm.reached, reach_timeout=0.1)
-    assert len(frames) > 0.1 * 240 and np.all(exposures < arm.hold)
-    assert counters["unreached"] > 0.2 * 240
+def test_frames_the_arm_reaches_too_late_are_not_sent_and_the_bridge_counts_them_lost():
+    """Held for 0.4 s against a reach timeout of 0.1 s, the frames exposed in the hold's first 0.3 s
+    wait 0.1 s each and are dropped, counted; they take their frame numbers, so that the bridge
+    counts them lost; every frame sent shows the arm at its exposure."""
+    arm = HeldArm(hold=0.2, length=0.4)
+    frames, exposures, counters, bridge = _streamed_from(arm, 1.0, reached=arm.reached,
+                                                         reach_timeout=0.1)
+    np.testing.assert_allclose(_moved(frames), HeldArm.SPEED * (exposures - arm.start), atol=1e-5)
+    assert 0.2 * 240 < counters["unreached"] < 0.4 * 240, counters
+    assert bridge["lost"] == counters["unreached"] + counters["missed"], (bridge, counters)
     with pytest.raises(ValueError, match="reach_timeout"):
         NatNetEmulator(static, reach_timeout=0.0)
+
+
+def test_exposures_the_stream_slept_through_take_their_frame_numbers():
+    """The stream's thread held for 0.1 s (here by a markers function that blocks once): the
+    exposures it slept through are counted missed and the bridge counts as many frames lost."""
+    held = []
+
+    def slow(t):
+        if held == [True]:
+            held.append(True)
+            time.sleep(0.1)
+        return TRUE
+
+    calibration = Calibration(rotation_matrix(Y_UP), SHIFT)
+    with NatNetEmulator(slow, calibration=calibration) as emulator:
+        with MocapBridge(config(emulator)) as bridge:
+            emulator.start()
+            bridge.connect()
+            pump(bridge, lambda: bridge.state == "streaming")
+            held.append(True)
+            end = time.monotonic() + 0.5
+            frames = pump(bridge, lambda: time.monotonic() > end)
+            counters = dict(emulator.counters)
+    assert counters["missed"] >= 0.05 * 240 and frames
+    assert bridge.counters["lost"] == counters["missed"], (bridge.counters, counters)
 
 
 def test_clock_map_takes_the_smallest_delay_in_its_window():
