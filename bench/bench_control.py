@@ -9,6 +9,8 @@ Measures, on one core, with the default configuration (config/*.yaml):
   coiling task at the edge of its workspace, heading for a target no tension within limits reaches;
 - the path learner's work per CLIK step of a track goal (its correction, then the frame it is
   handed; :mod:`soft_arm_control.track_learning`);
+- one judgement of the online CLIK's trust region on an estimated feedback, its history full
+  (:mod:`soft_arm_control.trust_region`, at the mocap's 240 Hz);
 - one update of the shape estimator (:mod:`soft_arm_control.shape_estimation`) on the tendons alone
   and with the four markers, and the share of a core it takes at estimator.yaml's rate;
 - precomputing each triangle target from the start-up pose (without and with the seed equilibria);
@@ -28,6 +30,7 @@ from soft_arm_control.clik import equilibrium_seeds
 from soft_arm_control.dynamic_estimation import DynamicShapeEstimator
 from soft_arm_control.shape_estimation import ShapeEstimator
 from soft_arm_control.track_learning import HarmonicLearner
+from soft_arm_control.trust_region import TrustRegion
 from soft_arm_control.two_level import TwoLevelController
 from soft_arm_experiments.harness import load_setup, run_experiment
 from soft_arm_experiments.metrics import format_table, to_json
@@ -71,6 +74,13 @@ def bench_steps():
         t = next(tau)
         learner.add(t, x_d, x_d + learner.correction(t)[0], x_meas)
     learning = best_of(learn, inner=2000)
+    # the trust region judging an estimate at the model's error, every frame at 240 Hz, once it
+    # holds three windows of them (the whole judgement, the drift's included)
+    trust = TrustRegion(setup.control.trust)
+    frame = ticks(1 / 240)
+    for _ in range(int(3 * setup.control.trust.window * 240) + 10):
+        trust.judge(next(frame), x_meas, x_d)
+    judging = best_of(lambda: trust.judge(next(frame), x_meas, x_d), inner=2000)
     pre = {}
     for k, target in enumerate(setup.task.targets):
         t0 = time.perf_counter()
@@ -88,7 +98,7 @@ def bench_steps():
         pre[k + 1]["with_seeds_s"] = time.perf_counter() - t0
     return {"inner_loop_step_us": 1e6 * inner, "clik_online_step_ms": 1e3 * full,
             "clik_online_step_reused_jacobian_ms": 1e3 * chord, "clik_operating_step_ms": 1e3 * operation,
-            "track_learning_frame_us": 1e6 * learning,
+            "track_learning_frame_us": 1e6 * learning, "trust_judgement_us": 1e6 * judging,
             "clik_online_step_projected_ms": 1e3 * bench_projected_step(), "precompute": pre,
             **bench_estimator(),
             "seed_equilibria": len(seeds), "seed_equilibria_s": seed_time,
@@ -186,6 +196,8 @@ def main():
     projected = steps["clik_online_step_projected_ms"]
     print(f"online CLIK step projected onto the limits  {projected:8.3f} ms   (Z recomputed)")
     print(f"path learner per CLIK step (track goals)    {steps['track_learning_frame_us']:8.1f} us")
+    print(f"trust region's judgement per frame          {steps['trust_judgement_us']:8.1f} us"
+          "   (an estimated feedback, at 240 Hz)")
     print(f"shape estimator update, tendons alone       {steps['estimator_update_tendons_ms']:8.3f} ms")
     print(f"  its tendon update (compiled)              {steps['estimator_tendon_update_ms']:8.3f} ms"
           f"   (at rest: one Gauss-Newton step, one linearisation of the balance "
