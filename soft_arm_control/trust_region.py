@@ -165,7 +165,7 @@ class _OffsetHistory:
 
     def __init__(self, capacity: int = 1024):
         self._t = np.empty(capacity)
-        self._x: np.ndarray | None = None
+        self._x: np.ndarray | None = None           # (capacity, d), once the first offset tells d
         self._head = self._tail = 0
 
     def clear(self):
@@ -175,9 +175,8 @@ class _OffsetHistory:
         """Add the frame at ``t`` [s] with its ``offset`` (d,) [m], forget the frames before
         ``oldest`` [s] (from the oldest on, as they came); the frames kept: (times (k,), offsets
         (k, d)), views valid until the next append or clear."""
-        if self._x is None or self._x.shape[1] != offset.size:
+        if self._x is None:
             self._x = np.empty((self._t.size, offset.size))
-            self.clear()
         if self._tail == self._t.size:
             kept = self._tail - self._head
             if kept > self._t.size // 2:                 # more than half full: twice the room

@@ -54,7 +54,7 @@ from .simulated_rig import Plant
 __all__ = ["CanMotorEmulator", "EmulatedMotor", "EmulatorThread", "arm_plant"]
 
 _EPS = 1e-9                     # s, tolerance of time comparisons
-HISTORY = 500                   # plant steps kept for configuration_at (0.5 s at 1 ms)
+HISTORY = 500                   # plant steps kept in the history (0.5 s at 1 ms)
 _NO_COMMAND = MotorCommand(0.0, 0.0, 0.0, 0.0, 0.0)
 
 
@@ -262,15 +262,6 @@ class CanMotorEmulator:
                 m.timeouts += 1
                 if self.on_timeout is not None:
                     self.on_timeout(m.motor.can_id, silence)
-
-    def configuration_at(self, t: float) -> np.ndarray:
-        """The plant's configuration q at time ``t`` [s, the emulator's clock]: the latest of the
-        start and the last steps kept in :attr:`history` at or before ``t`` (the oldest kept if
-        ``t`` is older). For another thread sampling the plant at its own times (a camera
-        exposure); another process reads the same from a shared :attr:`history`."""
-        if self.plant is None:
-            raise RuntimeError("an emulator without a plant has no configuration")
-        return self.history.at(t)
 
     # -- frames ----------------------------------------------------------------------------------
     def _drain(self, arrival: float):

@@ -85,7 +85,7 @@ def start_hardware(spec: HardwareSpec, bus: can.BusABC, motive_process: bool = F
         thread = EmulatorThread(motors).start()
         try:
             motive = MotiveProcess(spec, history) if motive_process else \
-                start_motive(spec, plant.model, motors.configuration_at, motors.history.reached)
+                start_motive(spec, plant.model, motors.history)
         except BaseException:
             thread.stop()
             raise

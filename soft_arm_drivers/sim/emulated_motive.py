@@ -23,7 +23,6 @@ import signal
 import subprocess
 import sys
 import time
-from typing import Callable
 
 import numpy as np
 
@@ -38,16 +37,15 @@ from .simulated_rig import Plant
 _READY, _ERROR = "ready", "error"
 
 
-def start_motive(spec, model, configuration_at: Callable[[float], np.ndarray],
-                 reached: Callable[[float], bool] | None = None) -> NatNetEmulator:
+def start_motive(spec, model, history: ConfigurationHistory) -> NatNetEmulator:
     """The NatNet server emulator of ``spec`` (a :class:`~.emulated_hardware.HardwareSpec`) streaming
-    the markers of the plant ``model`` at ``configuration_at(t)`` (t: exposure time [s, system
-    time]), as the miscalibrated mocap reports them, with the plant's noise (seeded); each frame once
-    ``reached(t)`` says the plant has stepped to its exposure (None: at once). ConfigError when the
-    Motive server's address cannot be bound."""
+    the markers of the plant ``model`` at the configurations of its ``history`` at the exposure
+    times [s, system time], as the miscalibrated mocap reports them, with the plant's noise
+    (seeded); each frame once the history has reached its exposure. ConfigError when the Motive
+    server's address cannot be bound."""
     p, mocap, emulator = spec.plant, spec.mocap, spec.emulator
     data = ArmData(model)
-    marker_positions(model, configuration_at(time.time()), data)    # compiled before the stream
+    marker_positions(model, history.at(time.time()), data)    # compiled before the stream
     rng = np.random.default_rng(p.mocap_seed)
     occlusions = Occlusions.for_plant(p, model.marker_X.size)
     started = time.time()
@@ -56,7 +54,7 @@ def start_motive(spec, model, configuration_at: Callable[[float], np.ndarray],
         """On the NatNet thread: the plant at the exposure time ``t`` [s, system time]; the markers
         the cameras do not see are NaN (the emulator flags them occluded, as Motive does). The
         occlusion's blackout counts from the server's start."""
-        true = marker_positions(model, configuration_at(t), data)
+        true = marker_positions(model, history.at(t), data)
         out = p.as_mocap_reports(true) + rng.normal(0.0, p.mocap_noise, true.shape)
         if occlusions is not None:
             out[~occlusions.of_arm(model, data, t - started)] = np.nan
@@ -67,7 +65,8 @@ def start_motive(spec, model, configuration_at: Callable[[float], np.ndarray],
         return NatNetEmulator(
             markers, version=emulator["natnet_version"], rate=p.mocap_rate, layout="both",
             calibration=mocap.calibration, address=mocap.server_address,
-            command_port=mocap.command_port, latency=p.mocap_latency, reached=reached, **ids).start()
+            command_port=mocap.command_port, latency=p.mocap_latency, reached=history.reached,
+            **ids).start()
     except OSError as exc:
         raise ConfigError(f"rig.mocap.command_port = {mocap.command_port}: the emulated Motive "
                           f"server cannot bind {mocap.server_address}:{mocap.command_port}: "
@@ -151,7 +150,7 @@ def main() -> int:
     spec, path, n, rows, dt = pickle.load(sys.stdin.buffer)
     try:
         history = ConfigurationHistory.open(path, n, rows, dt)
-        natnet = start_motive(spec, Plant.of(spec.arm, spec.plant).model, history.at, history.reached)
+        natnet = start_motive(spec, Plant.of(spec.arm, spec.plant).model, history)
     except Exception as exc:  # noqa: BLE001 - reported to the hardware's process, which raises it
         reason = str(exc) if isinstance(exc, ConfigError) else f"{type(exc).__name__}: {exc}"
         print(_ERROR, " ".join(reason.split()), flush=True)

@@ -612,8 +612,9 @@ def test_zeroing_pose_shortening_is_added_to_the_readings(make_rig):
 
 
 def test_emulator_gives_the_plant_configuration_at_past_times():
-    """configuration_at(t) is the plant's state after the last step at or before t: the same as
-    an identical emulator stopped at t (the arm, settled at 0.5 N, falls back under no torque)."""
+    """The history's configuration at t is the plant's state after the last step at or before t:
+    the same as an identical emulator stopped at t (the arm, settled at 0.5 N, falls back under no
+    torque)."""
     def emulator_until(t_end):
         cfg = config()
         bus = can.Bus(interface="virtual", channel=cfg.channel)
@@ -625,9 +626,9 @@ def test_emulator_gives_the_plant_configuration_at_past_times():
     late = emulator_until(0.05)
     for t in (0.0205, 0.0300):
         early = emulator_until(t)
-        np.testing.assert_array_equal(late.configuration_at(t), early.plant.q)
-    assert not np.allclose(late.configuration_at(0.02), late.plant.q)     # it moved meanwhile
-    np.testing.assert_array_equal(late.configuration_at(1.0), late.plant.q)
+        np.testing.assert_array_equal(late.history.at(t), early.plant.q)
+    assert not np.allclose(late.history.at(0.02), late.plant.q)     # it moved meanwhile
+    np.testing.assert_array_equal(late.history.at(1.0), late.plant.q)
 
 
 def test_probe_finds_the_answering_motors_without_a_silence_fault(make_rig):

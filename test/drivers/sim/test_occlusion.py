@@ -180,6 +180,7 @@ def test_the_emulated_motive_server_applies_the_blackout_from_its_start():
     from soft_arm_drivers.can.loopback_bus import free_udp_ports
     from soft_arm_drivers.mocap.bridge_config import load_mocap_config
     from soft_arm_drivers.sim.emulated_hardware import HardwareSpec
+    from soft_arm_drivers.sim.configuration_history import ConfigurationHistory
     from soft_arm_drivers.sim.emulated_motive import start_motive
     from soft_arm_drivers.sim.emulated_rig import load_emulator_config, read_emulated_motors
     arm = load_arm_config()
@@ -191,7 +192,9 @@ def test_the_emulated_motive_server_applies_the_blackout_from_its_start():
                         load_emulator_config(),
                         load_mocap_config(overrides={"mocap.command_port": free_udp_ports(1)[0],
                                                      "mocap.data_port": 0}))
-    emulator = start_motive(spec, model, lambda t: q)
+    history = ConfigurationHistory(model.n, 2, 1e-3)
+    history.append(time.time(), q)                  # the arm holding q from now on
+    emulator = start_motive(spec, model, history)
     try:
         markers = emulator._markers                  # what the server streams at an exposure time
         now = time.time()
