@@ -110,6 +110,7 @@ from soft_arm_model.dynamics import DYNAMICS, KINEMATICS, STATICS, OutOfDomainEr
 from soft_arm_model.routing import (new_routing_work, routing_arrays, routing_derivatives, routing_of,
                                     tendon_ends)
 
+from .dynamic_estimator_steps import gain_update, noise_parameters, predict_step, tendon_rows
 from .shape_estimation import (FRICTION_BOUNDS, STIFFNESS_BOUNDS, EstimatorConfig, LostRule, MarkerGate,
                                ShapeEstimate, ShapeEstimator, UpdateReport, at_rest)
 
@@ -220,6 +221,18 @@ class DynamicShapeEstimator:
         self._adot = np.zeros(nt)
         self._jac = np.zeros((n, n))
         self._dA_dmu = np.zeros((n, nt))
+        self._rotors = bool(np.any(self.rotor))
+        self._noise = noise_parameters(config)
+        self._parts = np.array([self._k, self._mu, self._beta, self._load])
+        self._F = np.zeros((self.N, self.N))
+        self._tendon_rows = np.zeros((2 * nt, self.N)), np.zeros(2 * nt), np.zeros(2 * nt)
+        self._tendon_noise = np.array([config.shortening, config.encoder_rate])
+        # the parameters' bounds, from the stiffness scale to the payload
+        mu = np.array([t.friction for t in model.config.tendons])
+        self._bounds = tuple(np.concatenate([[STIFFNESS_BOUNDS[i]], FRICTION_BOUNDS[i] - mu,
+                                             np.full(nt, sign * ROUTING_BOUNDS[0]),
+                                             np.full(2 * nt, sign * ROUTING_BOUNDS[1]), [PAYLOAD_BOUNDS[i]]])
+                             for i, sign in ((0, -1.0), (1, 1.0)))
         self._evaluated_at = None    # (q, level) whose terms self.data holds
 
     @property
@@ -311,53 +324,23 @@ class DynamicShapeEstimator:
     # --- prediction ------------------------------------------------------------------------------
 
     def _predict(self, h: float, u) -> np.ndarray:
-        """One step of length ``h`` [s] under tensions u [N]: the state and its covariance; returns
-        the step's Jacobian (N, N)."""
-        m, c, d = self.model, self.config, self.data
-        n, nt, N = m.n, m.n_tendons, self.N
+        """One step of length ``h`` [s] under tensions u [N]: the state and its covariance
+        (:func:`~soft_arm_control.dynamic_estimator_steps.predict_step`); returns the step's Jacobian
+        (N, N), valid until the next prediction."""
+        m, d = self.model, self.data
+        n = m.n
         q, v = self.z[:n].copy(), self.z[n:2 * n].copy()
-        k, dmu = self.z[self._k], self.z[self._mu:self._beta]
         self._evaluate(q, v, DYNAMICS, True)
-        rot = self.rotor
-        if np.any(rot):
+        if self._rotors:
             kernels.tendon_rate_bias(m.kernel_args[0], m.kernel_args[1], d.xi, v, self._t_read[0],
                                      self._t_read[1], m.kernel_args[15], self._adot)
         kernels.static_tangent(*self.args, q, u, True, *d.kernel_args, self._jac, self._dA_dmu)
         self._routing_derivatives(q, False)
-        A = d.A + self._dA_dmu * dmu[None, :]
-        D = m.D
-        S = d.M + h * D + (h * h * k) * d.Kt + (A * rot[None, :]) @ d.A0.T
-        weight = d.marker_J[-1][3:].T @ (d.marker_R[-1].T @ m.gravity)     # of a unit mass at the tip
-        rhs = d.M @ v + A @ (rot * (d.A0.T @ v)) + h * (d.Fg - d.Cqd - k * d.Fel - A @ (u + rot * self._adot)
-                                                        + self.z[self._load] * weight)
-        Sinv = np.linalg.inv(S)
-        v_new = Sinv @ rhs
-        force = h * (u + rot * self._adot) + rot * (d.A0.T @ (v_new - v))     # impulse per tendon
-        F = np.eye(N)
-        Fv = F[n:2 * n]
-        Fv[:, :n] = -h * (Sinv @ (self._jac + (k - 1.0) * d.Kt))
-        Fv[:, n:2 * n] -= h * (Sinv @ (D + (h * k) * d.Kt))
-        Fv[:, self._k] = -h * (Sinv @ (d.Fel + h * (d.Kt @ v_new)))
-        Fv[:, self._mu:self._beta] = -(Sinv @ (self._dA_dmu * force[None, :]))
-        # the routing moves A (the tendons' forces) and A0 (the rotors' coupling, through the rate change)
-        rotor_rate = rot[None, :] * np.einsum("jak,a->jk", self._dA0, v_new - v)          # (3, nt)
-        dforce = self._dA * force[None, None, :] + A[None, :, :] * rotor_rate[:, None, :]
-        Fv[:, self._beta:self._load] = -(Sinv @ dforce.transpose(1, 0, 2).reshape(n, 3 * nt))
-        Fv[:, self._load] = h * (Sinv @ weight)
-        F[:n] += h * Fv
-        # the impulse the model does not explain, through the same implicit step
-        sigma_f = c.force * (np.abs(k * d.Fel) + np.abs(A @ u) + np.abs(D @ v)) + c.force_floor
-        W = np.diag((h * sigma_f) ** 2) + (h * h * c.tension ** 2) * (A @ A.T)
-        G = np.vstack([h * Sinv, Sinv])
-        P = F @ self.Pz @ F.T
-        P[:2 * n, :2 * n] += G @ W @ G.T
-        drifting = np.arange(self._k, self._beta)            # the stiffness and friction; a cast arm's
-        P[drifting, drifting] += c.parameter_drift ** 2 * h    # routing and its payload stay
-        self.Pz = P
-        self._share = F @ self._share
-        self.z[:n] = q + h * v_new
-        self.z[n:2 * n] = v_new
-        return F
+        self.Pz = predict_step(d.M, m.D, d.Kt, d.A, d.A0, self._dA_dmu, self._jac, self._dA, self._dA0,
+                               d.Fg, d.Cqd, d.Fel, d.marker_J[-1], d.marker_R[-1], m.gravity, self.rotor,
+                               self._adot, np.ascontiguousarray(u, dtype=float), float(h), self._noise,
+                               self._parts, self.z, self.Pz, self._share, self._F)
+        return self._F
 
     # --- update ------------------------------------------------------------------------------------
 
@@ -433,34 +416,20 @@ class DynamicShapeEstimator:
                               f"from the estimate (normalised square {nis:.0f})")
 
     def _clamp_parameters(self):
-        z = self.z
-        z[self._k] = np.clip(z[self._k], *STIFFNESS_BOUNDS)
-        mu = np.array([t.friction for t in self.model.config.tendons])
-        z[self._mu:self._beta] = np.clip(z[self._mu:self._beta], FRICTION_BOUNDS[0] - mu,
-                                         FRICTION_BOUNDS[1] - mu)
-        beta = z[self._beta:self._load].reshape(3, -1)
-        beta[0] = np.clip(beta[0], -ROUTING_BOUNDS[0], ROUTING_BOUNDS[0])
-        beta[1:] = np.clip(beta[1:], -ROUTING_BOUNDS[1], ROUTING_BOUNDS[1])
-        z[self._load] = np.clip(z[self._load], *PAYLOAD_BOUNDS)
+        """The stiffness scale, friction offsets, routing and payload into what a cast arm can have
+        (:attr:`_bounds`)."""
+        low, high = self._bounds
+        np.clip(self.z[self._k:], low, high, out=self.z[self._k:])
 
     def _measure(self, s, sd, markers, report):
         m, c, d = self.model, self.config, self.data
-        n, nt, N = m.n, m.n_tendons, self.N
-        q, v = self.z[:n].copy(), self.z[n:2 * n]
+        n, N = m.n, self.N
+        q, v = self.z[:n].copy(), self.z[n:2 * n].copy()
         self._evaluate(q, v, STATICS, True)
         self._routing_derivatives(q, True)
-        H = np.zeros((2 * nt, N))
-        H[:nt, :n] = -d.A0.T
-        H[nt:, n:2 * n] = -d.A0.T
-        tendon = np.arange(nt)
-        for j in range(3):
-            H[tendon, self._beta + j * nt + tendon] = self._dL0[j] - self._dLc[j]
-            H[nt + tendon, self._beta + j * nt + tendon] = -(v @ self._dA0[j])
-        y = np.concatenate([s - (self._L0 - d.Lc), sd + d.A0.T @ v])
-        r = np.concatenate([np.full(nt, c.shortening ** 2), np.full(nt, c.encoder_rate ** 2)])
-        Sy = H[:nt] @ self.Pz @ H[:nt].T + np.diag(r[:nt])
-        report.tendon_nis = float(y[:nt] @ np.linalg.solve(Sy, y[:nt]))
-        rows_H, rows_y, rows_r = [H], [y], [r]
+        H, y, r = self._tendon_rows
+        report.tendon_nis = tendon_rows(d.A0, v, self._dL0, self._dLc, self._dA0, self._L0, d.Lc, s, sd,
+                                        self._tendon_noise, self._beta, self.Pz, H, y, r)
         if markers is not None:
             markers = np.asarray(markers, dtype=float)
             nm = m.marker_X.size
@@ -473,41 +442,37 @@ class DynamicShapeEstimator:
             ys = markers[seen] - d.marker_p[seen]
             Ss = Hq @ self.Pz[:n, :n] @ Hq.transpose(0, 2, 1) + var[:, None, None] * np.eye(3)
             nis = np.einsum("ka,ka->k", ys, np.linalg.solve(Ss, ys[:, :, None])[:, :, 0])
+            taken = []                                 # indices into seen
             for i, j in enumerate(seen.tolist()):
                 report.marker_nis[j] = d2 = float(nis[i])
                 if not self._gate.takes(j, d2):
                     report.gated.append(j)
                     continue
-                Hj = np.zeros((3, N))
-                Hj[:, :n] = Hq[i]
-                rows_H.append(Hj)
-                rows_y.append(ys[i])
-                rows_r.append(np.full(3, var[i]))
+                taken.append(i)
                 report.used.append(j)
             self.counts["markers_used"] += len(report.used)
             self.counts["markers_gated"] += len(report.gated)
             self.counts["diverged"] = self._gate.diverged
-        H, y, r = np.vstack(rows_H), np.concatenate(rows_y), np.concatenate(rows_r)
-        P = self.Pz
-        gain_P = P
-        if not report.used:
-            # the payload's leverage: a tendon's millimetre it would explain moves the tip by
-            # centimetres, so the gain is the filter's as if the payload were its estimate: the
-            # covariance without the payload's share (which the Joseph form below keeps for this gain)
-            gain_P = P - self.config.prior_payload ** 2 * np.outer(self._share, self._share)
-        PHt = gain_P @ H.T
-        S = H @ PHt + np.diag(r)
-        np.linalg.cholesky(S)             # raises where the covariance has lost its positive definiteness
-        K = np.linalg.solve(S, PHt.T).T
-        if not report.used:               # the tendons alone do not tell the routing and the payload
-            K[self._beta:] = 0.0          # from the rest: considered, not learnt; nor, in motion, the
-            if not at_rest(sd, self.config.rest_speed):    # stiffness and friction (module docstring)
-                K[self._k:self._beta] = 0.0
-        self.z = self.z + K @ y
-        IKH = np.eye(N) - K @ H
-        P = IKH @ P @ IKH.T + (K * r[None, :]) @ K.T
-        self._share = IKH @ self._share
-        self.Pz = 0.5 * (P + P.T)
+            if taken:                                  # the tendons' rows, then 3 per marker taken
+                rows = H.shape[0]
+                stacked = np.zeros((rows + 3 * len(taken), N))
+                stacked[:rows] = H
+                stacked[rows:, :n] = Hq[taken].reshape(-1, n)
+                H = stacked
+                y = np.concatenate([y, ys[taken].ravel()])
+                r = np.concatenate([r, np.repeat(var[taken], 3)])
+        # blind (no marker taken): the payload's leverage -- a tendon's millimetre it would explain
+        # moves the tip by centimetres -- so the gain is the filter's as if the payload were its
+        # estimate: the covariance without the payload's share, which the Joseph form keeps for
+        # this gain; the tendons alone do not tell the routing and the payload from the rest:
+        # considered, not learnt; nor, in motion, the stiffness and friction (module docstring)
+        blind = not report.used
+        updated, P = gain_update(H, y, r, self.z, self.Pz, self._share, self.config.prior_payload ** 2,
+                                 blind, blind and not at_rest(sd, self.config.rest_speed), self._k,
+                                 self._beta)
+        if not updated:
+            raise np.linalg.LinAlgError("the innovation covariance is not positive definite")
+        self.Pz = P
 
     def estimate(self) -> ShapeEstimate:
         """The current estimate (markers and their covariance from the model's kinematics), its

@@ -324,6 +324,9 @@ class ShapeEstimator:
         self._lost = LostRule()
         self._gate = MarkerGate(model.marker_X.size, config.gate, config.regate)
         self._linear = None          # (dR/dq, A, u) of the last tendon update, for the prediction
+        mu = np.array([t.friction for t in model.config.tendons])
+        self._bounds = (np.concatenate([[STIFFNESS_BOUNDS[0]], FRICTION_BOUNDS[0] - mu]),   # of z[n:]
+                        np.concatenate([[STIFFNESS_BOUNDS[1]], FRICTION_BOUNDS[1] - mu]))
         size, rows = self.z.size, max(n + nt, 3 * model.marker_X.size)     # the updates' largest
         self._update_out = (np.zeros(size), np.zeros((size, rows)), np.zeros((rows, size)), np.zeros(rows),
                             np.zeros(rows))                  # z, K, H, noise, innovation
@@ -412,9 +415,7 @@ class ShapeEstimator:
     def _clamp_parameters(self):
         """The stiffness scale and friction coefficients into what a cast arm can have."""
         n = self.model.n
-        self.z[n] = np.clip(self.z[n], *STIFFNESS_BOUNDS)
-        mu = np.array([t.friction for t in self.model.config.tendons])
-        self.z[n + 1:] = np.clip(self.z[n + 1:], FRICTION_BOUNDS[0] - mu, FRICTION_BOUNDS[1] - mu)
+        np.clip(self.z[n:], *self._bounds, out=self.z[n:])
 
     def _predict(self, u):
         """Move q with the change of the tensions since the last update, along the model's static
@@ -469,6 +470,9 @@ class ShapeEstimator:
         [m/s] as the balance's does (a frame is a few milliseconds old when it arrives). The
         stiffness and friction are left to the tendons."""
         c, n = self.config, self.model.n
+        if not np.isfinite(markers).any():           # a frame with every marker hidden tells nothing
+            report.marker_nis = np.full(self.model.marker_X.size, np.nan)
+            return
         sigma = c.marker * (1.0 + c.moving * (float(np.max(np.abs(sd))) if sd.size else 0.0))
         d = self._evaluate_markers(KINEMATICS)
         H_all, C, nu, nis = self._marker_out

@@ -14,6 +14,9 @@ ENTRY_KERNELS = [("soft_arm_model.kernels", "evaluate"), ("soft_arm_model.kernel
                  ("soft_arm_model.routing", "routing_arrays"),
                  ("soft_arm_model.routing", "routing_derivatives"),
                  ("soft_arm_control.collocated", "_collocated_terms"),
+                 ("soft_arm_control.dynamic_estimator_steps", "predict_step"),
+                 ("soft_arm_control.dynamic_estimator_steps", "tendon_rows"),
+                 ("soft_arm_control.dynamic_estimator_steps", "gain_update"),
                  ("soft_arm_model.dynamic_identification", "_simulate_segment")]
 
 SCRIPT = r"""
@@ -40,12 +43,13 @@ frame_at(model, q, 0.2)
 selector = np.asfortranarray(coordinate_selector(model, (0, 1, 2, 3)))
 cm = build_collocated(model, (0, 1, 2, 3), selector=selector)
 evaluate_collocated(cm, CollocatedData(cm), q)
-# the dynamic estimate, with markers (its routing moves)
+# the dynamic estimate, with markers (its routing moves), then without
 estimator = DynamicShapeEstimator(model, load_estimator_config(), 0.6)
 estimator.start(0.0, u)
 s = model.rest_tendon_lengths - tendon_lengths(model, q)
 for k in range(3):
     estimator.update(0.004 * (k + 1), s, np.zeros(4), u, marker_positions(model, q) + 2e-4)
+estimator.update(0.016, s, np.zeros(4), u)          # and on the tendons alone
 # an identification segment whose samples are every other one of a recording's (strided views)
 t = np.arange(1, 9) * 0.002
 n_markers = len(model.config.marker_positions)

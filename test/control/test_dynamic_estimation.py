@@ -91,6 +91,80 @@ def test_the_steps_jacobian_matches_central_differences(model):
             assert np.linalg.norm(-mine - theirs) / np.linalg.norm(theirs) > 1.5
 
 
+def _prediction_in_numpy(estimator, h, u):
+    """The prediction written as the estimator module's docstring writes it, in numpy expressions:
+    (z, P, share, F) after one step, the estimator left as it was."""
+    m, c, d = estimator.model, estimator.config, estimator.data
+    n, nt, N = m.n, m.n_tendons, estimator.N
+    z = estimator.z.copy()
+    q, v = z[:n].copy(), z[n:2 * n].copy()
+    k, dmu, payload = z[estimator._k], z[estimator._mu:estimator._beta], z[estimator._load]
+    estimator._evaluate(q, v, 2, True)
+    rot, adot = estimator.rotor, np.zeros(nt)
+    from soft_arm_model import kernels
+    kernels.tendon_rate_bias(m.kernel_args[0], m.kernel_args[1], d.xi, v, estimator._t_read[0],
+                             estimator._t_read[1], m.kernel_args[15], adot)
+    jac, dA_dmu = np.zeros((n, n)), np.zeros((n, nt))
+    kernels.static_tangent(*estimator.args, q, u, True, *d.kernel_args, jac, dA_dmu)
+    estimator._routing_derivatives(q, False)
+    dA, dA0 = estimator._dA, estimator._dA0
+    A = d.A + dA_dmu * dmu[None, :]
+    S = d.M + h * m.D + (h * h * k) * d.Kt + (A * rot[None, :]) @ d.A0.T
+    weight = d.marker_J[-1][3:].T @ (d.marker_R[-1].T @ m.gravity)
+    rhs = d.M @ v + A @ (rot * (d.A0.T @ v)) + h * (d.Fg - d.Cqd - k * d.Fel - A @ (u + rot * adot)
+                                                    + payload * weight)
+    Sinv = np.linalg.inv(S)
+    v_new = Sinv @ rhs
+    force = h * (u + rot * adot) + rot * (d.A0.T @ (v_new - v))
+    F = np.eye(N)
+    Fv = F[n:2 * n]
+    Fv[:, :n] = -h * (Sinv @ (jac + (k - 1.0) * d.Kt))
+    Fv[:, n:2 * n] -= h * (Sinv @ (m.D + (h * k) * d.Kt))
+    Fv[:, estimator._k] = -h * (Sinv @ (d.Fel + h * (d.Kt @ v_new)))
+    Fv[:, estimator._mu:estimator._beta] = -(Sinv @ (dA_dmu * force[None, :]))
+    rotor_rate = rot[None, :] * np.einsum("jak,a->jk", dA0, v_new - v)
+    dforce = dA * force[None, None, :] + A[None, :, :] * rotor_rate[:, None, :]
+    Fv[:, estimator._beta:estimator._load] = -(Sinv @ dforce.transpose(1, 0, 2).reshape(n, 3 * nt))
+    Fv[:, estimator._load] = h * (Sinv @ weight)
+    F[:n] += h * Fv
+    sigma_f = c.force * (np.abs(k * d.Fel) + np.abs(A @ u) + np.abs(m.D @ v)) + c.force_floor
+    W = np.diag((h * sigma_f) ** 2) + (h * h * c.tension ** 2) * (A @ A.T)
+    G = np.vstack([h * Sinv, Sinv])
+    P = F @ estimator.Pz @ F.T
+    P[:2 * n, :2 * n] += G @ W @ G.T
+    drifting = np.arange(estimator._k, estimator._beta)
+    P[drifting, drifting] += c.parameter_drift ** 2 * h
+    z[:n], z[n:2 * n] = q + h * v_new, v_new
+    return z, P, F @ estimator._share, F
+
+
+@pytest.mark.parametrize("rotor", [0.0, ROTOR])
+def test_the_compiled_prediction_is_the_documented_step(model, rotor):
+    """On random states (friction, routing and payload off the model's, a covariance with
+    correlations everywhere), the compiled prediction gives the numpy expressions' state,
+    covariance, payload share and Jacobian to rounding; the covariance's blocks past the first 2n
+    rows too, which its product leaves out."""
+    q, qd, u = _moving_state(model)
+    nt = model.n_tendons
+    rng = np.random.default_rng(3)
+    for _ in range(3):
+        estimator = DynamicShapeEstimator(model, CONFIG, rotor)
+        estimator.start(0.0, u)
+        N = estimator.N
+        estimator.z[:] = np.concatenate([q, qd * rng.uniform(0.5, 1.5), [rng.uniform(0.9, 1.1)],
+                                         rng.normal(0, 0.02, nt), rng.normal(0, 0.02, 3 * nt),
+                                         [rng.uniform(0, 0.005)]])
+        L = rng.normal(0, 1, (N, N)) * np.sqrt(np.diag(estimator.Pz))[:, None]
+        estimator.Pz = L @ L.T / N + np.diag(np.diag(estimator.Pz))
+        estimator._share = rng.normal(0, 1, N)
+        estimator._set_routing()
+        expected = _prediction_in_numpy(estimator, PERIOD, u)
+        F = estimator._predict(PERIOD, u)
+        for mine, theirs in zip((estimator.z, estimator.Pz, estimator._share, F), expected):
+            scale = np.abs(theirs).max()
+            assert np.allclose(mine, theirs, rtol=0, atol=1e-11 * scale), np.abs(mine - theirs).max() / scale
+
+
 def test_the_configuration_names_the_estimator(model):
     assert isinstance(shape_estimator(model, replace(CONFIG, process_model="dynamic"), ROTOR),
                       DynamicShapeEstimator)
