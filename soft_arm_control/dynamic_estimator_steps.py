@@ -6,9 +6,9 @@ hands them here. :func:`predict_step` is the implicit step of the state, the ste
 the covariance F P F^T + G W G^T; :func:`tendon_rows` the tendons' measurement rows and their
 normalised innovation; :func:`gain_update` the gain, the state's update and the Joseph form, for
 any stack of rows (the tendons', and the markers' the estimator has gated). The expressions, units
-and frames are the estimator module's. One call each where numpy expressions made some sixty,
-whose overhead cost more than their arithmetic at these sizes (N = 2n + 2 + 4 n_tendons: 58 at 20
-coordinates). The products with the covariance go to the BLAS (``np.dot``); the rest is written
+and frames are the estimator module's. One call each: the same expressions in numpy are some
+sixty calls a sample, whose overhead costs more than their arithmetic at these sizes
+(N = 2n + 2 + 4 n_tendons: 58 at 20 coordinates). The products with the covariance go to the BLAS (``np.dot``); the rest is written
 out. F is the identity but for its first 2n rows, and the products use only those.
 """
 from __future__ import annotations

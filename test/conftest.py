@@ -57,8 +57,8 @@ FIGURES = ("experiments/test_harness.py", "experiments/test_harness_feedback.py"
 # The heaviest files of the parallel part, heaviest first, by the CPU seconds their tests took
 # (`--durations=0`, one Xeon, 2026-12): `test/run` hands pytest-xdist whole files in collection order
 # (`--no-loadscope-reorder`), and these first, so that no worker starts a minute of work while the
-# other has nothing left. Its own order, files with the most tests first, put these last. A hint
-# for the schedule only: a file missing here runs after them.
+# other has nothing left; xdist's own order (the files with the most tests first) would put these
+# few-test files last. A hint for the schedule only: a file missing here runs after them.
 HEAVIEST_FIRST = ("experiments/test_harness.py", "experiments/test_identification_run.py",
                   "experiments/test_estimate_in_motion.py", "campaigns/test_campaign_cli.py",
                   "graph/test_identification_graph.py", "experiments/test_harness_feedback.py",
