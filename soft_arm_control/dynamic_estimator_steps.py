@@ -8,13 +8,16 @@ normalised innovation; :func:`gain_update` the gain, the state's update and the 
 any stack of rows (the tendons', and the markers' the estimator has gated). The expressions, units
 and frames are the estimator module's. One call each: the same expressions in numpy are some
 sixty calls a sample, whose overhead costs more than their arithmetic at these sizes
-(N = 2n + 2 + 4 n_tendons: 58 at 20 coordinates). The products with the covariance go to the BLAS (``np.dot``); the rest is written
-out. F is the identity but for its first 2n rows, and the products use only those.
+(N = 2n + 2 + 4 n_tendons: 58 at 20 coordinates). The products with the covariance go to the
+BLAS (``np.dot``); the rest is written out. F is the identity but for its first 2n rows, and the
+products use only those.
 """
 from __future__ import annotations
 
 import numpy as np
 from numba import njit
+
+from .estimator_update import _cholesky
 
 
 def noise_parameters(config) -> np.ndarray:
@@ -204,19 +207,8 @@ def gain_update(H, y, r, z, P, share, payload_var, blind, moving, k_at, beta_at)
     S = np.dot(H, PHt)
     for i in range(m):
         S[i, i] += r[i]
-    L = np.zeros((m, m))                     # positive definite: its Cholesky factor exists
-    for j in range(m):
-        acc = S[j, j]
-        for i in range(j):
-            acc -= L[j, i] * L[j, i]
-        if not acc > 0.0:
-            return False, P
-        L[j, j] = np.sqrt(acc)
-        for i in range(j + 1, m):
-            acc = S[i, j]
-            for c in range(j):
-                acc -= L[i, c] * L[j, c]
-            L[i, j] = acc / L[j, j]
+    if not _cholesky(S, np.zeros((m, m)), m):       # positive definite: its Cholesky factor exists
+        return False, P
     K = np.linalg.solve(S, PHt.T).T.copy()
     if blind:
         K[beta_at:] = 0.0

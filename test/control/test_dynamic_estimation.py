@@ -399,3 +399,22 @@ def test_on_the_tendons_alone_the_stiffness_and_friction_are_learnt_at_rest_only
     assert abs(resting[-1][0] - resting[0][0]) > 1e-3
     moving, _ = run(seen=True, rest=0.0)
     assert sum(abs(dk) for dk, _ in moving) > 1e-3
+
+
+def test_an_update_whose_innovation_covariance_is_not_positive_definite_changes_nothing():
+    """gain_update refuses rows whose innovation covariance is not positive definite (a noise
+    variance below minus the prior's): the state, the payload's share and the covariance stay as they
+    were; the same rows with a positive noise update them."""
+    from soft_arm_control.dynamic_estimator_steps import gain_update
+    rng = np.random.default_rng(1)
+    N, m = 8, 3
+    L = rng.normal(0, 1, (N, N))
+    P = L @ L.T + np.eye(N)
+    H, y = rng.normal(0, 1, (m, N)), rng.normal(0, 1, m)
+    z, share = rng.normal(0, 1, N), rng.normal(0, 1, N)
+    prior = np.diag(H @ P @ H.T)
+    z0, share0 = z.copy(), share.copy()
+    updated, out = gain_update(H, y, -2.0 * prior, z, P, share, 0.0, False, False, 2, 4)
+    assert not updated and np.array_equal(out, P) and np.array_equal(z, z0) and np.array_equal(share, share0)
+    updated, out = gain_update(H, y, np.full(m, 0.1), z, P, share, 0.0, False, False, 2, 4)
+    assert updated and not np.array_equal(z, z0) and np.all(np.linalg.eigvalsh(out) > 0)
