@@ -8,16 +8,18 @@ normalised innovation; :func:`gain_update` the gain, the state's update and the 
 any stack of rows (the tendons', and the markers' the estimator has gated). The expressions, units
 and frames are the estimator module's. One call each: the same expressions in numpy are some
 sixty calls a sample, whose overhead costs more than their arithmetic at these sizes
-(N = 2n + 2 + 4 n_tendons: 58 at 20 coordinates). The products with the covariance go to the
-BLAS (``np.dot``); the rest is written out. F is the identity but for its first 2n rows, and the
-products use only those.
+(N = 2n + 2 + 4 n_tendons: 58 at 20 coordinates). The gain is the static filter's
+(:mod:`~soft_arm_control.estimator_update`: the innovation covariance's Cholesky factor, the gain
+from it, its rows past the states a measurement may move zero); the products of N x N matrices go
+to the BLAS (``np.dot``); the rest is written out. F is the identity but for its first 2n rows, and
+the products use only those.
 """
 from __future__ import annotations
 
 import numpy as np
 from numba import njit
 
-from .estimator_update import _cholesky
+from .estimator_update import _factor, _gain
 
 
 def noise_parameters(config) -> np.ndarray:
@@ -201,19 +203,15 @@ def gain_update(H, y, r, z, P, share, payload_var, blind, moving, k_at, beta_at)
     gain."""
     m, N = H.shape
     gain_P = P
+    free = N                                 # the gain's rows from here on are zero
     if blind:
         gain_P = P - payload_var * np.outer(share, share)
-    PHt = np.dot(gain_P, H.T)
-    S = np.dot(H, PHt)
-    for i in range(m):
-        S[i, i] += r[i]
-    if not _cholesky(S, np.zeros((m, m)), m):       # positive definite: its Cholesky factor exists
+        free = k_at if moving else beta_at
+    HP, S, L = np.empty((m, N)), np.empty((m, m)), np.zeros((m, m))
+    if not _factor(H, gain_P, r, m, HP, S, L):      # S = H P H^T + diag(r) is not positive definite
         return False, P
-    K = np.linalg.solve(S, PHt.T).T.copy()
-    if blind:
-        K[beta_at:] = 0.0
-        if moving:
-            K[k_at:beta_at] = 0.0
+    K = np.empty((N, m))
+    _gain(HP, L, m, free, K, np.empty(m), np.empty(m))
     Ky = np.dot(K, y)
     for i in range(N):
         z[i] += Ky[i]
