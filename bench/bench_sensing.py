@@ -16,6 +16,10 @@ a transition's final error on the estimate exceeds the worse of the two holds'; 
 the transitions whose holds end more than ``FLIP`` apart; ``refused`` counts the trust region's
 refusals. ``--seeds`` runs chosen draws instead of the first N.
 
+Without ``--draws``, the filters of :data:`FILTERS` are compared besides (``filters``): the first
+task, blind, its loop holding the precomputed references (the same motion for each filter), the
+tip's error in motion and at rest and its mean NEES in motion and at rest.
+
 Scenarios (``plant.mocap.occlusion``): *clean*, no occlusion; *realistic*, the declared plant's
 (the cameras' lines of sight against the arm's body, 1 % dropouts); *heavy*, realistic with the
 tip marker lost 30 % of the time in 0.5 s bursts; *lost*, realistic until the end of the first
@@ -55,6 +59,16 @@ SCENARIOS = {
               "plant.mocap.occlusion.bursts.duration=0.5"],
     "lost": None,           # blackout from the end of the first window, set per task
     "blind": ["plant.mocap.occlusion.blackout=[0.0, 1.0e6]"],
+}
+# The filters compared on the tendons alone (``filters`` in the output): the static balance, the
+# dynamics with the casting tolerance's routing considered (estimator.yaml's priors), and the
+# dynamics sure of the drawing's routing (what the declared plant, whose tendons run on their drawn
+# paths, would allow a filter told so).
+FILTERS = {
+    "static": ["estimator.process_model=static"],
+    "dynamic": ["estimator.process_model=dynamic"],
+    "dynamic_routing_exact": ["estimator.process_model=dynamic", "estimator.prior.tendon_offset=0.0",
+                              "estimator.prior.tendon_angle=0.0"],
 }
 
 
@@ -101,15 +115,17 @@ def _figures(result, after) -> dict:
     diff = rec["markers_estimated"][:, -1] - rec["markers_true"][:, -1]
     nees = np.einsum("ki,kij,kj->k", diff, np.linalg.inv(rec["marker_covariance"][:, -1]), diff)
     rest = kept & (speed < REST_SPEED)
+    moving = kept & (speed >= REST_SPEED)
     return {"rms_error": s.rms_error, "reached_mm": s.reached_mm, "reached_cm": s.reached_cm,
             "transitions": s.transitions, "velocity_mm": s.velocity_mm, "velocity_cm": s.velocity_cm,
             "statuses": sorted({g["status"] for g in result.goals}),
             "seen": rec["markers_seen"].mean(axis=0).tolist(),
             "estimate_at_rest": _errors(rec, rest),
-            "estimate_moving": _errors(rec, kept & (speed >= REST_SPEED)),
+            "estimate_moving": _errors(rec, moving),
             "tip_nees_mean": float(nees[kept].mean()),
             "tip_nees_above_99": float(np.mean(nees[kept] > CHI2_99)),
-            "tip_nees_rest_mean": float(nees[rest].mean()) if rest.any() else None}
+            "tip_nees_rest_mean": float(nees[rest].mean()) if rest.any() else None,
+            "tip_nees_moving_mean": float(nees[moving].mean()) if moving.any() else None}
 
 
 def run_spec(spec: dict) -> dict:
@@ -237,7 +253,14 @@ def main(argv=None) -> int:
         specs.append({"task": task, "scenario": scenario, "feedback": feedback,
                       "sets": _sets(task, scenario) + [f"estimator.process_model={args.process_model}"],
                       "lost_at": lost_at})
+    # the filters compared: the first task, blind, its loop holding the precomputed references (on
+    # the mocap, which sees nothing), so that every filter watches the same motion
+    for name, sets in FILTERS.items():
+        specs.append({"task": args.tasks[0], "scenario": "blind", "feedback": "mocap", "filter": name,
+                      "sets": SCENARIOS["blind"] + sets, "lost_at": 0.0})
     rows = map_runs(f"{os.path.abspath(__file__)}:run_spec", specs, workers=args.workers)
+    filters = {spec["filter"]: row for spec, row in zip(specs, rows) if "filter" in spec}
+    rows = [row for spec, row in zip(specs, rows) if "filter" not in spec]
     print(f"{'task':9} {'scenario':10} {'feedback':9} {'RMS mm':>7} {'mocap':>6} {'mm band':>8} "
           f"{'v_mm m/s':>9} "
           f"{'tip est. rest mm (median/p95)':>30} {'moving (median/p95/max)':>24} {'NEES':>5}  statuses")
@@ -250,7 +273,14 @@ def main(argv=None) -> int:
               f"{r['reached_mm']:>3}/{r['transitions']:<4} {v:>9} {_tip(rest):>30} "
               f"{_tip(moving, True):>24} "
               f"{r['tip_nees_mean']:5.2f}  {', '.join(r['statuses'])}")
-    write_results(args.output, {"runs": rows, "rest_speed": REST_SPEED, "process_model": args.process_model})
+    print(f"\n{args.tasks[0]}, blind, the references held: {'filter':22} "
+          f"{'tip in motion mm (median/p95)':>30} {'at rest (median)':>17} {'NEES moving / at rest':>22}")
+    for name, f in filters.items():
+        print(f"{'':38}{name:22} {_tip(f['estimate_moving']):>30} "
+              f"{1e3 * f['estimate_at_rest']['median'][-1]:17.2f} "
+              f"{f['tip_nees_moving_mean']:>14.2f} / {f['tip_nees_rest_mean']:.2f}")
+    write_results(args.output, {"runs": rows, "filters": filters, "rest_speed": REST_SPEED,
+                                "process_model": args.process_model})
     return 0
 
 
