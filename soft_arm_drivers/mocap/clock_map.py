@@ -9,6 +9,7 @@ TOLERANCE = 1e-3        # s: a sample this far below the offset is believed at o
 MAX_DELAY = 0.5         # s: a sample this far above it is no transport delay but a clock jump
 CONFIRM = 3             # consecutive samples that confirm a jump
 AGREEMENT = 0.05        # s: the spread within which they must agree
+PACE = 0.5              # their reads at least this fraction of their server time apart
 
 
 class ClockMap:
@@ -26,9 +27,21 @@ class ClockMap:
     A minimum believes its lowest sample, so one sample is not allowed to set it: a sample more than
     ``tolerance`` below the offset, or more than ``max_delay`` above it (no transport delay is that
     long), is an outlier (a frame with impossible ticks, or the first of a clock jump). It is held,
-    not used; when ``confirm`` consecutive samples are outliers that agree within ``agreement``, the
-    server's clock has jumped and the map re-anchors on them at once, forgetting the samples before.
-    A single outlier among good samples is dropped and counted (:attr:`outliers`).
+    not used; when ``confirm`` consecutive samples are outliers that agree within ``agreement`` and
+    were read at least ``pace`` of their server time apart, the server's clock has jumped and the map
+    re-anchors on them at once, forgetting the samples before. A single outlier among good samples
+    is dropped and counted (:attr:`outliers`).
+
+    The pace tells a jump from a queue. Frames that waited in the socket while this process did not
+    read (starved longer than ``max_delay``) are read at once: their offsets are high and fall
+    frame by frame as the server's clock runs, so that three of them agree within ``agreement``,
+    yet their reads are microseconds apart where their ticks are frame periods apart. Taken for a
+    jump they would re-anchor the map on the moment they were read, and frames seconds old would be
+    stamped as exposed when they were read; held as outliers they keep the map's offset, and their
+    stamps say how old they are. After a real jump the server's clock and this one run on together.
+    A stall longer than the window is the one that moves the map: the window then holds only late
+    reads, the first within ``max_delay`` sets the offset, and the stamps are late by up to
+    ``max_delay`` until three frames on time re-anchor the map (a jump, counted).
 
     The server's own latency (exposure to transmit, Motive's processing) is measured on one clock
     and kept exactly; queueing delays of single frames do not move the stamps. What remains is a
@@ -41,17 +54,19 @@ class ClockMap:
     """
 
     def __init__(self, frequency: int, window: float, *, tolerance: float = TOLERANCE,
-                 max_delay: float = MAX_DELAY, confirm: int = CONFIRM, agreement: float = AGREEMENT):
+                 max_delay: float = MAX_DELAY, confirm: int = CONFIRM, agreement: float = AGREEMENT,
+                 pace: float = PACE):
         if not frequency or frequency <= 0:
             raise ValueError(f"clock frequency must be a positive number of ticks/s, got {frequency!r}")
         if not window > 0:
             raise ValueError(f"window must be positive [s], got {window!r}")
-        if not (tolerance >= 0 and max_delay > 0 and confirm >= 1 and agreement >= 0):
-            raise ValueError("tolerance and agreement must be >= 0, max_delay > 0 and confirm >= 1")
+        if not (tolerance >= 0 and max_delay > 0 and confirm >= 1 and agreement >= 0 and 0 <= pace <= 1):
+            raise ValueError("tolerance and agreement must be >= 0, max_delay > 0, confirm >= 1 and "
+                             "pace in [0, 1]")
         self.frequency = int(frequency)
         self.window = float(window)
         self.tolerance, self.max_delay = tolerance, max_delay
-        self.confirm, self.agreement = confirm, agreement
+        self.confirm, self.agreement, self.pace = confirm, agreement, pace
         self._base: Optional[int] = None
         self._samples: deque = deque()   # (local time, offset), offsets increasing
         self._held: list = []            # consecutive outliers: (local time, offset)
@@ -75,8 +90,7 @@ class ClockMap:
             self._add(local, offset)
             return True
         self._held.append((local, offset))
-        held = [o for _, o in self._held[-self.confirm:]]
-        if len(held) < self.confirm or max(held) - min(held) > self.agreement:
+        if not self._confirmed():
             if len(self._held) > self.confirm:
                 self.outliers += len(self._held) - self.confirm
                 del self._held[:-self.confirm]
@@ -88,6 +102,19 @@ class ClockMap:
         self.outliers += len(self._held) - self.confirm
         self._held.clear()
         return True
+
+    def _confirmed(self) -> bool:
+        """Whether the last ``confirm`` held samples confirm a jump: they agree within ``agreement``
+        and were read at least ``pace`` of their server time apart (class docstring)."""
+        held = self._held[-self.confirm:]
+        if len(held) < self.confirm:
+            return False
+        offsets = [o for _, o in held]
+        if max(offsets) - min(offsets) > self.agreement:
+            return False
+        (first_read, first_offset), (last_read, last_offset) = held[0], held[-1]
+        server = (last_read - last_offset) - (first_read - first_offset)
+        return last_read - first_read >= self.pace * server
 
     def _add(self, local: float, offset: float):
         samples = self._samples

@@ -12,7 +12,7 @@ import pytest
 from hypothesis import HealthCheck, example, given, settings, strategies as st
 
 from soft_arm_drivers.mocap.bridge_config import BridgeConfig, Calibration, load_mocap_config, rotation_matrix
-from soft_arm_drivers.mocap.clock_map import ClockMap
+from soft_arm_drivers.mocap.clock_map import MAX_DELAY, PACE, ClockMap
 from soft_arm_drivers.mocap.mocap_bridge import PACKET_OUTCOMES, MocapBridge
 from soft_arm_drivers.mocap.natnet import (FrameOfData, LabeledMarker, MessageId, RigidBody, ServerInfo,
                                            Version, build_frame_of_data, build_packet, build_server_info)
@@ -532,6 +532,81 @@ def test_a_server_clock_that_jumps_back_less_than_a_delay_re_anchors_within_a_wi
     for k, (ticks, local) in enumerate(_samples(lambda k: 1e-4, {k: -0.2 for k in range(100, 1200)}, 1200)):
         clock.observe(ticks, local)
     assert clock.offset == pytest.approx(1000.2001, abs=1e-6)
+
+
+def _stalled(stall: float, pace: float = PACE) -> tuple:
+    """500 Hz frames read 0.1 ms after they were sent, this process not reading for ``stall`` [s]
+    from 1 s on and then reading the frames queued meanwhile at once: the map, each frame's stamp
+    minus its exposure [s], and which frames were queued."""
+    clock = ClockMap(frequency=1_000_000, window=2.0, pace=pace)
+    errors, queued = [], []
+    for k in range(3000):
+        ticks = 2000 * k
+        exposure = 1000.0 + ticks / 1e6
+        waited = 1001.0 <= exposure < 1001.0 + stall
+        clock.observe(ticks, (1001.0 + stall if waited else exposure) + 1e-4)
+        errors.append(clock.to_local(ticks) - exposure)
+        queued.append(waited)
+    return clock, np.array(errors), np.array(queued)
+
+
+def test_frames_read_at_once_after_a_stall_keep_their_stamps_and_are_no_clock_jump():
+    """This process starved for 1.5 s reads the 750 frames queued meanwhile at once: their offsets
+    fall frame by frame as the server's clock runs, three in a row agreeing within 0.05 s, but read
+    at once they confirm no jump: every frame is stamped at its exposure (late by its 0.1 ms delay),
+    so that the bridge sees how old the queued ones are. Taken for jumps (pace 0), the queue
+    re-anchored the map on its reads every three frames and stamped frames 1.5 s old as just
+    exposed."""
+    clock, errors, _ = _stalled(1.5)
+    assert clock.jumps == 0
+    np.testing.assert_allclose(errors, 1e-4, atol=1e-9)
+    loose, errors, queued = _stalled(1.5, pace=0.0)
+    assert loose.jumps > 100 and errors[queued].max() > 1.4
+
+
+def test_a_stall_longer_than_the_window_leaves_stamps_late_by_at_most_the_largest_delay():
+    """Starved for 2.5 s, longer than the 2 s window: the window holds late reads only, and the map
+    takes the first within the largest transport delay (0.5 s) as its offset; no frame's stamp is
+    later than that after its exposure, none is early, and three frames on time after the queue
+    re-anchor the map (one jump)."""
+    clock, errors, queued = _stalled(2.5)
+    assert clock.jumps == 1
+    assert errors.min() >= 1e-4 - 1e-9 and errors.max() <= MAX_DELAY + 1e-4 + 1e-9
+    after = np.flatnonzero(~queued & (np.arange(queued.size) > np.flatnonzero(queued)[-1]))
+    np.testing.assert_allclose(errors[after[3:]], 1e-4, atol=1e-9)
+
+
+def test_frames_queued_through_a_stall_are_refused_as_stale_by_the_bridge():
+    """The bridge on a 240 Hz stream, not reading for 1.5 s: the frames queued meanwhile, read at
+    once, are stamped at their exposure, and those older than the bridge takes (twice the largest
+    transport delay) are refused as invalid, never delivered as new; every frame delivered is
+    stamped within 1 ms of its exposure on the local clock."""
+    with NatNetEmulator(static) as emulator:
+        with MocapBridge(config(emulator, ids=(1, 2), natnet_version="")) as bridge:
+            bridge.handle_packet(SERVER_INFO, 0.0)
+            f = 10_000_000                                     # SERVER_INFO's ticks per second
+            delivered, refused, too_old = [], 0, 0
+            for k in range(1, 960):                           # 4 s at 240 Hz
+                exposure = k / 240.0
+                mid, sent = round(exposure * f), round((exposure + 0.004) * f)
+                waited = 1.0 <= exposure < 2.5
+                read = 100.0 + (2.5 + 0.0041 if waited else exposure + 0.0041)
+                packet = build_frame_of_data(Version(4, 1), FrameOfData(
+                    frame_number=k, rigid_bodies=tuple(RigidBody(i, (0.0, 1.0, 0.0), (0.0, 0.0, 0.0, 1.0))
+                                                       for i in (1, 2)),
+                    camera_mid_exposure=mid, transmit_timestamp=sent))
+                before = bridge.counters["invalid"]
+                frame = bridge.handle_packet(packet, read)
+                refused += bridge.counters["invalid"] - before
+                too_old += read - (100.0 + exposure) > 2 * MAX_DELAY + 1e-4
+                if frame is not None:
+                    delivered.append((frame.stamp - (100.0 + exposure), waited, read - (100.0 + exposure)))
+    assert bridge.clock_map.jumps == 0
+    errors = np.array([e for e, _, _ in delivered])
+    assert np.abs(errors - 1e-4).max() < 1e-3, errors
+    ages = [age for _, waited, age in delivered if waited]
+    assert ages and max(ages) <= 2 * MAX_DELAY + 1e-4          # none older than the bridge takes
+    assert refused == too_old > 100                             # and all those, refused
 
 
 # --- occlusion and packet faults -----------------------------------------------------------------
