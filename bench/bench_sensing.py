@@ -262,9 +262,11 @@ def main(argv=None) -> int:
     for name, sets in FILTERS.items():
         spec = {"task": args.tasks[0], "scenario": "blind", "feedback": "mocap",
                 "sets": SCENARIOS["blind"] + sets, "lost_at": 0.0}
-        compared[name] = index.setdefault((spec["task"], "blind", "mocap", tuple(spec["sets"])), len(specs))
-        if compared[name] == len(specs):
+        key = (spec["task"], "blind", "mocap", tuple(spec["sets"]))
+        if key not in index:
+            index[key] = len(specs)
             specs.append(spec)
+        compared[name] = index[key]
     results = map_runs(f"{os.path.abspath(__file__)}:run_spec", specs, workers=args.workers)
     rows = results[:table]
     filters = {name: results[i] for name, i in compared.items()}
