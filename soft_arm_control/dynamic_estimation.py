@@ -233,7 +233,7 @@ class DynamicShapeEstimator:
                                              np.full(nt, sign * ROUTING_BOUNDS[0]),
                                              np.full(2 * nt, sign * ROUTING_BOUNDS[1]), [PAYLOAD_BOUNDS[i]]])
                              for i, sign in ((0, -1.0), (1, 1.0)))
-        self._evaluated_at = None    # (q, level) whose terms self.data holds
+        self._evaluated_at = None    # (q, qd, level) whose terms self.data holds
 
     @property
     def q(self) -> np.ndarray:
@@ -301,7 +301,14 @@ class DynamicShapeEstimator:
         if not kernels.evaluate(*self.args, q, v, level, markers, *self.data.kernel_args):
             self._evaluated_at = None
             raise OutOfDomainError("the state left the model's domain")
-        self._evaluated_at = (q.copy(), level) if markers and level <= STATICS else None
+        self._evaluated_at = (q.copy(), v.copy(), level) if markers else None
+
+    def _holds(self, q, v, level: int) -> bool:
+        """Whether self.data holds the terms of (q, v) up to ``level`` at the current routing (the
+        rate counts from the dynamics on)."""
+        held = self._evaluated_at
+        return (held is not None and held[2] >= level and np.array_equal(held[0], q)
+                and (level < DYNAMICS or np.array_equal(held[1], v)))
 
     def _routing_derivatives(self, q, with_rest: bool):
         """dA, dA0 and dL_c with respect to the routing at q (evaluated in self.data), and with
@@ -330,7 +337,8 @@ class DynamicShapeEstimator:
         m, d = self.model, self.data
         n = m.n
         q, v = self.z[:n].copy(), self.z[n:2 * n].copy()
-        self._evaluate(q, v, DYNAMICS, True)
+        if not self._holds(q, v, DYNAMICS):         # the last update leaves its state's terms
+            self._evaluate(q, v, DYNAMICS, True)
         if self._rotors:
             kernels.tendon_rate_bias(m.kernel_args[0], m.kernel_args[1], d.xi, v, self._t_read[0],
                                      self._t_read[1], m.kernel_args[15], self._adot)
@@ -365,7 +373,8 @@ class DynamicShapeEstimator:
             self._measure(s, sd, markers, report)
             self._clamp_parameters()
             self._set_routing()
-            self._evaluate(self.q, self.qd, STATICS, True)                 # in the domain
+            # in the domain; and the next prediction's terms, the state unchanged until then
+            self._evaluate(self.q, self.qd, DYNAMICS, True)
             # the dynamics follow a moving arm: shortenings that disagree count, moving or not
             self._lost.judge(self.z[self._k], report.tendon_nis, s.size, disagreement_counts=True)
         except (OutOfDomainError, np.linalg.LinAlgError):
@@ -484,8 +493,7 @@ class DynamicShapeEstimator:
 
     def marker_positions(self) -> np.ndarray:
         """The markers (n_markers, 3) [m] in arm_base at the estimated configuration."""
-        held = self._evaluated_at
-        if held is None or not np.array_equal(held[0], self.q):
+        if not self._holds(self.q, self.qd, KINEMATICS):
             self._evaluate(self.q.copy(), self.qd.copy(), KINEMATICS, True)
         return self.data.marker_p.copy()
 

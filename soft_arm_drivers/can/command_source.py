@@ -59,18 +59,27 @@ def judge(publishers: Iterable[tuple], expected: str, matched: int) -> Verdict:
 
 class CommandSource:
     """The verdict kept current: :meth:`update` with the subscription's matched count on every
-    command; the graph (``list_publishers()``: (namespace, name) pairs) is asked only when that
-    count changed or the last verdict was not final."""
+    command; the graph (``list_publishers()``: (namespace, name) pairs) is asked when that count
+    changed, when the last verdict was not final, when it is older than ``max_age`` [s] and when
+    the caller asks for a fresh one (activation). The count alone does not tell a publisher
+    replaced by another between two commands (the inner loop gone, a stray ``ros2 topic pub``
+    come: one publisher before and after), so a verdict is kept at most ``max_age``, and an
+    activation never takes a kept one."""
 
-    def __init__(self, expected: str, list_publishers):
+    def __init__(self, expected: str, list_publishers, max_age: float = 0.5):
         self.expected = expected
         self._list = list_publishers
+        self.max_age = float(max_age)
         self._matched = None
+        self._judged_at = -float("inf")     # the caller's monotonic time [s] of the last verdict
         self.verdict = Verdict("none", ())
         self.refused = 0            # commands refused since start
 
-    def update(self, matched: int) -> Verdict:
-        if matched != self._matched or self.verdict.status == "unidentified":
-            self._matched = matched
+    def update(self, matched: int, now: float, fresh: bool = False) -> Verdict:
+        """The verdict with ``matched`` publishers at ``now`` [s, a monotonic clock]; ``fresh``:
+        ask the graph whatever was kept."""
+        if (fresh or matched != self._matched or self.verdict.status == "unidentified"
+                or not now - self._judged_at < self.max_age):
+            self._matched, self._judged_at = matched, now
             self.verdict = judge(self._list(), self.expected, matched)
         return self.verdict

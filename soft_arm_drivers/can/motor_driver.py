@@ -133,7 +133,8 @@ class Diagnostics:
     """Mode, latched fault reason (None without), age of the latest command [s] on the driver's
     clock (inf without), and counters: watchdog trips, rejected commands, frames that are no reply of
     a motor of ours, CAN error frames, cycles later than 1.5 periods, cycles; whether zero() was
-    called; per motor."""
+    called; per motor; replies refused for a receive time that is no number (their motor's silence
+    counts on)."""
     mode: str
     fault: Optional[str]
     command_age: float
@@ -145,6 +146,7 @@ class Diagnostics:
     cycles: int
     zeroed: bool
     motors: tuple
+    unstamped_frames: int = 0
 
 
 @dataclass(frozen=True)
@@ -162,6 +164,7 @@ class CycleStatistics:
 
 
 PERIOD_WINDOW = 1000            # cycles the statistics look back over (2 s at 500 Hz)
+LATE = 1.5                      # periods: a cycle further from the last is late (counted)
 
 
 class Cycle(NamedTuple):
@@ -202,6 +205,7 @@ class MotorDriver:
         self._replies = [0] * n
         self._velocity = VelocityScaleCheck([m.model for m in c.motors], [m.limits for m in c.motors])
         self.stale_commands = self.rejected_commands = self.foreign_frames = self.error_frames = 0
+        self.unstamped_frames = 0
         self.late_cycles = self.cycles = 0
         self._periods = np.zeros(PERIOD_WINDOW)       # ring buffer of the last periods [s]
         self._closed = False
@@ -236,20 +240,20 @@ class MotorDriver:
         self._command_time = self._watch_from = self.clock()
         self._send_all(ENTER_MOTOR_MODE)
 
-    def disable(self):
-        """Zero torque and exit motor mode on every motor. A latched fault stays latched."""
+    def disable(self) -> list:
+        """Zero torque and exit motor mode on every motor. A latched fault stays latched. Returns the
+        frames that did not leave (``motor <id>: <error>``; empty when every one did)."""
         if self.mode == "enabled":
             self.mode = "disabled"
         self._applied = np.zeros_like(self._applied)
-        self._send_zero()
-        self._send_all(EXIT_MOTOR_MODE)
+        return self._send_zero() + self._send_all(EXIT_MOTOR_MODE)
 
-    def estop(self):
+    def estop(self) -> list:
         """Emergency stop: latch the fault ``e-stop`` (unless one is latched already), zero torque and
-        exit motor mode on every motor at once."""
+        exit motor mode on every motor at once. Returns the frames that did not leave (the latched
+        fault names the first reason only, so a caller that reports the stop reports these)."""
         self._trip("e-stop")
-        self._send_zero()
-        self._send_all(EXIT_MOTOR_MODE)
+        return self._send_zero() + self._send_all(EXIT_MOTOR_MODE)
 
     def trip(self, reason: str):
         """Latch the fault ``reason`` (unless one is latched already): zero torque from the next
@@ -264,15 +268,15 @@ class MotorDriver:
         self._send_all(SET_ZERO_POSITION)
         self.zeroed = True
 
-    def close(self):
+    def close(self) -> list:
         """Zero torque and exit motor mode on every motor; shut the bus down if the driver opened it.
-        Idempotent."""
+        Idempotent. Returns the frames that did not leave (empty when every one did, or closed
+        already)."""
         if self._closed:
-            return
+            return []
         self._closed = True
         try:
-            self._send_zero()
-            self._send_all(EXIT_MOTOR_MODE)
+            return self._send_zero() + self._send_all(EXIT_MOTOR_MODE)
         finally:
             if self._owns_bus:
                 self.bus.shutdown()
@@ -313,7 +317,7 @@ class MotorDriver:
         dt = 0.0 if self._last_cycle is None else now - self._last_cycle
         if self._last_cycle is not None:
             self._periods[(self.cycles - 1) % PERIOD_WINDOW] = dt
-        if dt > 1.5 / self.config.rate:
+        if dt > LATE / self.config.rate:
             self.late_cycles += 1
         if self._watch_from is None:
             self._watch_from = now
@@ -322,7 +326,10 @@ class MotorDriver:
         self._check(now, 0.0 if self._last_cycle is None else now - max(self._last_cycle, self._watch_from),
                     publish_time)
         if self.mode == "enabled":
-            step = self.config.tension_rate_limit * dt
+            # the motors take a frame's tension at once: the limit bounds one frame's step, so a late
+            # cycle, or the first after enable(), moves by at most LATE periods' worth
+            since = now - max(self._last_cycle if self._last_cycle is not None else now, self._watch_from)
+            step = self.config.tension_rate_limit * min(since, LATE / self.config.rate)
             self._applied = self._applied + np.clip(self._target - self._applied, -step, step)
             for i, motor in enumerate(self.config.motors):
                 self._send(motor.can_id, tension_frame(motor, self.config.pulley_radius, self._applied[i]))
@@ -350,7 +357,7 @@ class MotorDriver:
         age = math.inf if self._command_time is None else now - self._command_time
         return Diagnostics(self.mode, self.fault, age, self.stale_commands, self.rejected_commands,
                            self.foreign_frames, self.error_frames, self.late_cycles, self.cycles,
-                           self.zeroed, motors)
+                           self.zeroed, motors, self.unstamped_frames)
 
     def cycle_statistics(self) -> CycleStatistics:
         """The timing of the last cycles (not computed per cycle: call it when reporting)."""
@@ -383,6 +390,9 @@ class MotorDriver:
             if i is None:
                 self.foreign_frames += 1
                 continue
+            if not math.isfinite(msg.timestamp):    # a reply needs its receive time: the state's stamp
+                self.unstamped_frames += 1
+                continue
             motor = c.motors[i]
             reply = decode_reply(motor.limits, msg.data)
             d = motor.direction
@@ -399,8 +409,7 @@ class MotorDriver:
             if reply.temperature is not None and reply.temperature > c.max_temperature:
                 self._trip(f"motor {motor.can_id} at {reply.temperature} deg C, above max_temperature "
                            f"{c.max_temperature:g}")
-            sampled = msg.timestamp if math.isfinite(msg.timestamp) else now
-            mismatch = self._velocity.add(i, sampled, reply.position, reply.velocity)
+            mismatch = self._velocity.add(i, msg.timestamp, reply.position, reply.velocity)
             if mismatch is not None:
                 self._trip(f"motor {motor.can_id}: {mismatch} (rig.motors.models)")
         return fresh
@@ -421,8 +430,10 @@ class MotorDriver:
                        f"(watchdog_timeout {c.watchdog_timeout:g} s){where}")
         silence = now - np.maximum(self._reply_time, self._watch_from)
         for i in np.flatnonzero(silence > c.reply_timeout):
+            refused = (f"; {self.unstamped_frames} replies refused so far for a receive time that is no "
+                       "number" if self.unstamped_frames else "")
             self._trip(f"motor {c.motors[i].can_id} silent for {silence[i]:.4f} s "
-                       f"(reply_timeout {c.reply_timeout:g} s)")
+                       f"(reply_timeout {c.reply_timeout:g} s){refused}")
         if self.mode == "enabled" and now - self._command_time > c.watchdog_timeout:
             self.stale_commands += 1
             self._trip(f"stale command: the latest is {now - self._command_time:.4f} s old "
@@ -434,17 +445,19 @@ class MotorDriver:
             self.mode, self.fault = "fault", reason
         self._applied = np.zeros_like(self._applied)
 
-    def _send(self, can_id: int, data: bytes):
+    def _send(self, can_id: int, data: bytes) -> list:
+        """Send one frame; a failure latches a fault and is returned (``motor <id>: <error>``)."""
         try:
             self.bus.send(can.Message(arbitration_id=can_id, data=data, is_extended_id=False),
                           timeout=SEND_TIMEOUT)
         except can.CanError as exc:
             self._trip(f"CAN send to motor {can_id} failed: {exc}")
+            return [f"motor {can_id}: {exc}"]
+        return []
 
-    def _send_all(self, data: bytes):
-        for motor in self.config.motors:
-            self._send(motor.can_id, data)
+    def _send_all(self, data: bytes) -> list:
+        return [f for motor in self.config.motors for f in self._send(motor.can_id, data)]
 
-    def _send_zero(self):
-        for motor, frame in zip(self.config.motors, self._zero_frames):
-            self._send(motor.can_id, frame)
+    def _send_zero(self) -> list:
+        return [f for motor, frame in zip(self.config.motors, self._zero_frames)
+                for f in self._send(motor.can_id, frame)]

@@ -38,7 +38,8 @@ A managed (lifecycle) node (:mod:`soft_arm_ros.lifecycle`), driven with ``ros2 l
   after the same.
 
 Services: ``~/estop`` (std_srvs/Trigger: zero torque and out of motor mode, latched, in any state;
-forces an active node inactive) and ``~/zero`` (std_srvs/Trigger: the current angles become the
+forces an active node inactive; answers failure, naming the motors, when the bus refused its
+frames) and ``~/zero`` (std_srvs/Trigger: the current angles become the
 zero; only when inactive, with the tendons slack).
 
 Parameters: ``rig.motors.*`` of the package's ``config/rig.yaml`` overlaid with the node's own
@@ -155,7 +156,7 @@ class MotorDriverNode(ManagedHardwareNode):
 
     @transition
     def on_activate(self, state):
-        verdict = self.source.update(self.command_sub.get_publisher_count())
+        verdict = self.source.update(self.command_sub.get_publisher_count(), time.monotonic(), fresh=True)
         if verdict.status == "foreign":
             return self.refuse("activate", f"{verdict.describe(self.source.expected)}: only "
                                            f"{self.source.expected} may command the motors")
@@ -169,11 +170,14 @@ class MotorDriverNode(ManagedHardwareNode):
 
     @transition
     def on_deactivate(self, state):
-        self.driver.disable()
+        unsent = self.driver.disable()
         self.activated_at = None
         fault = self.driver.fault
-        self.get_logger().info("deactivated: zero torque, motors out of motor mode"
-                               + (f" (fault still latched: {fault})" if fault else ""))
+        if unsent:
+            self._unsent("deactivate", unsent)
+        else:
+            self.get_logger().info("deactivated: zero torque, motors out of motor mode"
+                                   + (f" (fault still latched: {fault})" if fault else ""))
         self._report(self.driver.diagnostics(), force=True)
         return SUCCESS
 
@@ -187,7 +191,17 @@ class MotorDriverNode(ManagedHardwareNode):
                     cycle.stop()
             finally:
                 if driver is not None:
-                    driver.close()
+                    unsent = driver.close()
+                    if unsent:
+                        self._unsent("closing the bus", unsent)
+                        self.failure = self.failure or RuntimeError(f"zero torque not sent: {unsent}")
+
+    def _unsent(self, what: str, unsent: list):
+        """Say that the zero-torque or exit-motor-mode frames of ``what`` did not all leave: the
+        motors those frames were for hold their last torque until their own CAN timeout."""
+        self.get_logger().fatal(f"{what}: frames did not leave the bus ({'; '.join(unsent)}): those "
+                                "motors may hold their last torque until their own CAN timeout; cut "
+                                "their power if they do")
 
     def _cycle_failed(self, exc: BaseException):
         """The cycle thread raised: zero torque, out of motor mode, the node's process ends (status 1)."""
@@ -196,7 +210,9 @@ class MotorDriverNode(ManagedHardwareNode):
                                 + "".join(traceback.format_exception(exc)))
         with self.hardware_lock:
             if self.driver is not None:
-                self.driver.estop()
+                unsent = self.driver.estop()
+                if unsent:
+                    self._unsent("e-stop after the cycle failed", unsent)
 
     def on_command(self, msg: JointState):
         received = time.monotonic()
@@ -207,7 +223,7 @@ class MotorDriverNode(ManagedHardwareNode):
         if self.driver is None:
             return
         stamp = stamp_to_seconds(msg.header.stamp)
-        verdict = self.source.update(self.command_sub.get_publisher_count())
+        verdict = self.source.update(self.command_sub.get_publisher_count(), received)
         if not verdict.accepts:
             self.source.refused += 1
             if verdict.status == "foreign" and self.driver.mode == "enabled":
@@ -271,6 +287,7 @@ class MotorDriverNode(ManagedHardwareNode):
                                 stale_commands=diag.stale_commands, rejected_commands=diag.rejected_commands,
                                 malformed_commands=self.malformed_commands,
                                 foreign_frames=diag.foreign_frames, error_frames=diag.error_frames,
+                                unstamped_frames=diag.unstamped_frames,
                                 late_cycles=diag.late_cycles, incomplete_cycles=self.incomplete_cycles,
                                 cycles=diag.cycles, zeroed=diag.zeroed, lifecycle_state=self.lifecycle_state,
                                 command_source=self.source.verdict.status,
@@ -317,10 +334,16 @@ class MotorDriverNode(ManagedHardwareNode):
             self.get_logger().warning(response.message)
             return response
         was = self.driver.fault
-        self.driver.estop()
-        response.message = "e-stop: zero torque, motors out of motor mode; activate to resume" + (
-            f" (already in fault: {was})" if was else "")
-        self.get_logger().warning(response.message)
+        unsent = self.driver.estop()
+        if unsent:
+            response.success = False
+            response.message = (f"e-stop latched, but frames did not leave the bus ({'; '.join(unsent)}): "
+                                "those motors may hold their last torque; cut their power")
+            self._unsent("e-stop", unsent)
+        else:
+            response.message = "e-stop: zero torque, motors out of motor mode; activate to resume" + (
+                f" (already in fault: {was})" if was else "")
+            self.get_logger().warning(response.message)
         self._report(self.driver.diagnostics(), force=True)
         if self.lifecycle_state == "active":
             self.trigger_deactivate()

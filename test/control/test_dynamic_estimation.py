@@ -230,6 +230,32 @@ def test_the_straight_arms_lengths_are_computed_again_only_when_the_routing_move
     assert np.abs(kept.routing - drawn).max() > 1e-4        # the markers moved the routing
 
 
+def test_the_prediction_reuses_the_last_updates_terms_only_at_its_state_and_routing(model):
+    """An update leaves the model's terms at its state for the next prediction. A filter made to
+    evaluate them afresh at every prediction gives the same state bit for bit, on a moving arm
+    (the terms depend on the rate) with markers 1 mm off the model's (the routing moves at every
+    update), then on the tendons alone, every third sample two steps after the last (the second
+    step starts where the first ended)."""
+    u0, u1 = np.array([0.5, 0.5, 0.5, 0.5]), np.array([1.6, 0.3, 1.0, 0.4])
+    s0, s1 = (model.rest_tendon_lengths - tendon_lengths(model, solve_equilibrium(model, u).q)
+              for u in (u0, u1))
+    markers = marker_positions(model, solve_equilibrium(model, u1).q) + 1e-3
+    kept, fresh = (DynamicShapeEstimator(model, CONFIG, ROTOR) for _ in range(2))
+    fresh._holds = lambda q, v, level: False                  # evaluates at every prediction
+    drawn = kept.routing.copy()
+    t = 0.0
+    for i in range(40):
+        a = min(1.0, i / 20)
+        s, sd = s0 + a * (s1 - s0), (s1 - s0) / (20 * PERIOD) * (i < 20)
+        u, seen = u0 + a * (u1 - u0), (markers if i % 2 else None)
+        t += PERIOD if i % 3 else 2 * PERIOD                  # > max_substep: two steps
+        kept.update(t, s, sd, u, seen)
+        fresh.update(t, s, sd, u, seen)
+        assert np.array_equal(kept.z, fresh.z) and np.array_equal(kept.Pz, fresh.Pz), i
+    assert np.abs(kept.routing - drawn).max() > 1e-4        # the markers moved the routing
+    assert np.abs(kept.qd).max() > 0.0
+
+
 def test_a_payload_the_tendons_cannot_tell_widens_the_covariance_and_leaves_the_estimate(model):
     """Half a gram at the tip of an arm that is otherwise the model (it droops the tip by about
     18 mm at the step's tensions), through a step, its swing and its settling, the tendons alone:

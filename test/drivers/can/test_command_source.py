@@ -27,19 +27,40 @@ def test_a_publisher_the_graph_cannot_name_yet_waits():
     assert judge([], EXPECTED, matched=0).status == "none"
 
 
-def test_the_graph_is_asked_again_only_when_the_count_changes_or_the_verdict_waits():
+def test_the_graph_is_asked_again_only_when_the_count_changes_the_verdict_waits_or_ages():
     graph, asked = [[]], []
 
     def listing():
         asked.append(1)
         return graph[0]
-    source = CommandSource(EXPECTED, listing)
-    assert source.update(1).status == "unidentified" and len(asked) == 1
-    assert source.update(1).status == "unidentified" and len(asked) == 2       # not final: asked again
+    source = CommandSource(EXPECTED, listing, max_age=0.5)
+    assert source.update(1, 0.0).status == "unidentified" and len(asked) == 1
+    assert source.update(1, 0.002).status == "unidentified" and len(asked) == 2   # not final: asked again
     graph[0] = [("/", "inner_loop")]
-    assert source.update(1).accepts and len(asked) == 3
-    for _ in range(5):
-        assert source.update(1).accepts
+    assert source.update(1, 0.004).accepts and len(asked) == 3
+    for k in range(5):
+        assert source.update(1, 0.006 + 0.002 * k).accepts
     assert len(asked) == 3                                                     # no graph query per command
     graph[0] = [("/", "inner_loop"), ("/", "stray")]
-    assert source.update(2).status == "foreign" and len(asked) == 4
+    assert source.update(2, 0.02).status == "foreign" and len(asked) == 4
+
+
+def test_a_publisher_replaced_between_two_commands_is_judged_again_on_activation_and_with_age():
+    """The inner loop gone and a stray publisher come between two commands: one publisher before and
+    after, so the count does not tell. An activation asks the graph whatever was kept, and a kept
+    verdict lasts at most max_age of the caller's clock."""
+    graph, asked = [[("/", "inner_loop")]], []
+
+    def listing():
+        asked.append(1)
+        return graph[0]
+    source = CommandSource(EXPECTED, listing, max_age=0.5)
+    assert source.update(1, 10.0).accepts
+    graph[0] = [("/", "_ros2cli_4242")]
+    assert source.update(1, 10.1).accepts and len(asked) == 1         # kept: the count is the same
+    assert source.update(1, 10.2, fresh=True).status == "foreign"     # an activation asks
+    graph[0] = [("/", "inner_loop")]
+    assert source.update(1, 10.3).status == "foreign"                 # kept, 0.1 s old
+    assert source.update(1, 10.7).accepts and len(asked) == 3         # 0.5 s old: asked again
+    graph[0] = [("/", "_ros2cli_4242")]
+    assert source.update(1, 11.2).status == "foreign"

@@ -143,6 +143,55 @@ def test_replies_are_matched_by_the_motor_id_in_the_payload():
         other.shutdown()
 
 
+def test_frames_that_do_not_leave_on_a_stop_are_returned_though_the_fault_names_the_stop():
+    """The bus down (every send raises): e-stop, disable and close latch e-stop as the fault's
+    reason, the first, and return each frame that did not leave, so that a caller that reports the
+    stop can say the motors may not have it (it answered success before)."""
+    cfg = config(ids=[1, 2, 3, 4])
+    bus = can.Bus(interface="virtual", channel=cfg.channel)
+    try:
+        driver = MotorDriver(cfg, bus, clock=lambda: 0.0)
+
+        def down(*args, **kwargs):
+            raise can.CanError("Network is down")
+        bus.send = down
+        unsent = driver.estop()
+        assert driver.fault == "e-stop"
+        assert unsent == [f"motor {i}: Network is down" for i in (1, 2, 3, 4)] * 2   # zero, exit
+        assert len(driver.disable()) == 8 and len(driver.close()) == 8 and driver.close() == []
+    finally:
+        bus.shutdown()
+
+
+@pytest.mark.parametrize("stamp", [math.nan, math.inf])
+def test_a_reply_whose_receive_time_is_no_number_is_refused_and_counted(stamp):
+    """The state's stamp is its replies' receive time: a reply without one is not taken (its motor
+    goes on without a reply, the state is incomplete, and its silence names the refusals), where it
+    ended the node's cycle on the stamp's conversion."""
+    cfg = config(ids=[1, 2, 3, 4])
+    other = can.Bus(interface="virtual", channel=cfg.channel, preserve_timestamps=True)
+    bus = can.Bus(interface="virtual", channel=cfg.channel)
+    now = [0.0]
+    try:
+        driver = MotorDriver(cfg, bus, clock=lambda: now[0])
+        lim = MOTOR_PRESETS["AK80-9"]
+        for motor_id in (1, 2, 3, 4):
+            other.send(can.Message(arbitration_id=0, is_extended_id=False,
+                                   timestamp=stamp if motor_id == 3 else 1.0,
+                                   data=encode_reply(lim, motor_id, 0.1, 0.0, 0.0, 40, 0)))
+        result = driver.cycle()
+        assert not result.state.fresh[2] and result.state.fresh[[0, 1, 3]].all()
+        assert not result.state.complete and result.diagnostics.unstamped_frames == 1
+        assert result.diagnostics.foreign_frames == 0 and result.diagnostics.fault is None
+        now[0] = 2 * cfg.reply_timeout
+        diag = driver.cycle().diagnostics
+        assert diag.fault.startswith("motor 1 silent") and "1 replies refused" in diag.fault, diag.fault
+        driver.close()
+    finally:
+        bus.shutdown()
+        other.shutdown()
+
+
 # -- safety ------------------------------------------------------------------------------------------
 
 def test_stale_commands_trip_the_watchdog_and_latch_until_enable(make_rig):
@@ -182,6 +231,28 @@ def test_commands_are_clipped_to_the_range_and_rate_limited(make_rig):
     np.testing.assert_allclose(sent[-1], [5.0, 0.0, 2.2, 0.0])   # max_tension 5 N, never below 0
     sent = [rig.step(1, [0.0, 0.0, 0.0, 0.0]).state.command[0] for _ in range(3)]
     np.testing.assert_allclose(sent, [4.5, 4.0, 3.5])             # down at the same rate
+
+
+def test_the_rate_limit_bounds_one_frames_step_after_a_late_cycle_or_a_pause_before_enable(make_rig):
+    """The motors take a frame's tension at once: a cycle three periods late moves the tension by
+    1.5 periods' worth of the limit (not four), and after 16 ms without cycles the first enabled
+    frame moves by what the limit allows since enable(), half a period before it."""
+    rig = make_rig(overrides={"tension_rate_limit": 250.0})     # 0.5 N per cycle at 500 Hz
+    rig.driver.enable()
+    rig.step(3, [1.0] * 4)
+    held = rig.step(1, [1.0] * 4).state.command
+    np.testing.assert_allclose(held, 1.0)
+    rig.k += 3                                                   # the next cycle is three periods late
+    late = rig.step(1, [5.0] * 4)
+    assert late.diagnostics.mode == "enabled"
+    np.testing.assert_allclose(late.state.command - held, 0.75)
+    rig.driver.disable()
+    rig.step(2)
+    rig.k += 8                                                   # no cycle for 16 ms, then
+    rig.now = rig.t - 0.5 * rig.period                           # enable() half a period before the next
+    rig.driver.enable()
+    first = rig.step(1, [5.0] * 4).state.command
+    np.testing.assert_allclose(first, 0.25)
 
 
 @pytest.mark.parametrize("bad", [[1.0, math.nan, 1.0, 1.0], [1.0, 1.0, math.inf, 1.0], [1.0, 1.0, 1.0],

@@ -188,6 +188,25 @@ def test_the_cycle_runs_apart_from_the_executor(rig):
     assert node.driver.fault.startswith("stale command") and node.lifecycle_state == "inactive"
 
 
+def test_an_estop_whose_frames_do_not_leave_answers_failure_and_the_node_exits_failed(rig):
+    """The bus goes down while the motors are enabled: the cycle's sends fail (a fault), and the
+    e-stop service says that its frames did not leave (success false, the motors named) where it
+    answered success; closing the bus then leaves the node failed (exit status 1)."""
+    _, node, _, _ = rig
+    assert node.trigger_configure() == TransitionCallbackReturn.SUCCESS
+    assert node.trigger_activate() == TransitionCallbackReturn.SUCCESS
+
+    def down(*args, **kwargs):
+        raise can.CanError("Network is down")
+    with node.hardware_lock:
+        node.driver.bus.send = down
+    answer = node.on_estop(Trigger.Request(), Trigger.Response())
+    assert not answer.success and "did not leave the bus" in answer.message
+    assert "motor 1: Network is down" in answer.message
+    node.close()
+    assert isinstance(node.failure, RuntimeError) and "zero torque not sent" in str(node.failure)
+
+
 def test_node_drives_the_emulated_rig_through_its_lifecycle_topics_and_services(rig):
     executor, node, harness, emulator = rig
     # unconfigured: no bus, no state; what needs a configured driver is refused
@@ -591,5 +610,6 @@ def test_a_stray_publisher_on_tendon_command_is_refused_named_and_latches_a_faul
         executor.remove_node(stray)
         stray.destroy_node()
     # the stray gone, the expected publisher alone again: activation is possible
-    spin_until(executor, lambda: node.source.update(node.command_sub.get_publisher_count()).accepts)
+    count = node.command_sub.get_publisher_count
+    spin_until(executor, lambda: node.source.update(count(), time.monotonic(), fresh=True).accepts)
     assert change(executor, harness, "activate") and node.driver.fault is None
