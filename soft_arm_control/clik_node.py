@@ -95,9 +95,12 @@ class ClikNode(Node):
         self.outer.seeds()
         self.names = self.model.tendon_names
         self.labels = self.task.space.labels()
-        self.now = 0.0                  # the CLIK's time [s]: the frames' stamps, clock steps taken out
+        # the CLIK's time [s]: 0 until the first frame, then on by the frames' stamps, clock steps
+        # taken out; a goal that comes before any frame (a restarted node takes the latched goal
+        # first) starts at 0 and so at the first frame, whatever clock the frames are stamped on
+        self.now = 0.0
         self.stamp = 0.0                # the latest frame's stamp [s]: what this node's messages carry
-        self.frame_clock = LoopClock(self.control.clik_max_time_step)
+        self.frame_clock = LoopClock(self.control.clik_max_time_step, origin=self.now)
         self.rejected_goals = self.rejected_frames = 0
         self.ref_pub = self.create_publisher(JointState, TOPICS["reference"], QOS["tendon/reference"])
         self.q_pub = self.create_publisher(ConfigurationReference, TOPICS["configuration"],

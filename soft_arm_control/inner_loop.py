@@ -17,7 +17,8 @@ reference (the paper's law, -G_D thetadot), the online CLIK's rate while it move
 reference instead of dragging against the motion asked for.
 
 Tensions are clipped to [u_min, u_max] (pull only, u_min a small pretension) after an optional rate
-limit; the integral is frozen while the clipped output saturates in the direction it would push it
+limit (from the last output, u_min at the start: the first update, which has no interval, keeps
+it); the integral is frozen while the clipped output saturates in the direction it would push it
 (conditional integration, anti-windup). The core takes explicit time stamps [s] and never reads a
 clock; its time is a :class:`~.loop_clock.LoopClock` of those stamps, so that a stamp that is no
 number is refused before anything changes and a clock step (a stamp far ahead, or one that goes
@@ -124,8 +125,9 @@ class PSatID:
                                             for v in (s, s_dot, s_ref, u_ff, s_ref_dot))
         dt = advance.dt
         g = self.gains
-        first = self.clock.stamp is None
-        rate_step = g.tension_rate_limit * dt if g.tension_rate_limit > 0 and not first else -1.0
+        # the first update after the start or a reset has no interval (dt 0): with a limit on, its
+        # output stays at the last one (u_prev, tension_min), as the limit allows no step in no time
+        rate_step = g.tension_rate_limit * dt if g.tension_rate_limit > 0 else -1.0
         xi, u = self.xi.copy(), np.empty(self.n_tendons)
         if not _p_sat_i_d(s, s_dot, s_ref, s_ref_dot, u_ff, self.active, self._exponents, self._coef,
                           g.proportional, g.derivative, g.integral, g.integral_saturation,
@@ -235,9 +237,16 @@ class TendonController:
                        integral=gains.integral[a])
 
     def set_gains(self, gains: InnerLoopGains):
-        """New gains and limits (over all tendons) from the next update on; the integral state is
-        kept. ValueError, with the old gains in place, when they do not fit the arm."""
-        self.pid.gains, self.gains = self._active_gains(gains), gains
+        """New gains and limits (over all tendons) from the next update on. The integral's tension
+        G_I xi is kept where the old and new integral gains are both above zero (xi rescaled: a
+        gain changed while the arm holds a load steps no tension); where either is zero the state
+        is kept as it is. ValueError, with the old gains in place, when they do not fit the arm."""
+        active = self._active_gains(gains)
+        old, new = self.pid.gains.integral, active.integral
+        both = (old > 0) & (new > 0)
+        self.pid.xi = np.where(both, self.pid.xi * np.where(both, old, 1.0) / np.where(both, new, 1.0),
+                               self.pid.xi)
+        self.pid.gains, self.gains = active, gains
 
     def set_reference(self, s_ref, u_ff, s_ref_dot=None):
         """A new reference (see the class); ``s_ref_dot`` None: a fixed reference."""

@@ -5,7 +5,7 @@ It regulates the tendons of the task ``graph.task``; the others get their feedfo
 Without a reference it holds the pretension. Parameters: ``control.*`` (gains, limits, the
 thetabar_a fit), ``arm.*``, ``graph.task``; the gains and the tension limits of the inner loop
 (:data:`LIVE`) may be set while it runs (``ros2 param set``) and apply from the next state on, the
-integral kept; every other value is read-only.
+integral's tension kept (a new integral gain rescales its state); every other value is read-only.
 
 Time is the states' stamps (the motors' receive times on the rig, ``/clock`` in simulation),
 checked as they enter (:class:`~soft_arm_control.loop_clock.LoopClock`): a state whose stamp is no

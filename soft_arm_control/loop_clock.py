@@ -32,12 +32,17 @@ class LoopClock:
     :meth:`commit` takes it (the two are apart so that a loop can refuse other inputs of the same
     update first); :meth:`advance` does both."""
 
-    def __init__(self, max_step: float):
+    def __init__(self, max_step: float, origin: Optional[float] = None):
+        """``origin`` [s]: the loop's time at the first stamp (None: the first stamp itself), for a
+        loop that has a time of its own before its stream starts."""
         if not (math.isfinite(max_step) and max_step > 0):
             raise ValueError(f"max_step must be a finite time > 0 s, got {max_step!r}")
+        if origin is not None and not math.isfinite(origin):
+            raise ValueError(f"origin must be a finite time, got {origin!r}")
         self.max_step = float(max_step)
+        self.origin = origin
         self.stamp: Optional[float] = None       # the last stamp taken [s, the stream's clock]
-        self.time: Optional[float] = None        # the loop's time [s]: starts at the first stamp
+        self.time: Optional[float] = None        # the loop's time [s]: from origin at the first stamp
         self.period = 0.0                        # the last interval integrated over that was no step
         self.steps_forward = self.steps_back = 0
         self.last_step: Optional[tuple] = None   # (direction, size [s]) of the latest clock step
@@ -72,7 +77,10 @@ class LoopClock:
             self.last_step = (advance.step, stamp - self.stamp)
         elif self.stamp is not None and advance.dt > 0.0:
             self.period = advance.dt
-        self.time = stamp if self.time is None else self.time + advance.dt
+        if self.time is None:
+            self.time = stamp if self.origin is None else float(self.origin)
+        else:
+            self.time += advance.dt
         self.stamp = stamp
         return self.time
 

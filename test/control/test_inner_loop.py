@@ -52,7 +52,7 @@ def _law(g, amap, active, state, t, s, sd, s_ref, u_ff, s_ref_dot):
     wind = ((u_raw > g.tension_max) & (xi > xi_old)) | ((u_raw < g.tension_min) & (xi < xi_old))
     xi = np.where(wind, xi_old, xi)
     u_a = u_pd + g.integral * xi
-    if g.tension_rate_limit > 0 and t_old is not None:
+    if g.tension_rate_limit > 0:                        # the first update: no step in no time
         step = g.tension_rate_limit * dt
         u_a = np.clip(u_a, u_old[a] - step, u_old[a] + step)
     u = np.full(u_old.size, g.tension_min)
@@ -118,6 +118,41 @@ def test_rate_limit_and_clipping():
         u = pid.update(0.01 * k, z, z, z + 1.0, z)
         assert np.all(u <= 5.0) and np.all(u >= 0.05)
     assert np.allclose(u, 5.0)
+
+
+def test_the_rate_limit_holds_from_the_first_regulated_update_on():
+    """The node holds the pretension until the first reference, then regulates: the first update
+    after it steps by what the limit allows in no time (nothing; it stepped 4.95 N at once, the
+    limit skipped before the loop had a last stamp), each later one by at most 10 N/s x 2 ms."""
+    from soft_arm_control.inner_loop import TendonController
+    tc = TendonController(4, _gains(rate=10.0), ActuationMap.identity(), ALL)
+    s = np.zeros(4)
+    for k in range(5):
+        assert np.allclose(tc.update(0.002 * k, s, s), 0.05)
+    tc.set_reference(s + 0.01, [0.5] * 4)
+    outputs = [tc.update(0.002 * k, s, s) for k in range(5, 12)]
+    steps = np.diff(np.vstack([np.full(4, 0.05)] + outputs), axis=0)
+    assert np.allclose(steps[0], 0.0) and np.all(np.abs(steps) <= 10.0 * 0.002 + 1e-12)
+    assert np.allclose(steps[1:], 0.02)                   # the error asks for far more
+
+
+def test_an_integral_gain_changed_while_holding_a_load_steps_no_tension():
+    """The integral holds part of the tension; doubling its gain, or halving it, leaves the output
+    of the same sample the same (the state rescaled), and the loop goes on integrating."""
+    from dataclasses import replace
+
+    from soft_arm_control.inner_loop import TendonController
+    tc = TendonController(4, _gains(ki=3000.0), ActuationMap.identity(), ALL)
+    s = np.zeros(4)
+    tc.set_reference(s + 2e-4, [0.5] * 4)
+    for k in range(200):
+        u = tc.update(0.002 * k, s, s)
+    assert np.all(tc.pid.xi > 0)
+    t = 0.002 * 199
+    for ki in (6000.0, 1500.0):
+        tc.set_gains(replace(tc.gains, integral=np.full(4, ki)))
+        np.testing.assert_allclose(tc.update(t, s, s), u, rtol=0, atol=1e-12)   # the same sample
+    assert np.all(tc.update(t + 0.002, s, s) > u)                              # integrating on
 
 
 def _regulate(ctrl_model, plant_model, u_target, gains, duration, rotor_mass=0.6, dt=1e-3):

@@ -34,6 +34,19 @@ def test_stamps_advance_the_loop_and_steps_advance_it_one_period():
     assert clock.advance(11 * PERIOD) == pytest.approx(8 * PERIOD, abs=1e-6)   # a repeat: no time, no step
 
 
+def test_a_clock_with_an_origin_starts_there_and_goes_on_by_the_stamps():
+    """A loop with a time of its own before its stream starts (the CLIK takes goals at 0 before the
+    first frame) starts at that origin on the first stamp, whatever clock the stamps are on."""
+    clock = LoopClock(MAX_STEP, origin=0.0)
+    start = 1.7e9
+    times = [clock.advance(start + k * PERIOD) for k in range(4)]
+    np.testing.assert_allclose(times, np.arange(4) * PERIOD, atol=1e-6)
+    assert clock.steps == 0 and clock.stamp == start + 3 * PERIOD
+    for bad in (math.nan, math.inf):
+        with pytest.raises(ValueError, match="origin"):
+            LoopClock(MAX_STEP, origin=bad)
+
+
 GAPS = st.one_of(st.floats(0.0, 0.01), st.floats(-1e9, 1e9), st.sampled_from([-5.0, 1e9, -1e9, 0.5]))
 
 

@@ -582,6 +582,36 @@ def test_clik_node_keeps_stepping_through_a_clock_step_of_the_frames(jump):
         rclpy.try_shutdown()
 
 
+def test_a_goal_taken_before_any_frame_starts_at_the_first_frame_on_any_clock():
+    """A restarted clik node takes the latched goal before the first mocap frame, and the frames are
+    stamped on the wall clock (1.7e9 s): the goal's switch delay (2 s) counts from the first frame,
+    not from the CLIK's time 0, so no online step comes in the first second and steps come after
+    the delay (they came from the first frame, the delay taken as long past)."""
+    import rclpy
+
+    from soft_arm_model import marker_positions, solve_equilibrium
+    from soft_arm_ros.conversions import pose_array
+    rclpy.init()
+    try:
+        node = _clik("coiling", [], **{"control.clik.rate": 120.0})
+        hanging = marker_positions(node.model, solve_equilibrium(node.model, [0.05] * 4).q)
+        bent = marker_positions(node.model, solve_equilibrium(node.model, [0.05, 0.05, 0.6, 0.05]).q)
+        node.on_goal(_goal(node.task.space.from_markers(bent)))
+        assert node.rejected_goals == 0
+        delay = node.control.switch_delay
+        start = 1.7e9
+        for k in range(120):
+            node.on_markers(pose_array(hanging, start + k / 120.0))
+        goal = node.outer.reports[-1]
+        assert goal.online_steps == 0, goal.online_steps
+        for k in range(120, int(120 * (delay + 1.0))):
+            node.on_markers(pose_array(hanging, start + k / 120.0))
+        assert goal.online_steps > 60, goal.online_steps
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown()
+
+
 def test_a_clock_step_seen_on_a_frame_dropped_behind_a_slow_step_names_the_step():
     """The frames' stamps jump 2 s forward: on a frame the node processes the warning names the
     mocap's clock alone; on a frame that arrived during the node's own 50 ms step (dropped behind
