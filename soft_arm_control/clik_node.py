@@ -5,7 +5,8 @@ Subscribes ``task/goal`` (soft_arm_interfaces/TaskGoal: the target task coordina
 track: the trajectory of the goal's phase from the target, see :mod:`soft_arm_control.outer_loop`)
 and ``mocap/markers`` (on an estimated feedback, ``control.clik.feedback`` fused or estimate,
 also ``fused/tip``, whose covariance, zero where the mocap saw the tip, says how much of the error
-the estimate shows an online step may take: :mod:`soft_arm_control.trust_region`); publishes
+the estimate shows an online step may take: :mod:`soft_arm_control.trust_region`; a frame is paired
+with the tip of its own stamp, and waits for it if the tip comes after it); publishes
 ``tendon/reference`` (position: reference shortenings [m] of all tendons; effort: feedforward
 tensions [N], the pretension on the tendons the task does not use) and
 ``arm/configuration_reference`` (soft_arm_interfaces/ConfigurationReference: q_d, the goal it
@@ -57,6 +58,7 @@ from .loop_clock import LoopClock
 from .outer_loop import outer_loop_for
 from .target_margin import fragility_error
 
+TIPS_KEPT = 16                  # fused tips kept by stamp for their frames (some 60 ms at 250 Hz)
 REPORT_PERIOD = 1.0     # s: the current goal's report on /diagnostics at least this often
 
 # A goal report's status (soft_arm_control.outer_loop.STATUSES) on /diagnostics: level and message
@@ -110,7 +112,11 @@ class ClikNode(Node):
         self._drop_warned, self._drop_warned_at = 0, -math.inf   # frames dropped, monotonic time [s]
         self._frame_sub = self.create_subscription(PoseArray, TOPICS["markers"], self.on_frame,
                                                    QOS["mocap/markers"])
-        self.tip = None                 # (stamp [s], position covariance (3, 3) [m^2]) of the estimate's tip
+        # on an estimate fed back: the fused tips' covariances (3, 3) [m^2] by stamp [s], the latest
+        # few, and a frame held until its own tip arrives (:meth:`on_tip`): (CLIK time [s], task
+        # coordinates [m], stamp [s])
+        self.tips: dict = {}
+        self.waiting = None
         if self.outer.trust is not None:     # an estimate fed back: its uncertainty with it
             # the fused tip's: none where the mocap saw the tip, the estimate's elsewhere
             self.create_subscription(PoseWithCovarianceStamped, TOPICS["fused_tip"], self.on_tip,
@@ -214,7 +220,26 @@ class ClikNode(Node):
             self.get_logger().warning(f"mocap frame with {markers.shape[0]} markers, expected "
                                       f"{self.model.marker_X.size}", throttle_duration_sec=1.0)
             return
-        ref = self.outer.frame(self.now, self.task.space.from_markers(markers), self._sigma())
+        x = self.task.space.from_markers(markers)
+        if self.outer.trust is None:
+            self._step(self.now, x, None)
+            return
+        # on an estimate: the step weighs this frame's own tip uncertainty, published beside it
+        # on fused/tip and perhaps not here yet; a frame still waiting for its tip when the next
+        # comes goes without (no step on it: its uncertainty is unknown)
+        if self.waiting is not None:
+            waiting, self.waiting = self.waiting, None
+            self._step(waiting[0], waiting[1], None)
+        covariance = self.tips.get(self.stamp)
+        if covariance is None:
+            self.waiting = (self.now, x, self.stamp)
+            return
+        self._step(self.now, x, self.task.space.tip_sigma(covariance))
+
+    def _step(self, t: float, x, sigma):
+        """The CLIK's step on the frame of CLIK time ``t`` [s] with task coordinates ``x`` [m] and
+        their standard deviations ``sigma`` [m] (None: measured, or on an estimate unknown)."""
+        ref = self.outer.frame(t, x, sigma)
         if ref is not None:
             self.publish(ref)
         if self.outer.reports and ((len(self.outer.reports), self.outer.reports[-1].status) != self._reported
@@ -222,19 +247,16 @@ class ClikNode(Node):
             self.publish_diagnostics()        # at once when a goal turns infeasible; once a second
 
     def on_tip(self, msg: PoseWithCovarianceStamped):
-        self.tip = (stamp_to_seconds(msg.header.stamp),
-                    np.array(msg.pose.covariance, dtype=float).reshape(6, 6)[:3, :3])
-
-    def _sigma(self):
-        """The task coordinates' standard deviations [m] on an estimated feedback: the fed-back
-        tip's (:meth:`~soft_arm_control.task_space.TaskSpace.tip_sigma`), stamped within a trust
-        window of the frame; None otherwise (no step is taken on an estimate without them)."""
-        if self.tip is None or self.outer.trust is None:
-            return None
-        stamp, covariance = self.tip
-        if not abs(stamp - self.stamp) <= self.outer.trust.config.window:
-            return None
-        return self.task.space.tip_sigma(covariance)
+        """A fused tip: its covariance kept by its stamp, for the frame of the same stamp (the
+        shape estimator stamps both with the state they come from); the frame waiting for it
+        steps now, or without it if this tip is newer (its own was lost)."""
+        stamp = stamp_to_seconds(msg.header.stamp)
+        self.tips[stamp] = np.array(msg.pose.covariance, dtype=float).reshape(6, 6)[:3, :3]
+        while len(self.tips) > TIPS_KEPT:
+            del self.tips[next(iter(self.tips))]
+        if self.waiting is not None and stamp >= self.waiting[2]:
+            (t, x, frame), self.waiting = self.waiting, None
+            self._step(t, x, self.task.space.tip_sigma(self.tips[stamp]) if stamp == frame else None)
 
     def _heartbeat(self):
         """The current goal's report when the frames have not given one for a second of wall time

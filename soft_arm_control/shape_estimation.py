@@ -105,6 +105,9 @@ ESTIMATOR_SCHEMA = {
     "noise.tension": ("float", lambda v: 0 <= v <= 10, "a standard deviation in [0, 10] N"),
     "noise.encoder_rate": ("float", lambda v: 0 < v <= 1, "a standard deviation in (0, 1] m/s"),
     "marker_age": ("float", lambda v: 0 <= v <= 0.1, "a time in [0, 0.1] s"),
+    "max_frame_age": ("float", lambda v: 0 < v <= 1,
+                      "a time in (0, 1] s: a mocap frame stamped further from the state it would be "
+                      "weighed with is left out (counted)"),
     "max_substep": ("float", lambda v: 0 < v <= 0.1, "a time step in (0, 0.1] s"),
     "prior.tendon_offset": ("float", lambda v: 0 <= v <= 0.2,
                             "a standard deviation in [0, 0.2] of a tendon's offset (fraction of the radius)"),
@@ -140,6 +143,7 @@ class EstimatorConfig:
     tension: float
     encoder_rate: float
     marker_age: float
+    max_frame_age: float
     max_substep: float
     prior_tendon_offset: float
     prior_tendon_angle: float

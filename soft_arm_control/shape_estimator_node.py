@@ -71,8 +71,9 @@ class ShapeEstimatorNode(Node):
         self.period = 1.0 / self.config.rate
         self.clock = LoopClock(self.config.max_time_step)   # the estimate's time, from the states' stamps
         self.next_update = -math.inf     # in that time [s]
-        self.frame = None                # the latest frame's markers since the last update
-        self.rejected = 0
+        self.frame = None                # (stamp [s], markers) of the latest frame since the last update
+        self.rejected = self.stale_frames = 0
+        self._reported_stale = 0
         self.nis, self.used, self.gated = [], 0, 0
         self.undefended, self.distrust = 0, None      # updates with invalid markers, the last reason
         self._reported_counts = dict(self.core.counts)
@@ -98,7 +99,21 @@ class ShapeEstimatorNode(Node):
             self.get_logger().warning(f"mocap frame with {markers.shape[0]} markers, expected "
                                       f"{self.model.marker_X.size}", throttle_duration_sec=1.0)
             return
-        self.frame = markers
+        self.frame = stamp_to_seconds(msg.header.stamp), markers
+
+    def _fresh_frame(self, t: float):
+        """The markers of the latest frame if it is stamped within ``max_frame_age`` of the state's
+        stamp ``t`` [s] (both on the rig's wall clock, or on /clock); None otherwise (counted)."""
+        if self.frame is None:
+            return None
+        stamp, markers = self.frame
+        if abs(t - stamp) <= self.config.max_frame_age:
+            return markers
+        self.stale_frames += 1
+        self.get_logger().warning(
+            f"mocap frame left out: stamped {t - stamp:+.3f} s from the state it would be weighed "
+            f"with (estimator.max_frame_age {self.config.max_frame_age:g} s)", throttle_duration_sec=1.0)
+        return None
 
     def on_state(self, msg: JointState):
         t = stamp_to_seconds(msg.header.stamp)
@@ -118,7 +133,8 @@ class ShapeEstimatorNode(Node):
         if now < self.next_update - 1e-9:
             return                              # between updates
         self.next_update = now + self.period
-        report = self.core.update(now, s, sd, u, self.frame)
+        frame = self._fresh_frame(t)
+        report = self.core.update(now, s, sd, u, frame)
         estimate = self.core.estimate()
         if report.marker_nis is not None:
             self.nis += [v for v in report.marker_nis if np.isfinite(v)]
@@ -130,9 +146,9 @@ class ShapeEstimatorNode(Node):
             self.distrust = (estimate.distrust
                              or f"a marker's standard deviation above {self.config.max_sigma} m")
         self.estimate_pub.publish(pose_array(defended, t))
-        self.fused_pub.publish(pose_array(fused_markers(self.frame, defended), t))
+        self.fused_pub.publish(pose_array(fused_markers(frame, defended), t))
         self.tip_pub.publish(tip_message(estimate.markers[-1], estimate.marker_covariance[-1], t))
-        self.fused_tip_pub.publish(tip_message(*fused_tip(self.frame, estimate), t))
+        self.fused_tip_pub.publish(tip_message(*fused_tip(frame, estimate), t))
         self.shape_pub.publish(self._shape(t))
         self.frame = None
         self._last = (t, estimate)
@@ -161,19 +177,22 @@ class ShapeEstimatorNode(Node):
         counts = self.core.counts
         new = {k: counts[k] - self._reported_counts[k] for k in ("diverged", "out_of_domain", "restarts")}
         stiffness, friction = self.core.parameters
-        warn = any(new.values()) or self.undefended
+        stale = self.stale_frames - self._reported_stale
+        warn = any(new.values()) or self.undefended or stale
         level = DiagnosticStatus.WARN if warn else DiagnosticStatus.OK
         message = "estimating" if not warn else (
             f"{new['diverged']} marker divergences, {new['out_of_domain']} updates left out of the "
             f"model's domain, {new['restarts']} restarts (the estimate was lost), {self.undefended} "
-            "updates with markers not stood by since the last report"
-            + (f" (last: {self.distrust})" if self.distrust else ""))
+            "updates with markers not stood by"
+            + (f" (last: {self.distrust})" if self.distrust else "")
+            + f", {stale} mocap frames left out as stamped too far from the states since the last report")
         values = {"updates": counts["updates"], "markers_used": self.used, "markers_gated": self.gated,
                   "marker_nis_mean": float(np.mean(self.nis)) if self.nis else "",
                   "diverged": counts["diverged"], "out_of_domain": counts["out_of_domain"],
                   "restarts": counts["restarts"], "undefended": self.undefended,
                   "distrust": self.distrust or "",
-                  "rejected": self.rejected, "clock_steps": self.clock.steps,
+                  "rejected": self.rejected, "stale_frames": self.stale_frames,
+                  "clock_steps": self.clock.steps,
                   "stiffness_scale": round(stiffness, 4),
                   "friction": [round(float(f), 4) for f in friction],
                   "tip_sigma_mm": round(1e3 * float(estimate.marker_sigma[-1]), 3)}
@@ -185,6 +204,7 @@ class ShapeEstimatorNode(Node):
         self.diagnostics_pub.publish(msg)
         self.nis, self.used, self.gated = [], 0, 0
         self.undefended, self.distrust = 0, None
+        self._reported_stale = self.stale_frames
         self._reported_counts = dict(counts)
         self._reported_at = time.monotonic()
 

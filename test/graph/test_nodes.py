@@ -651,6 +651,47 @@ def test_a_clock_step_seen_on_a_frame_dropped_behind_a_slow_step_names_the_step(
         rclpy.try_shutdown()
 
 
+def test_on_an_estimate_each_frame_steps_on_its_own_tips_covariance_even_when_the_tip_comes_after():
+    """The shape estimator publishes a frame on fused/markers and its tip on fused/tip with the same
+    stamp; here each frame arrives before its tip, and the tip is seen (zero covariance) on every
+    other frame only, estimated (10 mm) on the rest. Each frame waits for its own tip: the frames
+    whose tip was estimated take no step (they took the previous frame's zero covariance, and a
+    full step); a tip that never comes leaves its frame without a step when the next frame comes."""
+    import rclpy
+
+    from soft_arm_control.shape_estimator_node import tip_message
+    from soft_arm_model import marker_positions, solve_equilibrium
+    from soft_arm_ros.conversions import pose_array
+    rclpy.init()
+    try:
+        node = _clik("coiling", [], **{"control.clik.feedback": "estimate"})
+        hanging = marker_positions(node.model, solve_equilibrium(node.model, [0.05] * 4).q)
+        x = node.task.space.from_markers(hanging)
+        node.on_tip(tip_message(hanging[-1], np.zeros((3, 3)), 100.0))
+        node.on_markers(pose_array(hanging, 100.0))
+        node.on_goal(_goal(x + np.array([0.01, 0.0]), "online"))
+        goal = node.outer.reports[-1]
+        stepped = []
+        for k in range(1, 121):
+            t = 100.0 + k / 240.0
+            before = goal.online_steps
+            node.on_markers(pose_array(hanging, t))
+            assert node.waiting is not None and node.waiting[2] == pytest.approx(t, abs=1e-9)   # its tip
+            node.on_tip(tip_message(hanging[-1], np.eye(3) * (0.0 if k % 2 else 1e-4), t))
+            assert node.waiting is None
+            stepped.append(goal.online_steps > before)
+        assert stepped == [k % 2 == 1 for k in range(1, 121)]     # on the seen tips' frames only
+        assert goal.uncertain_frames >= 55
+        steps = goal.online_steps
+        node.on_markers(pose_array(hanging, 101.0))          # its tip lost: the next frame comes
+        node.on_markers(pose_array(hanging, 101.0 + 1 / 240.0))
+        node.on_tip(tip_message(hanging[-1], np.zeros((3, 3)), 101.0 + 1 / 240.0))
+        assert goal.online_steps == steps + 1 and node.waiting is None
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown()
+
+
 @pytest.mark.parametrize("variance, stepped", [(None, False), (1e-4, False), (0.0, True)])
 def test_on_an_estimate_the_clik_node_steps_only_on_what_the_tip_covariance_defends(variance, stepped):
     """The clik node on ``control.clik.feedback: estimate``, an online goal 10 mm off the hanging

@@ -122,6 +122,54 @@ def test_a_stepped_state_clock_is_counted_and_neither_stops_the_updates_nor_infl
         rclpy.try_shutdown()
 
 
+def test_a_frame_stamped_far_from_the_state_is_left_out_and_counted_not_fused_as_measured():
+    """A frame stamped 0.3 s before the state it would be weighed with (queued behind a stall of
+    the mocap bridge), or 0.3 s after it (a clock that disagrees): the estimate does not take its
+    markers, fused/markers carries the estimate's and fused/tip the estimate's covariance, the frame
+    is counted and /diagnostics warns; a frame 4 ms old is fused as measured."""
+    import rclpy
+    from diagnostic_msgs.msg import DiagnosticStatus
+
+    from soft_arm_control.shape_estimator_node import ShapeEstimatorNode
+    from soft_arm_ros.conversions import joint_state, markers_of, pose_array
+
+    model = build_model()
+    u = np.array([0.5, 2.0, 1.5, 0.3])
+    q = solve_equilibrium(model, u).q
+    s = model.rest_tendon_lengths - tendon_lengths(model, q)
+    elsewhere = marker_positions(model, q) + np.array([0.0, 0.0, 1e-3])     # 1 mm from the estimate
+    rclpy.init()
+    try:
+        node = ShapeEstimatorNode()
+        fused, tips, diagnostics = [], [], []
+        node.fused_pub.publish, node.fused_tip_pub.publish = fused.append, tips.append
+        node.diagnostics_pub.publish = diagnostics.append
+        t = 10.0
+        for k in range(50):
+            node.on_state(joint_state(model.tendon_names, t + k * 0.004, position=s,
+                                      velocity=np.zeros(4), effort=u))
+        used = node.core.counts["markers_used"]
+        for offset, stale in ((-0.3, True), (0.3, True), (-0.004, False)):
+            t += 0.2
+            node.on_markers(pose_array(elsewhere, t + offset))
+            node.on_state(joint_state(model.tendon_names, t, position=s, velocity=np.zeros(4), effort=u))
+            tip_variance = np.array(tips[-1].pose.covariance).reshape(6, 6)[:3, :3]
+            taken = not np.allclose(markers_of(fused[-1]), elsewhere, atol=1e-9)
+            assert taken == stale and (np.all(tip_variance == 0.0) != stale), offset
+            assert (node.core.counts["markers_used"] > used) != stale
+            used = node.core.counts["markers_used"]
+        assert node.stale_frames == 2
+        node._reported_at = -math.inf
+        node._heartbeat()
+        status = diagnostics[-1].status[0]
+        values = {kv.key: kv.value for kv in status.values}
+        assert status.level == DiagnosticStatus.WARN and values["stale_frames"] == "2"
+        assert "2 mocap frames left out" in status.message
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown()
+
+
 def test_configured_dynamic_the_node_runs_the_dynamic_estimate_with_the_controllers_rotors():
     """``estimator.process_model: dynamic`` on the node: the dynamic filter, the rotors' reflected
     mass from ``control.rotor_mass``; at rest on the tendons alone the tip it publishes is within
