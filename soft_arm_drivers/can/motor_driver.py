@@ -165,6 +165,7 @@ class CycleStatistics:
 
 PERIOD_WINDOW = 1000            # cycles the statistics look back over (2 s at 500 Hz)
 LATE = 1.5                      # periods: a cycle further from the last is late (counted)
+FIELD_END = 4                   # steps of the 16-bit position field: a reading this near its end saturates
 
 
 class Cycle(NamedTuple):
@@ -199,6 +200,7 @@ class MotorDriver:
         self._reply_time = np.full(n, -math.inf)      # ``now`` of the cycle that read the last reply
         self._shortening, self._rate, self._tension = np.zeros(n), np.zeros(n), np.zeros(n)
         self._zero_offset = np.array(config.zero_shortening or (0.0,) * n, dtype=float)
+        self._position = np.full(n, math.nan)       # each motor's last reported angle [rad]
         self._stamps = np.full(n, math.nan)
         self._temperature: list = [None] * n
         self._error: list = [None] * n
@@ -404,6 +406,7 @@ class MotorDriver:
             self._replies[i] += 1
             self._temperature[i], self._error[i] = reply.temperature, reply.error
             fresh[i] = True
+            self._check_position(i, reply.position)
             if reply.error:
                 self._trip(f"motor {motor.can_id} reports error {reply.error} ({reply.error_text})")
             if reply.temperature is not None and reply.temperature > c.max_temperature:
@@ -413,6 +416,22 @@ class MotorDriver:
             if mismatch is not None:
                 self._trip(f"motor {motor.can_id}: {mismatch} (rig.motors.models)")
         return fresh
+
+    def _check_position(self, i: int, position: float):
+        """A motor's angle [rad] at the end of the reply's field, or one that jumped by more than half
+        the field since its last reply, is no measurement: the field saturates there (or wraps, in
+        firmware that does not clamp), so a tendon run off its spool, the motor spinning free at its
+        torque, reads as a tendon held still. Either latches a fault."""
+        lim, can_id = self.config.motors[i].limits, self.config.motors[i].can_id
+        span = lim.p_max - lim.p_min
+        end = FIELD_END * span / 65535
+        if not lim.p_min + end < position < lim.p_max - end:
+            self._trip(f"motor {can_id}: angle {position:+.3f} rad at the end of its field [{lim.p_min:g}, "
+                       f"{lim.p_max:g}] rad: the reading saturates there, the shortening is no measurement")
+        elif abs(position - self._position[i]) > 0.5 * span:
+            self._trip(f"motor {can_id}: angle jumped from {self._position[i]:+.3f} to {position:+.3f} rad "
+                       "between two replies: it wrapped at the end of its field")
+        self._position[i] = position
 
     def _check(self, now: float, gap: float, publish_time: float):
         """Reply timeouts (every mode), the command watchdog and the watchdog's own deadline

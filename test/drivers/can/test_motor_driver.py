@@ -163,6 +163,38 @@ def test_frames_that_do_not_leave_on_a_stop_are_returned_though_the_fault_names_
         bus.shutdown()
 
 
+@pytest.mark.parametrize("angles, fault", [
+    ((0.2, 12.5), "at the end of its field"),            # saturated: a tendon run off its spool
+    ((-0.3, -12.5), "at the end of its field"),
+    ((12.3, -12.3), "wrapped at the end of its field"),  # firmware that does not clamp
+    ((12.3, 12.4), None), ((-4.0, 4.0), None)])          # far from the ends, and a fast turn
+def test_an_angle_at_the_end_of_the_reply_field_or_wrapped_is_no_measurement(angles, fault):
+    """A motor's angle at the end of the 16-bit field (+-12.5 rad: +-125 mm of tendon on a 1 cm
+    pulley) saturates, or wraps in firmware that does not clamp: the shortening would read a tendon
+    held still while the motor spins free. Either latches a fault naming the motor; angles within
+    the field, however far apart, do not."""
+    cfg = config(ids=[1, 2, 3, 4])
+    other = can.Bus(interface="virtual", channel=cfg.channel, preserve_timestamps=True)
+    bus = can.Bus(interface="virtual", channel=cfg.channel)
+    try:
+        driver = MotorDriver(cfg, bus, clock=lambda: 0.0)
+        lim = MOTOR_PRESETS["AK80-9"]
+        for angle in angles:
+            for motor_id in (1, 2, 3, 4):
+                other.send(can.Message(arbitration_id=0, is_extended_id=False, timestamp=1.0,
+                                       data=encode_reply(lim, motor_id, angle if motor_id == 2 else 0.1,
+                                                         0.0, 0.0, 40, 0)))
+            diag = driver.cycle().diagnostics
+        if fault is None:
+            assert diag.fault is None
+        else:
+            assert diag.fault.startswith("motor 2: angle") and fault in diag.fault, diag.fault
+        driver.close()
+    finally:
+        bus.shutdown()
+        other.shutdown()
+
+
 @pytest.mark.parametrize("stamp", [math.nan, math.inf])
 def test_a_reply_whose_receive_time_is_no_number_is_refused_and_counted(stamp):
     """The state's stamp is its replies' receive time: a reply without one is not taken (its motor
