@@ -15,6 +15,7 @@ import numpy as np
 from soft_arm_model.parameters import (ConfigError, apply_overrides, default_config_dir, read_parameters,
                                        validate_tree)
 
+from .clock_map import MAX_DELAY
 from .natnet import SUPPORTED_VERSIONS, Version
 
 NAMESPACE = "rig"
@@ -124,7 +125,11 @@ MOCAP_SCHEMA = {
     "mocap.keepalive_period": ("float", lambda v: 0 < v <= 60, "a period in (0, 60] s"),
     "mocap.timeout": ("float", lambda v: 0 < v <= 60,
                       "a time in (0, 60] s without an answer or a frame before reconnecting"),
-    "mocap.clock_window": ("float", lambda v: 0.1 <= v <= 3600, "a window in [0.1, 3600] s"),
+    # at least four of the clock map's largest transport delays: a bridge stall shorter than the
+    # window keeps its minimum, so that the frames queued behind it are not stamped as new
+    "mocap.clock_window": ("float", lambda v: 4 * MAX_DELAY <= v <= 3600,
+                           f"a window in [{4 * MAX_DELAY:g}, 3600] s (four of the largest transport "
+                           f"delay, {MAX_DELAY:g} s)"),
     "mocap.poll_budget": ("float", lambda v: 1e-4 <= v <= 1,
                           "a time in [0.0001, 1] s: the longest one poll reads and handles datagrams "
                           "before it hands its frames on (the rest wait for the next)"),

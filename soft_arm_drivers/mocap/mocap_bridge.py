@@ -110,7 +110,10 @@ class MocapBridge:
     """NatNet client that turns frames into :class:`MarkerFrame` s of the arm.
 
     ``clock()`` is the local clock the stamps are mapped onto [s] (default ``time.time``; the ROS node
-    passes its clock). Opens the sockets (OSError if they cannot be bound); :meth:`connect` starts
+    passes its clock); ``timer()`` the clock of the bridge's own timeouts [s] (the silence before a
+    reconnect, the version request, the keep-alives; default ``clock``: the node passes
+    ``time.monotonic``, so that a step of its clock neither holds them off for the step's length nor
+    fires them early). Opens the sockets (OSError if they cannot be bound); :meth:`connect` starts
     the handshake and :meth:`poll` does the rest: read datagrams, handle them, resend the connect
     request when the server is silent for ``timeout``, send unicast keep-alives.
 
@@ -123,9 +126,11 @@ class MocapBridge:
                     use(frame.stamp, frame.markers)
     """
 
-    def __init__(self, config: BridgeConfig, clock: Callable[[], float] = time.time):
+    def __init__(self, config: BridgeConfig, clock: Callable[[], float] = time.time,
+                 timer: Optional[Callable[[], float]] = None):
         self.config = config
         self._clock = clock
+        self._timer = clock if timer is None else timer
         self._wanted = {marker_id: k for k, marker_id in enumerate(config.ids)}
         self._server = (config.server_address, config.command_port)
         self._counts = dict.fromkeys(PACKET_OUTCOMES + ("restarts", "lost", "foreign", "partial",
@@ -209,7 +214,7 @@ class MocapBridge:
     def connect(self):
         """Send the connect request now (the handshake finishes in :meth:`poll`)."""
         self.state = "connecting"
-        self._send_connect(self._clock())
+        self._send_connect(self._timer())
 
     def _send_connect(self, now: float):
         self._counts["connect_requests"] += 1
@@ -247,7 +252,7 @@ class MocapBridge:
         next poll), and return the :class:`MarkerFrame` s they gave, in the order they were read.
         Datagrams from another host than ``server_address`` are counted as ``foreign`` and
         dropped."""
-        self._service(self._clock())
+        self._service(self._timer())
         try:
             ready, _, _ = select.select([self._command, self._data], [], [], timeout)
         except (OSError, ValueError):       # a socket closed by another thread
@@ -273,27 +278,31 @@ class MocapBridge:
                 if frame is not None:
                     frames.append(frame)
         if self._outbox:
-            self._service(self._clock())
+            self._service(self._timer())
         return frames
 
     def handle_packet(self, data: bytes, received_at: float) -> Optional[MarkerFrame]:
         """Handle one datagram read at ``received_at`` [s, local clock]; the arm's markers if it was
         a new, complete frame, else None. Never raises for any bytes; each datagram is counted in
         exactly one of :data:`PACKET_OUTCOMES`. Replies it needs (the version request) are queued
-        and sent by :meth:`poll`."""
-        self._last_heard = received_at
+        and sent by :meth:`poll`. Only a datagram that parses counts as the server heard: a stream
+        this bridge cannot read (a version switch whose answer was lost) goes stale and reconnects."""
+        heard = received_at if self._timer is self._clock else self._timer()
         try:
             message_id, payload = parse_packet(data)
             if message_id == MessageId.NAT_FRAMEOFDATA:
-                return self._on_frame(data, received_at)
+                frame = self._on_frame(data, received_at)
+                self._last_heard = heard
+                return frame
             if message_id == MessageId.NAT_SERVERINFO:
-                self._on_server_info(parse_server_info(data), received_at)
+                self._on_server_info(parse_server_info(data), heard)
             elif message_id in (MessageId.NAT_RESPONSE, MessageId.NAT_UNRECOGNIZED_REQUEST):
                 self._on_response(payload if message_id == MessageId.NAT_RESPONSE else None)
         except NatNetParseError as exc:
             self._counts["malformed"] += 1
             self.note = f"malformed packet: {exc}"
             return None
+        self._last_heard = heard
         self._counts["control"] += 1
         return None
 

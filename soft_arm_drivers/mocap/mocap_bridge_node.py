@@ -90,7 +90,7 @@ class MocapBridgeNode(ManagedHardwareNode):
     def on_configure(self, state):
         c = self.config
         try:
-            bridge = MocapBridge(c, clock=self.now)
+            bridge = MocapBridge(c, clock=self.now, timer=time.monotonic)
         except OSError as exc:
             return self.refuse("configure", f"{NAMESPACE}.mocap.local_address = {c.local_address!r}, "
                                             f"data_port = {c.data_port}: cannot open the NatNet "

@@ -219,6 +219,46 @@ def test_reconnects_when_the_server_goes_silent_and_follows_its_restart():
     np.testing.assert_allclose(frames[-1].markers, TRUE, atol=1e-6)
 
 
+def test_a_stream_the_bridge_cannot_read_goes_stale_and_reconnects():
+    """Only datagrams that parse are the server heard: a stream in another version than the one
+    agreed (the answer to a version switch lost) is malformed frame after frame, and after
+    ``timeout`` the bridge reconnects, where every datagram kept it streaming for ever."""
+    now = [0.0]
+    with NatNetEmulator(static) as silent:
+        with MocapBridge(config(silent, timeout=0.5), clock=lambda: now[0]) as bridge:
+            bridge.connect()
+            bridge.handle_packet(SERVER_INFO, 0.0)
+            assert bridge.handle_packet(VALID_41, 0.1) is not None and bridge.state == "streaming"
+            requests = bridge.counters["connect_requests"]
+            for k in range(2, 11):                          # 0.2 ... 1.0 s: unreadable frames
+                now[0] = 0.1 * k
+                assert bridge.handle_packet(VALID_41[:-7], now[0]) is None
+                bridge.poll()
+            assert bridge.counters["malformed"] == 9
+            assert bridge.state == "stale" and bridge.counters["connect_requests"] > requests
+
+
+def test_the_timeouts_run_on_their_own_clock_through_a_step_of_the_stamps_clock():
+    """The stamps' clock (the node's: the wall clock on the rig) steps back an hour while the server
+    goes silent: the reconnect comes after ``timeout`` of the timeouts' own clock (the node passes
+    the monotonic one), where on the stamps' clock it would have waited the hour."""
+    wall, steady = [1000.0], [5.0]
+    with NatNetEmulator(static) as silent:
+        with MocapBridge(config(silent, timeout=0.5), clock=lambda: wall[0],
+                         timer=lambda: steady[0]) as bridge:
+            bridge.connect()
+            bridge.handle_packet(SERVER_INFO, wall[0])
+            assert bridge.handle_packet(VALID_41, wall[0]) is not None
+            requests = bridge.counters["connect_requests"]
+            wall[0] -= 3600.0                               # NTP steps the wall clock back
+            steady[0] += 0.3
+            bridge.poll()
+            assert bridge.state == "streaming"
+            steady[0] += 0.3                                # 0.6 s of silence
+            bridge.poll()
+            assert bridge.state == "stale" and bridge.counters["connect_requests"] == requests + 1
+
+
 def test_server_silence_before_the_handshake_retries_the_connect():
     with NatNetEmulator(static) as emulator:                      # bound but not serving yet
         with MocapBridge(config(emulator, timeout=0.1)) as bridge:
@@ -780,6 +820,9 @@ def test_the_package_config_loads():
                                                          "[1.0, 1.0, 0.0, 0.0] is not valid"),
     ("mocap.calibration.translation", [0.0, 0.0], "expected three coordinates [m] within 100 m"),
     ("mocap.timeout", 0.0, "rig.mocap.timeout = 0.0 is not valid: expected a time in (0, 60] s"),
+    # shorter than a bridge stall the clock map tells from a jump: the queue would be stamped as new
+    ("mocap.clock_window", 1.0,
+     "rig.mocap.clock_window = 1.0 is not valid: expected a window in [2, 3600] s"),
     ("mocap.port", 1, "unknown key rig.mocap.port"),
 ])
 def test_bad_config_values_name_the_key_value_and_range(key, value, message):
