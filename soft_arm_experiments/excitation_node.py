@@ -41,6 +41,7 @@ class ExcitationNode(Node):
         self.wait_for_start = params.run_option("wait_for_start")
         self.started = not self.wait_for_start
         self.t0 = None
+        self.last = None                # the latest state's stamp [s]
         self.finished = self.done = False
         self.create_service(Trigger, "~/start", self.on_start)
         self.pub = self.create_publisher(JointState, TOPICS["command"], QOS["tendon/command"])
@@ -57,6 +58,7 @@ class ExcitationNode(Node):
 
     def on_state(self, msg: JointState):
         t = stamp_to_seconds(msg.header.stamp)
+        self.last = t
         if self.started and self.t0 is None:
             self.t0 = t
         u = self.core.tension(t - self.t0 if self.t0 is not None else -1.0)     # -1: before the start
@@ -65,12 +67,14 @@ class ExcitationNode(Node):
             self.finish()
 
     def finish(self):
-        """Write the schedule (with its start on the state clock) to ``output``; stop unless the
-        caller stops this node."""
+        """Write the schedule (with its start on the state clock, and whether it played to its
+        end) to ``output``; stop unless the caller stops this node."""
         if self.output and self.t0 is not None:
             partial = self.output + ".partial"
+            complete = self.last is not None and self.last - self.t0 >= self.core.duration
             with open(partial, "w", encoding="utf-8") as fh:
-                json.dump({"task": "identification", "start": self.t0, **self.core.summary()}, fh, indent=2)
+                json.dump({"task": "identification", "start": self.t0, "complete": complete,
+                           **self.core.summary()}, fh, indent=2)
             os.replace(partial, self.output)
         self.finished = True
         self.done = not self.wait_for_start

@@ -30,6 +30,7 @@ import json
 import os
 import signal
 import sys
+import threading
 import time
 import traceback
 
@@ -42,7 +43,8 @@ from .strike import PLANNED_ON_THE_GRAPH, format_strike
 from .harness import add_setup_arguments, check_targets, load_setup, setup_overrides
 from .live_launch import add_live_argument, live_view, parse_address
 from .excitation import Excitation
-from .orchestration import STOP, feedback_arguments, request_stop, roles, run_emulated_hardware, run_processes
+from .orchestration import (STOP, exit_failure, feedback_arguments, request_stop, roles,
+                            run_emulated_hardware, run_processes)
 from .writable import writable_directory
 
 NAMESPACES = ("arm", "control", "plant", "tasks", "graph", "identification", "estimator")
@@ -74,20 +76,38 @@ def _progress(t: float, total: float):
 
 def _shut_down(nodes, executor):
     """End a composed run whatever stopped it: the task runner writes what it has, every node
-    closes (the recorder its bag), then the executor, the nodes and rclpy go."""
+    closes (the recorder its bag), then the executor, the nodes and rclpy go. Each step runs
+    whatever the one before raised (a runner that cannot write its result still leaves the bag
+    closed), with SIGINT and SIGTERM ignored (a second Ctrl-C does not cut the bag short); the first
+    error is raised at the end."""
     import rclpy
-    for node in nodes:
-        finish = getattr(node, "finish", None)
-        if finish is not None and not node.done:
-            finish()
-        close = getattr(node, "close", None)
-        if close is not None:
-            close()
-    if executor is not None:
-        executor.shutdown()
-    for node in nodes:
-        node.destroy_node()
-    rclpy.try_shutdown()
+    held = {sig: signal.signal(sig, signal.SIG_IGN) for sig in (signal.SIGINT, signal.SIGTERM)} \
+        if threading.current_thread() is threading.main_thread() else {}
+    errors = []
+
+    def attempt(step, *args):
+        try:
+            step(*args)
+        except Exception as exc:          # noqa: BLE001 -- kept, raised once everything is closed
+            errors.append(exc)
+    try:
+        for node in nodes:
+            finish = getattr(node, "finish", None)
+            if finish is not None and not node.done:
+                attempt(finish)
+            close = getattr(node, "close", None)
+            if close is not None:
+                attempt(close)
+        if executor is not None:
+            attempt(executor.shutdown)
+        for node in nodes:
+            attempt(node.destroy_node)
+        attempt(rclpy.try_shutdown)
+    finally:
+        for sig, handler in held.items():
+            signal.signal(sig, handler)
+    if errors:
+        raise errors[0]
 
 
 def run_composed(ros_args: list, out: dict, progress=None, config_dir: str | None = None,
@@ -265,8 +285,10 @@ def main(argv=None) -> int:
         return 2
     stamp = datetime.datetime.now(datetime.timezone.utc).strftime("%Y%m%d-%H%M%S")
     run_dir = os.path.abspath(args.output or os.path.join("runs", f"{args.task}-{stamp}"))
-    if os.path.exists(os.path.join(run_dir, "bag")):
-        print(f"soft-arm-experiment: {run_dir} already holds a run", file=sys.stderr)
+    held = [name for name in ("bag", "metrics.json", "excitation.json")
+            if os.path.exists(os.path.join(run_dir, name))]
+    if held:                # an earlier run's result would be taken for this one's
+        print(f"soft-arm-experiment: {run_dir} already holds a run ({', '.join(held)})", file=sys.stderr)
         return 2
     problem = writable_directory(run_dir)
     if problem is not None:
@@ -283,7 +305,10 @@ def main(argv=None) -> int:
     out = {"bag": os.path.join(run_dir, "bag"), "metrics": os.path.join(run_dir, result),
            "figures": os.path.join(run_dir, "figures")}
     STOP.clear()
-    previous = {sig: signal.signal(sig, request_stop) for sig in (signal.SIGINT, signal.SIGTERM)}
+    # a closed terminal (an ssh session dropped) stops the run as a Ctrl-C does: the motors off, the
+    # bag closed, where its default would end this process and leave the nodes running
+    previous = {sig: signal.signal(sig, request_stop)
+                for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
     try:
         with contextlib.ExitStack() as stack:
             try:
@@ -305,14 +330,14 @@ def _run(args, setup, ros_args: list, out: dict) -> int:
     """Run the graph the way ``args`` says, then report; the exit status."""
     progress = None if args.quiet else _progress
     failed = None
+    duration = sum(ph.window * len(ph.sequence) for ph in setup.task.phases) \
+        if setup.task is not None else Excitation(setup.excitation, len(setup.arm.tendons)).duration
     try:
         if args.emulated_hardware:
-            duration = sum(ph.window * len(ph.sequence) for ph in setup.task.phases) \
-                if setup.task is not None else Excitation(setup.excitation, len(setup.arm.tendons)).duration
             facts = run_emulated_hardware(ros_args, out, duration, args.config, args.task, args.arm_file,
                                           args.feedback)
         elif args.processes:
-            facts = run_processes(ros_args, out, args.task, args.feedback)
+            facts = run_processes(ros_args, out, args.task, args.feedback, duration)
         else:
             facts = run_composed(ros_args, out, progress, args.config, task=args.task,
                                  feedback=args.feedback)
@@ -334,6 +359,10 @@ def _run(args, setup, ros_args: list, out: dict) -> int:
     if failed is None and faults:
         failed = "the motor driver faulted: " + "; ".join(
             f"{f['message']} ({f['time_s']:.2f} s after the enable)" for f in faults)
+    if failed is None:
+        # filled as the nodes were stopped, after the run: a node that failed on its way out (a
+        # driver whose zero-torque frames did not leave, a recorder that could not close its bag)
+        failed = exit_failure(facts.get("node_exits") or {})
     if setup.task is None:
         return _identification_result(args, out, facts, failed, interrupted)
     figures = []
@@ -368,6 +397,8 @@ def _no_result(out: dict, facts: dict, failed: str | None, interrupted: bool, mi
     whatever it wrote (a runner may have finished before the fault was seen); one that wrote none
     says ``missing``."""
     name = os.path.basename(out["metrics"])
+    if failed is None and not _complete(out["metrics"]):
+        failed = f"{'interrupted' if interrupted else 'stopped'} before the run played to its end"
     if failed is not None:
         _update(out["metrics"], valid=False, failure=failed, run=facts)
         print(f"soft-arm-experiment: {failed}: no result ({name} marked invalid); bag: {out['bag']}",
@@ -380,20 +411,32 @@ def _no_result(out: dict, facts: dict, failed: str | None, interrupted: bool, mi
     return 130 if interrupted else 1
 
 
+def _complete(path: str) -> bool:
+    """Whether the result file at ``path`` (if any) says its run played to its end (a runner stopped
+    early writes what it has, ``complete`` false)."""
+    if not os.path.exists(path):
+        return True
+    with open(path, encoding="utf-8") as fh:
+        return json.load(fh).get("complete", True) is not False
+
+
 def _mark_valid(path: str, facts: dict):
     """A run's result file is a result: ``valid`` true, with the run facts."""
     _update(path, valid=True, run=facts)
 
 
 def _update(path: str, **values):
-    """Set ``values`` in the JSON file at ``path`` (created if missing)."""
+    """Set ``values`` in the JSON file at ``path`` (created if missing), replaced whole: a second
+    Ctrl-C or a full disk mid-write leaves the file as it was."""
     data = {}
     if os.path.exists(path):
         with open(path, encoding="utf-8") as fh:
             data = json.load(fh)
     data.update(values)
-    with open(path, "w", encoding="utf-8") as fh:
+    writing = path + ".writing"
+    with open(writing, "w", encoding="utf-8") as fh:
         json.dump(data, fh, indent=2)
+    os.replace(writing, path)
 
 
 def _identification_result(args, out: dict, facts: dict, failed: str | None, interrupted: bool) -> int:

@@ -44,9 +44,9 @@ GRAPH_SETTLE = 2.0
 def _wait_for_graph(node, children, flowing: tuple = (), settle: float = 0.0,
                     timeout: float = BRINGUP_TIMEOUT,
                     published: tuple = ("command", "reference", "state", "markers")):
-    """Until the graph is wired: a publisher on each of the ``published`` topics (names of
-    ``TOPICS``: by default the controller's and the plant's; a node creates them once its set-up is
-    done), a recorder, messages arriving on the ``flowing``
+    """Until the graph is wired: a publisher of the run's own nodes on each of the ``published``
+    topics (names of ``TOPICS``: by default the controller's and the plant's; a node creates them
+    once its set-up is done), the run's recorder, messages arriving on the ``flowing``
     topics (names of ``TOPICS``: e.g. the controller answering the motors' state), and, with
     ``settle`` [s], no endpoint of the run's own nodes appearing or going for that long (their
     discovery over; other nodes on the domain, a ``ros2 topic echo`` or an RViz coming and going,
@@ -74,11 +74,14 @@ def _wait_for_graph(node, children, flowing: tuple = (), settle: float = 0.0,
     names = children.node_names()
     while not STOP.is_set():
         children.check()
-        missing = [t for t in topics if node.count_publishers(t) == 0]
-        missing += [f"{t} (no messages yet)" for t, n in counts.items() if n < 10]
-        if "recorder" not in node.get_node_names():
-            missing.append("the recorder")
+        # the run's own nodes' publishers and recorder: another process on the domain (a bag of an
+        # earlier run played, a recorder left running) wires nothing of this run
         now = _endpoints(node, names)
+        published_here = {t for publishers, _, _ in now.values() for t in publishers}
+        missing = [t for t in topics if t not in published_here]
+        missing += [f"{t} (no messages yet)" for t, n in counts.items() if n < 10]
+        if "recorder" not in now:
+            missing.append("the recorder")
         if now != graph:
             if graph is not None:
                 changed = sorted(set(now.items()) ^ set(graph.items()))
@@ -214,6 +217,7 @@ class _Children:
         self.niceness = niceness
         self.env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
         self.procs: dict = {}
+        self.exits: dict = {}        # name: exit status, once stop() has ended them (-9: killed)
 
     def node_names(self) -> set:
         """The names of the nodes the started processes run (the emulated rig's: motor_driver)."""
@@ -264,15 +268,28 @@ class _Children:
                 raise RuntimeError(f"node {name} exited with status {proc.returncode}")
 
     def stop(self):
-        """SIGINT to every node still running; SIGKILL to those not gone after 10 s."""
+        """SIGINT to every node still running; SIGKILL to those not gone after 10 s. Keeps each
+        one's exit status in :attr:`exits`: a node whose shutdown failed (a driver whose zero-torque
+        frames did not leave, a recorder that could not close its bag) says so there."""
         for proc in self.procs.values():
             if proc.poll() is None:
                 proc.send_signal(signal.SIGINT)
-        for proc in self.procs.values():
+        for name, proc in self.procs.items():
             try:
                 proc.wait(timeout=10)
             except subprocess.TimeoutExpired:
                 proc.kill()
+                proc.wait()
+            self.exits[name] = proc.returncode
+
+
+def exit_failure(exits: dict) -> str | None:
+    """What the nodes' exit statuses (name: status, :attr:`_Children.exits`) say went wrong on the
+    way out; None when every one is 0."""
+    bad = [f"node {name} " + ("was killed (it did not stop within 10 s)" if code == -signal.SIGKILL
+                              else f"exited with status {code}")
+           for name, code in exits.items() if code != 0]
+    return "; ".join(bad) or None
 
 
 @contextlib.contextmanager
@@ -324,14 +341,21 @@ def feedback_arguments(feedback: str) -> list:
     return ["-r", f"mocap/markers:={topic}", "-p", f"control.clik.feedback:={feedback}"]
 
 
-def run_processes(ros_args: list, out: dict, task: str = "", feedback: str = "mocap") -> dict:
+# how many times its duration a run of processes may take before it is stopped as stalled: the
+# simulator keeps to graph.simulator.max_real_time_factor (1), and a loaded computer slows it further
+PROCESSES_SLOWDOWN = 10.0
+
+
+def run_processes(ros_args: list, out: dict, task: str = "", feedback: str = "mocap",
+                  duration: float = math.inf) -> dict:
     """Each node its own process, the same parameters: the recorder, the controller's nodes and the
     simulator start; once the graph is wired (the controller's, the plant's and the recorder's
     endpoints exist) the runner (task runner, or excitation for the identification experiment)
     starts, waiting for ``~/start``; once its publisher is known and discovery has settled it is
     started (in lockstep the plant runs as fast as the graph answers: a goal discovered late would
-    reach the controller seconds of simulated time after the window began). Waits for its result,
-    then stops the nodes with SIGINT."""
+    reach the controller seconds of simulated time after the window began). Waits for its result
+    (RuntimeError if not within :data:`PROCESSES_SLOWDOWN` times the task's ``duration`` [s] and a
+    minute), then stops the nodes with SIGINT."""
     import rclpy
     from std_srvs.srv import Trigger
     controller, runner = roles(task, feedback)
@@ -347,17 +371,22 @@ def run_processes(ros_args: list, out: dict, task: str = "", feedback: str = "mo
         _wait_for_graph(node, children, published=("command", "reference", "state", "markers")
                         if controller else ("state", "markers"))
         if STOP.is_set():
-            return {"wall_s": time.monotonic() - start}
+            return {"wall_s": time.monotonic() - start, "node_exits": children.exits}
         children.start(runner)
         _wait_for_graph(node, children, settle=0.5, published=("goal",) if controller else ("command",))
         if not STOP.is_set() and not begin.wait_for_service(timeout_sec=10.0):
             raise RuntimeError(f"service {begin.srv_name} is not available")
         if not STOP.is_set():
             _start(node, begin)
+        limit = PROCESSES_SLOWDOWN * duration + 60.0
+        deadline = time.monotonic() + limit
         while not STOP.is_set() and not os.path.exists(out["metrics"]):
             children.check()
+            if time.monotonic() > deadline:
+                raise RuntimeError(f"the {runner} node wrote no result within {limit:g} s "
+                                   f"({PROCESSES_SLOWDOWN:g} times the run's {duration:g} s and a minute)")
             rclpy.spin_once(node, timeout_sec=0.2)
-    return {"wall_s": time.monotonic() - start}
+    return {"wall_s": time.monotonic() - start, "node_exits": children.exits}
 
 
 def run_emulated_hardware(ros_args: list, out: dict, duration: float,
@@ -419,7 +448,7 @@ def run_emulated_hardware(ros_args: list, out: dict, duration: float,
 
     def facts():
         return {"wall_s": time.monotonic() - start, "emulated_hardware": True, "realtime": fifo,
-                "driver_faults": faults, **settling}
+                "driver_faults": faults, **settling, "node_exits": children.exits}
 
     driving = False                        # the task runs on active motors
 

@@ -126,6 +126,7 @@ class TaskRunnerNode(Node):
                     task = self.core.task
                     tracking = [asdict(r) for r in self.core.tracking()]
                     json.dump({"task": task.name, "paper_peak_speed": task.paper_peak_speed,
+                               "complete": self.core.done,      # every window played (not stopped early)
                                **to_json(rows, summary), "goals": self.core.goals(),
                                **({"strike": strike} if strike else {}),
                                **({"tracking": tracking} if tracking else {})}, fh, indent=2)

@@ -120,6 +120,39 @@ def test_an_output_that_cannot_be_written_is_refused_before_the_graph_starts(cap
              "--output /proc/forbidden/x: cannot write there")
 
 
+@pytest.mark.parametrize("left", ["metrics.json", "excitation.json"])
+def test_an_output_that_holds_an_earlier_result_is_refused(capsys, tmp_path, left):
+    """A bring-up that failed before its recorder made bag/ left a result file: a second run there
+    would take it for its own (a runner already started, marked valid with the new run's facts)."""
+    from soft_arm_experiments.experiment import main
+    (tmp_path / "run").mkdir()
+    (tmp_path / "run" / left).write_text('{"valid": false}')
+    _refused(capsys, lambda: main(["coiling", "--output", str(tmp_path / "run"), "--quiet"]),
+             f"already holds a run ({left})")
+
+
+@pytest.mark.parametrize("complete, interrupted, status, valid", [
+    (False, True, 130, False), (False, False, 1, False), (True, True, None, None), (None, False, None, None)])
+def test_a_result_written_by_a_runner_stopped_early_is_no_result(tmp_path, complete, interrupted,
+                                                                 status, valid):
+    """A runner stopped before the end (a Ctrl-C: the composed run's task runner writes the windows
+    it played) says so (``complete`` false): the run is marked invalid, and its exit status says
+    interrupted (130) or failed (1); a complete one (or one that does not say) is left to be marked
+    valid."""
+    import json
+
+    from soft_arm_experiments.experiment import _no_result
+    path = tmp_path / "metrics.json"
+    path.write_text(json.dumps({"task": "triangle", **({} if complete is None else {"complete": complete})}))
+    out = {"metrics": str(path), "bag": str(tmp_path / "bag")}
+    assert _no_result(out, {"wall_s": 1.0}, None, interrupted, "no metrics written") == status
+    data = json.loads(path.read_text())
+    assert data.get("valid") is valid
+    if valid is False:
+        assert data["failure"] == ("interrupted" if interrupted else "stopped") + \
+            " before the run played to its end"
+
+
 def test_no_markers_and_targets_beyond_reach_are_refused_before_anything_moves(capsys, tmp_path):
     from soft_arm_experiments.experiment import main
     from soft_arm_model.cli import main as model
@@ -145,3 +178,15 @@ def test_the_campaign_command_refuses_a_folder_without_bags(capsys, tmp_path):
                                    str(tmp_path / "c")]), "no bag folder")
     _refused(capsys, lambda: main(["identification", "--bags", str(tmp_path / "missing"), "--output",
                                    str(tmp_path / "c")]), "not a directory")
+
+
+def test_a_node_that_failed_on_its_way_out_makes_the_run_no_result():
+    """The nodes' exit statuses, kept as they were stopped: a driver whose zero-torque frames did not
+    leave exits 1, a node that did not stop within 10 s was killed; either is named, 0 is not."""
+    import signal
+
+    from soft_arm_experiments.orchestration import exit_failure
+    assert exit_failure({"recorder": 0, "inner_loop": 0}) is None
+    assert exit_failure({}) is None
+    assert exit_failure({"recorder": 0, "emulated_rig": 1, "clik": -signal.SIGKILL}) == (
+        "node emulated_rig exited with status 1; node clik was killed (it did not stop within 10 s)")

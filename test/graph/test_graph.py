@@ -162,6 +162,8 @@ def test_processes_mode_runs_each_node_as_its_own_process(tmp_path, monkeypatch)
     # The simulator keeps to real time (graph.simulator.max_real_time_factor), so that a CLIK step
     # slowed by a loaded computer costs the simulated time it would cost on the rig
     assert metrics["transitions"][0]["final_error"] < 3e-3
+    # every node stopped cleanly on the SIGINT (an exit status other than 0 is no result)
+    assert metrics["valid"] and set(metrics["run"]["node_exits"].values()) == {0}, metrics["run"]
     assert sorted(p.name for p in (out / "figures").iterdir()) == [
         "actuation.png", "task_error.png", "tensions.png"]
     logs = node_logs(tmp_path / "log")

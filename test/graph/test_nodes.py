@@ -492,6 +492,10 @@ def test_ctrl_c_stops_the_experiment_and_keeps_the_bag(tmp_path):
     assert proc.returncode == 130, output
     messages = _read(out / "bag")
     assert len(messages) > 100
+    if (out / "metrics.json").exists():           # the windows played so far: no result
+        metrics = json.loads((out / "metrics.json").read_text())
+        assert metrics["valid"] is False and metrics["complete"] is False, metrics
+        assert metrics["failure"] == "interrupted before the run played to its end"
 
 
 def test_inner_loop_node_keeps_commanding_through_a_clock_step_and_names_it():

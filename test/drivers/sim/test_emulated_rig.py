@@ -150,6 +150,7 @@ def test_closed_loop_through_the_emulated_hardware_reaches_the_target_like_the_s
             break
     assert status == 0, hil
     assert hil["run"]["emulated_hardware"] and hil["run"]["driver_faults"] == []
+    assert set(hil["run"]["node_exits"].values()) == {0}, hil["run"]["node_exits"]   # stopped cleanly
     assert not list(late.iterdir()), "".join(p.read_text() for p in late.iterdir())
     # the enable follows the run's own nodes' last change by the settle (the nodes' start-up is the
     # machine's: seconds more under load)

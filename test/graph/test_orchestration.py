@@ -1,0 +1,71 @@
+"""The orchestrator's bring-up judges the run's own nodes: what other processes on the same ROS
+domain publish wires nothing of the run."""
+import pytest
+
+
+class _OwnNodes:
+    """The children of a run as the bring-up sees them: their node names, none exited."""
+
+    def __init__(self, names):
+        self.names = set(names)
+
+    def node_names(self):
+        return self.names
+
+    def check(self, may_end=()):
+        pass
+
+
+def test_the_bring_up_does_not_take_another_processs_publishers_for_the_runs():
+    """A node of another run (a bag played, an old graph left running) publishes every topic the
+    bring-up waits for; the run's own recorder is up, its controller and plant are not: the wait
+    names the topics still missing and ends at its bound, where it took the other node's
+    publishers for the run's and let the run start on them."""
+    import rclpy
+    from geometry_msgs.msg import PoseArray
+    from sensor_msgs.msg import JointState
+
+    from soft_arm_experiments.orchestration import _wait_for_graph
+    from soft_arm_ros.contract import QOS, TOPICS
+    rclpy.init()
+    try:
+        other = rclpy.create_node("player")
+        for key, kind in (("command", JointState), ("reference", JointState), ("state", JointState),
+                          ("markers", PoseArray)):
+            other.create_publisher(kind, TOPICS[key], QOS[TOPICS[key]])
+        recorder = rclpy.create_node("recorder")                 # kept: a node collected is gone
+        orchestrator = rclpy.create_node("soft_arm_experiment")
+        with pytest.raises(RuntimeError, match=r"the graph is not up after 3 s: nothing on "
+                           r"\['/tendon/command', '/tendon/reference', '/tendon/state', '/mocap/markers'\]"):
+            _wait_for_graph(orchestrator, _OwnNodes({"recorder", "inner_loop", "clik", "simulator"}),
+                            timeout=3.0)
+        assert orchestrator.count_publishers("/" + TOPICS["command"]) == 1 and recorder.get_name()
+    finally:
+        rclpy.try_shutdown()
+
+
+def test_a_composed_run_closes_its_bag_even_when_its_runner_cannot_write_its_result():
+    """The composed run's shut-down: the task runner's result cannot be written (a full disk), and
+    the recorder after it still closes its bag, every node is destroyed, and the runner's error is
+    raised once all is closed (it left the bag without its summary)."""
+    from soft_arm_experiments.experiment import _shut_down
+    done = []
+
+    class Node:
+        def __init__(self, name, failing=False):
+            self.name, self.failing, self.done = name, failing, False
+
+        def finish(self):
+            if self.failing:
+                raise OSError(28, "No space left on device")
+            done.append(f"{self.name} finished")
+
+        def close(self):
+            done.append(f"{self.name} closed")
+
+        def destroy_node(self):
+            done.append(f"{self.name} destroyed")
+    with pytest.raises(OSError, match="No space left"):
+        _shut_down([Node("task_runner", failing=True), Node("recorder")], None)
+    assert done == ["task_runner closed", "recorder finished", "recorder closed", "task_runner destroyed",
+                    "recorder destroyed"]
