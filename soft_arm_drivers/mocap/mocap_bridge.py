@@ -96,6 +96,11 @@ class MarkerFrame:
         return self.received_at - self.stamp
 
 
+# s: a change of the local clock against the steady one between two frames larger than this is a step
+# of the local clock (NTP slews at most 0.5 ms per second; a step is 0.128 s or more)
+LOCAL_STEP = 0.01
+
+
 @dataclass(frozen=True)
 class SkippedFrame:
     """A frame that was not delivered: its number, the reason (``occluded``, ``missing`` or
@@ -134,7 +139,8 @@ class MocapBridge:
         self._wanted = {marker_id: k for k, marker_id in enumerate(config.ids)}
         self._server = (config.server_address, config.command_port)
         self._counts = dict.fromkeys(PACKET_OUTCOMES + ("restarts", "lost", "foreign", "partial",
-                                                        "socket_errors", "connect_requests"), 0)
+                                                        "socket_errors", "connect_requests",
+                                                        "local_clock_steps"), 0)
         self._unseen = np.zeros(len(self._wanted), dtype=int)
         self._filter = FrameFilter()
         self._outbox: deque = deque(maxlen=8)
@@ -145,6 +151,7 @@ class MocapBridge:
         self.clock_map: Optional[ClockMap] = None
         self.last_skipped: Optional[SkippedFrame] = None
         self._last_heard = self._last_connect = self._last_keepalive = self._asked_at = -math.inf
+        self._skew: Optional[float] = None    # the local clock less the steady one at the last frame [s]
         self._command = self._data = None
         warm_up()                       # compile the frame reader now, not at the first frame
         try:
@@ -270,27 +277,30 @@ class MocapBridge:
                 except OSError:
                     self._counts["socket_errors"] += 1
                     break
-                received_at = self._clock()
+                received_at, steady = self._clock(), self._timer()
                 if host != self.config.server_address:
                     self._counts["foreign"] += 1
                     continue
-                frame = self.handle_packet(data, received_at)
+                frame = self.handle_packet(data, received_at, steady)
                 if frame is not None:
                     frames.append(frame)
         if self._outbox:
             self._service(self._timer())
         return frames
 
-    def handle_packet(self, data: bytes, received_at: float) -> Optional[MarkerFrame]:
-        """Handle one datagram read at ``received_at`` [s, local clock]; the arm's markers if it was
-        a new, complete frame, else None. Never raises for any bytes; each datagram is counted in
+    def handle_packet(self, data: bytes, received_at: float,
+                      steady: Optional[float] = None) -> Optional[MarkerFrame]:
+        """Handle one datagram read at ``received_at`` [s, local clock] (and ``steady`` [s] on the
+        timeouts' clock, read with it; None: read now); the arm's markers if it was a new, complete
+        frame, else None. Never raises for any bytes; each datagram is counted in
         exactly one of :data:`PACKET_OUTCOMES`. Replies it needs (the version request) are queued
         and sent by :meth:`poll`. Only a datagram that parses counts as the server heard: a stream
         this bridge cannot read (a version switch whose answer was lost) goes stale and reconnects."""
-        heard = received_at if self._timer is self._clock else self._timer()
+        heard = received_at if self._timer is self._clock else (self._timer() if steady is None else steady)
         try:
             message_id, payload = parse_packet(data)
             if message_id == MessageId.NAT_FRAMEOFDATA:
+                self._follow_local_clock(received_at - heard)
                 frame = self._on_frame(data, received_at)
                 self._last_heard = heard
                 return frame
@@ -358,6 +368,19 @@ class MocapBridge:
         else:
             self.state, self.note = "streaming", (f"the server {why} NatNet {requested}; streaming "
                                                   f"{_name(self.version)}")
+
+    def _follow_local_clock(self, skew: float):
+        """``skew`` [s]: the local clock's reading less the timeouts' steady one at this read. A
+        change of more than :data:`LOCAL_STEP` since the last frame is a step of the local clock (an
+        NTP correction): the clock map starts again (counted, ``local_clock_steps``), for its window
+        would keep the offset from before the step, and stamp every frame late (or early) by the
+        step until it slid past. A single clock for both (the default) has no skew to follow."""
+        if self._timer is self._clock:
+            return
+        if self._skew is not None and abs(skew - self._skew) > LOCAL_STEP and self.clock_map is not None:
+            self.clock_map = ClockMap(self.clock_map.frequency, self.config.clock_window)
+            self._counts["local_clock_steps"] += 1
+        self._skew = skew
 
     def _on_frame(self, data: bytes, received_at: float) -> Optional[MarkerFrame]:
         if self.version is None:

@@ -616,6 +616,35 @@ def test_a_stall_longer_than_the_window_leaves_stamps_late_by_at_most_the_larges
     np.testing.assert_allclose(errors[after[3:]], 1e-4, atol=1e-9)
 
 
+@pytest.mark.parametrize("step", [0.3, -0.3, 0.0])
+def test_a_step_of_the_local_clock_restarts_the_clock_map_at_once(step):
+    """NTP steps the local clock (the stamps' clock) by 0.3 s, forward or back, under a 240 Hz
+    stream: the bridge sees the step against the steady clock and starts its clock map again, so
+    the frames after it are stamped at their exposure on the stepped clock (within 1 ms), where
+    the window kept the offset from before and stamped them 0.3 s late for the window's length (or
+    refused them as exposed after they came); the step is counted."""
+    wall, steady = [1000.0], [5.0]
+    with NatNetEmulator(static) as emulator:
+        with MocapBridge(config(emulator, ids=(1, 2), natnet_version=""), clock=lambda: wall[0],
+                         timer=lambda: steady[0]) as bridge:
+            bridge.handle_packet(SERVER_INFO, wall[0], steady[0])
+            f = 10_000_000                                     # SERVER_INFO's ticks per second
+            errors = []
+            for k in range(1, 480):                           # 2 s at 240 Hz, the step at 1 s
+                exposure = k / 240.0
+                offset = 1000.0 + (step if exposure >= 1.0 else 0.0)      # the local clock at tick 0
+                packet = build_frame_of_data(Version(4, 1), FrameOfData(
+                    frame_number=k, rigid_bodies=tuple(RigidBody(i, (0.0, 1.0, 0.0), (0.0, 0.0, 0.0, 1.0))
+                                                       for i in (1, 2)),
+                    camera_mid_exposure=round(exposure * f),
+                    transmit_timestamp=round((exposure + 0.004) * f)))
+                frame = bridge.handle_packet(packet, offset + exposure + 0.0041, 5.0 + exposure + 0.0041)
+                errors.append(math.inf if frame is None else frame.stamp - (offset + exposure))
+            errors = np.array(errors)
+            assert bridge.counters["local_clock_steps"] == (1 if step else 0)
+            assert np.all(np.abs(errors) < 1e-3), (np.abs(errors).max(), np.argmax(np.abs(errors)))
+
+
 def test_frames_queued_through_a_stall_are_refused_as_stale_by_the_bridge():
     """The bridge on a 240 Hz stream, not reading for 1.5 s: the frames queued meanwhile, read at
     once, are stamped at their exposure, and those older than the bridge takes (twice the largest
