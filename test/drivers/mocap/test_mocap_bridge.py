@@ -884,9 +884,9 @@ def test_a_burst_of_frames_is_handled_a_budget_at_a_time(monkeypatch):
             bridge.handle_packet(SERVER_INFO, time.time())
             handle = bridge.handle_packet
 
-            def slow(data, received_at):
+            def slow(data, received_at, steady=None):
                 time.sleep(0.001)
-                return handle(data, received_at)
+                return handle(data, received_at, steady)
             monkeypatch.setattr(bridge, "handle_packet", slow)
             for k in range(1, 101):
                 sender.sendto(build_frame_of_data(Version(4, 1), FrameOfData(
