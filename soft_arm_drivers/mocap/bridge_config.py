@@ -133,6 +133,9 @@ MOCAP_SCHEMA = {
     "mocap.poll_budget": ("float", lambda v: 1e-4 <= v <= 1,
                           "a time in [0.0001, 1] s: the longest one poll reads and handles datagrams "
                           "before it hands its frames on (the rest wait for the next)"),
+    "mocap.max_distance": ("float", lambda v: 0 < v <= 100,
+                           "a distance in (0, 100] m from arm_base beyond which a marker is no "
+                           "position (unseen, counted)"),
     "mocap.markers.source": ("str", lambda v: v in SOURCES, " or ".join(SOURCES)),
     "mocap.markers.ids": ("ints", lambda v: len(v) >= 1 and len(set(v)) == len(v)
                           and all(0 <= a <= 0x7FFFFFFF for a in v),
@@ -153,6 +156,7 @@ _FIELDS = {"server_address": "server_address", "command_port": "command_port",
            "multicast_group": "multicast_group", "multicast_interface": "multicast_interface",
            "natnet_version": "natnet_version", "keepalive_period": "keepalive_period",
            "timeout": "timeout", "clock_window": "clock_window", "poll_budget": "poll_budget",
+           "max_distance": "max_distance",
            "source": "markers.source",
            "ids": "markers.ids", "translation": "calibration.translation",
            "rotation": "calibration.rotation"}
@@ -180,6 +184,7 @@ class BridgeConfig:
     timeout: float = 2.0
     clock_window: float = 2.0
     poll_budget: float = 0.002
+    max_distance: float = 1.0
     source: str = "rigid_bodies"
     ids: tuple = (1, 2, 3, 4)
     translation: tuple = (0.0, 0.0, 0.0)

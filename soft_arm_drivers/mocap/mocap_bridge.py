@@ -140,7 +140,7 @@ class MocapBridge:
         self._server = (config.server_address, config.command_port)
         self._counts = dict.fromkeys(PACKET_OUTCOMES + ("restarts", "lost", "foreign", "partial",
                                                         "socket_errors", "connect_requests",
-                                                        "local_clock_steps"), 0)
+                                                        "local_clock_steps", "implausible"), 0)
         self._unseen = np.zeros(len(self._wanted), dtype=int)
         self._filter = FrameFilter()
         self._outbox: deque = deque(maxlen=8)
@@ -415,6 +415,15 @@ class MocapBridge:
         positions[unseen] = 0.0
         markers = self.config.calibration.to_arm(positions)
         unseen |= ~np.all(np.isfinite(markers), axis=1)          # finite, but beyond a double
+        # no position of the arm: a calibration gone wrong, or Motive streaming millimetres
+        far = ~unseen & ~(np.linalg.norm(np.where(unseen[:, None], 0.0, markers), axis=1)
+                          <= self.config.max_distance)
+        if far.any():
+            self._counts["implausible"] += int(far.sum())
+            unseen |= far
+            if unseen.all():
+                self.note = (f"every marker beyond {self.config.max_distance:g} m of arm_base: the "
+                             "calibration, or Motive's streaming units (metres wanted)?")
         if unseen.all():
             return self._skip(frame.frame_number, "invalid", ())
         markers[unseen] = np.nan

@@ -348,9 +348,11 @@ def test_bad_rotations_are_rejected(rotation, match):
 
 
 def test_calibration_is_applied_end_to_end():
-    """The emulator streams in its frame; a bridge without the calibration sees those coordinates."""
+    """The emulator streams in its frame; a bridge without the calibration sees those coordinates
+    (some 1.2 m from the mocap's origin: within the bridge's max_distance of 5 m here)."""
     calibration = Calibration(rotation_matrix(Y_UP), SHIFT)
-    with connected(bridge_kw={"rotation": (0, 0, 0, 1), "translation": (0, 0, 0)}) as (emulator, bridge):
+    with connected(bridge_kw={"rotation": (0, 0, 0, 1), "translation": (0, 0, 0),
+                              "max_distance": 5.0}) as (emulator, bridge):
         frames = step(emulator, bridge, 2)
     np.testing.assert_allclose(frames[-1].markers, calibration.to_mocap(TRUE), atol=1e-6)
     assert not np.allclose(calibration.to_mocap(TRUE), TRUE, atol=0.1)
@@ -645,6 +647,30 @@ def test_a_step_of_the_local_clock_restarts_the_clock_map_at_once(step):
             assert np.all(np.abs(errors) < 1e-3), (np.abs(errors).max(), np.argmax(np.abs(errors)))
 
 
+def test_a_marker_beyond_the_arms_reach_is_no_position():
+    """A marker 316 m from arm_base (Motive streaming millimetres: 0.1 m read as 100) is unseen,
+    not a position the CLIK would step towards; counted (implausible). A frame whose markers are
+    all that far is refused, and the bridge says why."""
+    f = 10_000_000
+
+    def packet(k, positions):
+        return build_frame_of_data(Version(4, 1), FrameOfData(
+            frame_number=k, rigid_bodies=tuple(RigidBody(i + 1, p, (0.0, 0.0, 0.0, 1.0))
+                                               for i, p in enumerate(positions)),
+            camera_mid_exposure=round(k / 240 * f), transmit_timestamp=round((k / 240 + 0.004) * f)))
+    with NatNetEmulator(static) as emulator:
+        with MocapBridge(config(emulator, ids=(1, 2), natnet_version="", rotation=(0, 0, 0, 1),
+                                translation=(0, 0, 0))) as bridge:
+            bridge.handle_packet(SERVER_INFO, 100.0)
+            frame = bridge.handle_packet(packet(1, [(0.01, 0.02, -0.3), (100.0, 0.0, -300.0)]),
+                                         100.0 + 1 / 240 + 0.0041)
+            np.testing.assert_allclose(frame.markers[0], (0.01, 0.02, -0.3))
+            assert np.all(np.isnan(frame.markers[1])) and bridge.counters["implausible"] == 1
+            assert bridge.handle_packet(packet(2, [(10.0, 20.0, -300.0), (20.0, 10.0, -380.0)]),
+                                        100.0 + 2 / 240 + 0.0041) is None
+            assert bridge.counters["implausible"] == 3 and "streaming units" in bridge.note
+
+
 def test_frames_queued_through_a_stall_are_refused_as_stale_by_the_bridge():
     """The bridge on a 240 Hz stream, not reading for 1.5 s: the frames queued meanwhile, read at
     once, are stamped at their exposure, and those older than the bridge takes (twice the largest
@@ -850,6 +876,8 @@ def test_the_package_config_loads():
     ("mocap.calibration.translation", [0.0, 0.0], "expected three coordinates [m] within 100 m"),
     ("mocap.timeout", 0.0, "rig.mocap.timeout = 0.0 is not valid: expected a time in (0, 60] s"),
     # shorter than a bridge stall the clock map tells from a jump: the queue would be stamped as new
+    ("mocap.max_distance", 0.0,
+     "rig.mocap.max_distance = 0.0 is not valid: expected a distance in (0, 100] m"),
     ("mocap.clock_window", 1.0,
      "rig.mocap.clock_window = 1.0 is not valid: expected a window in [2, 3600] s"),
     ("mocap.port", 1, "unknown key rig.mocap.port"),
