@@ -206,6 +206,20 @@ def _start(node, client, timeout: float = 10.0):
 _PROCESS_NODES = {"emulated_rig": ("motor_driver",)}
 
 
+# A node process's first lines: it is sent SIGINT when this process ends (PR_SET_PDEATHSIG, 1), as
+# the Ctrl-C its shutdown answers (the motor driver's: zero torque), so that a killed
+# soft-arm-experiment (SIGKILL, the OOM killer) leaves no node running the rig; one whose parent is
+# gone already ends at once; then the node's module runs as ``python -m`` would run it.
+# Its arguments: -m, the module, the parent's pid, the node's own.
+_END_WITH_PARENT = (
+    "import ctypes, os, runpy, signal, sys\n"
+    "ctypes.CDLL(None).prctl(1, int(signal.SIGINT))\n"
+    "if os.getppid() != int(sys.argv[3]):\n"
+    "    sys.exit(0)\n"
+    "sys.argv = [sys.argv[2]] + sys.argv[4:]\n"
+    "runpy.run_module(sys.argv[0], run_name='__main__', alter_sys=True)\n")
+
+
 class _Children:
     """The node processes of one run (the console scripts' modules with the run's arguments), on
     loopback; ``realtime``: the SCHED_FIFO priorities of the processes that have one (their CPUs
@@ -229,7 +243,8 @@ class _Children:
         else at the niceness: set before the interpreter has started a thread, so that every thread
         of the node inherits it."""
         proc = subprocess.Popen(
-            [sys.executable, "-m", node_module(name)] + self.ros_args + self.extra.get(name, []),
+            [sys.executable, "-c", _END_WITH_PARENT, "-m", node_module(name), str(os.getpid())]
+            + self.ros_args + self.extra.get(name, []),
             env=self.env, start_new_session=True)
         self.procs[name] = proc
         if name in self.realtime:

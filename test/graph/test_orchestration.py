@@ -69,3 +69,48 @@ def test_a_composed_run_closes_its_bag_even_when_its_runner_cannot_write_its_res
         _shut_down([Node("task_runner", failing=True), Node("recorder")], None)
     assert done == ["task_runner closed", "recorder finished", "recorder closed", "task_runner destroyed",
                     "recorder destroyed"]
+
+
+def test_a_node_ends_with_the_orchestrator_even_when_it_is_killed(tmp_path):
+    """soft-arm-experiment killed outright (SIGKILL, the OOM killer: no finally runs) leaves no node
+    running the rig: each node process gets the SIGINT its shutdown answers when its parent dies."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+    script = tmp_path / "orchestrator.py"
+    script.write_text(
+        "import time\n"
+        "from soft_arm_experiments.experiment import _ros_arguments\n"
+        "from soft_arm_experiments.orchestration import _Children\n"
+        "children = _Children(_ros_arguments('coiling', [], None), {})\n"
+        "children.start('task_runner')\n"
+        "print(children.procs['task_runner'].pid, flush=True)\n"
+        "time.sleep(120)\n")
+    orchestrator = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True,
+                                    env=dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST"))
+    node = None
+    try:
+        node = int(orchestrator.stdout.readline())
+        time.sleep(3.0)                                       # the node is up (or coming up)
+        assert _running(node)
+        orchestrator.kill()
+        orchestrator.wait()
+        deadline = time.monotonic() + 20.0
+        while _running(node) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert not _running(node), "the node outlived its orchestrator"
+    finally:
+        orchestrator.kill()
+        if node is not None and _running(node):
+            os.kill(node, signal.SIGKILL)                      # not left behind by a failure
+
+
+def _running(pid: int) -> bool:
+    """Whether the process ``pid`` runs (a zombie nobody reaped has ended)."""
+    try:
+        with open(f"/proc/{pid}/stat", encoding="utf-8") as fh:
+            return fh.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False

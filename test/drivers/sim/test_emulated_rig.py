@@ -115,7 +115,7 @@ def _freeze_marked():
 
 def _audit(event, args):
     if event == "import" and _frozen and threading.current_thread() is not threading.main_thread():
-        name = " ".join(sys.orig_argv[1:3])
+        name = next((a for a in sys.orig_argv if a.startswith("soft_arm_")), " ".join(sys.orig_argv[1:3]))
         with open(os.path.join(os.environ["SOFT_ARM_LATE_IMPORTS"], str(os.getpid())), "a") as fh:
             fh.write(f"{name} [{threading.current_thread().name}]: {args[0]}\\n")
 
@@ -281,7 +281,7 @@ def assert_bag_holds_the_run(state: list, driven: float):
 
 
 def _child(parent: int, name: str) -> int:
-    """The pid of ``parent``'s child process that runs the node ``name`` (``python -m`` its module;
+    """The pid of ``parent``'s child process that runs the node ``name`` (its module after ``-m``;
     another child's arguments may name it, as the emulated rig's name the inner loop's commands)."""
     module = node_module(name)
     for entry in os.listdir("/proc"):
@@ -292,7 +292,7 @@ def _child(parent: int, name: str) -> int:
                 argv = fh.read().split("\0")
         except (OSError, ValueError, IndexError):
             continue
-        if ppid == parent and argv[1:3] == ["-m", module]:
+        if ppid == parent and argv[3:5] == ["-m", module]:           # the orchestrator's start
             return int(entry)
     raise LookupError(f"no child of {parent} named {name}")
 
