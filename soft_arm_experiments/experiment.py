@@ -305,8 +305,8 @@ def main(argv=None) -> int:
     out = {"bag": os.path.join(run_dir, "bag"), "metrics": os.path.join(run_dir, result),
            "figures": os.path.join(run_dir, "figures")}
     STOP.clear()
-    # a closed terminal (an ssh session dropped) stops the run as a Ctrl-C does: the motors off, the
-    # bag closed, where its default would end this process and leave the nodes running
+    # a hang-up (the terminal closed, the ssh connection lost) stops the run as a Ctrl-C does: the
+    # motors off, the bag closed; by default it would end this process and leave the nodes running
     previous = {sig: signal.signal(sig, request_stop)
                 for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
     try:

@@ -1,6 +1,7 @@
 """CAN motor driver core against the motor emulator on an in-process python-can ``virtual`` bus, in
 lockstep with explicit time: conversions, zeroing, reply matching, every safety case, determinism;
 the emulator's protocol behaviour; the ``rig.motors`` configuration."""
+import contextlib
 import math
 import os
 import subprocess
@@ -163,6 +164,30 @@ def test_frames_that_do_not_leave_on_a_stop_are_returned_though_the_fault_names_
         bus.shutdown()
 
 
+@contextlib.contextmanager
+def _driver_and_motors(clock=lambda: 0.0):
+    """A driver for motors 1-4 on a virtual channel (the driver's ``clock``), and a second bus on
+    the channel to send their replies from; ``reply(motor_id, angle, stamp)``: one motor's reply
+    at ``angle`` [rad] received at ``stamp`` [s]. The driver and both buses are closed after."""
+    cfg = config(ids=[1, 2, 3, 4])
+    motors = can.Bus(interface="virtual", channel=cfg.channel, preserve_timestamps=True)
+    bus = can.Bus(interface="virtual", channel=cfg.channel)
+    driver = None
+    lim = MOTOR_PRESETS["AK80-9"]
+
+    def reply(motor_id, angle=0.1, stamp=1.0):
+        motors.send(can.Message(arbitration_id=0, is_extended_id=False, timestamp=stamp,
+                                data=encode_reply(lim, motor_id, angle, 0.0, 0.0, 40, 0)))
+    try:
+        driver = MotorDriver(cfg, bus, clock=clock)
+        yield cfg, driver, reply
+    finally:
+        if driver is not None:
+            driver.close()
+        bus.shutdown()
+        motors.shutdown()
+
+
 @pytest.mark.parametrize("angles, fault", [
     ((0.2, 12.5), "at the end of its field"),            # saturated: a tendon run off its spool
     ((-0.3, -12.5), "at the end of its field"),
@@ -173,26 +198,15 @@ def test_an_angle_at_the_end_of_the_reply_field_or_wrapped_is_no_measurement(ang
     pulley) saturates, or wraps in firmware that does not clamp: the shortening would read a tendon
     held still while the motor spins free. Either latches a fault naming the motor; angles within
     the field, however far apart, do not."""
-    cfg = config(ids=[1, 2, 3, 4])
-    other = can.Bus(interface="virtual", channel=cfg.channel, preserve_timestamps=True)
-    bus = can.Bus(interface="virtual", channel=cfg.channel)
-    try:
-        driver = MotorDriver(cfg, bus, clock=lambda: 0.0)
-        lim = MOTOR_PRESETS["AK80-9"]
+    with _driver_and_motors() as (_, driver, reply):
         for angle in angles:
             for motor_id in (1, 2, 3, 4):
-                other.send(can.Message(arbitration_id=0, is_extended_id=False, timestamp=1.0,
-                                       data=encode_reply(lim, motor_id, angle if motor_id == 2 else 0.1,
-                                                         0.0, 0.0, 40, 0)))
+                reply(motor_id, angle if motor_id == 2 else 0.1)
             diag = driver.cycle().diagnostics
         if fault is None:
             assert diag.fault is None
         else:
             assert diag.fault.startswith("motor 2: angle") and fault in diag.fault, diag.fault
-        driver.close()
-    finally:
-        bus.shutdown()
-        other.shutdown()
 
 
 @pytest.mark.parametrize("stamp", [math.nan, math.inf])
@@ -200,17 +214,10 @@ def test_a_reply_whose_receive_time_is_no_number_is_refused_and_counted(stamp):
     """The state's stamp is its replies' receive time: a reply without one is not taken (its motor
     goes on without a reply, the state is incomplete, and its silence names the refusals), where it
     ended the node's cycle on the stamp's conversion."""
-    cfg = config(ids=[1, 2, 3, 4])
-    other = can.Bus(interface="virtual", channel=cfg.channel, preserve_timestamps=True)
-    bus = can.Bus(interface="virtual", channel=cfg.channel)
     now = [0.0]
-    try:
-        driver = MotorDriver(cfg, bus, clock=lambda: now[0])
-        lim = MOTOR_PRESETS["AK80-9"]
+    with _driver_and_motors(lambda: now[0]) as (cfg, driver, reply):
         for motor_id in (1, 2, 3, 4):
-            other.send(can.Message(arbitration_id=0, is_extended_id=False,
-                                   timestamp=stamp if motor_id == 3 else 1.0,
-                                   data=encode_reply(lim, motor_id, 0.1, 0.0, 0.0, 40, 0)))
+            reply(motor_id, stamp=stamp if motor_id == 3 else 1.0)
         result = driver.cycle()
         assert not result.state.fresh[2] and result.state.fresh[[0, 1, 3]].all()
         assert not result.state.complete and result.diagnostics.unstamped_frames == 1
@@ -218,10 +225,6 @@ def test_a_reply_whose_receive_time_is_no_number_is_refused_and_counted(stamp):
         now[0] = 2 * cfg.reply_timeout
         diag = driver.cycle().diagnostics
         assert diag.fault.startswith("motor 1 silent") and "1 replies refused" in diag.fault, diag.fault
-        driver.close()
-    finally:
-        bus.shutdown()
-        other.shutdown()
 
 
 # -- safety ------------------------------------------------------------------------------------------
