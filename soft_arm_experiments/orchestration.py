@@ -231,7 +231,9 @@ class _Children:
         self.niceness = niceness
         self.env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
         self.procs: dict = {}
-        self.exits: dict = {}        # name: exit status, once stop() has ended them (-9: killed)
+        # name: exit status, once stop() has ended them (-9: killed); a run's facts hold this dict
+        # itself, which stop() fills after the run returns them (in _orchestrating's way out)
+        self.exits: dict = {}
 
     def node_names(self) -> set:
         """The names of the nodes the started processes run (the emulated rig's: motor_driver)."""
