@@ -244,8 +244,9 @@ class TendonController:
         active = self._active_gains(gains)
         old, new = self.pid.gains.integral, active.integral
         both = (old > 0) & (new > 0)
-        self.pid.xi = np.where(both, self.pid.xi * np.where(both, old, 1.0) / np.where(both, new, 1.0),
-                               self.pid.xi)
+        scale = np.ones_like(old)
+        scale[both] = old[both] / new[both]
+        self.pid.xi = self.pid.xi * scale
         self.pid.gains, self.gains = active, gains
 
     def set_reference(self, s_ref, u_ff, s_ref_dot=None):

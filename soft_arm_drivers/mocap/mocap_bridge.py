@@ -416,8 +416,8 @@ class MocapBridge:
         markers = self.config.calibration.to_arm(positions)
         unseen |= ~np.all(np.isfinite(markers), axis=1)          # finite, but beyond a double
         # no position of the arm: a calibration gone wrong, or Motive streaming millimetres
-        far = ~unseen & ~(np.linalg.norm(np.where(unseen[:, None], 0.0, markers), axis=1)
-                          <= self.config.max_distance)
+        distance = np.linalg.norm(np.where(unseen[:, None], 0.0, markers), axis=1)
+        far = ~unseen & (distance > self.config.max_distance)
         if far.any():
             self._counts["implausible"] += int(far.sum())
             unseen |= far
