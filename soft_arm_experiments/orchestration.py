@@ -373,7 +373,6 @@ def run_processes(ros_args: list, out: dict, task: str = "", feedback: str = "mo
     reach the controller seconds of simulated time after the window began). Waits for its result
     (RuntimeError if not within :data:`PROCESSES_SLOWDOWN` times the task's ``duration`` [s] and a
     minute), then stops the nodes with SIGINT."""
-    import rclpy
     from std_srvs.srv import Trigger
     controller, runner = roles(task, feedback)
     children = _Children(ros_args, {
@@ -396,14 +395,24 @@ def run_processes(ros_args: list, out: dict, task: str = "", feedback: str = "mo
         if not STOP.is_set():
             _start(node, begin)
         limit = PROCESSES_SLOWDOWN * duration + 60.0
-        deadline = time.monotonic() + limit
-        while not STOP.is_set() and not os.path.exists(out["metrics"]):
-            children.check()
-            if time.monotonic() > deadline:
-                raise RuntimeError(f"the {runner} node wrote no result within {limit:g} s "
-                                   f"({PROCESSES_SLOWDOWN:g} times the run's {duration:g} s and a minute)")
-            rclpy.spin_once(node, timeout_sec=0.2)
+        _await_result(node, children, out["metrics"], limit,
+                      f"the {runner} node wrote no result within {limit:g} s "
+                      f"({PROCESSES_SLOWDOWN:g} times the run's {duration:g} s and a minute)")
     return {"wall_s": time.monotonic() - start, "node_exits": children.exits}
+
+
+def _await_result(node, children, path: str, limit: float, late: str, until=lambda: False,
+                  period: float = 0.2):
+    """Spin ``node`` (``period`` [s] at a time), checking that ``children`` live, until the result
+    file ``path`` exists, :data:`STOP` is set or ``until()`` is true; RuntimeError(``late``) if none
+    of them within ``limit`` [s] on the monotonic clock."""
+    import rclpy
+    deadline = time.monotonic() + limit
+    while not STOP.is_set() and not until() and not os.path.exists(path):
+        children.check()
+        if time.monotonic() > deadline:
+            raise RuntimeError(late)
+        rclpy.spin_once(node, timeout_sec=period)
 
 
 def run_emulated_hardware(ros_args: list, out: dict, duration: float,
@@ -422,13 +431,13 @@ def run_emulated_hardware(ros_args: list, out: dict, duration: float,
     and the bridge activated; once the graph is wired and settled and the controller answers the
     motors' state, the motors are zeroed (tendons slack), the motor driver is activated and the task
     starts; when the task runner has written the metrics (RuntimeError if not within ``duration`` +
-    60 s) the motor driver is deactivated, then the nodes are stopped. No process joins or leaves
+    60 s) the motor driver is deactivated (refused or unanswered, without a fault recorded: a fault
+    of the run, :func:`_deactivate_at_end`), then the nodes are stopped. No process joins or leaves
     the graph while the motors are enabled: DDS discovery can hold a publisher, the driver's
     included, for a few hundred ms. A fault the driver latches while the motors are enabled
     (watchdog, motor error, e-stop) ends the run at once, the driver inactive: the faults are
     printed as they latch and listed in the run facts (``driver_faults``: message and ``time_s``
     after the enable), and a faulted run is no result (the caller marks its metrics invalid)."""
-    import rclpy
     from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
     from lifecycle_msgs.srv import ChangeState
     from std_srvs.srv import Trigger
@@ -520,20 +529,28 @@ def run_emulated_hardware(ros_args: list, out: dict, duration: float,
             settling["motors_enabled_s"] = round(time.monotonic() - drivers_up, 3)
             driving = True
             _start(node, begin)
-            deadline = time.monotonic() + duration + 60.0
-            while not STOP.is_set() and not faults and not os.path.exists(out["metrics"]):
-                children.check()
-                if time.monotonic() > deadline:
-                    raise RuntimeError(f"the {runner} node wrote no result within {duration + 60.0:g} s")
-                rclpy.spin_once(node, timeout_sec=0.1)
+            _await_result(node, children, out["metrics"], duration + 60.0,
+                          f"the {runner} node wrote no result within {duration + 60.0:g} s",
+                          until=lambda: bool(faults), period=0.1)
         finally:
             driving = False
-            try:
-                _change_state(node, driver, "deactivate", timeout=2.0)
-            except RuntimeError as exc:
-                # a fault deactivated the driver already (zero torque, motors out of motor mode)
-                print(f"soft-arm-experiment: motor_driver deactivate: {exc}", file=sys.stderr)
+            _deactivate_at_end(node, driver, faults, enabled_at)
     return facts()
+
+
+def _deactivate_at_end(node, driver, faults: list, enabled_at: float):
+    """Deactivate the motor driver (through its change_state ``driver`` client) at a run's end.
+    Refused after a fault the run recorded, it is expected: the fault deactivated the driver. Refused
+    or unanswered otherwise, the motors' end is unknown to the run (a fault it has not yet heard of,
+    a driver that hangs): once the motors were enabled (``enabled_at`` [s, system time] finite) that is
+    recorded in ``faults`` (a faulted run is no result)."""
+    try:
+        _change_state(node, driver, "deactivate", timeout=2.0)
+    except RuntimeError as exc:
+        print(f"soft-arm-experiment: motor_driver deactivate: {exc}", file=sys.stderr)
+        if not faults and math.isfinite(enabled_at):
+            faults.append({"message": f"not deactivated at the run's end: {exc}",
+                           "time_s": round(time.time() - enabled_at, 3)})
 
 
 # Real time on a shared computer: the processes the loop closes through (the motor driver, in

@@ -39,7 +39,8 @@ A managed (lifecycle) node (:mod:`soft_arm_ros.lifecycle`), driven with ``ros2 l
 
 Services: ``~/estop`` (std_srvs/Trigger: zero torque and out of motor mode, latched, in any state;
 forces an active node inactive; answers failure, naming the motors, when the bus refused its
-frames) and ``~/zero`` (std_srvs/Trigger: the current angles become the
+frames: then, as when a deactivation's or the closing's frames are refused, the process ends with
+status 1 whatever a later stop sends) and ``~/zero`` (std_srvs/Trigger: the current angles become the
 zero; only when inactive, with the tendons slack).
 
 Parameters: ``rig.motors.*`` of the package's ``config/rig.yaml`` overlaid with the node's own
@@ -96,7 +97,7 @@ class MotorDriverNode(ManagedHardwareNode):
         self.check_config(c)
         self.driver: MotorDriver | None = None
         self._cycle: PeriodicThread | None = None
-        self.failure: BaseException | None = None     # what ended the cycle thread, if anything did
+        self.failure: BaseException | None = None     # the cycle's end, or stop frames refused
         self.done = False                             # run_node ends the spin when set
         self.incomplete_cycles = self.malformed_commands = 0
         self.latency = CommandLatency()
@@ -194,11 +195,13 @@ class MotorDriverNode(ManagedHardwareNode):
                     unsent = driver.close()
                     if unsent:
                         self._unsent("closing the bus", unsent)
-                        self.failure = self.failure or RuntimeError(f"zero torque not sent: {unsent}")
 
     def _unsent(self, what: str, unsent: list):
         """Say that the zero-torque or exit-motor-mode frames of ``what`` did not all leave: the
-        motors those frames were for hold their last torque until their own CAN timeout."""
+        motors those frames were for hold their last torque until their own CAN timeout. The node
+        has failed its one safety duty whatever a later stop sends: its process ends with status 1
+        (:attr:`failure`), so that a run it served is no result."""
+        self.failure = self.failure or RuntimeError(f"{what}: zero torque not sent: {unsent}")
         self.get_logger().fatal(f"{what}: frames did not leave the bus ({'; '.join(unsent)}): those "
                                 "motors may hold their last torque until their own CAN timeout; cut "
                                 "their power if they do")

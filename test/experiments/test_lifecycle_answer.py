@@ -89,3 +89,41 @@ def test_the_runners_answer_a_second_start_with_what_the_orchestration_looks_for
         first = node_class.on_start(runner, None, SimpleNamespace(success=None, message=None))
         second = node_class.on_start(runner, None, SimpleNamespace(success=None, message=None))
         assert first.success and not second.success and second.message == ALREADY_STARTED
+
+
+def _deactivation(answer):
+    """A ``_call`` whose change_state answers ``answer``: None lost (and get_state says active), else
+    (success, message)."""
+    def call(node, client, request, timeout=10.0, checked=True):
+        if client.srv_name.endswith("get_state"):
+            return SimpleNamespace(current_state=SimpleNamespace(label="active"))
+        if answer is None:
+            raise orchestration._NoAnswer(f"service {client.srv_name} did not answer within {timeout:g} s")
+        if not answer[0]:
+            raise RuntimeError(f"{client.srv_name} refused: {answer[1]}")
+        return SimpleNamespace(success=True)
+    return call
+
+
+@pytest.mark.parametrize("answer", [None, (False, "transition not available")])
+def test_a_deactivation_refused_or_unanswered_at_the_runs_end_is_a_fault_of_the_run(monkeypatch, answer):
+    """Once the motors were enabled, a driver that does not deactivate at the end (a fault the run has
+    not heard of, a driver that hangs) leaves the motors' end unknown: a fault of the run, naming the
+    transition; after a fault the run recorded (which deactivated the driver) the refusal is expected;
+    before the enable, or answered, nothing is recorded."""
+    monkeypatch.setattr(orchestration, "_call", _deactivation(answer))
+    faults = []
+    orchestration._deactivate_at_end(_Node(), _client(), faults, enabled_at=1.0)
+    assert len(faults) == 1 and faults[0]["message"].startswith(
+        "not deactivated at the run's end: deactivate of motor_driver failed"), faults
+    assert faults[0]["time_s"] > 0
+    recorded = [{"message": "stale command", "time_s": 2.0}]
+    orchestration._deactivate_at_end(_Node(), _client(), recorded, enabled_at=1.0)
+    assert recorded == [{"message": "stale command", "time_s": 2.0}]
+    before_enable = []
+    orchestration._deactivate_at_end(_Node(), _client(), before_enable, enabled_at=float("inf"))
+    assert before_enable == []
+    monkeypatch.setattr(orchestration, "_call", _deactivation((True, "")))
+    answered = []
+    orchestration._deactivate_at_end(_Node(), _client(), answered, enabled_at=1.0)
+    assert answered == []

@@ -44,6 +44,48 @@ def test_the_bring_up_does_not_take_another_processs_publishers_for_the_runs():
         rclpy.try_shutdown()
 
 
+class _Checked(_OwnNodes):
+    """Children that count the checks of their lives."""
+
+    def __init__(self):
+        super().__init__(())
+        self.checks = 0
+
+    def check(self, may_end=()):
+        self.checks += 1
+
+
+def test_the_wait_for_a_result_ends_at_its_bound_naming_what_is_late(tmp_path):
+    """A run whose result never comes (a stalled graph) is stopped at its bound with the reason the
+    caller gives, its children checked as it waits; a result, a stop asked by the caller or Ctrl-C
+    end the wait at once."""
+    import time
+
+    import rclpy
+
+    from soft_arm_experiments import orchestration
+    rclpy.init()
+    try:
+        node = rclpy.create_node("soft_arm_experiment")
+        children, result = _Checked(), tmp_path / "metrics.json"
+        start = time.monotonic()
+        with pytest.raises(RuntimeError, match="the task_runner node wrote no result within 0.3 s"):
+            orchestration._await_result(node, children, str(result), 0.3,
+                                        "the task_runner node wrote no result within 0.3 s", period=0.05)
+        assert 0.3 <= time.monotonic() - start < 2.0 and children.checks >= 3
+        orchestration._await_result(node, children, str(result), 0.3, "late", until=lambda: True)
+        result.write_text("{}")
+        orchestration._await_result(node, children, str(result), 0.0, "late")
+        result.unlink()
+        orchestration.STOP.set()
+        try:
+            orchestration._await_result(node, children, str(result), 0.0, "late")
+        finally:
+            orchestration.STOP.clear()
+    finally:
+        rclpy.try_shutdown()
+
+
 def test_a_composed_run_closes_its_bag_even_when_its_runner_cannot_write_its_result():
     """The composed run's shut-down: the task runner's result cannot be written (a full disk), and
     the recorder after it still closes its bag, every node is destroyed, and the runner's error is

@@ -191,7 +191,7 @@ def test_the_cycle_runs_apart_from_the_executor(rig):
 def test_an_estop_whose_frames_do_not_leave_answers_failure_and_the_node_exits_failed(rig):
     """The bus goes down while the motors are enabled: the cycle's sends fail (a fault), and the
     e-stop service says that its frames did not leave (success false, the motors named) where it
-    answered success; closing the bus then leaves the node failed (exit status 1)."""
+    answered success, and the node has failed from then on (exit status 1)."""
     _, node, _, _ = rig
     assert node.trigger_configure() == TransitionCallbackReturn.SUCCESS
     assert node.trigger_activate() == TransitionCallbackReturn.SUCCESS
@@ -203,8 +203,32 @@ def test_an_estop_whose_frames_do_not_leave_answers_failure_and_the_node_exits_f
     answer = node.on_estop(Trigger.Request(), Trigger.Response())
     assert not answer.success and "did not leave the bus" in answer.message
     assert "motor 1: Network is down" in answer.message
+    assert isinstance(node.failure, RuntimeError) and "e-stop: zero torque not sent" in str(node.failure)
     node.close()
-    assert isinstance(node.failure, RuntimeError) and "zero torque not sent" in str(node.failure)
+    assert "e-stop: zero torque not sent" in str(node.failure)              # the first failure kept
+
+
+def test_a_deactivation_whose_frames_do_not_leave_fails_the_node_though_the_close_succeeds(rig):
+    """The bus refuses the deactivation's frames, then comes back: the motors held their torque
+    meanwhile (until their own timeout), so the node has failed (exit status 1) though its closing
+    frames leave; a clean deactivation and close leave it unfailed."""
+    _, node, _, _ = rig
+    assert node.trigger_configure() == TransitionCallbackReturn.SUCCESS
+    assert node.trigger_activate() == TransitionCallbackReturn.SUCCESS
+    assert node.trigger_deactivate() == TransitionCallbackReturn.SUCCESS and node.failure is None
+    assert node.trigger_activate() == TransitionCallbackReturn.SUCCESS
+    with node.hardware_lock:
+        send = node.driver.bus.send
+
+        def down(*args, **kwargs):
+            raise can.CanError("Network is down")
+        node.driver.bus.send = down
+        node.trigger_deactivate()
+        node.driver.bus.send = send
+    assert isinstance(node.failure, RuntimeError), node.failure
+    assert "deactivate: zero torque not sent" in str(node.failure) and "motor 1" in str(node.failure)
+    node.close()
+    assert "deactivate: zero torque not sent" in str(node.failure)
 
 
 def test_node_drives_the_emulated_rig_through_its_lifecycle_topics_and_services(rig):
