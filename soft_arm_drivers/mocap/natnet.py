@@ -673,15 +673,21 @@ class FrameFilter:
     """Accepts each frame of one stream once and in order; counts what it drops.
 
     A frame is accepted when its number is above the newest accepted one. Equal numbers are
-    ``duplicates``; smaller ones are ``out_of_order`` (late UDP datagrams), except that a jump back
-    by more than ``restart_gap`` frames is taken as a restart of the stream (Motive restarted, a
-    recording looped) and accepted and counted in ``restarts``.
+    ``duplicates``; smaller ones are ``out_of_order`` (late UDP datagrams), except where the stream
+    has started again (Motive restarted, a recorded take looped), counted in ``restarts``: a jump
+    back by more than ``restart_gap`` frames, or ``restart_run`` frames in a row that count up below
+    the newest one. Late datagrams come alone or a few together; a take that loops after fewer
+    than ``restart_gap`` frames goes on counting up from its start, and would otherwise be refused
+    until the newest number came round again (each of its first ``restart_run - 1`` frames is
+    refused as late).
     """
 
-    def __init__(self, restart_gap: int = 1000):
+    def __init__(self, restart_gap: int = 1000, restart_run: int = 3):
         if restart_gap < 1:
             raise ValueError(f"restart_gap must be a positive number of frames, got {restart_gap}")
-        self.restart_gap = restart_gap
+        if restart_run < 2:
+            raise ValueError(f"restart_run must be at least 2 frames, got {restart_run}")
+        self.restart_gap, self.restart_run = restart_gap, restart_run
         self.reset()
 
     def reset(self):
@@ -691,6 +697,8 @@ class FrameFilter:
         self.duplicates = 0
         self.out_of_order = 0
         self.restarts = 0
+        self._run_last: Optional[int] = None   # the row of frames below the newest counting up:
+        self._run_length = 0                   # its latest frame number and its length
 
     def accept(self, frame_number: int) -> bool:
         """True if the frame is new and should be used; False if it is dropped (and counted)."""
@@ -698,10 +706,18 @@ class FrameFilter:
             if frame_number == self.newest:
                 self.duplicates += 1
                 return False
-            if self.newest - frame_number <= self.restart_gap:
+            if self.newest - frame_number <= self.restart_gap and not self._counts_up(frame_number):
                 self.out_of_order += 1
                 return False
             self.restarts += 1
+        self._run_last, self._run_length = None, 0
         self.newest = frame_number
         self.accepted += 1
         return True
+
+    def _counts_up(self, frame_number: int) -> bool:
+        """Whether ``frame_number`` (below the newest) is the ``restart_run``-th of a row of frames
+        below the newest, each one more than the one before."""
+        follows = self._run_last is not None and frame_number == self._run_last + 1
+        self._run_last, self._run_length = frame_number, self._run_length + 1 if follows else 1
+        return self._run_length >= self.restart_run

@@ -325,9 +325,14 @@ class EmulatorThread:
         self._thread.start()
         return self
 
-    def stop(self):
+    def stop(self, timeout: float = 5.0):
+        """Ask the thread to end and wait for it, at most ``timeout`` [s] (RuntimeError naming the
+        emulator's thread if it has not ended: a step of its plant that does not return); raise what
+        it ended on, if anything."""
         self._stop.set()
-        self._thread.join()
+        self._thread.join(timeout)
+        if self._thread.is_alive():
+            raise RuntimeError(f"the CAN motor emulator's thread did not end within {timeout:g} s")
         if self.error is not None:
             raise self.error
 

@@ -15,7 +15,7 @@ from soft_arm_drivers.can.driver_config import Motor, load_driver_config
 from soft_arm_drivers.can.mit_protocol import MOTOR_PRESETS, decode_command, encode_command, encode_reply
 from soft_arm_drivers.can.motor_driver import PERIOD_WINDOW, MotorDriver, tension_frame
 from soft_arm_drivers.can.order_statistics import percentile
-from soft_arm_drivers.sim.can_emulator import CanMotorEmulator, arm_plant
+from soft_arm_drivers.sim.can_emulator import CanMotorEmulator, EmulatorThread, arm_plant
 from soft_arm_model.parameters import ConfigError
 
 from can_rig import P_STEP, R, T_STEP, V_STEP, Rig, driver_config as config, pull
@@ -757,3 +757,24 @@ def test_probe_finds_the_answering_motors_without_a_silence_fault(make_rig):
     rig.now = t + period
     rig.driver.probe()
     assert rig.driver.fault is not None and "motor 4 reports error 2" in rig.driver.fault
+
+
+def test_an_emulator_thread_that_does_not_end_is_named_within_its_bound():
+    """An emulator whose serving does not return (a plant step that hangs): stopping its thread
+    waits at most the bound and names the emulator; one that ends raises what it ended on."""
+    import threading
+    import time
+    from types import SimpleNamespace
+    release = threading.Event()
+    stuck = EmulatorThread(SimpleNamespace(serve=lambda clock, stop: release.wait(10.0))).start()
+    start = time.monotonic()
+    with pytest.raises(RuntimeError, match="the CAN motor emulator's thread did not end within 0.2 s"):
+        stuck.stop(timeout=0.2)
+    assert time.monotonic() - start < 2.0
+    release.set()
+
+    def fails(clock, stop):
+        raise can.CanError("bus gone")
+    failed = EmulatorThread(SimpleNamespace(serve=fails)).start()
+    with pytest.raises(can.CanError, match="bus gone"):
+        failed.stop()

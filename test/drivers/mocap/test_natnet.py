@@ -418,9 +418,27 @@ def test_filter_accepts_a_stream_restart():
     assert frame_filter.accept(1)
 
 
+def test_filter_takes_a_take_looped_within_the_gap_as_a_restart_and_late_datagrams_as_late():
+    """A recorded take of 500 frames loops (Motive's playback): the stream counts up from its start
+    again, well within the gap; its third frame on is accepted as a restart (it was refused until
+    the numbers came round to the newest again). Late datagrams, alone or two in a row, are still
+    refused; so is a row below the newest that does not count up by one."""
+    frame_filter = FrameFilter()
+    take = list(range(1, 501))
+    accepted = [n for n in take + take[:10] if frame_filter.accept(n)]
+    assert accepted == take + take[2:10]
+    assert (frame_filter.restarts, frame_filter.out_of_order, frame_filter.newest) == (1, 2, 10)
+    late = FrameFilter()
+    accepted = [n for n in [100, 101, 99, 102, 98, 99, 103, 90, 92, 94, 104] if late.accept(n)]
+    assert accepted == [100, 101, 102, 103, 104]
+    assert (late.restarts, late.out_of_order) == (0, 6)
+
+
 def test_filter_rejects_bad_gap():
     with pytest.raises(ValueError, match="restart_gap"):
         FrameFilter(restart_gap=0)
+    with pytest.raises(ValueError, match="restart_run"):
+        FrameFilter(restart_run=1)
 
 
 # --- UDP loopback --------------------------------------------------------------------------------
