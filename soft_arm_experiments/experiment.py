@@ -360,8 +360,9 @@ def _run(args, setup, ros_args: list, out: dict) -> int:
         failed = "the motor driver faulted: " + "; ".join(
             f"{f['message']} ({f['time_s']:.2f} s after the enable)" for f in faults)
     if failed is None:
-        # filled as the nodes were stopped, after the run: a node that failed on its way out (a
-        # driver whose zero-torque frames did not leave, a recorder that could not close its bag)
+        # filled as the nodes were stopped, after the run: a node that failed during the run or on
+        # its way out (a driver whose zero-torque frames did not leave, a recorder that could not
+        # close its bag)
         failed = exit_failure(facts.get("node_exits") or {})
     if setup.task is None:
         return _identification_result(args, out, facts, failed, interrupted)

@@ -38,8 +38,8 @@ def run_node(factory, name: str, args=None, executor_factory=make_executor) -> i
     ``close()`` (if any) then runs, whatever ended the spin (a signal during start-up included), with
     signals ignored so that nothing cuts it short (a driver's zero torque), before the node, the
     executor and the context go; the previous signal handlers come back at the end. What the set-up
-    allocated is frozen out of the garbage collector (``gc.freeze``). A node that sets ``done``
-    with a ``failure`` (an exception a thread of its own ended on) gives exit status 1."""
+    allocated is frozen out of the garbage collector (``gc.freeze``). A node whose ``failure`` is set
+    when it ends (an exception a thread of its own ended on, a duty it failed) gives exit status 1."""
     stop = []
 
     def request_stop(signum, frame):

@@ -675,19 +675,21 @@ class FrameFilter:
     A frame is accepted when its number is above the newest accepted one. Equal numbers are
     ``duplicates``; smaller ones are ``out_of_order`` (late UDP datagrams), except where the stream
     has started again (Motive restarted, a recorded take looped), counted in ``restarts``: a jump
-    back by more than ``restart_gap`` frames, or ``restart_run`` frames in a row that count up below
-    the newest one. Late datagrams come alone or a few together; a take that loops after fewer
-    than ``restart_gap`` frames goes on counting up from its start, and would otherwise be refused
-    until the newest number came round again (each of its first ``restart_run - 1`` frames is
-    refused as late).
+    back by more than ``restart_gap`` frames, or ``restart_run`` frames in a row, each one more than
+    the one before, that are more than ``reorder_window`` frames below the newest one. Late
+    datagrams come alone or a few together, and close behind the newest; a take that loops after
+    fewer than ``restart_gap`` frames counts up again from its start, far below it (each of its first
+    ``restart_run - 1`` frames is refused as late).
     """
 
-    def __init__(self, restart_gap: int = 1000, restart_run: int = 3):
+    def __init__(self, restart_gap: int = 1000, restart_run: int = 3, reorder_window: int = 10):
         if restart_gap < 1:
             raise ValueError(f"restart_gap must be a positive number of frames, got {restart_gap}")
         if restart_run < 2:
             raise ValueError(f"restart_run must be at least 2 frames, got {restart_run}")
-        self.restart_gap, self.restart_run = restart_gap, restart_run
+        if not 0 <= reorder_window < restart_gap:
+            raise ValueError(f"reorder_window must be in [0, restart_gap), got {reorder_window}")
+        self.restart_gap, self.restart_run, self.reorder_window = restart_gap, restart_run, reorder_window
         self.reset()
 
     def reset(self):
@@ -706,7 +708,10 @@ class FrameFilter:
             if frame_number == self.newest:
                 self.duplicates += 1
                 return False
-            if self.newest - frame_number <= self.restart_gap and not self._counts_up(frame_number):
+            behind = self.newest - frame_number
+            restarted = behind > self.restart_gap or (
+                behind > self.reorder_window and self._extend_run(frame_number) >= self.restart_run)
+            if not restarted:
                 self.out_of_order += 1
                 return False
             self.restarts += 1
@@ -715,9 +720,9 @@ class FrameFilter:
         self.accepted += 1
         return True
 
-    def _counts_up(self, frame_number: int) -> bool:
-        """Whether ``frame_number`` (below the newest) is the ``restart_run``-th of a row of frames
-        below the newest, each one more than the one before."""
+    def _extend_run(self, frame_number: int) -> int:
+        """Take ``frame_number`` (far below the newest) into the row of such frames, each one more
+        than the one before, or start a row with it; the row's length."""
         follows = self._run_last is not None and frame_number == self._run_last + 1
         self._run_last, self._run_length = frame_number, self._run_length + 1 if follows else 1
-        return self._run_length >= self.restart_run
+        return self._run_length

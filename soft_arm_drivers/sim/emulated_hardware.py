@@ -12,6 +12,7 @@ parent), and the Motive server with it.
 """
 from __future__ import annotations
 
+import contextlib
 import gc
 import multiprocessing
 import sys
@@ -87,7 +88,9 @@ def start_hardware(spec: HardwareSpec, bus: can.BusABC, motive_process: bool = F
             motive = MotiveProcess(spec, history) if motive_process else \
                 start_motive(spec, plant.model, motors.history)
         except BaseException:
-            thread.stop()
+            # the set-up's error is the one raised; the thread's (failed, or not ending) comes second
+            with contextlib.suppress(Exception):
+                thread.stop()
             raise
     finally:
         if history is not None:

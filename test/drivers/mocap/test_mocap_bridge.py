@@ -219,6 +219,37 @@ def test_reconnects_when_the_server_goes_silent_and_follows_its_restart():
     np.testing.assert_allclose(frames[-1].markers, TRUE, atol=1e-6)
 
 
+def test_a_take_looped_within_the_restart_gap_is_followed_as_a_new_stream():
+    """Motive plays a recorded take of 500 frames in a loop: the frame numbers count up from 1
+    again, 499 below the newest (within the gap of late datagrams). The first two frames of the loop
+    are refused as late, the third on are delivered as a new stream (its clock map rebuilt), and
+    the jump back is not counted as frames lost."""
+    now = [0.0]
+
+    def packet(number, k):
+        """The frame ``number``, exposed at the k-th period of 240 Hz on the 10 MHz server clock,
+        sent 2 ms later."""
+        ticks = 1_000_000 + k * 10_000_000 // 240
+        return build_frame_of_data(Version(4, 1), FrameOfData(
+            frame_number=number, rigid_bodies=tuple(RigidBody(i, (0.0, 1.0, 0.0), (0.0, 0.0, 0.0, 1.0))
+                                                    for i in (1, 2, 3, 4)),
+            camera_mid_exposure=ticks, transmit_timestamp=ticks + 20_000))
+    with NatNetEmulator(static) as server:
+        with MocapBridge(config(server), clock=lambda: now[0]) as bridge:
+            bridge.connect()
+            bridge.handle_packet(SERVER_INFO, 0.0)
+            take = list(range(1, 501))
+            delivered = []
+            for k, number in enumerate(take + take[:10]):
+                now[0] = 0.1 + k / 240 + 0.003
+                frame = bridge.handle_packet(packet(number, k), now[0])
+                if frame is not None:
+                    delivered.append(frame.frame_number)
+            assert delivered == take + take[2:10]
+            counters = bridge.counters
+            assert (counters["restarts"], counters["out_of_order"], counters["lost"]) == (1, 2, 0), counters
+
+
 def test_a_stream_the_bridge_cannot_read_goes_stale_and_reconnects():
     """Only datagrams that parse are the server heard: a stream in another version than the one
     agreed (the answer to a version switch lost) is malformed frame after frame, and after

@@ -420,9 +420,10 @@ def test_filter_accepts_a_stream_restart():
 
 def test_filter_takes_a_take_looped_within_the_gap_as_a_restart_and_late_datagrams_as_late():
     """A recorded take of 500 frames loops (Motive's playback): the stream counts up from its start
-    again, well within the gap; its third frame on is accepted as a restart (it was refused until
-    the numbers came round to the newest again). Late datagrams, alone or two in a row, are still
-    refused; so is a row below the newest that does not count up by one."""
+    again, well within the gap; its third frame on is accepted as a restart. Late datagrams, alone
+    or two in a row, are refused; so are a row that does not count up by one, one datagram
+    overtaken by three (they are close behind the newest), and late frames that would count up only
+    across a frame accepted between them."""
     frame_filter = FrameFilter()
     take = list(range(1, 501))
     accepted = [n for n in take + take[:10] if frame_filter.accept(n)]
@@ -432,6 +433,10 @@ def test_filter_takes_a_take_looped_within_the_gap_as_a_restart_and_late_datagra
     accepted = [n for n in [100, 101, 99, 102, 98, 99, 103, 90, 92, 94, 104] if late.accept(n)]
     assert accepted == [100, 101, 102, 103, 104]
     assert (late.restarts, late.out_of_order) == (0, 6)
+    for frames, accepted in (([100, 104, 101, 102, 103, 105], [100, 104, 105]),
+                             ([100, 101, 102, 80, 103, 81, 82, 104], [100, 101, 102, 103, 104])):
+        late = FrameFilter()
+        assert [n for n in frames if late.accept(n)] == accepted and late.restarts == 0
 
 
 def test_filter_rejects_bad_gap():
@@ -439,6 +444,8 @@ def test_filter_rejects_bad_gap():
         FrameFilter(restart_gap=0)
     with pytest.raises(ValueError, match="restart_run"):
         FrameFilter(restart_run=1)
+    with pytest.raises(ValueError, match="reorder_window"):
+        FrameFilter(restart_gap=10, reorder_window=10)
 
 
 # --- UDP loopback --------------------------------------------------------------------------------
