@@ -22,10 +22,11 @@ shutdown go back. ros2_control's hardware components use the same states.
 from __future__ import annotations
 
 import functools
-import threading
 import traceback
 
 from rclpy.lifecycle import LifecycleNode, TransitionCallbackReturn
+
+from .hardware_lock import HardwareLock
 
 SUCCESS, FAILURE = TransitionCallbackReturn.SUCCESS, TransitionCallbackReturn.FAILURE
 
@@ -37,7 +38,7 @@ def transition(callback):
     and an exception in it is logged (then re-raised for rclpy, which enters error processing)."""
     @functools.wraps(callback)
     def logged(node, state):
-        with node.hardware_lock:
+        with node.hardware_lock.held_by(f"the {callback.__name__[3:]} transition"):
             try:
                 return callback(node, state)
             except Exception:
@@ -50,18 +51,19 @@ class ManagedHardwareNode(LifecycleNode):
     """A ``LifecycleNode`` whose change_state service refuses a transition the current state does
     not have (with a warning) instead of raising out of the executor.
 
-    :attr:`hardware_lock` (re-entrant) is held by every transition callback and by whatever
-    touches the hardware from a thread other than the executor's."""
+    :attr:`hardware_lock` (re-entrant, :class:`~.hardware_lock.HardwareLock`: it names its holder)
+    is held by every transition callback and by whatever touches the hardware from a thread other
+    than the executor's."""
 
     def __init__(self, node_name: str, **kwargs):
-        self.hardware_lock = threading.RLock()
+        self.hardware_lock = HardwareLock()
         super().__init__(node_name, **kwargs)
         service = self._service_change_state
         change_state = service.callback
 
         def guarded(request, response):
             """:func:`checked`, holding the hardware lock from start to end."""
-            with self.hardware_lock:
+            with self.hardware_lock.held_by("the change_state service"):
                 return checked(request, response)
 
         def checked(request, response):

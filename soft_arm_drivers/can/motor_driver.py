@@ -302,15 +302,16 @@ class MotorDriver:
         return fresh
 
     # -- the cycle -----------------------------------------------------------------------------
-    def cycle(self, publish_time: float = 0.0) -> Cycle:
+    def cycle(self, held: Sequence[tuple] = ()) -> Cycle:
         """One period, now on the driver's clock: read the replies, check the safety conditions,
         send a frame to every motor; the state and diagnostics. A clock that runs backwards is not
         monotonic: RuntimeError (the node's cycle thread ends on it, the motors at zero torque).
 
-        ``publish_time`` [s]: how long the caller's publishing after the previous cycle took (its
-        state, diagnostics, logs), so that a ``cycle held`` fault says when most of the hold was
-        spent there: the middleware can hold a publish, and with it every thread of the Python
-        process (docs/decisions/0005)."""
+        ``held``: (seconds, where) of what the caller knows held the cycle since the previous one
+        (its publishing of the state, diagnostics and logs; its wait for a lock that another thread
+        held), so that a ``cycle held`` fault names each that took half the hold or more: the
+        middleware can hold a publish, and with it every thread of the Python process
+        (docs/decisions/0005)."""
         if self._closed:
             raise RuntimeError("the driver is closed")
         now = float(self.clock())
@@ -326,7 +327,7 @@ class MotorDriver:
         fresh = self._read(now)
         # unwatched since the previous cycle or since enable(), whichever came later
         self._check(now, 0.0 if self._last_cycle is None else now - max(self._last_cycle, self._watch_from),
-                    publish_time)
+                    held)
         if self.mode == "enabled":
             # the motors take a frame's tension at once: the limit bounds one frame's step, so a late
             # cycle, or the first after enable(), moves by at most LATE periods' worth
@@ -433,18 +434,18 @@ class MotorDriver:
                        "between two replies: it wrapped at the end of its field")
         self._position[i] = position
 
-    def _check(self, now: float, gap: float, publish_time: float):
+    def _check(self, now: float, gap: float, held: Sequence[tuple]):
         """Reply timeouts (every mode), the command watchdog and the watchdog's own deadline
         (enabled): ``gap`` [s] since the previous cycle (or since enable(), if later) longer than
         ``watchdog_timeout`` means nothing watched the enabled motors that long (the cycle held:
         its process stopped, swapped out or stuck in the middleware, or the hardware lock held),
         whatever the command's age reads now; the motors' firmware timeout may have zeroed them
-        meanwhile. The fault names the previous cycle's publishing when it took half the gap or
-        more (``publish_time`` [s])."""
+        meanwhile. The fault names each of ``held`` (seconds, where) that took half the gap or
+        more."""
         c = self.config
         if self.mode == "enabled" and gap > c.watchdog_timeout:
-            where = (f"; {publish_time:.4f} s of it in the node's publishing after the previous cycle"
-                     if publish_time >= 0.5 * gap else "")
+            where = "".join(f"; {seconds:.4f} s of it {place}" for seconds, place in held
+                            if seconds >= 0.5 * gap)
             self._trip(f"cycle held: {gap:.4f} s since the previous cycle, the motors unwatched "
                        f"(watchdog_timeout {c.watchdog_timeout:g} s){where}")
         silence = now - np.maximum(self._reply_time, self._watch_from)

@@ -39,9 +39,9 @@ A managed (lifecycle) node (:mod:`soft_arm_ros.lifecycle`), driven with ``ros2 l
 
 Services: ``~/estop`` (std_srvs/Trigger: zero torque and out of motor mode, latched, in any state;
 forces an active node inactive; answers failure, naming the motors, when the bus refused its
-frames: then, as when a deactivation's or the closing's frames are refused, the process ends with
-status 1 whatever a later stop sends) and ``~/zero`` (std_srvs/Trigger: the current angles become the
-zero; only when inactive, with the tendons slack).
+frames: then, as when a deactivation's or the closing's frames are refused, the node goes on and
+its process exits with status 1 when it is stopped, whatever a later stop sends) and ``~/zero``
+(std_srvs/Trigger: the current angles become the zero; only when inactive, with the tendons slack).
 
 Parameters: ``rig.motors.*`` of the package's ``config/rig.yaml`` overlaid with the node's own
 (``--params-file``, ``-p rig.motors.key:=value``), ``arm.*`` for the tendon names, each declared
@@ -104,6 +104,9 @@ class MotorDriverNode(ManagedHardwareNode):
         self.activated_at = self.first_command_after = None    # monotonic [s]; activate -> command [s]
         self._status, self._last_diagnostics = None, -float("inf")
         self._publish_time = 0.0        # [s] the previous tick's publishing, for the driver's watchdog
+        self._lock_holder = ""          # what held the hardware lock while the cycle waited for it
+        self._wait_said = False         # the cycle's present wait for the lock logged
+        self.lock_waits = 0             # waits of the cycle for the lock past watchdog_timeout
         self.state_pub = self.create_publisher(JointState, TOPICS["state"], QOS["tendon/state"])
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.command_sub = self.create_subscription(JointState, TOPICS["command"], self.on_command,
@@ -139,6 +142,7 @@ class MotorDriverNode(ManagedHardwareNode):
             return self.refuse("configure", driver.fault)
         self.driver = driver
         self._cycle = PeriodicThread(1.0 / c.rate, self.tick, lock=self.hardware_lock,
+                                     on_wait=self._waiting_for_lock,
                                      on_error=self._cycle_failed, name="motor_driver cycle").start()
         self.get_logger().info(f"motor driver configured: {len(c.motors)} motors answer on "
                                f"{c.interface} {c.channel}, out of motor mode (activate to drive them)")
@@ -184,7 +188,7 @@ class MotorDriverNode(ManagedHardwareNode):
 
     def release(self):
         """Stop cycling; zero torque and exit motor mode on every motor; close the bus."""
-        with self.hardware_lock:            # the cycle thread is between two cycles from here on
+        with self.hardware_lock.held_by("the node's release"):   # the cycle thread is between two cycles
             cycle, self._cycle = self._cycle, None
             driver, self.driver = self.driver, None
             try:
@@ -199,8 +203,8 @@ class MotorDriverNode(ManagedHardwareNode):
     def _unsent(self, what: str, unsent: list):
         """Say that the zero-torque or exit-motor-mode frames of ``what`` did not all leave: the
         motors those frames were for hold their last torque until their own CAN timeout. The node
-        has failed its one safety duty whatever a later stop sends: its process ends with status 1
-        (:attr:`failure`), so that a run it served is no result."""
+        has failed its one safety duty whatever a later stop sends: its process exits with status 1
+        when it is stopped (:attr:`failure`), so that a run it served is no result."""
         self.failure = self.failure or RuntimeError(f"{what}: zero torque not sent: {unsent}")
         self.get_logger().fatal(f"{what}: frames did not leave the bus ({'; '.join(unsent)}): those "
                                 "motors may hold their last torque until their own CAN timeout; cut "
@@ -211,7 +215,7 @@ class MotorDriverNode(ManagedHardwareNode):
         self.failure, self.done = exc, True
         self.get_logger().fatal("the driver's cycle failed, motors at zero torque, the node ends: "
                                 + "".join(traceback.format_exception(exc)))
-        with self.hardware_lock:
+        with self.hardware_lock.held_by("the e-stop after the cycle failed"):
             if self.driver is not None:
                 unsent = self.driver.estop()
                 if unsent:
@@ -219,7 +223,7 @@ class MotorDriverNode(ManagedHardwareNode):
 
     def on_command(self, msg: JointState):
         received = time.monotonic()
-        with self.hardware_lock:
+        with self.hardware_lock.held_by("a command's callback"):
             self._on_command(msg, received)
 
     def _on_command(self, msg: JointState, received: float):
@@ -257,7 +261,11 @@ class MotorDriverNode(ManagedHardwareNode):
         """One driver cycle, from the cycle thread at ``now`` [s, monotonic], holding the hardware
         lock; the driver reads its own clock (the same monotonic clock). What follows the cycle
         (publishing, logging, a deactivation) is timed for the next cycle's watchdog to name."""
-        state, diagnostics = self.driver.cycle(self._publish_time)
+        wait, holder = self._cycle.lock_wait, self._lock_holder
+        self._lock_holder, self._wait_said = "", False
+        state, diagnostics = self.driver.cycle((
+            (self._publish_time, "in the node's publishing after the previous cycle"),
+            (wait, f"waiting for the hardware lock, held by {holder or 'a holder not seen'}")))
         published = time.monotonic()
         if state.complete:
             self.state_pub.publish(joint_state(self.names, state.stamp, position=state.shortening,
@@ -269,6 +277,22 @@ class MotorDriverNode(ManagedHardwareNode):
         if diagnostics.fault is not None and self.lifecycle_state == "active":
             self.trigger_deactivate()          # zero torque already; the node says it drives nothing
         self._publish_time = time.monotonic() - published
+
+    def _waiting_for_lock(self, waited: float):
+        """From the cycle thread, after each period it waited in vain for the hardware lock
+        (``waited`` [s] so far): the holder is kept for the watchdog's fault, and a wait past
+        ``watchdog_timeout`` is logged at once (the motors are unwatched until the lock is free,
+        their firmware's CAN timeout the guard meanwhile), not only when the cycle runs again."""
+        holder = self.hardware_lock.holder()
+        if holder is not None:
+            self._lock_holder = holder[0]
+        if waited >= self.config.watchdog_timeout and not self._wait_said:
+            self._wait_said = True
+            self.lock_waits += 1
+            self.get_logger().error(
+                f"the driver's cycle has waited {waited:.3f} s for the hardware lock, held by "
+                f"{self._lock_holder or 'nothing it could name'}: the motors are unwatched until it "
+                "is free (their firmware's CAN timeout is the guard)")
 
     def _report(self, diagnostics: Diagnostics, force: bool = False):
         """Publish /diagnostics if forced, on a change of mode or fault, or every DIAGNOSTICS_PERIOD."""
@@ -292,6 +316,7 @@ class MotorDriverNode(ManagedHardwareNode):
                                 foreign_frames=diag.foreign_frames, error_frames=diag.error_frames,
                                 unstamped_frames=diag.unstamped_frames,
                                 late_cycles=diag.late_cycles, incomplete_cycles=self.incomplete_cycles,
+                                lock_waits=self.lock_waits,
                                 cycles=diag.cycles, zeroed=diag.zeroed, lifecycle_state=self.lifecycle_state,
                                 command_source=self.source.verdict.status,
                                 command_publishers=" ".join(self.source.verdict.publishers),
@@ -327,7 +352,7 @@ class MotorDriverNode(ManagedHardwareNode):
         return out
 
     def on_estop(self, request, response):
-        with self.hardware_lock:
+        with self.hardware_lock.held_by("the estop service"):
             return self._estop(response)
 
     def _estop(self, response):
@@ -353,7 +378,7 @@ class MotorDriverNode(ManagedHardwareNode):
         return response
 
     def on_zero(self, request, response):
-        with self.hardware_lock:
+        with self.hardware_lock.held_by("the zero service"):
             return self._zero(response)
 
     def _zero(self, response):

@@ -23,9 +23,12 @@ class PeriodicThread:
       call ends a period or more past the next deadline, the deadlines already past are skipped
       (no burst of calls to catch up) but the latest of them: one call follows at once.
     - ``lock`` (optional) is held during each call. The thread waits for it in slices of a period,
-      so that :meth:`stop` ends a thread blocked on a lock its caller holds.
-    - An exception from ``callback`` ends the thread; ``on_error(exc)`` is called with it from the
-      thread (the exception is kept in :attr:`error` either way).
+      so that :meth:`stop` ends a thread blocked on a lock its caller holds; ``on_wait(waited)``
+      (optional) is called after each slice it waited in vain, ``waited`` [s] since it began to
+      wait, so that a wait past a deadline is said while it lasts. :attr:`lock_wait` [s] is how long
+      the latest call waited for the lock.
+    - An exception from ``callback`` (or ``on_wait``) ends the thread; ``on_error(exc)`` is called
+      with it from the thread (the exception is kept in :attr:`error` either way).
     - ``clock`` and ``sleep`` (default :func:`time.sleep`) are the thread's time: tests give it a
       simulated one.
 
@@ -33,11 +36,14 @@ class PeriodicThread:
     """
 
     def __init__(self, period: float, callback: Callable[[float], None], *, lock=None,
-                 on_error: Optional[Callable[[BaseException], None]] = None, name: str = "periodic",
+                 on_error: Optional[Callable[[BaseException], None]] = None,
+                 on_wait: Optional[Callable[[float], None]] = None, name: str = "periodic",
                  clock: Callable[[], float] = time.monotonic, sleep: Callable[[float], None] = time.sleep):
         if not period > 0.0:
             raise ValueError(f"period must be > 0 s, got {period!r}")
         self.period, self.callback, self.lock, self.on_error = float(period), callback, lock, on_error
+        self.on_wait = on_wait
+        self.lock_wait = 0.0
         self.error: Optional[BaseException] = None
         self._clock, self._sleep = clock, sleep
         self._stop = threading.Event()
@@ -67,16 +73,18 @@ class PeriodicThread:
             delay = start + k * self.period - self._clock()
             if delay > 0.0:
                 self._sleep(delay)
-            if not self._acquire():
+            try:
+                if not self._acquire():
+                    return
+            except BaseException as exc:        # noqa: B902 - on_wait raised: the thread's end, reported
+                self._end(exc)
                 return
             try:
                 if self._stop.is_set():
                     return
                 self.callback(self._clock())
             except BaseException as exc:        # noqa: B902 - the thread's end, reported
-                self.error = exc
-                if self.on_error is not None:
-                    self.on_error(exc)
+                self._end(exc)
                 return
             finally:
                 if self.lock is not None:
@@ -86,11 +94,20 @@ class PeriodicThread:
             if behind >= self.period:
                 k += int(behind // self.period)
 
+    def _end(self, exc: BaseException):
+        self.error = exc
+        if self.on_error is not None:
+            self.on_error(exc)
+
     def _acquire(self) -> bool:
         """Take the lock, unless asked to stop while waiting for it."""
         if self.lock is None:
             return True
+        start = self._clock()
         while not self.lock.acquire(timeout=self.period):
             if self._stop.is_set():
                 return False
+            if self.on_wait is not None:
+                self.on_wait(self._clock() - start)
+        self.lock_wait = self._clock() - start
         return True

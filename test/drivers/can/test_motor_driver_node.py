@@ -198,7 +198,7 @@ def test_an_estop_whose_frames_do_not_leave_answers_failure_and_the_node_exits_f
 
     def down(*args, **kwargs):
         raise can.CanError("Network is down")
-    with node.hardware_lock:
+    with node.hardware_lock.held_by("the test"):
         node.driver.bus.send = down
     answer = node.on_estop(Trigger.Request(), Trigger.Response())
     assert not answer.success and "did not leave the bus" in answer.message
@@ -213,13 +213,13 @@ def test_an_estop_whose_frames_do_not_leave_answers_failure_and_the_node_exits_f
 def test_a_deactivation_whose_frames_do_not_leave_fails_the_node_though_the_close_succeeds(rig):
     """The bus refuses the deactivation's frames, then comes back: the motors held their torque
     meanwhile (until their own timeout), so the node has failed (exit status 1) though its closing
-    frames leave; a clean deactivation and close leave it unfailed."""
+    frames leave; a clean deactivation leaves it unfailed."""
     _, node, _, _ = rig
     assert node.trigger_configure() == TransitionCallbackReturn.SUCCESS
     assert node.trigger_activate() == TransitionCallbackReturn.SUCCESS
     assert node.trigger_deactivate() == TransitionCallbackReturn.SUCCESS and node.failure is None
     assert node.trigger_activate() == TransitionCallbackReturn.SUCCESS
-    with node.hardware_lock:
+    with node.hardware_lock.held_by("the test"):
         send = node.driver.bus.send
 
         def down(*args, **kwargs):
@@ -411,6 +411,34 @@ def test_a_publish_that_holds_the_cycle_past_the_watchdog_is_named_in_the_fault(
                          r"the previous cycle", node.driver.fault)
     assert fault is not None, node.driver.fault
     assert 0.3 <= float(fault.group(2)) <= float(fault.group(1))
+    spin_until(executor, lambda: not any(m.motor_mode for m in emulator.motors))
+
+
+def test_a_cycle_held_by_another_holder_of_the_hardware_lock_names_it(rig):
+    """A service of the node held up for 0.3 s holding the hardware lock while the motors pull: the
+    cycle says so while it waits (past watchdog_timeout: ``lock_waits``), and its fault, once it
+    runs, says the hold was spent waiting for the lock and names what held it."""
+    executor, node, harness, emulator = rig
+    assert change(executor, harness, "configure")
+    harness.tension = [2.0, 0.0, 0.0, 0.0]
+    assert change(executor, harness, "activate") and node.lifecycle_state == "active"
+    start = len(harness.states)
+    spin_until(executor, lambda: len(harness.states) > start + 50)
+    assert node.driver.fault is None and node.lock_waits == 0
+    with node.hardware_lock.held_by("a service held up"):
+        time.sleep(0.3)
+        deadline = time.monotonic() + 3.0
+        while node.lock_waits == 0 and time.monotonic() < deadline:      # a loaded machine's cycle
+            time.sleep(0.01)
+        assert node.lock_waits == 1                                        # said while it lasts
+    spin_until(executor, lambda: node.driver.fault is not None)
+    fault = re.fullmatch(r"cycle held: ([0-9.]+) s since the previous cycle, the motors unwatched "
+                         r"\(watchdog_timeout 0.2 s\); ([0-9.]+) s of it waiting for the hardware "
+                         r"lock, held by a service held up", node.driver.fault)
+    assert fault is not None, node.driver.fault
+    assert 0.25 <= float(fault.group(2)) <= float(fault.group(1))
+    values = {kv.key: kv.value for kv in node.diagnostic_array(node.driver.diagnostics()).status[0].values}
+    assert values["lock_waits"] == "1"
     spin_until(executor, lambda: not any(m.motor_mode for m in emulator.motors))
 
 

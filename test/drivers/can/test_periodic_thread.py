@@ -78,6 +78,36 @@ def test_the_lock_is_held_during_each_call_and_stop_ends_a_thread_waiting_for_it
     assert not thread.running and len(owned) == count
 
 
+def test_a_wait_for_the_lock_is_reported_while_it_lasts_and_its_length_kept():
+    """The lock held elsewhere for 30 periods: ``on_wait`` hears of the wait after each period
+    waited in vain, with the time waited so far, while the call has not come; the call then comes
+    knowing how long it waited. An ``on_wait`` that raises ends the thread and is reported."""
+    lock, waits, calls = threading.RLock(), [], []
+    thread = PeriodicThread(0.002, lambda now: calls.append(thread.lock_wait), lock=lock,
+                            on_wait=waits.append)
+    with lock:
+        thread.start()
+        time.sleep(0.06)
+        assert not calls and len(waits) >= 5
+        assert all(np.diff(waits) > 0.0) and 0.002 <= waits[0] and waits[-1] <= 0.06 + 1e-3
+    deadline = time.monotonic() + 5.0
+    while not calls:
+        assert time.monotonic() < deadline
+        time.sleep(0.01)
+    thread.stop()
+    assert calls[0] >= 0.05 and all(wait < 0.05 for wait in calls[1:])
+
+    reported = []
+
+    def fails(waited):
+        raise RuntimeError("the log is gone")
+    failing = PeriodicThread(0.002, calls.append, lock=lock, on_wait=fails, on_error=reported.append)
+    with lock:
+        failing.start()
+        time.sleep(0.05)
+    assert not failing.running and isinstance(failing.error, RuntimeError) and reported == [failing.error]
+
+
 def test_a_callback_can_stop_its_own_thread():
     calls = []
 

@@ -1,0 +1,58 @@
+"""The lock a hardware node holds while it touches its hardware, and that says what holds it.
+
+A driver's cycle thread waits for the lock that the executor's callbacks (commands, services,
+transitions) hold: while one of them is held up (a publish the middleware holds, a bus send at its
+timeout) the cycle does not run and the motors go unwatched. The cycle's watchdog says so once it
+runs again; with the holder's name it also says what held it, and the cycle can report the wait
+while it lasts (:class:`~soft_arm_drivers.can.periodic_thread.PeriodicThread`'s ``on_wait``).
+"""
+from __future__ import annotations
+
+import threading
+import time
+from contextlib import contextmanager
+from typing import Callable, Iterator, Optional, Tuple
+
+__all__ = ["HardwareLock"]
+
+
+class HardwareLock:
+    """A re-entrant lock that knows what holds it: ``with lock.held_by("estop service"): ...``, or
+    :meth:`acquire` and :meth:`release` (the holder is then the acquiring thread's name).
+    :meth:`holder` says what holds it and since when [s, ``clock``, default monotonic]; a nested
+    hold keeps the outermost one's name."""
+
+    def __init__(self, clock: Callable[[], float] = time.monotonic):
+        self._lock = threading.RLock()
+        self._clock = clock
+        self._depth = 0
+        self._holder: Optional[Tuple[str, float]] = None
+
+    def acquire(self, blocking: bool = True, timeout: float = -1, what: Optional[str] = None) -> bool:
+        """Take the lock as :meth:`threading.RLock.acquire` does; ``what`` names the holder (default:
+        the current thread's name)."""
+        if not self._lock.acquire(blocking, timeout):
+            return False
+        if self._depth == 0:
+            self._holder = (what or threading.current_thread().name, self._clock())
+        self._depth += 1
+        return True
+
+    def release(self):
+        self._depth -= 1
+        if self._depth == 0:
+            self._holder = None
+        self._lock.release()
+
+    @contextmanager
+    def held_by(self, what: str) -> Iterator[None]:
+        """Hold the lock for the block, named ``what``."""
+        self.acquire(what=what)
+        try:
+            yield
+        finally:
+            self.release()
+
+    def holder(self) -> Optional[Tuple[str, float]]:
+        """(what holds the lock, since when [s]), or None while it is free; read from any thread."""
+        return self._holder

@@ -1,0 +1,29 @@
+"""The hardware lock names what holds it: the outermost hold of its holding thread, from any
+thread, and nothing once it is free."""
+import threading
+
+from soft_arm_ros.hardware_lock import HardwareLock
+
+
+def test_the_lock_names_its_outermost_holder_until_it_is_free():
+    now = [10.0]
+    lock = HardwareLock(clock=lambda: now[0])
+    assert lock.holder() is None
+    with lock.held_by("the estop service"):
+        now[0] = 11.0
+        with lock.held_by("the deactivate transition"):              # re-entered: the outer name
+            assert lock.holder() == ("the estop service", 10.0)
+        assert lock.holder() == ("the estop service", 10.0)
+        seen, taken = [], []
+
+        def other():
+            seen.append(lock.holder())
+            taken.append(lock.acquire(timeout=0.01))
+        thread = threading.Thread(target=other, name="motor_driver cycle")
+        thread.start()
+        thread.join(5.0)
+        assert seen == [("the estop service", 10.0)] and taken == [False]
+    assert lock.holder() is None
+    assert lock.acquire(timeout=1.0) and lock.holder() == ("MainThread", 11.0)   # unnamed: the thread's
+    lock.release()
+    assert lock.holder() is None
