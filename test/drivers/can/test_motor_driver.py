@@ -442,23 +442,29 @@ def test_runs_are_deterministic_with_explicit_time():
     assert np.isnan(a[0].stamp) and not a[0].fresh.any()
 
 
-def test_a_held_cycle_names_the_publishing_that_held_it(make_rig):
-    """The node's publishing after a cycle held the thread (the middleware holding a publish): the
-    watchdog's fault says how much of the hold it was when it was half of it or more, and says
-    nothing of it otherwise."""
+def test_a_held_cycle_names_what_held_it(make_rig):
+    """What the caller says held the cycle (the node's publishing after the previous cycle, its
+    wait for the hardware lock): the watchdog's fault names each that was half the hold or more,
+    and nothing of those shorter."""
+    publishing, locked = "in the node's publishing after the previous cycle", \
+        "waiting for the hardware lock, held by the estop service"
     faults = {}
-    for publish_time in (0.0, 0.011, 0.012, 0.022):
+    for publish_time, lock_wait in ((0.0, 0.0), (0.011, 0.005), (0.012, 0.0), (0.022, 0.0), (0.001, 0.015),
+                                    (0.012, 0.012)):
         rig = make_rig(overrides={"watchdog_timeout": 0.021})
         rig.driver.enable()
         rig.step(10, [3.0, 3.0, 3.0, 3.0])
         rig.k += 11                                              # 24 ms since the previous cycle
         rig.now = rig.t
         rig.driver.command([3.0, 3.0, 3.0, 3.0])
-        faults[publish_time] = rig.driver.cycle(publish_time).diagnostics.fault
+        faults[publish_time, lock_wait] = rig.driver.cycle(
+            ((publish_time, publishing), (lock_wait, locked))).diagnostics.fault
     held = "cycle held: 0.0240 s since the previous cycle, the motors unwatched (watchdog_timeout 0.021 s)"
-    assert faults[0.0] == faults[0.011] == held
-    assert faults[0.012] == held + "; 0.0120 s of it in the node's publishing after the previous cycle"
-    assert faults[0.022] == held + "; 0.0220 s of it in the node's publishing after the previous cycle"
+    assert faults[0.0, 0.0] == faults[0.011, 0.005] == held
+    assert faults[0.012, 0.0] == held + f"; 0.0120 s of it {publishing}"
+    assert faults[0.022, 0.0] == held + f"; 0.0220 s of it {publishing}"
+    assert faults[0.001, 0.015] == held + f"; 0.0150 s of it {locked}"
+    assert faults[0.012, 0.012] == held + f"; 0.0120 s of it {publishing}; 0.0120 s of it {locked}"
 
 
 def test_a_cycle_held_past_the_watchdog_timeout_trips_whatever_the_command_reads(make_rig):
