@@ -132,10 +132,10 @@ def bench_node(rate: float, plant, seconds: float) -> dict:
                 raise RuntimeError("the motor_driver node did not configure (see its log)")
             original = node.driver.cycle
 
-            def timed_cycle(publish_time):
+            def timed_cycle(held):
                 now = time.monotonic()
                 starts.append(now)
-                result = original(publish_time)
+                result = original(held)
                 node.driver.command([1.0, 0.5, 0.5, 0.5])   # a controller's answer
                 durations.append(time.monotonic() - now)
                 complete.append(result.state.complete)

@@ -18,13 +18,15 @@ __all__ = ["HardwareLock"]
 
 class HardwareLock:
     """A re-entrant lock that knows what holds it: ``with lock.held_by("estop service"): ...``, or
-    :meth:`acquire` and :meth:`release` (the holder is then the acquiring thread's name).
-    :meth:`holder` says what holds it and since when [s, ``clock``, default monotonic]; a nested
-    hold keeps the outermost one's name."""
+    ``with lock:``, :meth:`acquire` and :meth:`release` (the holder is then the acquiring thread's
+    name). :meth:`holder` says what holds it and since when [s, ``clock``, default monotonic]; a
+    nested hold keeps the outermost one's name. Its record is written only by the thread that
+    holds it."""
 
     def __init__(self, clock: Callable[[], float] = time.monotonic):
         self._lock = threading.RLock()
         self._clock = clock
+        self._owner: Optional[int] = None      # the holding thread's ident
         self._depth = 0
         self._holder: Optional[Tuple[str, float]] = None
 
@@ -34,15 +36,26 @@ class HardwareLock:
         if not self._lock.acquire(blocking, timeout):
             return False
         if self._depth == 0:
+            self._owner = threading.get_ident()
             self._holder = (what or threading.current_thread().name, self._clock())
         self._depth += 1
         return True
 
     def release(self):
+        """Release one hold; RuntimeError, the record untouched, from a thread that holds none."""
+        if self._owner != threading.get_ident():
+            raise RuntimeError("cannot release a hardware lock this thread does not hold")
         self._depth -= 1
         if self._depth == 0:
-            self._holder = None
+            self._owner = self._holder = None
         self._lock.release()
+
+    def __enter__(self):
+        self.acquire()
+        return self
+
+    def __exit__(self, *exc):
+        self.release()
 
     @contextmanager
     def held_by(self, what: str) -> Iterator[None]:

@@ -141,6 +141,7 @@ class MotorDriverNode(ManagedHardwareNode):
             driver.close()
             return self.refuse("configure", driver.fault)
         self.driver = driver
+        self._lock_holder, self._wait_said = "", False
         self._cycle = PeriodicThread(1.0 / c.rate, self.tick, lock=self.hardware_lock,
                                      on_wait=self._waiting_for_lock,
                                      on_error=self._cycle_failed, name="motor_driver cycle").start()
@@ -261,7 +262,10 @@ class MotorDriverNode(ManagedHardwareNode):
         """One driver cycle, from the cycle thread at ``now`` [s, monotonic], holding the hardware
         lock; the driver reads its own clock (the same monotonic clock). What follows the cycle
         (publishing, logging, a deactivation) is timed for the next cycle's watchdog to name."""
-        wait, holder = self._cycle.lock_wait, self._lock_holder
+        wait = self._cycle.lock_wait
+        if wait >= self.config.watchdog_timeout and not self._wait_said:
+            self._say_wait(wait)                   # it passed the bound within the last slice
+        holder = self._lock_holder
         self._lock_holder, self._wait_said = "", False
         state, diagnostics = self.driver.cycle((
             (self._publish_time, "in the node's publishing after the previous cycle"),
@@ -284,15 +288,19 @@ class MotorDriverNode(ManagedHardwareNode):
         ``watchdog_timeout`` is logged at once (the motors are unwatched until the lock is free,
         their firmware's CAN timeout the guard meanwhile), not only when the cycle runs again."""
         holder = self.hardware_lock.holder()
-        if holder is not None:
-            self._lock_holder = holder[0]
+        if holder is not None and not self._wait_said:    # the holder at the bound is the one named
+            self._lock_holder = f"{holder[0]} (for {time.monotonic() - holder[1]:.3f} s)"
         if waited >= self.config.watchdog_timeout and not self._wait_said:
-            self._wait_said = True
-            self.lock_waits += 1
-            self.get_logger().error(
-                f"the driver's cycle has waited {waited:.3f} s for the hardware lock, held by "
-                f"{self._lock_holder or 'nothing it could name'}: the motors are unwatched until it "
-                "is free (their firmware's CAN timeout is the guard)")
+            self._say_wait(waited)
+
+    def _say_wait(self, waited: float):
+        """Log and count the cycle's wait for the lock past ``watchdog_timeout``, once per wait."""
+        self._wait_said = True
+        self.lock_waits += 1
+        self.get_logger().error(
+            f"the driver's cycle has waited {waited:.3f} s for the hardware lock, held by "
+            f"{self._lock_holder or 'a holder not seen'}: the motors are unwatched until it is free "
+            "(their firmware's CAN timeout is the guard)")
 
     def _report(self, diagnostics: Diagnostics, force: bool = False):
         """Publish /diagnostics if forced, on a change of mode or fault, or every DIAGNOSTICS_PERIOD."""

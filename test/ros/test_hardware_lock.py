@@ -2,6 +2,8 @@
 thread, and nothing once it is free."""
 import threading
 
+import pytest
+
 from soft_arm_ros.hardware_lock import HardwareLock
 
 
@@ -19,11 +21,21 @@ def test_the_lock_names_its_outermost_holder_until_it_is_free():
         def other():
             seen.append(lock.holder())
             taken.append(lock.acquire(timeout=0.01))
-        thread = threading.Thread(target=other, name="motor_driver cycle")
-        thread.start()
-        thread.join(5.0)
-        assert seen == [("the estop service", 10.0)] and taken == [False]
+
+        def wrong_release():
+            with pytest.raises(RuntimeError, match="does not hold"):
+                lock.release()
+            seen.append(lock.holder())
+        for target in (other, wrong_release):
+            thread = threading.Thread(target=target, name="motor_driver cycle")
+            thread.start()
+            thread.join(5.0)
+        assert seen == [("the estop service", 10.0)] * 2 and taken == [False]    # the record untouched
     assert lock.holder() is None
-    assert lock.acquire(timeout=1.0) and lock.holder() == ("MainThread", 11.0)   # unnamed: the thread's
-    lock.release()
+    with pytest.raises(RuntimeError, match="does not hold"):                     # free: nothing to release
+        lock.release()
+    with lock:                                                                 # unnamed: the thread's name
+        assert lock.holder() == ("MainThread", 11.0)
+    with lock.held_by("the zero service"):                                     # the record still sound
+        assert lock.holder() == ("the zero service", 11.0)
     assert lock.holder() is None

@@ -434,7 +434,7 @@ def test_a_cycle_held_by_another_holder_of_the_hardware_lock_names_it(rig):
     spin_until(executor, lambda: node.driver.fault is not None)
     fault = re.fullmatch(r"cycle held: ([0-9.]+) s since the previous cycle, the motors unwatched "
                          r"\(watchdog_timeout 0.2 s\); ([0-9.]+) s of it waiting for the hardware "
-                         r"lock, held by a service held up", node.driver.fault)
+                         r"lock, held by a service held up \(for ([0-9.]+) s\)", node.driver.fault)
     assert fault is not None, node.driver.fault
     assert 0.25 <= float(fault.group(2)) <= float(fault.group(1))
     values = {kv.key: kv.value for kv in node.diagnostic_array(node.driver.diagnostics()).status[0].values}
