@@ -386,16 +386,22 @@ def test_diagnostics_report_a_delayed_cycle_as_a_deadline_miss(rig):
     assert 1.5 < float(values()["period_p50_ms"]) < 3.0
 
 
-def test_a_publish_that_holds_the_cycle_past_the_watchdog_is_named_in_the_fault(rig):
-    """The state's publish held for 0.3 s while the motors pull (what the middleware does when it
-    opens a new reader's shared-memory port: decision 0005): the next cycle trips the watchdog, and
-    the fault says the hold was spent in the node's publishing."""
+def _pulling(rig):
+    """The rig's driver configured and activated, its first motor pulling 2 N for 50 states."""
     executor, node, harness, emulator = rig
     assert change(executor, harness, "configure")
     harness.tension = [2.0, 0.0, 0.0, 0.0]
     assert change(executor, harness, "activate") and node.lifecycle_state == "active"
     start = len(harness.states)
     spin_until(executor, lambda: len(harness.states) > start + 50)
+    return rig
+
+
+def test_a_publish_that_holds_the_cycle_past_the_watchdog_is_named_in_the_fault(rig):
+    """The state's publish held for 0.3 s while the motors pull (what the middleware does when it
+    opens a new reader's shared-memory port: decision 0005): the next cycle trips the watchdog, and
+    the fault says the hold was spent in the node's publishing."""
+    executor, node, harness, emulator = _pulling(rig)
     assert node.driver.fault is None
     publish, held = node.state_pub.publish, []
 
@@ -418,12 +424,7 @@ def test_a_cycle_held_by_another_holder_of_the_hardware_lock_names_it(rig):
     """A service of the node held up for 0.3 s holding the hardware lock while the motors pull: the
     cycle says so while it waits (past watchdog_timeout: ``lock_waits``), and its fault, once it
     runs, says the hold was spent waiting for the lock and names what held it."""
-    executor, node, harness, emulator = rig
-    assert change(executor, harness, "configure")
-    harness.tension = [2.0, 0.0, 0.0, 0.0]
-    assert change(executor, harness, "activate") and node.lifecycle_state == "active"
-    start = len(harness.states)
-    spin_until(executor, lambda: len(harness.states) > start + 50)
+    executor, node, harness, emulator = _pulling(rig)
     assert node.driver.fault is None and node.lock_waits == 0
     with node.hardware_lock.held_by("a service held up"):
         time.sleep(0.3)
