@@ -394,15 +394,27 @@ def _pulling(rig):
     assert change(executor, harness, "activate") and node.lifecycle_state == "active"
     start = len(harness.states)
     spin_until(executor, lambda: len(harness.states) > start + 50)
+    assert node.driver.fault is None
     return rig
+
+
+def _held_fault(rig, where: str) -> tuple:
+    """Wait for the rig's driver to fault and its motors to leave motor mode; the fault must be
+    ``cycle held`` with a part ``where`` (a regular expression) named: (the hold, that part) [s]."""
+    executor, node, _, emulator = rig
+    spin_until(executor, lambda: node.driver.fault is not None)
+    fault = re.fullmatch(r"cycle held: ([0-9.]+) s since the previous cycle, the motors unwatched "
+                         r"\(watchdog_timeout 0.2 s\); ([0-9.]+) s of it " + where, node.driver.fault)
+    assert fault is not None, node.driver.fault
+    spin_until(executor, lambda: not any(m.motor_mode for m in emulator.motors))
+    return float(fault.group(1)), float(fault.group(2))
 
 
 def test_a_publish_that_holds_the_cycle_past_the_watchdog_is_named_in_the_fault(rig):
     """The state's publish held for 0.3 s while the motors pull (what the middleware does when it
     opens a new reader's shared-memory port: decision 0005): the next cycle trips the watchdog, and
     the fault says the hold was spent in the node's publishing."""
-    executor, node, harness, emulator = _pulling(rig)
-    assert node.driver.fault is None
+    _, node, _, _ = _pulling(rig)
     publish, held = node.state_pub.publish, []
 
     def held_once(msg):
@@ -411,36 +423,27 @@ def test_a_publish_that_holds_the_cycle_past_the_watchdog_is_named_in_the_fault(
             time.sleep(0.3)
         publish(msg)
     node.state_pub.publish = held_once
-    spin_until(executor, lambda: node.driver.fault is not None)
-    fault = re.fullmatch(r"cycle held: ([0-9.]+) s since the previous cycle, the motors unwatched "
-                         r"\(watchdog_timeout 0.2 s\); ([0-9.]+) s of it in the node's publishing after "
-                         r"the previous cycle", node.driver.fault)
-    assert fault is not None, node.driver.fault
-    assert 0.3 <= float(fault.group(2)) <= float(fault.group(1))
-    spin_until(executor, lambda: not any(m.motor_mode for m in emulator.motors))
+    gap, publishing = _held_fault(rig, "in the node's publishing after the previous cycle")
+    assert 0.3 <= publishing <= gap
 
 
 def test_a_cycle_held_by_another_holder_of_the_hardware_lock_names_it(rig):
     """A service of the node held up for 0.3 s holding the hardware lock while the motors pull: the
     cycle says so while it waits (past watchdog_timeout: ``lock_waits``), and its fault, once it
     runs, says the hold was spent waiting for the lock and names what held it."""
-    executor, node, harness, emulator = _pulling(rig)
-    assert node.driver.fault is None and node.lock_waits == 0
+    _, node, _, _ = _pulling(rig)
+    assert node.lock_waits == 0
     with node.hardware_lock.held_by("a service held up"):
         time.sleep(0.3)
         deadline = time.monotonic() + 3.0
         while node.lock_waits == 0 and time.monotonic() < deadline:      # a loaded machine's cycle
             time.sleep(0.01)
         assert node.lock_waits == 1                                        # said while it lasts
-    spin_until(executor, lambda: node.driver.fault is not None)
-    fault = re.fullmatch(r"cycle held: ([0-9.]+) s since the previous cycle, the motors unwatched "
-                         r"\(watchdog_timeout 0.2 s\); ([0-9.]+) s of it waiting for the hardware "
-                         r"lock, held by a service held up \(for ([0-9.]+) s\)", node.driver.fault)
-    assert fault is not None, node.driver.fault
-    assert 0.25 <= float(fault.group(2)) <= float(fault.group(1))
+    gap, waiting = _held_fault(rig, r"waiting for the hardware lock, held by a service held up "
+                                    r"\(for [0-9.]+ s\)")
+    assert 0.25 <= waiting <= gap
     values = {kv.key: kv.value for kv in node.diagnostic_array(node.driver.diagnostics()).status[0].values}
     assert values["lock_waits"] == "1"
-    spin_until(executor, lambda: not any(m.motor_mode for m in emulator.motors))
 
 
 def test_rig_yaml_parses_with_the_ros_parameter_parser():
