@@ -91,7 +91,7 @@ def _wait_for_graph(node, children, flowing: tuple = (), settle: float = 0.0,
         if time.monotonic() > deadline:
             raise RuntimeError(
                 f"the graph is not up after {timeout:g} s: " + (
-                    f"nothing on {missing}" if missing else
+                    f"nothing on {missing}" + _nameless_publishers(node, topics) if missing else
                     f"the endpoints of {sorted({name for name, _ in changed})} keep changing "
                     f"(last {time.monotonic() - since:.1f} s ago; {settle:g} s without a change wanted)"))
         rclpy.spin_once(node, timeout_sec=0.05)
@@ -103,6 +103,28 @@ def _wait_for_graph(node, children, flowing: tuple = (), settle: float = 0.0,
         return _wait_for_graph(node, children, settle=settle, timeout=min(timeout, settle + 30.0),
                                published=published)
     return since
+
+
+# the node name ROS's graph gives an endpoint whose process's description of its nodes (the
+# ros_discovery_info topic, which each process publishes) has not reached this process
+UNKNOWN_NODE = "_NODE_NAME_UNKNOWN_"
+
+
+def _nameless_publishers(node, topics) -> str:
+    """What a bring-up that timed out says of publishers on ``topics`` that this process discovered
+    without learning their nodes ("" if none): their endpoints arrived, the descriptions of their
+    processes' nodes did not, so that no node of the run can be recognised however long it waits.
+    The middleware failed between the processes at their start (with Fast DDS, one known cause is a
+    shared-memory port whose lock a process held past the middleware's 2 s timeout on a loaded
+    machine, eProsima/Fast-DDS#6117, which it reports as an ``RTPS_TRANSPORT_SHM Error``); a new
+    run starts new processes."""
+    count = sum(info.node_name == UNKNOWN_NODE for topic in topics
+                for info in node.get_publishers_info_by_topic(topic))
+    if not count:
+        return ""
+    return (f"; {count} publisher{'s' if count > 1 else ''} on them whose node this process never "
+            f"learnt: the processes' descriptions of their nodes did not reach it (the middleware failed "
+            f"between the processes at their start; its errors above): run again")
 
 
 def _endpoints(node, names) -> dict:

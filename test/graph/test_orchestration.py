@@ -156,3 +156,35 @@ def _running(pid: int) -> bool:
             return fh.read().rsplit(")", 1)[1].split()[0] != "Z"
     except OSError:
         return False
+
+
+class _GraphWithoutNames:
+    """What a process whose middleware failed at the start sees of the run: publishers on every
+    topic the bring-up waits for, none of their nodes known by name."""
+
+    def get_node_names_and_namespaces(self):
+        return []
+
+    def get_publishers_info_by_topic(self, topic):
+        from types import SimpleNamespace
+
+        from soft_arm_experiments.orchestration import UNKNOWN_NODE
+        return [SimpleNamespace(node_name=UNKNOWN_NODE, node_namespace="_NODE_NAMESPACE_UNKNOWN_")]
+
+
+def test_a_bring_up_that_sees_publishers_without_their_nodes_says_the_middleware_failed(monkeypatch):
+    """The run's publishers discovered but not its nodes (their processes' descriptions never
+    arrived): the wait ends at its bound naming what is missing, how many publishers came without
+    their node and that a new run is the remedy, where it said only that nothing was there."""
+    import time
+
+    import rclpy
+
+    from soft_arm_experiments.orchestration import _wait_for_graph
+    monkeypatch.setattr(rclpy, "spin_once", lambda node, timeout_sec: time.sleep(timeout_sec))
+    with pytest.raises(RuntimeError, match=r"the graph is not up after 0.2 s: nothing on "
+                       r"\['/tendon/command', '/tendon/state', 'the recorder'\]; 2 publishers on them "
+                       r"whose node this process never learnt: .*the middleware failed between the "
+                       r"processes at their start.*: run again"):
+        _wait_for_graph(_GraphWithoutNames(), _OwnNodes({"recorder", "inner_loop"}), timeout=0.2,
+                        published=("command", "state"))

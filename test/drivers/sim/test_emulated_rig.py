@@ -145,8 +145,8 @@ def test_closed_loop_through_the_emulated_hardware_reaches_the_target_like_the_s
         after = time.time()
         with open(out / "metrics.json", encoding="utf-8") as fh:
             hil = json.load(fh)
-        if not _rerun_after_a_hiccup(attempt, _timing_fault("\n".join(
-                f["message"] for f in hil["run"]["driver_faults"]))):
+        if not _rerun_after_a_hiccup(attempt, _hiccup("\n".join(
+                [f["message"] for f in hil["run"]["driver_faults"]] + [hil.get("failure") or ""]))):
             break
     assert status == 0, hil
     assert hil["run"]["emulated_hardware"] and hil["run"]["driver_faults"] == []
@@ -298,45 +298,58 @@ def _child(parent: int, name: str) -> int:
 
 
 class RigHiccup(UserWarning):
-    """A run of the emulated rig ended on a timing fault that its test did not cause, and ran again."""
+    """A run of the emulated rig ended on a fault of the machine that its test did not cause (a
+    timing fault, the middleware failing at the start), and ran again."""
 
 
-def _timing_fault(output: str):
-    """The fault a run's driver latched on its own timing (a stale command, a silent motor, a held
-    cycle: a loaded machine's hiccup, caught) in its log or its metrics' faults, None if none."""
+def _hiccup(output: str):
+    """What of the machine ended a run, from its output or its metrics' faults and failure, None if
+    nothing did: a fault the driver latched on its own timing (a stale command, a silent motor, a
+    held cycle: a loaded machine's hiccup, caught), or a bring-up that the middleware failed (its
+    shared-memory transport's error, or the orchestrator's saying it learnt no node of the run:
+    soft_arm_experiments.orchestration._nameless_publishers)."""
     logged = re.search(r"\bfault(?:, all motors at zero torque)?: (.*)", output)
-    if logged is None:
-        return None
-    reason = logged.group(1)
-    return reason if re.match(r"stale command|cycle held|motor \d+ silent", reason) else None
+    if logged is not None and re.match(r"stale command|cycle held|motor \d+ silent", logged.group(1)):
+        return logged.group(1)
+    unwired = re.search(r"the graph is not up after .*", output)
+    if unwired is not None and ("whose node this process never learnt" in unwired.group(0)
+                                or "RTPS_TRANSPORT_SHM" in output):
+        return unwired.group(0)
+    return None
 
 
 def _rerun_after_a_hiccup(attempt: str, hiccup) -> bool:
-    """Whether a run that ended on the timing fault ``hiccup`` (None: it did not) runs once more: it
-    proves nothing of the claim, since the driver caught the machine holding a node, which is the
-    driver's job; a second such run fails its test. Each rerun is said (a RigHiccup warning in
-    pytest's summary), never passed over: a machine where they recur is too slow for this rig."""
+    """Whether a run that ``hiccup`` ended (:func:`_hiccup`; None: nothing did) runs once more: it
+    proves nothing of the claim, since the driver caught the machine holding a node (the driver's
+    job) or the run's processes never met; a second such run fails its test. Each rerun is said (a
+    RigHiccup warning in pytest's summary), never passed over: a machine where they recur is too
+    slow or too busy for this rig."""
     if hiccup is None or attempt.endswith("rerun"):
         return False
-    warnings.warn(RigHiccup(f"the emulated rig's run ended on a timing fault ({hiccup}); once more"))
+    warnings.warn(RigHiccup(f"the emulated rig's run ended on the machine's fault ({hiccup}); once more"))
     return True
 
 
 def _with_node_stopped(config_dir, tmp_path, name: str, hold: float):
     """A run whose node ``name`` is stopped (SIGSTOP) 2 s after the motor driver's activation, for
     ``hold`` [s], then continued: (its whole output, its status, its results' directory). A run that
-    a timing fault ended before the stop runs once more (:func:`_rerun_after_a_hiccup`)."""
+    the machine's fault ended before the stop runs once more (:func:`_rerun_after_a_hiccup`)."""
     for attempt in ("run", "rerun"):
         out = tmp_path / attempt
         proc = _experiment(config_dir, out, "--quiet")
         with killed_on_exit(proc):
-            seen = wait_for_output(proc, "[motor_driver]: activated", timeout=120)
+            try:
+                seen = wait_for_output(proc, "[motor_driver]: activated", timeout=120)
+            except AssertionError as ended:                 # the run ended before: say how
+                if _rerun_after_a_hiccup(attempt, _hiccup(str(ended))):
+                    continue
+                raise
             time.sleep(2.0)
             try:
                 pid = _child(proc.pid, name)
             except LookupError as missing:      # the run ended already: say how
                 output = seen + proc.communicate(timeout=60)[0]
-                if _rerun_after_a_hiccup(attempt, _timing_fault(output)):
+                if _rerun_after_a_hiccup(attempt, _hiccup(output)):
                     continue
                 raise AssertionError(f"{missing} 2 s after the driver's activation; the run's "
                                      f"output:\n{output}") from missing
@@ -456,9 +469,10 @@ def test_a_driver_deactivated_from_elsewhere_ends_the_run_as_no_result(tmp_path,
     for attempt in ("run", "rerun"):
         out = tmp_path / attempt
         deactivated, output, status = _deactivated_from_elsewhere(config_dir, out, context)
-        # the claim is about a deactivation: a run that a timing fault ended before it could be
-        # done proves nothing of it; a deactivation refused or unanswered otherwise is a failure
-        if deactivated or not _rerun_after_a_hiccup(attempt, _timing_fault(output)):
+        # the claim is about a deactivation: a run that the machine's fault (:func:`_hiccup`) ended
+        # before it could be done proves nothing of it; a deactivation refused or unanswered
+        # otherwise is a failure
+        if deactivated or not _rerun_after_a_hiccup(attempt, _hiccup(output)):
             break
     assert deactivated, ("the driver was not deactivated from elsewhere (not found, unanswered or "
                          f"refused):\n{output}")
@@ -485,10 +499,10 @@ def test_motors_flashed_with_another_firmware_stop_the_run_naming_the_preset(tmp
         proc = _experiment(str(flashed), out, "--quiet")
         with killed_on_exit(proc):
             output = proc.communicate(timeout=240)[0]
-        # a timing fault before the arm had moved enough to judge the scale leaves the claim unproven
-        if "is not its firmware's" in output or not _rerun_after_a_hiccup(attempt, _timing_fault(output)):
+        # the machine's fault before the arm had moved enough to judge the scale leaves the claim unproven
+        if "is not its firmware's" in output or not _rerun_after_a_hiccup(attempt, _hiccup(output)):
             break
-        held = f"the first run ended on a timing fault; its output:\n{output}\n"
+        held = f"the first run ended on the machine's fault; its output:\n{output}\n"
     assert proc.returncode == 1, held + output
     assert "the preset AK80-9 (+-50 rad/s) is not its firmware's" in output, held + output
     assert "the preset AK80-9-fw1.1 would fit" in output and "rms[mm]" not in output, held + output
