@@ -244,19 +244,24 @@ def _experiment(config_dir, out, *options) -> subprocess.Popen:
 def interrupted(tmp_path_factory, config_dir):
     """A run with an identified arm file whose mocap calibration is 30 mm higher than mocap.yaml's,
     interrupted by a Ctrl-C 2 s after the motors were activated: (the process, its output, the run
-    directory)."""
+    directory). A run the machine's fault ended before the Ctrl-C runs once more
+    (:func:`_rerun_after_a_hiccup`)."""
     tmp = tmp_path_factory.mktemp("interrupted")
     calibration = load_mocap_config().calibration
     shifted = (calibration.rotation, calibration.translation + np.array([0.0, 0.0, 0.03]))
     arm_file = tmp / "identified_arm.yaml"
     write_identified_arm(str(arm_file), load_arm_config(), shifted)
-    out = tmp / "run"
-    proc = _experiment(config_dir, out, "--arm-file", str(arm_file))
-    with killed_on_exit(proc):
-        seen = wait_for_output(proc, "[motor_driver]: activated", timeout=120)
-        time.sleep(2.0)
-        output = seen + stop(proc, signal.SIGINT, 60)
-    return proc, output, out
+    for attempt in ("run", "rerun"):
+        out = tmp / attempt
+        proc = _experiment(config_dir, out, "--arm-file", str(arm_file))
+        with killed_on_exit(proc):
+            seen = _until_activated(proc, attempt)
+            if seen is None:
+                continue
+            time.sleep(2.0)
+            output = seen + stop(proc, signal.SIGINT, 60)
+        return proc, output, out
+    raise AssertionError("unreachable: the rerun returns or raises")
 
 
 def test_ctrl_c_disables_the_emulated_motors_then_stops_every_node(interrupted):
@@ -330,6 +335,18 @@ def _rerun_after_a_hiccup(attempt: str, hiccup) -> bool:
     return True
 
 
+def _until_activated(proc, attempt: str):
+    """The output of the run ``proc`` up to its motor driver's activation; None when the machine's
+    fault (:func:`_hiccup`) ended the run before it and the run is to go once more
+    (:func:`_rerun_after_a_hiccup`); AssertionError with the run's output otherwise."""
+    try:
+        return wait_for_output(proc, "[motor_driver]: activated", timeout=120)
+    except AssertionError as ended:
+        if _rerun_after_a_hiccup(attempt, _hiccup(str(ended))):
+            return None
+        raise
+
+
 def _with_node_stopped(config_dir, tmp_path, name: str, hold: float):
     """A run whose node ``name`` is stopped (SIGSTOP) 2 s after the motor driver's activation, for
     ``hold`` [s], then continued: (its whole output, its status, its results' directory). A run that
@@ -338,12 +355,9 @@ def _with_node_stopped(config_dir, tmp_path, name: str, hold: float):
         out = tmp_path / attempt
         proc = _experiment(config_dir, out, "--quiet")
         with killed_on_exit(proc):
-            try:
-                seen = wait_for_output(proc, "[motor_driver]: activated", timeout=120)
-            except AssertionError as ended:                 # the run ended before: say how
-                if _rerun_after_a_hiccup(attempt, _hiccup(str(ended))):
-                    continue
-                raise
+            seen = _until_activated(proc, attempt)
+            if seen is None:
+                continue
             time.sleep(2.0)
             try:
                 pid = _child(proc.pid, name)
