@@ -332,11 +332,16 @@ def exit_failure(exits: dict) -> str | None:
 
 
 @contextlib.contextmanager
-def _orchestrating(children: _Children):
-    """This process's node (graph queries, service calls) for a run of ``children``; on the way
-    out, whatever happened, the node and rclpy go, then the children are stopped."""
+def _orchestrating(children: _Children, processes: int):
+    """This process's node (graph queries, service calls) for a run of ``children``, ``processes``
+    node processes in all, once the domain has room for them and this one
+    (:func:`soft_arm_ros.localhost_discovery.check_room`: RuntimeError, before anything starts, if
+    not); on the way out, whatever happened, the node and rclpy go, then the children are stopped."""
     import rclpy
     from rclpy.signals import SignalHandlerOptions
+
+    from soft_arm_ros.localhost_discovery import check_room
+    check_room(processes + 1, children.env)
     rclpy.init(args=["soft-arm-experiment"], signal_handler_options=SignalHandlerOptions.NO)
     try:
         node = rclpy.create_node("soft_arm_experiment", start_parameter_services=False)
@@ -402,7 +407,8 @@ def run_processes(ros_args: list, out: dict, task: str = "", feedback: str = "mo
         runner: ["-p", f"output:={out['metrics']}", "-p", "wait_for_start:=true"],
         "clik": feedback_arguments(feedback)})
     start = time.monotonic()
-    with _orchestrating(children) as node:
+    # the recorder, the controller's nodes, the simulator and the runner
+    with _orchestrating(children, len(controller) + 3) as node:
         begin = node.create_client(Trigger, f"/{runner}/start")
         for name in ("recorder", *controller, "simulator"):
             children.start(name)
@@ -516,14 +522,15 @@ def run_emulated_hardware(ros_args: list, out: dict, duration: float,
                 print(f"\nsoft-arm-experiment: motor_driver {message} "
                       f"({stamp - enabled_at:.2f} s after the enable): the run ends", file=sys.stderr)
 
-    with _orchestrating(children) as node:
+    started = ("recorder", "emulated_rig", "mocap_bridge", *controller, runner)
+    with _orchestrating(children, len(started)) as node:
         node.create_subscription(DiagnosticArray, "/diagnostics", on_diagnostics, 10)
         # every client is created, and its server discovered, before the motors are enabled
         zero = node.create_client(Trigger, "/motor_driver/zero")
         driver = node.create_client(ChangeState, "/motor_driver/change_state")
         bridge = node.create_client(ChangeState, "/mocap_bridge/change_state")
         begin = node.create_client(Trigger, f"/{runner}/start")
-        for name in ("recorder", "emulated_rig", "mocap_bridge", *controller, runner):
+        for name in started:
             children.start(name)
         # the whole bring-up within BRINGUP_TIMEOUT, each wait naming what it still waits for
         deadline = time.monotonic() + BRINGUP_TIMEOUT

@@ -1,0 +1,74 @@
+"""Room on this host for a run's processes under localhost discovery.
+
+With ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST`` rmw_fastrtps_cpp (ROS 2 Jazzy) has no multicast:
+each participant (one per process) announces itself to the discovery ports of participants 0-31
+of its domain on this host (its UDP transport's ``maxInitialPeersRange``, 32), and takes the lowest
+participant id whose port is free. A participant of id 32 or above still meets the first 32, which
+answer its announcements, but two of them never meet each other: with the first 32 ids of the
+domain taken by other processes, a run's nodes never see each other's topics, and its bring-up
+would wait its whole bound for them. A run checks that its processes find ids below 32 before it
+starts them, and says what it found when they do not.
+
+Linux only: the ports in use are read from ``/proc/net/udp`` and ``/proc/net/udp6``.
+"""
+from __future__ import annotations
+
+import os
+
+# RTPS's well-known ports (the specification's 9.6.1.1, the defaults Fast DDS uses): port base,
+# domain gain, participant gain and the metatraffic unicast offset
+PORT_BASE, DOMAIN_GAIN, PARTICIPANT_GAIN, DISCOVERY_OFFSET = 7400, 250, 2, 10
+# participant ids a localhost announcement reaches (rmw_fastrtps_cpp's maxInitialPeersRange)
+REACHED = 32
+UDP_TABLES = ("/proc/net/udp", "/proc/net/udp6")
+
+
+def discovery_port(domain: int, participant: int) -> int:
+    """The UDP port on which participant ``participant`` of ROS domain ``domain`` listens for
+    discovery (metatraffic unicast)."""
+    return PORT_BASE + DOMAIN_GAIN * domain + DISCOVERY_OFFSET + PARTICIPANT_GAIN * participant
+
+
+def taken_participants(domain: int, tables=UDP_TABLES) -> set:
+    """The participant ids below :data:`REACHED` whose discovery port of ``domain`` a socket of this
+    host holds (a participant of any process, or anything else bound there), from the kernel's UDP
+    ``tables`` (a table that cannot be read, as ``/proc/net/udp6`` without IPv6, is skipped)."""
+    ids = {discovery_port(domain, p): p for p in range(REACHED)}
+    taken = set()
+    for table in tables:
+        try:
+            with open(table, encoding="ascii") as fh:
+                next(fh, None)                               # the header
+                for line in fh:
+                    fields = line.split()
+                    if len(fields) > 1 and ":" in fields[1]:
+                        port = int(fields[1].rsplit(":", 1)[1], 16)
+                        if port in ids:
+                            taken.add(ids[port])
+        except OSError:
+            continue
+    return taken
+
+
+def applies(environ=os.environ) -> bool:
+    """Whether the limit holds for processes started with ``environ``: localhost discovery on
+    rmw_fastrtps (the default middleware, or named by ``RMW_IMPLEMENTATION``)."""
+    return (environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE") == "LOCALHOST"
+            and environ.get("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp").startswith("rmw_fastrtps"))
+
+
+def check_room(processes: int, environ=os.environ, tables=UDP_TABLES):
+    """RuntimeError, naming what it found, when fewer than ``processes`` participant ids below
+    :data:`REACHED` are free on the domain of ``environ`` (``ROS_DOMAIN_ID``, 0 when unset) and the
+    limit :func:`applies`; the processes of a run are to start after it."""
+    if not applies(environ):
+        return
+    domain = int(environ.get("ROS_DOMAIN_ID") or 0)
+    taken = taken_participants(domain, tables)
+    free = REACHED - len(taken)
+    if free < processes:
+        raise RuntimeError(
+            f"ROS domain {domain} has {len(taken)} of the {REACHED} participant ids that localhost "
+            f"discovery reaches taken on this host (their discovery ports are in use), and this run's "
+            f"{processes} processes need {processes}: past them its processes would never meet each "
+            f"other. End some of the domain's other processes, or run on another ROS_DOMAIN_ID")

@@ -1,0 +1,124 @@
+"""Localhost discovery reaches the first 32 participant ids of a domain: the run checks that its
+processes find room there before it starts them."""
+import os
+import socket
+import time
+from contextlib import ExitStack
+
+import pytest
+
+from soft_arm_ros.localhost_discovery import REACHED, check_room, discovery_port, taken_participants
+
+
+def _taking(stack: ExitStack, domain: int, count: int) -> int:
+    """Bind plain UDP sockets on the discovery ports of ``domain``'s free participant ids, lowest
+    first, until ``count`` of the first :data:`REACHED` are taken (closed with ``stack``); returns
+    how many it bound."""
+    bound = 0
+    for participant in range(REACHED):
+        if len(taken_participants(int(domain))) >= count:
+            break
+        if participant in taken_participants(int(domain)):
+            continue
+        sock = stack.enter_context(socket.socket(socket.AF_INET, socket.SOCK_DGRAM))
+        sock.bind(("0.0.0.0", discovery_port(int(domain), participant)))
+        bound += 1
+    return bound
+
+
+def test_a_participant_takes_the_lowest_free_id_whose_port_the_kernel_lists():
+    """The port formula and the kernel's tables as the middleware has them: a participant created
+    on the domain adds one id to those taken, the lowest that was free."""
+    import rclpy
+    domain = int(os.environ["ROS_DOMAIN_ID"])
+    before = taken_participants(domain)
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    try:
+        node = rclpy.create_node("probe", context=context)       # the participant lives with it
+        added = taken_participants(domain) - before
+        assert added == {min(set(range(REACHED)) - before)}, (before, added)
+        node.destroy_node()
+        assert taken_participants(domain) == before
+    finally:
+        rclpy.try_shutdown(context=context)
+
+
+def _meet(seconds: float) -> bool:
+    """Whether two participants created now (two contexts of this process) discover each other's
+    node within ``seconds``."""
+    import rclpy
+    contexts = [rclpy.Context(), rclpy.Context()]
+    try:
+        nodes = []
+        for k, context in enumerate(contexts):
+            rclpy.init(context=context)
+            nodes.append(rclpy.create_node(f"participant_{k}", context=context))
+        deadline = time.monotonic() + seconds
+        while time.monotonic() < deadline:
+            if ("participant_1", "/") in nodes[0].get_node_names_and_namespaces():
+                return True
+            time.sleep(0.05)
+        return False
+    finally:
+        for context in contexts:
+            rclpy.try_shutdown(context=context)
+
+
+def test_past_the_first_32_ids_two_participants_never_meet():
+    """The middleware's limit the check is for: with every one of the first 32 ids taken, two new
+    participants (ids 32 and 33) do not discover each other; with one of them free they do."""
+    domain = os.environ["ROS_DOMAIN_ID"]
+    with ExitStack() as stack:
+        _taking(stack, domain, REACHED - 1)
+        assert _meet(5.0)
+    with ExitStack() as stack:
+        _taking(stack, domain, REACHED)
+        assert len(taken_participants(int(domain))) == REACHED
+        assert not _meet(3.0)
+
+
+def test_the_room_is_read_from_the_kernels_tables_and_refused_naming_what_it_found(tmp_path):
+    """Ports of participants 0, 1 and 5 of domain 7 among others (another domain's, a NatNet
+    socket's, an IPv6 one's): three ids taken, 29 free; a run of 29 processes starts, one of 30 is
+    refused naming the domain, the count and the remedy; another middleware or discovery range is
+    not checked."""
+    def row(port, address="0100007F"):
+        return (f"  1: {address}:{port:04X} 00000000:0000 07 00000000:00000000 00:00000000 00000000"
+                "     0        0 12345 2 0000000000000000 0\n")
+    header = "  sl  local_address rem_address   st tx_queue rx_queue tr tm->when retrnsmt   uid  timeout\n"
+    udp, udp6 = tmp_path / "udp", tmp_path / "udp6"
+    udp.write_text(header + row(discovery_port(7, 0)) + row(discovery_port(7, 1)) + row(discovery_port(8, 2))
+                   + row(1511) + row(discovery_port(7, 0) + 1))
+    udp6.write_text(header + row(discovery_port(7, 5), "0" * 32))
+    tables = (str(udp), str(udp6), str(tmp_path / "absent"))
+    assert taken_participants(7, tables) == {0, 1, 5}
+    env = {"ROS_DOMAIN_ID": "7", "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
+    check_room(29, env, tables)
+    with pytest.raises(RuntimeError, match=r"ROS domain 7 has 3 of the 32 participant ids that localhost "
+                       r"discovery reaches taken on this host .* this run's 30 processes need 30: .*"
+                       r"or run on another ROS_DOMAIN_ID"):
+        check_room(30, env, tables)
+    check_room(30, dict(env, RMW_IMPLEMENTATION="rmw_cyclonedds_cpp"), tables)
+    check_room(30, dict(env, ROS_AUTOMATIC_DISCOVERY_RANGE="SUBNET"), tables)
+
+
+def test_a_run_on_a_domain_without_room_is_refused_before_a_node_starts(tmp_path):
+    """soft-arm-experiment's processes mode on a domain whose first 32 ids are all taken: refused at
+    once, naming the domain and what it needs, no node process started (where its nodes came up
+    unable to meet and the bring-up waited its 60 s)."""
+    import subprocess
+
+    from soft_arm_experiments import orchestration
+    started = []
+    domain = os.environ["ROS_DOMAIN_ID"]
+    with ExitStack() as stack:
+        _taking(stack, domain, REACHED)
+        with pytest.MonkeyPatch.context() as patch:
+            patch.setattr(subprocess, "Popen", lambda *a, **k: started.append(a))
+            begin = time.monotonic()
+            with pytest.raises(RuntimeError, match=rf"ROS domain {domain} has 32 of the 32 participant ids "
+                               r".* this run's 6 processes need 6"):
+                orchestration.run_processes([], {"bag": str(tmp_path / "bag"),
+                                                 "metrics": str(tmp_path / "metrics.json")}, task="coiling")
+    assert started == [] and time.monotonic() - begin < 5.0
