@@ -19,6 +19,7 @@ import threading
 import time
 
 from soft_arm_control.config import IDENTIFICATION
+from soft_arm_drivers.can.command_source import UNKNOWN_NODE
 from soft_arm_drivers.can.loopback_bus import free_udp_ports
 from soft_arm_model.parameters import ConfigError, default_config_dir
 
@@ -91,7 +92,8 @@ def _wait_for_graph(node, children, flowing: tuple = (), settle: float = 0.0,
         if time.monotonic() > deadline:
             raise RuntimeError(
                 f"the graph is not up after {timeout:g} s: " + (
-                    f"nothing on {missing}" + _nameless_publishers(node, topics) if missing else
+                    f"nothing on {missing}" + _nameless_publishers(node, [t for t in topics if t in missing])
+                    if missing else
                     f"the endpoints of {sorted({name for name, _ in changed})} keep changing "
                     f"(last {time.monotonic() - since:.1f} s ago; {settle:g} s without a change wanted)"))
         rclpy.spin_once(node, timeout_sec=0.05)
@@ -105,26 +107,23 @@ def _wait_for_graph(node, children, flowing: tuple = (), settle: float = 0.0,
     return since
 
 
-# the node name ROS's graph gives an endpoint whose process's description of its nodes (the
-# ros_discovery_info topic, which each process publishes) has not reached this process
-UNKNOWN_NODE = "_NODE_NAME_UNKNOWN_"
-
-
 def _nameless_publishers(node, topics) -> str:
-    """What a bring-up that timed out says of publishers on ``topics`` that this process discovered
-    without learning their nodes ("" if none): their endpoints arrived, the descriptions of their
-    processes' nodes did not, so that no node of the run can be recognised however long it waits.
-    The middleware failed between the processes at their start (with Fast DDS, one known cause is a
-    shared-memory port whose lock a process held past the middleware's 2 s timeout on a loaded
-    machine, eProsima/Fast-DDS#6117, which it reports as an ``RTPS_TRANSPORT_SHM Error``); a new
-    run starts new processes."""
+    """What a bring-up that timed out says of the publishers on the missing ``topics`` that this
+    process discovered without learning their nodes ("" if none): their endpoints arrived, the
+    descriptions of their processes' nodes (each process's ros_discovery_info) did not within the
+    bring-up, so that the run's nodes could not be recognised. Most likely the middleware failed
+    between the processes at their start (with Fast DDS, one known cause is a shared-memory port
+    whose lock a process held past the middleware's 2 s timeout on a loaded machine,
+    eProsima/Fast-DDS#6117, reported as an ``RTPS_TRANSPORT_SHM Error``); a new run starts new
+    processes."""
     count = sum(info.node_name == UNKNOWN_NODE for topic in topics
                 for info in node.get_publishers_info_by_topic(topic))
     if not count:
         return ""
     return (f"; {count} publisher{'s' if count > 1 else ''} on them whose node this process never "
-            f"learnt: the processes' descriptions of their nodes did not reach it (the middleware failed "
-            f"between the processes at their start; its errors above): run again")
+            f"learnt: the processes' descriptions of their nodes did not reach it (most likely the "
+            f"middleware failed between the processes at their start: look for its errors above): "
+            f"run again")
 
 
 def _endpoints(node, names) -> dict:
@@ -407,10 +406,10 @@ def run_processes(ros_args: list, out: dict, task: str = "", feedback: str = "mo
         runner: ["-p", f"output:={out['metrics']}", "-p", "wait_for_start:=true"],
         "clik": feedback_arguments(feedback)})
     start = time.monotonic()
-    # the recorder, the controller's nodes, the simulator and the runner
-    with _orchestrating(children, len(controller) + 3) as node:
+    plant_side = ("recorder", *controller, "simulator")          # the runner starts once they are up
+    with _orchestrating(children, len(plant_side) + 1) as node:
         begin = node.create_client(Trigger, f"/{runner}/start")
-        for name in ("recorder", *controller, "simulator"):
+        for name in plant_side:
             children.start(name)
         _wait_for_graph(node, children, published=("command", "reference", "state", "markers")
                         if controller else ("state", "markers"))

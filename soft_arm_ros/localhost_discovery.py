@@ -5,11 +5,12 @@ each participant (one per process) announces itself to the discovery ports of pa
 of its domain on this host (its UDP transport's ``maxInitialPeersRange``, 32), and takes the lowest
 participant id whose port is free. A participant of id 32 or above still meets the first 32, which
 answer its announcements, but two of them never meet each other: with the first 32 ids of the
-domain taken by other processes, a run's nodes never see each other's topics, and its bring-up
-would wait its whole bound for them. A run checks that its processes find ids below 32 before it
-starts them, and says what it found when they do not.
+domain taken by other processes, a run's nodes would never see each other's topics, and its
+bring-up would wait its whole bound for them. A run checks that all its processes but one find ids
+below 32 before it starts them, and says what it found when they do not.
 
-Linux only: the ports in use are read from ``/proc/net/udp`` and ``/proc/net/udp6``.
+Linux only: the ports in use are read from ``/proc/net/udp`` and ``/proc/net/udp6``, which list the
+sockets of this process's network namespace (a container's own, the host's otherwise).
 """
 from __future__ import annotations
 
@@ -54,21 +55,27 @@ def applies(environ=os.environ) -> bool:
     """Whether the limit holds for processes started with ``environ``: localhost discovery on
     rmw_fastrtps (the default middleware, or named by ``RMW_IMPLEMENTATION``)."""
     return (environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE") == "LOCALHOST"
-            and environ.get("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp").startswith("rmw_fastrtps"))
+            and (environ.get("RMW_IMPLEMENTATION") or "rmw_fastrtps_cpp").startswith("rmw_fastrtps"))
 
 
 def check_room(processes: int, environ=os.environ, tables=UDP_TABLES):
-    """RuntimeError, naming what it found, when fewer than ``processes`` participant ids below
+    """RuntimeError, naming what it found, when fewer than ``processes - 1`` participant ids below
     :data:`REACHED` are free on the domain of ``environ`` (``ROS_DOMAIN_ID``, 0 when unset) and the
-    limit :func:`applies`; the processes of a run are to start after it."""
+    limit :func:`applies` (one process of the run past them still meets the others, two do not);
+    the processes of a run are to start after it."""
     if not applies(environ):
         return
-    domain = int(environ.get("ROS_DOMAIN_ID") or 0)
+    try:
+        domain = int(environ.get("ROS_DOMAIN_ID") or 0)
+    except ValueError:
+        raise RuntimeError(f"ROS_DOMAIN_ID = {environ['ROS_DOMAIN_ID']!r} is not a domain id "
+                           f"(a whole number, 0-232 on Linux)") from None
     taken = taken_participants(domain, tables)
     free = REACHED - len(taken)
-    if free < processes:
+    if free < processes - 1:
         raise RuntimeError(
             f"ROS domain {domain} has {len(taken)} of the {REACHED} participant ids that localhost "
-            f"discovery reaches taken on this host (their discovery ports are in use), and this run's "
-            f"{processes} processes need {processes}: past them its processes would never meet each "
-            f"other. End some of the domain's other processes, or run on another ROS_DOMAIN_ID")
+            f"discovery reaches taken on this computer (their discovery ports are in use), and this "
+            f"run's {processes} processes need {processes - 1} of them free: two processes past them "
+            f"never meet. End some of the domain's other processes (`ros2 daemon stop`; `ss -uap` "
+            f"lists who holds the ports), or run on another ROS_DOMAIN_ID")

@@ -29,8 +29,11 @@ def _taking(stack: ExitStack, domain: int, count: int) -> int:
 def test_a_participant_takes_the_lowest_free_id_whose_port_the_kernel_lists():
     """The port formula and the kernel's tables as the middleware has them: a participant created
     on the domain adds one id to those taken, the lowest that was free."""
+    import gc
+
     import rclpy
     domain = int(os.environ["ROS_DOMAIN_ID"])
+    gc.collect()                            # no participant of an earlier test's nodes left to go
     before = taken_participants(domain)
     context = rclpy.Context()
     rclpy.init(context=context)
@@ -48,9 +51,8 @@ def _meet(seconds: float) -> bool:
     """Whether two participants created now (two contexts of this process) discover each other's
     node within ``seconds``."""
     import rclpy
-    contexts = [rclpy.Context(), rclpy.Context()]
+    contexts, nodes = [rclpy.Context(), rclpy.Context()], []
     try:
-        nodes = []
         for k, context in enumerate(contexts):
             rclpy.init(context=context)
             nodes.append(rclpy.create_node(f"participant_{k}", context=context))
@@ -61,17 +63,21 @@ def _meet(seconds: float) -> bool:
             time.sleep(0.05)
         return False
     finally:
+        for node in nodes:
+            node.destroy_node()
         for context in contexts:
             rclpy.try_shutdown(context=context)
 
 
 def test_past_the_first_32_ids_two_participants_never_meet():
     """The middleware's limit the check is for: with every one of the first 32 ids taken, two new
-    participants (ids 32 and 33) do not discover each other; with one of them free they do."""
+    participants (ids 32 and 33) do not discover each other; with one of them free (ids 31 and 32)
+    they do. (The xdist workers' domains have their discovery ports in the kernel's ephemeral range,
+    where a socket of another test may hold one: :func:`_taking` counts what is taken.)"""
     domain = os.environ["ROS_DOMAIN_ID"]
     with ExitStack() as stack:
         _taking(stack, domain, REACHED - 1)
-        assert _meet(5.0)
+        assert _meet(20.0)
     with ExitStack() as stack:
         _taking(stack, domain, REACHED)
         assert len(taken_participants(int(domain))) == REACHED
@@ -81,8 +87,9 @@ def test_past_the_first_32_ids_two_participants_never_meet():
 def test_the_room_is_read_from_the_kernels_tables_and_refused_naming_what_it_found(tmp_path):
     """Ports of participants 0, 1 and 5 of domain 7 among others (another domain's, a NatNet
     socket's, an IPv6 one's): three ids taken, 29 free; a run of 29 processes starts, one of 30 is
-    refused naming the domain, the count and the remedy; another middleware or discovery range is
-    not checked."""
+    refused naming the domain, the count and the remedy (all processes of a run but one need an id
+    below 32); another middleware or discovery range is not checked, a domain id that is no number is
+    refused."""
     def row(port, address="0100007F"):
         return (f"  1: {address}:{port:04X} 00000000:0000 07 00000000:00000000 00:00000000 00000000"
                 "     0        0 12345 2 0000000000000000 0\n")
@@ -94,13 +101,17 @@ def test_the_room_is_read_from_the_kernels_tables_and_refused_naming_what_it_fou
     tables = (str(udp), str(udp6), str(tmp_path / "absent"))
     assert taken_participants(7, tables) == {0, 1, 5}
     env = {"ROS_DOMAIN_ID": "7", "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
-    check_room(29, env, tables)
+    check_room(30, env, tables)
     with pytest.raises(RuntimeError, match=r"ROS domain 7 has 3 of the 32 participant ids that localhost "
-                       r"discovery reaches taken on this host .* this run's 30 processes need 30: .*"
-                       r"or run on another ROS_DOMAIN_ID"):
-        check_room(30, env, tables)
-    check_room(30, dict(env, RMW_IMPLEMENTATION="rmw_cyclonedds_cpp"), tables)
-    check_room(30, dict(env, ROS_AUTOMATIC_DISCOVERY_RANGE="SUBNET"), tables)
+                       r"discovery reaches taken on this computer .* this run's 31 processes need 30 of "
+                       r"them free: .*or run on another ROS_DOMAIN_ID"):
+        check_room(31, env, tables)
+    with pytest.raises(RuntimeError, match=r"has 3 of the 32"):
+        check_room(31, dict(env, RMW_IMPLEMENTATION=""), tables)            # the default middleware
+    check_room(31, dict(env, RMW_IMPLEMENTATION="rmw_cyclonedds_cpp"), tables)
+    check_room(31, dict(env, ROS_AUTOMATIC_DISCOVERY_RANGE="SUBNET"), tables)
+    with pytest.raises(RuntimeError, match=r"ROS_DOMAIN_ID = 'rig' is not a domain id"):
+        check_room(2, dict(env, ROS_DOMAIN_ID="rig"), tables)
 
 
 def test_a_run_on_a_domain_without_room_is_refused_before_a_node_starts(tmp_path):
@@ -118,7 +129,7 @@ def test_a_run_on_a_domain_without_room_is_refused_before_a_node_starts(tmp_path
             patch.setattr(subprocess, "Popen", lambda *a, **k: started.append(a))
             begin = time.monotonic()
             with pytest.raises(RuntimeError, match=rf"ROS domain {domain} has 32 of the 32 participant ids "
-                               r".* this run's 6 processes need 6"):
+                               r".* this run's 6 processes need 5 of them free"):
                 orchestration.run_processes([], {"bag": str(tmp_path / "bag"),
                                                  "metrics": str(tmp_path / "metrics.json")}, task="coiling")
-    assert started == [] and time.monotonic() - begin < 5.0
+    assert started == [] and time.monotonic() - begin < 30.0           # not the bring-up's 60 s
