@@ -28,6 +28,8 @@ import time
 
 import can
 
+from soft_arm_ros.localhost_discovery import DOMAIN_GAIN, PORT_BASE
+
 INTERFACE = "soft_arm_loopback"
 HOST = "127.0.0.1"
 # sender's epoch, sequence number, time stamp [s], arbitration id, dlc, flags, 8 data bytes
@@ -37,10 +39,11 @@ _EXTENDED, _REMOTE, _ERROR = 1, 2, 4
 # over half a second of the rig's 2000 frames/s, so that a reader that stalls loses none
 RECEIVE_BUFFER = 1 << 20
 _LOWEST_DRAWN = 20000       # free_udp_ports draws from here up to the ephemeral range
-# DDS (RTPS) binds 7400 + 250 d + offset for domain d: 0-1 multicast, 10 + 2 p and 11 + 2 p unicast
-# for participant p. The ports drawn keep clear of the offsets of the first 60 participants of any
-# domain (the draw's range holds domains 51-101's, where a test run or a lab may be).
-_DDS_BASE, _DDS_DOMAIN_GAIN, _DDS_OFFSETS = 7400, 250, 130
+# DDS (RTPS) binds PORT_BASE + DOMAIN_GAIN d + offset for domain d: 0-1 multicast, 10 + 2 p and
+# 11 + 2 p unicast for participant p. The ports drawn keep clear of the offsets of the first 60
+# participants of any domain (the draw's range holds domains 51-101's, where a test run or a lab
+# may be).
+_DDS_OFFSETS = 130
 
 
 def free_udp_ports(n: int = 2) -> list:
@@ -60,7 +63,7 @@ def free_udp_ports(n: int = 2) -> list:
         ports = []
         for _ in range(64 * n):
             port = rng.randrange(_LOWEST_DRAWN, low)
-            if (port - _DDS_BASE) % _DDS_DOMAIN_GAIN >= _DDS_OFFSETS and port not in ports \
+            if (port - PORT_BASE) % DOMAIN_GAIN >= _DDS_OFFSETS and port not in ports \
                     and _bindable(port):
                 ports.append(port)
                 if len(ports) == n:

@@ -16,9 +16,10 @@ def _taking(stack: ExitStack, domain: int, count: int) -> int:
     how many it bound."""
     bound = 0
     for participant in range(REACHED):
-        if len(taken_participants(int(domain))) >= count:
+        taken = taken_participants(int(domain))
+        if len(taken) >= count:
             break
-        if participant in taken_participants(int(domain)):
+        if participant in taken:
             continue
         sock = stack.enter_context(socket.socket(socket.AF_INET, socket.SOCK_DGRAM))
         sock.bind(("0.0.0.0", discovery_port(int(domain), participant)))
