@@ -55,11 +55,19 @@ def live_view(address: str | None, ros_args: list, record: str = "", timeout: fl
     be set up only when the run is all but over. RuntimeError, naming what it waited for, if the
     process ends first (its log says why: a port in use, a bad parameter), if it is not set up
     within ``timeout`` s or if ``stopped()`` (polled every 0.1 s) turns true. It is asked to stop
-    (SIGINT) at the end and killed after 5 s."""
+    (SIGINT) at the end and killed after 5 s.
+
+    It starts only where it can meet the run: on a domain that localhost discovery has no room
+    left on, the view and the run's first process would both take ids it does not reach and never
+    meet (an empty view, said by nothing); RuntimeError then, before the process starts
+    (:func:`soft_arm_ros.localhost_discovery.check_room`, for the view and one process of the run;
+    a run of several processes checks the room for the rest as it starts them)."""
     if address is None:
         yield None
         return
     host, port = parse_address(address)
+    from soft_arm_ros.localhost_discovery import check_room
+    check_room(2)
     command = [sys.executable, "-m", "soft_arm_experiments.live_view_node", "--ros-args", *ros_args,
                *live_arguments(host, port, record)]
     read, write = os.pipe()

@@ -5,6 +5,13 @@ transitions) hold: while one of them is held up (a publish the middleware holds,
 timeout) the cycle does not run and the motors go unwatched. The cycle's watchdog says so once it
 runs again; with the holder's name it also says what held it, and the cycle can report the wait
 while it lasts (:class:`~soft_arm_drivers.can.periodic_thread.PeriodicThread`'s ``on_wait``).
+
+The other way round, the callbacks wait for a cycle that holds the lock (a publish the middleware
+holds up is one), and a cycle stuck in its hardware would hold the executor with it: every service
+unanswered, the node's release never reached. So a holder waits :data:`HOLD_WAIT` at most (or the
+bound it gives), then :class:`LockTimeout` names the holder and how long it held; each callback
+says what it could not do (a service answers failure, a command is dropped and counted, a release
+that could not send its zero torque fails the node).
 """
 from __future__ import annotations
 
@@ -13,7 +20,16 @@ import time
 from contextlib import contextmanager
 from typing import Callable, Iterator, Optional, Tuple
 
-__all__ = ["HardwareLock"]
+__all__ = ["HOLD_WAIT", "HardwareLock", "LockTimeout"]
+
+HOLD_WAIT = 1.0    # s: the longest a holder waits for the lock unless it gives its own bound; a
+#                    cycle holds it for one period's sends (each bounded by the bus's send timeout)
+#                    and publishes: held longer, it is stuck and its own watchdog has tripped
+
+
+class LockTimeout(RuntimeError):
+    """A holder's wait for the hardware lock ran out; the message names the waiter, the bound, the
+    holder and how long it had held the lock."""
 
 
 class HardwareLock:
@@ -51,20 +67,28 @@ class HardwareLock:
         self._lock.release()
 
     def __enter__(self):
-        self.acquire()
+        self._hold(threading.current_thread().name, HOLD_WAIT)
         return self
 
     def __exit__(self, *exc):
         self.release()
 
     @contextmanager
-    def held_by(self, what: str) -> Iterator[None]:
-        """Hold the lock for the block, named ``what``."""
-        self.acquire(what=what)
+    def held_by(self, what: str, timeout: Optional[float] = None) -> Iterator[None]:
+        """Hold the lock for the block, named ``what``, once it is free within ``timeout`` [s]
+        (default :data:`HOLD_WAIT`); :class:`LockTimeout` (the block not run) if it is not."""
+        self._hold(what, HOLD_WAIT if timeout is None else timeout)
         try:
             yield
         finally:
             self.release()
+
+    def _hold(self, what: str, timeout: float):
+        if not self.acquire(timeout=timeout, what=what):
+            holder = self._holder                    # read once: it may be released meanwhile
+            held = (f"{holder[0]} for {self._clock() - holder[1]:.3f} s" if holder is not None
+                    else "a holder that released it just then")
+            raise LockTimeout(f"{what} waited {timeout:g} s for the hardware lock, held by {held}")
 
     def holder(self) -> Optional[Tuple[str, float]]:
         """(what holds the lock, since when [s]), or None while it is free; read from any thread."""

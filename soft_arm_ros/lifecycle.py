@@ -15,6 +15,9 @@ shutdown go back. ros2_control's hardware components use the same states.
 - a transition asked for through the change_state service holds that lock from start to end, so
   that a thread of the node's own (a driver's cycle) that triggers one, holding it, never runs
   beside another;
+- neither waits for the lock longer than its bound (:data:`~.hardware_lock.HOLD_WAIT`): a cycle
+  stuck holding it fails the transition (the node stays where it was) with an error naming the
+  cycle, where it would hold the executor and every service with it;
 - :attr:`~ManagedHardwareNode.lifecycle_state`, the current state's label;
 - cleanup, shutdown and error processing all call the node's :meth:`~ManagedHardwareNode.release`
   (close the hardware), which its ``close()`` on the way out calls too.
@@ -26,7 +29,7 @@ import traceback
 
 from rclpy.lifecycle import LifecycleNode, TransitionCallbackReturn
 
-from .hardware_lock import HardwareLock
+from .hardware_lock import HardwareLock, LockTimeout
 
 SUCCESS, FAILURE = TransitionCallbackReturn.SUCCESS, TransitionCallbackReturn.FAILURE
 
@@ -35,15 +38,21 @@ __all__ = ["FAILURE", "ManagedHardwareNode", "SUCCESS", "transition"]
 
 def transition(callback):
     """Decorate a node's ``on_<transition>`` so that it runs holding the node's ``hardware_lock``
-    and an exception in it is logged (then re-raised for rclpy, which enters error processing)."""
+    and an exception in it is logged (then re-raised for rclpy, which enters error processing);
+    FAILURE, said, if the lock is not free within its bound."""
+    name = callback.__name__[3:]
+
     @functools.wraps(callback)
     def logged(node, state):
-        with node.hardware_lock.held_by(f"the {callback.__name__[3:]} transition"):
-            try:
-                return callback(node, state)
-            except Exception:
-                node.get_logger().error(f"{callback.__name__[3:]} failed:\n{traceback.format_exc()}")
-                raise
+        try:
+            with node.hardware_lock.held_by(f"the {name} transition"):
+                try:
+                    return callback(node, state)
+                except Exception:
+                    node.get_logger().error(f"{name} failed:\n{traceback.format_exc()}")
+                    raise
+        except LockTimeout as exc:        # the lock's, before the callback: it holds it then
+            return node.refuse(name, str(exc))
     return logged
 
 
@@ -62,9 +71,16 @@ class ManagedHardwareNode(LifecycleNode):
         change_state = service.callback
 
         def guarded(request, response):
-            """:func:`checked`, holding the hardware lock from start to end."""
-            with self.hardware_lock.held_by("the change_state service"):
-                return checked(request, response)
+            """:func:`checked`, holding the hardware lock from start to end (refused if it is not
+            free within its bound)."""
+            try:
+                with self.hardware_lock.held_by("the change_state service"):
+                    return checked(request, response)
+            except LockTimeout as exc:
+                self.get_logger().error(f"transition {request.transition.label or request.transition.id} "
+                                        f"refused: {exc}")
+                response.success = False
+                return response
 
         def checked(request, response):
             """rclpy's change_state, for the transitions the current state has."""

@@ -64,8 +64,9 @@ from std_srvs.srv import Trigger
 
 from soft_arm_model.parameters import ConfigError
 from soft_arm_ros.contract import QOS, TOPICS
-from soft_arm_ros.lifecycle import SUCCESS, ManagedHardwareNode, transition
 from soft_arm_ros.conversions import joint_state, ordered, stamp_to_seconds
+from soft_arm_ros.hardware_lock import LockTimeout
+from soft_arm_ros.lifecycle import SUCCESS, ManagedHardwareNode, transition
 from soft_arm_ros.parameters import NodeParameters
 from soft_arm_ros.runtime import run_node
 
@@ -107,6 +108,7 @@ class MotorDriverNode(ManagedHardwareNode):
         self._lock_holder = ""          # what held the hardware lock while the cycle waited for it
         self._wait_said = False         # the cycle's present wait for the lock logged
         self.lock_waits = 0             # waits of the cycle for the lock past watchdog_timeout
+        self.lock_dropped_commands = 0  # commands whose callback found the lock held past its bound
         self.state_pub = self.create_publisher(JointState, TOPICS["state"], QOS["tendon/state"])
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.command_sub = self.create_subscription(JointState, TOPICS["command"], self.on_command,
@@ -188,25 +190,33 @@ class MotorDriverNode(ManagedHardwareNode):
         return SUCCESS
 
     def release(self):
-        """Stop cycling; zero torque and exit motor mode on every motor; close the bus."""
-        with self.hardware_lock.held_by("the node's release"):   # the cycle thread is between two cycles
-            cycle, self._cycle = self._cycle, None
-            driver, self.driver = self.driver, None
-            try:
-                if cycle is not None:
-                    cycle.stop()
-            finally:
-                if driver is not None:
-                    unsent = driver.close()
-                    if unsent:
-                        self._unsent("closing the bus", unsent)
+        """Stop cycling; zero torque and exit motor mode on every motor; close the bus. A cycle
+        stuck holding the hardware lock leaves the motors to their own CAN timeout: the node has
+        failed (:meth:`_unsent`), and the bus is left to the process's end."""
+        try:
+            with self.hardware_lock.held_by("the node's release"):   # the cycle thread is between cycles
+                self._release()
+        except LockTimeout as exc:
+            self._unsent("the release", [str(exc)])
+
+    def _release(self):
+        cycle, self._cycle = self._cycle, None
+        driver, self.driver = self.driver, None
+        try:
+            if cycle is not None:
+                cycle.stop()
+        finally:
+            if driver is not None:
+                unsent = driver.close()
+                if unsent:
+                    self._unsent("closing the bus", unsent)
 
     def _unsent(self, what: str, unsent: list):
         """Say that the zero-torque or exit-motor-mode frames of ``what`` did not all leave: the
         motors those frames were for hold their last torque until their own CAN timeout. The node
         has failed its one safety duty whatever a later stop sends: its process exits with status 1
         when it is stopped (:attr:`failure`), so that a run it served is no result."""
-        self.failure = self.failure or RuntimeError(f"{what}: zero torque not sent: {unsent}")
+        self.failure = self.failure or RuntimeError(f"{what}: zero torque not sent: {'; '.join(unsent)}")
         self.get_logger().fatal(f"{what}: frames did not leave the bus ({'; '.join(unsent)}): those "
                                 "motors may hold their last torque until their own CAN timeout; cut "
                                 "their power if they do")
@@ -216,16 +226,22 @@ class MotorDriverNode(ManagedHardwareNode):
         self.failure, self.done = exc, True
         self.get_logger().fatal("the driver's cycle failed, motors at zero torque, the node ends: "
                                 + "".join(traceback.format_exception(exc)))
-        with self.hardware_lock.held_by("the e-stop after the cycle failed"):
-            if self.driver is not None:
-                unsent = self.driver.estop()
-                if unsent:
-                    self._unsent("e-stop after the cycle failed", unsent)
+        try:
+            with self.hardware_lock.held_by("the e-stop after the cycle failed"):
+                unsent = self.driver.estop() if self.driver is not None else []
+        except LockTimeout as exc:
+            unsent = [str(exc)]
+        if unsent:
+            self._unsent("e-stop after the cycle failed", unsent)
 
     def on_command(self, msg: JointState):
         received = time.monotonic()
-        with self.hardware_lock.held_by("a command's callback"):
-            self._on_command(msg, received)
+        try:
+            with self.hardware_lock.held_by("a command's callback"):
+                self._on_command(msg, received)
+        except LockTimeout as exc:                 # the cycle's watchdog faults on the gap meanwhile
+            self.lock_dropped_commands += 1
+            self.get_logger().error(f"command dropped: {exc}", throttle_duration_sec=1.0)
 
     def _on_command(self, msg: JointState, received: float):
         if self.driver is None:
@@ -324,7 +340,7 @@ class MotorDriverNode(ManagedHardwareNode):
                                 foreign_frames=diag.foreign_frames, error_frames=diag.error_frames,
                                 unstamped_frames=diag.unstamped_frames,
                                 late_cycles=diag.late_cycles, incomplete_cycles=self.incomplete_cycles,
-                                lock_waits=self.lock_waits,
+                                lock_waits=self.lock_waits, lock_dropped_commands=self.lock_dropped_commands,
                                 cycles=diag.cycles, zeroed=diag.zeroed, lifecycle_state=self.lifecycle_state,
                                 command_source=self.source.verdict.status,
                                 command_publishers=" ".join(self.source.verdict.publishers),
@@ -360,8 +376,15 @@ class MotorDriverNode(ManagedHardwareNode):
         return out
 
     def on_estop(self, request, response):
-        with self.hardware_lock.held_by("the estop service"):
-            return self._estop(response)
+        try:
+            with self.hardware_lock.held_by("the estop service"):
+                return self._estop(response)
+        except LockTimeout as exc:
+            response.success = False
+            response.message = (f"e-stop not sent: {exc}; the motors hold their last torque until "
+                                "their own CAN timeout: cut their power if they pull")
+            self._unsent("e-stop", [str(exc)])
+            return response
 
     def _estop(self, response):
         response.success = True
@@ -386,8 +409,13 @@ class MotorDriverNode(ManagedHardwareNode):
         return response
 
     def on_zero(self, request, response):
-        with self.hardware_lock.held_by("the zero service"):
-            return self._zero(response)
+        try:
+            with self.hardware_lock.held_by("the zero service"):
+                return self._zero(response)
+        except LockTimeout as exc:
+            response.success, response.message = False, f"zero not set: {exc}"
+            self.get_logger().error(response.message)
+            return response
 
     def _zero(self, response):
         state = self.lifecycle_state

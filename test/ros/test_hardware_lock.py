@@ -4,7 +4,8 @@ import threading
 
 import pytest
 
-from soft_arm_ros.hardware_lock import HardwareLock
+from soft_arm_ros import hardware_lock
+from soft_arm_ros.hardware_lock import HardwareLock, LockTimeout
 
 
 def test_the_lock_names_its_outermost_holder_until_it_is_free():
@@ -39,3 +40,39 @@ def test_the_lock_names_its_outermost_holder_until_it_is_free():
     with lock.held_by("the zero service"):                                     # the record still sound
         assert lock.holder() == ("the zero service", 11.0)
     assert lock.holder() is None
+
+
+def test_a_holder_waits_a_bound_then_names_what_holds_the_lock(monkeypatch):
+    """A cycle stuck holding the lock: a service's wait ends at its bound with LockTimeout naming
+    the service, the bound, the cycle and how long it has held; the service's block never runs and
+    the cycle's record stays. ``with lock:`` waits HOLD_WAIT at most too; once free, both hold."""
+    lock, holding, done = HardwareLock(), threading.Event(), threading.Event()
+
+    def stuck_cycle():
+        with lock.held_by("the motor_driver cycle"):
+            holding.set()
+            done.wait(10.0)
+    thread = threading.Thread(target=stuck_cycle)
+    thread.start()
+    try:
+        assert holding.wait(5.0)
+        ran = []
+        with pytest.raises(LockTimeout, match=r"^the estop service waited 0.05 s for the hardware lock, "
+                                              r"held by the motor_driver cycle for [0-9.]+ s$") as waited:
+            with lock.held_by("the estop service", timeout=0.05):
+                ran.append(True)
+        assert float(str(waited.value).split(" for ")[-1][:-2]) >= 0.05
+        assert ran == [] and lock.holder()[0] == "the motor_driver cycle"
+        monkeypatch.setattr(hardware_lock, "HOLD_WAIT", 0.02)
+        with pytest.raises(LockTimeout, match=r"^MainThread waited 0.02 s for the hardware lock, held by "
+                                              r"the motor_driver cycle"):
+            with lock:
+                ran.append(True)
+        assert ran == []
+    finally:
+        done.set()
+        thread.join(5.0)
+    with lock.held_by("the estop service", timeout=0.05):
+        assert lock.holder()[0] == "the estop service"
+    with lock:
+        assert lock.holder()[0] == "MainThread"

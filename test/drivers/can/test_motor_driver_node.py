@@ -8,6 +8,7 @@ import re
 import signal
 import subprocess
 import sys
+import threading
 import time
 
 import can
@@ -28,6 +29,7 @@ from soft_arm_drivers.can.driver_config import load_driver_config
 from soft_arm_drivers.can.motor_driver_node import MotorDriverNode, main
 from soft_arm_drivers.sim.can_emulator import CanMotorEmulator, EmulatorThread
 from soft_arm_model.parameters import ConfigError, default_config_dir
+from soft_arm_ros import hardware_lock
 from soft_arm_ros.contract import QOS
 from soft_arm_ros.conversions import joint_state, ordered, stamp_to_seconds
 
@@ -444,6 +446,53 @@ def test_a_cycle_held_by_another_holder_of_the_hardware_lock_names_it(rig):
     assert 0.25 <= waiting <= gap
     values = {kv.key: kv.value for kv in node.diagnostic_array(node.driver.diagnostics()).status[0].values}
     assert values["lock_waits"] == "1"
+
+
+def test_a_cycle_stuck_in_its_hardware_holds_no_callback_past_its_bound(rig, monkeypatch):
+    """The cycle stuck in the driver holding the hardware lock (a bus call that never returns)
+    while the motors pull: each callback waits HOLD_WAIT at most, then says what it could not do,
+    naming the cycle, where it held the executor with it: a command dropped and counted, the zero
+    refused, a deactivation failed with the node still active, the release failed (the motors are
+    left to their own CAN timeout: the node has failed, exit status 1), the e-stop answered
+    failure. Once the cycle goes on, the node's close leaves the motors safe."""
+    executor, node, harness, emulator = _pulling(rig)
+    monkeypatch.setattr(hardware_lock, "HOLD_WAIT", 0.1)
+    stuck, go = threading.Event(), threading.Event()
+    cycle = node.driver.cycle
+
+    def stuck_cycle(*args):
+        stuck.set()
+        go.wait(30.0)
+        return cycle(*args)
+    with node.hardware_lock.held_by("the test"):
+        node.driver.cycle = stuck_cycle
+    held = r"waited 0.1 s for the hardware lock, held by motor_driver cycle for [0-9.]+ s"
+    try:
+        assert stuck.wait(5.0)
+        node.on_command(joint_state(node.names, time.time(), effort=[1.0, 0.0, 0.0, 0.0]))
+        assert node.lock_dropped_commands == 1
+        assert values_of(node)["lock_dropped_commands"] == "1"
+        answer = node.on_zero(Trigger.Request(), Trigger.Response())
+        assert not answer.success and re.fullmatch("zero not set: the zero service " + held, answer.message)
+        assert node.trigger_deactivate() == TransitionCallbackReturn.FAILURE
+        assert not change(executor, harness, "deactivate")                  # the service's own wait
+        assert node.lifecycle_state == "active" and node.failure is None
+        node.release()
+        assert re.fullmatch("the release: zero torque not sent: the node's release " + held,
+                            str(node.failure)), node.failure
+        failure = node.failure
+        answer = node.on_estop(Trigger.Request(), Trigger.Response())
+        assert not answer.success and re.match("e-stop not sent: the estop service " + held, answer.message)
+        assert "cut their power" in answer.message and node.failure is failure      # the first kept
+    finally:
+        go.set()
+    node.close()
+    assert node.driver is None and not any(m.motor_mode for m in emulator.motors)
+
+
+def values_of(node) -> dict:
+    """The driver status's values the node would publish now, by key."""
+    return {kv.key: kv.value for kv in node.diagnostic_array(node.driver.diagnostics()).status[0].values}
 
 
 def test_rig_yaml_parses_with_the_ros_parameter_parser():
