@@ -6,12 +6,15 @@ timeout) the cycle does not run and the motors go unwatched. The cycle's watchdo
 runs again; with the holder's name it also says what held it, and the cycle can report the wait
 while it lasts (:class:`~soft_arm_drivers.can.periodic_thread.PeriodicThread`'s ``on_wait``).
 
-The other way round, the callbacks wait for a cycle that holds the lock (a publish the middleware
-holds up is one), and a cycle stuck in its hardware would hold the executor with it: every service
-unanswered, the node's release never reached. So a holder waits :data:`HOLD_WAIT` at most (or the
-bound it gives), then :class:`LockTimeout` names the holder and how long it held; each callback
-says what it could not do (a service answers failure, a command is dropped and counted, a release
-that could not send its zero torque fails the node).
+The other way round, the callbacks wait for a cycle that holds the lock, and a cycle stuck in a
+call that lets the other threads run (a bus that does not return, a driver that hangs) would hold
+the executor with it: every service unanswered, the node's release never reached. So a holder
+waits :data:`HOLD_WAIT` at most (or the bound it gives), then :class:`LockTimeout` names the holder
+and how long it held; each callback says what it could not do (a service answers failure, a
+command is dropped and counted, a release that could not send its zero torque to enabled motors
+fails the node). A publish the middleware holds up is beyond this bound: rclpy publishes holding
+the interpreter lock, which holds every thread of the process
+(:mod:`soft_arm_drivers.can.periodic_thread`).
 """
 from __future__ import annotations
 

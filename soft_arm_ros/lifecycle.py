@@ -16,8 +16,10 @@ shutdown go back. ros2_control's hardware components use the same states.
   that a thread of the node's own (a driver's cycle) that triggers one, holding it, never runs
   beside another;
 - neither waits for the lock longer than its bound (:data:`~.hardware_lock.HOLD_WAIT`): a cycle
-  stuck holding it fails the transition (the node stays where it was) with an error naming the
-  cycle, where it would hold the executor and every service with it;
+  stuck holding it fails the transition with an error naming the cycle, where it would hold the
+  executor and every service with it. The node stays where it was, but from shutdown and error
+  processing, which rclpy finalizes whatever they return: those still call
+  :meth:`~ManagedHardwareNode.release`, whose own bounded wait says what it could not do;
 - :attr:`~ManagedHardwareNode.lifecycle_state`, the current state's label;
 - cleanup, shutdown and error processing all call the node's :meth:`~ManagedHardwareNode.release`
   (close the hardware), which its ``close()`` on the way out calls too.
@@ -32,6 +34,7 @@ from rclpy.lifecycle import LifecycleNode, TransitionCallbackReturn
 from .hardware_lock import HardwareLock, LockTimeout
 
 SUCCESS, FAILURE = TransitionCallbackReturn.SUCCESS, TransitionCallbackReturn.FAILURE
+FINALIZING = ("shutdown", "error")    # transitions that end in finalized, failed or not (rcl's machine)
 
 __all__ = ["FAILURE", "ManagedHardwareNode", "SUCCESS", "transition"]
 
@@ -52,7 +55,10 @@ def transition(callback):
                     node.get_logger().error(f"{name} failed:\n{traceback.format_exc()}")
                     raise
         except LockTimeout as exc:        # the lock's, before the callback: it holds it then
-            return node.refuse(name, str(exc))
+            failed = node.refuse(name, str(exc))
+            if name in FINALIZING:
+                node.release()
+            return failed
     return logged
 
 

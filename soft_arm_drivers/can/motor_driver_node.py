@@ -107,6 +107,7 @@ class MotorDriverNode(ManagedHardwareNode):
         self._publish_time = 0.0        # [s] the previous tick's publishing, for the driver's watchdog
         self._lock_holder = ""          # what held the hardware lock while the cycle waited for it
         self._wait_said = False         # the cycle's present wait for the lock logged
+        self._release_pending = False   # a release that found the cycle stuck, for the cycle to do
         self.lock_waits = 0             # waits of the cycle for the lock past watchdog_timeout
         self.lock_dropped_commands = 0  # commands whose callback found the lock held past its bound
         self.state_pub = self.create_publisher(JointState, TOPICS["state"], QOS["tendon/state"])
@@ -143,7 +144,7 @@ class MotorDriverNode(ManagedHardwareNode):
             driver.close()
             return self.refuse("configure", driver.fault)
         self.driver = driver
-        self._lock_holder, self._wait_said = "", False
+        self._lock_holder, self._wait_said, self._release_pending = "", False, False
         self._cycle = PeriodicThread(1.0 / c.rate, self.tick, lock=self.hardware_lock,
                                      on_wait=self._waiting_for_lock,
                                      on_error=self._cycle_failed, name="motor_driver cycle").start()
@@ -191,13 +192,15 @@ class MotorDriverNode(ManagedHardwareNode):
 
     def release(self):
         """Stop cycling; zero torque and exit motor mode on every motor; close the bus. A cycle
-        stuck holding the hardware lock leaves the motors to their own CAN timeout: the node has
-        failed (:meth:`_unsent`), and the bus is left to the process's end."""
+        stuck holding the hardware lock does that itself if it comes back (:meth:`tick`); meanwhile
+        enabled motors hold their last torque until their own CAN timeout, and the node has failed
+        (:meth:`_not_done`)."""
         try:
             with self.hardware_lock.held_by("the node's release"):   # the cycle thread is between cycles
                 self._release()
         except LockTimeout as exc:
-            self._unsent("the release", [str(exc)])
+            self._release_pending = True
+            self._not_done("the release", exc)
 
     def _release(self):
         cycle, self._cycle = self._cycle, None
@@ -210,6 +213,15 @@ class MotorDriverNode(ManagedHardwareNode):
                 unsent = driver.close()
                 if unsent:
                     self._unsent("closing the bus", unsent)
+
+    def _not_done(self, what: str, exc: LockTimeout):
+        """``what`` could not take the hardware lock from a stuck cycle: with the motors enabled its
+        zero torque was not sent (:meth:`_unsent`); otherwise their firmware holds no torque and it
+        is said only."""
+        if self.driver is not None and self.driver.mode == "enabled":
+            self._unsent(what, [str(exc)])
+        else:
+            self.get_logger().error(f"{what} not done, the motors out of motor mode: {exc}")
 
     def _unsent(self, what: str, unsent: list):
         """Say that the zero-torque or exit-motor-mode frames of ``what`` did not all leave: the
@@ -278,6 +290,9 @@ class MotorDriverNode(ManagedHardwareNode):
         """One driver cycle, from the cycle thread at ``now`` [s, monotonic], holding the hardware
         lock; the driver reads its own clock (the same monotonic clock). What follows the cycle
         (publishing, logging, a deactivation) is timed for the next cycle's watchdog to name."""
+        if self._release_pending:              # a release that found the cycle stuck: done here
+            self._release()
+            return
         wait = self._cycle.lock_wait
         if wait >= self.config.watchdog_timeout and not self._wait_said:
             self._say_wait(wait)                   # it passed the bound within the last slice
@@ -379,11 +394,12 @@ class MotorDriverNode(ManagedHardwareNode):
         try:
             with self.hardware_lock.held_by("the estop service"):
                 return self._estop(response)
-        except LockTimeout as exc:
+        except LockTimeout as exc:      # the stuck cycle, once back, trips its watchdog (at most 1 s,
+            #                             rig.yaml's bound, not above HOLD_WAIT): zero torque then
             response.success = False
-            response.message = (f"e-stop not sent: {exc}; the motors hold their last torque until "
+            response.message = (f"e-stop not sent: {exc}; enabled motors hold their last torque until "
                                 "their own CAN timeout: cut their power if they pull")
-            self._unsent("e-stop", [str(exc)])
+            self._not_done("e-stop", exc)
             return response
 
     def _estop(self, response):

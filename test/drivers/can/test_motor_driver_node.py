@@ -448,15 +448,9 @@ def test_a_cycle_held_by_another_holder_of_the_hardware_lock_names_it(rig):
     assert values["lock_waits"] == "1"
 
 
-def test_a_cycle_stuck_in_its_hardware_holds_no_callback_past_its_bound(rig, monkeypatch):
-    """The cycle stuck in the driver holding the hardware lock (a bus call that never returns)
-    while the motors pull: each callback waits HOLD_WAIT at most, then says what it could not do,
-    naming the cycle, where it held the executor with it: a command dropped and counted, the zero
-    refused, a deactivation failed with the node still active, the release failed (the motors are
-    left to their own CAN timeout: the node has failed, exit status 1), the e-stop answered
-    failure. Once the cycle goes on, the node's close leaves the motors safe."""
-    executor, node, harness, emulator = _pulling(rig)
-    monkeypatch.setattr(hardware_lock, "HOLD_WAIT", 0.1)
+def _stuck(node) -> threading.Event:
+    """Make the node's cycle stick in the driver, holding the hardware lock, from its next call on;
+    returns the event that lets it go on (set it)."""
     stuck, go = threading.Event(), threading.Event()
     cycle = node.driver.cycle
 
@@ -466,28 +460,66 @@ def test_a_cycle_stuck_in_its_hardware_holds_no_callback_past_its_bound(rig, mon
         return cycle(*args)
     with node.hardware_lock.held_by("the test"):
         node.driver.cycle = stuck_cycle
-    held = r"waited 0.1 s for the hardware lock, held by motor_driver cycle for [0-9.]+ s"
+    assert stuck.wait(5.0)
+    return go
+
+
+HELD = r"waited 0.1 s for the hardware lock, held by motor_driver cycle for [0-9.]+ s"
+
+
+def test_a_cycle_stuck_in_its_hardware_holds_no_callback_past_its_bound(rig, monkeypatch):
+    """The cycle stuck in the driver holding the hardware lock (a bus call that never returns)
+    while the motors pull: each callback waits HOLD_WAIT at most, then says what it could not do,
+    naming the cycle, where it held the executor with it: a command dropped and counted, the zero
+    refused, a deactivation failed with the node still active, the release failed (the motors are
+    left to their own CAN timeout: the node has failed, exit status 1), the e-stop answered
+    failure. The cycle, once back, does the release itself: the motors safe, the bus closed."""
+    executor, node, harness, emulator = _pulling(rig)
+    monkeypatch.setattr(hardware_lock, "HOLD_WAIT", 0.1)
+    cycle = node._cycle
+    go = _stuck(node)
     try:
-        assert stuck.wait(5.0)
         node.on_command(joint_state(node.names, time.time(), effort=[1.0, 0.0, 0.0, 0.0]))
         assert node.lock_dropped_commands == 1
         assert values_of(node)["lock_dropped_commands"] == "1"
         answer = node.on_zero(Trigger.Request(), Trigger.Response())
-        assert not answer.success and re.fullmatch("zero not set: the zero service " + held, answer.message)
+        assert not answer.success and re.fullmatch("zero not set: the zero service " + HELD, answer.message)
         assert node.trigger_deactivate() == TransitionCallbackReturn.FAILURE
         assert not change(executor, harness, "deactivate")                  # the service's own wait
         assert node.lifecycle_state == "active" and node.failure is None
         node.release()
-        assert re.fullmatch("the release: zero torque not sent: the node's release " + held,
+        assert re.fullmatch("the release: zero torque not sent: the node's release " + HELD,
                             str(node.failure)), node.failure
         failure = node.failure
         answer = node.on_estop(Trigger.Request(), Trigger.Response())
-        assert not answer.success and re.match("e-stop not sent: the estop service " + held, answer.message)
+        assert not answer.success and re.match("e-stop not sent: the estop service " + HELD, answer.message)
         assert "cut their power" in answer.message and node.failure is failure      # the first kept
     finally:
         go.set()
-    node.close()
-    assert node.driver is None and not any(m.motor_mode for m in emulator.motors)
+    monkeypatch.undo()
+    spin_until(executor, lambda: node.driver is None and not cycle.running)   # released by the cycle
+    spin_until(executor, lambda: not any(m.motor_mode for m in emulator.motors))
+
+
+def test_a_stuck_cycle_with_the_motors_out_of_motor_mode_fails_nothing(rig, monkeypatch):
+    """The same stuck cycle while the node is inactive (the motors hold no torque): the e-stop says
+    it was not done, naming the cycle; a shutdown fails its wait, and since rclpy finalizes the node
+    whatever it returns, releases anyway: not done either, left to the cycle, which does it once
+    back. The node has not failed."""
+    executor, node, harness, _ = rig
+    assert change(executor, harness, "configure")
+    monkeypatch.setattr(hardware_lock, "HOLD_WAIT", 0.1)
+    go = _stuck(node)
+    try:
+        answer = node.on_estop(Trigger.Request(), Trigger.Response())
+        assert not answer.success and re.match("e-stop not sent: the estop service " + HELD, answer.message)
+        assert node.trigger_shutdown() == TransitionCallbackReturn.FAILURE
+        assert node.lifecycle_state == "finalized" and node.failure is None and node.driver is not None
+    finally:
+        go.set()
+    monkeypatch.undo()
+    spin_until(executor, lambda: node.driver is None)
+    assert node.failure is None
 
 
 def values_of(node) -> dict:
