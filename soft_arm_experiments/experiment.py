@@ -43,8 +43,8 @@ from .strike import PLANNED_ON_THE_GRAPH, format_strike
 from .harness import add_setup_arguments, check_targets, load_setup, setup_overrides
 from .live_launch import add_live_argument, live_view, parse_address
 from .excitation import Excitation
-from .orchestration import (STOP, exit_failure, feedback_arguments, request_stop, roles,
-                            run_emulated_hardware, run_processes)
+from .orchestration import (STOP, exit_failure, feedback_arguments, node_processes, request_stop,
+                            roles, run_emulated_hardware, run_processes)
 from .writable import writable_directory
 
 NAMESPACES = ("arm", "control", "plant", "tasks", "graph", "identification", "estimator")
@@ -312,7 +312,10 @@ def main(argv=None) -> int:
     try:
         with contextlib.ExitStack() as stack:
             try:
-                view = live_view(args.live, ros_args, os.path.join(run_dir, "view.mcap"), stopped=STOP.is_set)
+                processes = 1 + len(node_processes(args.task, args.feedback, args.emulated_hardware)) \
+                    if args.processes or args.emulated_hardware else 1      # the nodes' and this one
+                view = live_view(args.live, ros_args, os.path.join(run_dir, "view.mcap"), stopped=STOP.is_set,
+                                 processes=processes)
                 address = stack.enter_context(view)
             except RuntimeError as exc:
                 print(f"soft-arm-experiment: --live {args.live}: {exc}", file=sys.stderr)

@@ -47,7 +47,7 @@ READY_TIMEOUT = 60.0                   # s: the longest a run waits for its live
 
 @contextlib.contextmanager
 def live_view(address: str | None, ros_args: list, record: str = "", timeout: float = READY_TIMEOUT,
-              stopped=lambda: False):
+              stopped=lambda: False, processes: int = 1):
     """The live_view process for the run while the context lasts (nothing when ``address`` is None),
     writing the view into ``record`` too; yields the address to open once the node is set up (its
     server listening, its subscriptions made), so that the run starts after it and a viewer sees
@@ -57,17 +57,17 @@ def live_view(address: str | None, ros_args: list, record: str = "", timeout: fl
     within ``timeout`` s or if ``stopped()`` (polled every 0.1 s) turns true. It is asked to stop
     (SIGINT) at the end and killed after 5 s.
 
-    It starts only where it can meet the run: on a domain that localhost discovery has no room
-    left on, the view and the run's first process would both take ids it does not reach and never
-    meet (an empty view, said by nothing); RuntimeError then, before the process starts
-    (:func:`soft_arm_ros.localhost_discovery.check_room`, for the view and one process of the run;
-    a run of several processes checks the room for the rest as it starts them)."""
+    It starts only where it can meet the run's ``processes`` (the composed run's one, or the nodes'
+    and the orchestrator's): on a domain that localhost discovery has too little room left on, two
+    of them would take ids it does not reach and never meet (an empty view, or a run that never
+    comes up); RuntimeError then, before the view's process starts
+    (:func:`soft_arm_ros.localhost_discovery.check_room`)."""
     if address is None:
         yield None
         return
     host, port = parse_address(address)
     from soft_arm_ros.localhost_discovery import check_room
-    check_room(2)
+    check_room(processes + 1)
     command = [sys.executable, "-m", "soft_arm_experiments.live_view_node", "--ros-args", *ros_args,
                *live_arguments(host, port, record)]
     read, write = os.pipe()

@@ -374,6 +374,16 @@ def roles(task: str, feedback: str = "mocap") -> tuple:
     return controller, runner
 
 
+def node_processes(task: str, feedback: str = "mocap", emulated_hardware: bool = False) -> tuple:
+    """The node processes of a run of ``task`` with the simulator (:func:`run_processes`) or the
+    emulated rig (:func:`run_emulated_hardware`) in the order they start, the runner last; the
+    orchestrator's own process comes beside them."""
+    controller, runner = roles(task, feedback)
+    if emulated_hardware:
+        return ("recorder", "emulated_rig", "mocap_bridge", *controller, runner)
+    return ("recorder", *controller, "simulator", runner)
+
+
 def feedback_arguments(feedback: str) -> list:
     """The clik's arguments (after ``--ros-args``) that close its loop on ``feedback``: the remapping
     of its mocap/markers, and ``control.clik.feedback``, which puts an estimate under the trust
@@ -406,8 +416,9 @@ def run_processes(ros_args: list, out: dict, task: str = "", feedback: str = "mo
         runner: ["-p", f"output:={out['metrics']}", "-p", "wait_for_start:=true"],
         "clik": feedback_arguments(feedback)})
     start = time.monotonic()
-    plant_side = ("recorder", *controller, "simulator")          # the runner starts once they are up
-    with _orchestrating(children, len(plant_side) + 1) as node:
+    nodes = node_processes(task, feedback)
+    plant_side = nodes[:-1]                                      # the runner starts once they are up
+    with _orchestrating(children, len(nodes)) as node:
         begin = node.create_client(Trigger, f"/{runner}/start")
         for name in plant_side:
             children.start(name)
@@ -521,7 +532,7 @@ def run_emulated_hardware(ros_args: list, out: dict, duration: float,
                 print(f"\nsoft-arm-experiment: motor_driver {message} "
                       f"({stamp - enabled_at:.2f} s after the enable): the run ends", file=sys.stderr)
 
-    started = ("recorder", "emulated_rig", "mocap_bridge", *controller, runner)
+    started = node_processes(task, feedback, emulated_hardware=True)
     with _orchestrating(children, len(started)) as node:
         node.create_subscription(DiagnosticArray, "/diagnostics", on_diagnostics, 10)
         # every client is created, and its server discovered, before the motors are enabled

@@ -136,23 +136,29 @@ def test_a_run_on_a_domain_without_room_is_refused_before_a_node_starts(tmp_path
     assert started == [] and time.monotonic() - begin < 30.0           # not the bring-up's 60 s
 
 
-def test_a_live_view_on_a_domain_without_room_is_refused_before_it_starts(tmp_path, capsys):
-    """``soft-arm-experiment --live`` on a domain whose first 32 ids are all taken: the composed run
-    (one process) and its live_view process would both take ids localhost discovery does not
-    reach and never meet, the view empty and nothing saying why. Refused at once (status 2), naming
-    the domain, before the view's process or the run starts."""
+@pytest.mark.parametrize("mode, taken, processes", [([], REACHED, 2), (["--processes"], REACHED - 5, 7)],
+                         ids=["composed", "processes"])
+def test_a_live_view_on_a_domain_without_room_is_refused_before_it_starts(tmp_path, capsys, mode, taken,
+                                                                          processes):
+    """``soft-arm-experiment --live`` on a domain without room for the run and its view: the composed
+    run (one process) and its view on a full domain would both take ids localhost discovery does
+    not reach and never meet, the view empty and nothing saying why; the processes mode's six
+    (five nodes and the orchestrator) and the view, with five ids free, would start the view, then
+    refuse the run. Refused at once (status 2), naming the domain and the count, before the view's
+    process or the run starts."""
     import subprocess
 
     from soft_arm_experiments.experiment import main
     started = []
     domain = os.environ["ROS_DOMAIN_ID"]
     with ExitStack() as stack:
-        _taking(stack, domain, REACHED)
+        _taking(stack, domain, taken)
         with pytest.MonkeyPatch.context() as patch:
             patch.setattr(subprocess, "Popen", lambda *a, **k: started.append(a))
-            code = main(["coiling", "--quiet", "--live", "127.0.0.1:0", "--output", str(tmp_path / "run")])
+            code = main(["coiling", *mode, "--quiet", "--live", "127.0.0.1:0",
+                         "--output", str(tmp_path / "run")])
     err = capsys.readouterr().err
     assert code == 2 and started == [], err
-    assert f"--live 127.0.0.1:0: ROS domain {domain} has 32 of the 32 participant ids" in err
-    assert "this run's 2 processes need 1 of them free" in err
+    assert f"--live 127.0.0.1:0: ROS domain {domain} has {taken} of the 32 participant ids" in err
+    assert f"this run's {processes} processes need {processes - 1} of them free" in err
     assert not (tmp_path / "run" / "bag").exists()
