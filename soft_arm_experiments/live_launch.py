@@ -61,19 +61,22 @@ def live_view(address: str | None, ros_args: list, record: str = "", timeout: fl
     and the orchestrator's): on a domain that localhost discovery has too little room left on, two
     of them would take ids it does not reach and never meet (an empty view, or a run that never
     comes up); RuntimeError then, before the view's process starts
-    (:func:`soft_arm_ros.localhost_discovery.check_room`)."""
+    (:func:`soft_arm_ros.localhost_discovery.check_room`). Its discovery stays on this computer
+    whatever the caller's environment says, as the run's node processes' does (the view reaches a
+    viewer through its own server, not through ROS)."""
     if address is None:
         yield None
         return
     host, port = parse_address(address)
     from soft_arm_ros.localhost_discovery import check_room
-    check_room(processes + 1)
+    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    check_room(processes + 1, env)
     command = [sys.executable, "-m", "soft_arm_experiments.live_view_node", "--ros-args", *ros_args,
                *live_arguments(host, port, record)]
     read, write = os.pipe()
     try:
         process = subprocess.Popen(command, start_new_session=True, pass_fds=(write,),
-                                   env=dict(os.environ, **{READY_FD: str(write)}))
+                                   env=dict(env, **{READY_FD: str(write)}))
     finally:
         os.close(write)                  # the process's end is its own: EOF once it exits
     try:

@@ -162,3 +162,20 @@ def test_a_live_view_on_a_domain_without_room_is_refused_before_it_starts(tmp_pa
     assert f"--live 127.0.0.1:0: ROS domain {domain} has {taken} of the 32 participant ids" in err
     assert f"this run's {processes} processes need {processes - 1} of them free" in err
     assert not (tmp_path / "run" / "bag").exists()
+
+
+def test_the_live_view_keeps_to_localhost_discovery_and_its_limit_whatever_the_callers_range(monkeypatch):
+    """A caller that exported ROS_AUTOMATIC_DISCOVERY_RANGE=SUBNET: the view's process still runs on
+    localhost discovery, as the run's node processes do, so that its room is checked all the same."""
+    import subprocess
+
+    from soft_arm_experiments.live_launch import live_view
+    started = []
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "SUBNET")
+    monkeypatch.setattr(subprocess, "Popen", lambda *a, **k: started.append(a))
+    with ExitStack() as stack:
+        _taking(stack, os.environ["ROS_DOMAIN_ID"], REACHED)
+        with pytest.raises(RuntimeError, match=r"this run's 2 processes need 1 of them free"):
+            with live_view("127.0.0.1:0", []):
+                pass
+    assert started == []
