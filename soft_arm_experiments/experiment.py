@@ -43,8 +43,8 @@ from .strike import PLANNED_ON_THE_GRAPH, format_strike
 from .harness import add_setup_arguments, check_targets, load_setup, setup_overrides
 from .live_launch import add_live_argument, live_view, parse_address
 from .excitation import Excitation
-from .orchestration import (STOP, exit_failure, feedback_arguments, node_processes, request_stop,
-                            roles, run_emulated_hardware, run_processes)
+from .orchestration import (STOP, exit_failure, feedback_arguments, node_environment, node_processes,
+                            request_stop, roles, run_emulated_hardware, run_processes)
 from .writable import writable_directory
 
 NAMESPACES = ("arm", "control", "plant", "tasks", "graph", "identification", "estimator")
@@ -217,7 +217,7 @@ def _calibrate(args) -> int:
     config = ["--config", args.config] if args.config else []
     sets = [a for s in args.sets for a in ("--set", s)]
     common = config + sets + (["--plant-file", args.plant_file] if args.plant_file else []) + \
-        ["--feedback", args.feedback] + [
+        ["--feedback", args.feedback] + (["--live", args.live] if args.live else []) + [
         flag for flag, on in (("--processes", args.processes), ("--quiet", args.quiet),
                               ("--emulated-hardware", args.emulated_hardware)) if on]
     start_arm = ["--arm-file", args.arm_file] if args.arm_file else []
@@ -312,10 +312,13 @@ def main(argv=None) -> int:
     try:
         with contextlib.ExitStack() as stack:
             try:
+                # the view meets the run's node processes (and this one) on their discovery range,
+                # or this process, whose nodes the composed run holds, on its own
+                apart = args.processes or args.emulated_hardware
                 processes = 1 + len(node_processes(args.task, args.feedback, args.emulated_hardware)) \
-                    if args.processes or args.emulated_hardware else 1      # the nodes' and this one
+                    if apart else 1
                 view = live_view(args.live, ros_args, os.path.join(run_dir, "view.mcap"), stopped=STOP.is_set,
-                                 processes=processes)
+                                 processes=processes, environ=node_environment() if apart else os.environ)
                 address = stack.enter_context(view)
             except RuntimeError as exc:
                 print(f"soft-arm-experiment: --live {args.live}: {exc}", file=sys.stderr)

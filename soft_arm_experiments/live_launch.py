@@ -47,7 +47,7 @@ READY_TIMEOUT = 60.0                   # s: the longest a run waits for its live
 
 @contextlib.contextmanager
 def live_view(address: str | None, ros_args: list, record: str = "", timeout: float = READY_TIMEOUT,
-              stopped=lambda: False, processes: int = 1):
+              stopped=lambda: False, processes: int = 1, environ=None):
     """The live_view process for the run while the context lasts (nothing when ``address`` is None),
     writing the view into ``record`` too; yields the address to open once the node is set up (its
     server listening, its subscriptions made), so that the run starts after it and a viewer sees
@@ -61,15 +61,15 @@ def live_view(address: str | None, ros_args: list, record: str = "", timeout: fl
     and the orchestrator's): on a domain that localhost discovery has too little room left on, two
     of them would take ids it does not reach and never meet (an empty view, or a run that never
     comes up); RuntimeError then, before the view's process starts
-    (:func:`soft_arm_ros.localhost_discovery.check_room`). Its discovery stays on this computer
-    whatever the caller's environment says, as the run's node processes' does (the view reaches a
-    viewer through its own server, not through ROS)."""
+    (:func:`soft_arm_ros.localhost_discovery.check_room`). ``environ`` (default this process's) is
+    the view's environment: that of the processes it is to meet, so that both discover on one
+    range."""
     if address is None:
         yield None
         return
     host, port = parse_address(address)
     from soft_arm_ros.localhost_discovery import check_room
-    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    env = dict(os.environ if environ is None else environ)
     check_room(processes + 1, env)
     command = [sys.executable, "-m", "soft_arm_experiments.live_view_node", "--ros-args", *ros_args,
                *live_arguments(host, port, record)]

@@ -250,7 +250,7 @@ class _Children:
     def __init__(self, ros_args: list, extra: dict, realtime: dict | None = None, niceness: int = 0):
         self.ros_args, self.extra, self.realtime = ros_args, extra, realtime or {}
         self.niceness = niceness
-        self.env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+        self.env = node_environment()
         self.procs: dict = {}
         # name: exit status, once stop() has ended them (-9: killed); a run's facts hold this dict
         # itself, which stop() fills after the run returns them (in _orchestrating's way out)
@@ -372,6 +372,11 @@ def roles(task: str, feedback: str = "mocap") -> tuple:
     if controller and FEEDBACK_TOPICS[feedback] is not None:
         controller = controller + ("shape_estimator",)
     return controller, runner
+
+
+def node_environment() -> dict:
+    """The environment of a run's node processes: this one's, their discovery kept on this computer."""
+    return dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
 
 
 def node_processes(task: str, feedback: str = "mocap", emulated_hardware: bool = False) -> tuple:

@@ -154,6 +154,17 @@ def test_calibrate_identifies_then_reruns_the_task_with_the_identified_arm(tmp_p
     assert (out / "identification" / "fit" / "markers.png").is_file()
 
 
+def test_calibrate_serves_each_of_its_runs_live_where_asked(tmp_path, monkeypatch):
+    """``calibrate --live`` passes the address on to its runs (each serves its own view, counted in
+    the domain's room), where it was dropped."""
+    from soft_arm_experiments import experiment as module
+    calls = []
+    monkeypatch.setattr(module, "main", lambda argv: calls.append(argv) or 3)    # the runs, stood in for
+    assert experiment(["calibrate", "--live", "127.0.0.1:0", "--output", str(tmp_path / "c")]) == 3
+    argv, = calls
+    assert argv[0] == "identification" and argv[argv.index("--live") + 1] == "127.0.0.1:0"
+
+
 def test_calibrate_refuses_to_rerun_anything_but_a_task(tmp_path, capsys):
     assert experiment(["calibrate", "--rerun", "calibrate", "--output", str(tmp_path / "c")]) == 2
     assert "--rerun calibrate is not valid" in capsys.readouterr().err
