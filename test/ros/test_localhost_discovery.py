@@ -4,7 +4,7 @@ import os
 import re
 import socket
 import time
-from contextlib import ExitStack
+from contextlib import ExitStack, contextmanager
 
 import pytest
 
@@ -116,24 +116,30 @@ def test_the_room_is_read_from_the_kernels_tables_and_refused_naming_what_it_fou
         check_room(2, dict(env, ROS_DOMAIN_ID="rig"), tables)
 
 
+@contextmanager
+def _crowded(taken: int):
+    """The test's domain with ``taken`` of its first :data:`REACHED` ids taken, and subprocess.Popen
+    a stand-in that starts nothing: yields the domain and the list of what it was asked to start."""
+    import subprocess
+    started = []
+    domain = os.environ["ROS_DOMAIN_ID"]
+    with ExitStack() as stack, pytest.MonkeyPatch.context() as patch:
+        _taking(stack, domain, taken)
+        patch.setattr(subprocess, "Popen", lambda *a, **k: started.append(a))
+        yield domain, started
+
+
 def test_a_run_on_a_domain_without_room_is_refused_before_a_node_starts(tmp_path):
     """soft-arm-experiment's processes mode on a domain whose first 32 ids are all taken: refused at
     once, naming the domain and what it needs, no node process started (where its nodes came up
     unable to meet and the bring-up waited its 60 s)."""
-    import subprocess
-
     from soft_arm_experiments import orchestration
-    started = []
-    domain = os.environ["ROS_DOMAIN_ID"]
-    with ExitStack() as stack:
-        _taking(stack, domain, REACHED)
-        with pytest.MonkeyPatch.context() as patch:
-            patch.setattr(subprocess, "Popen", lambda *a, **k: started.append(a))
-            begin = time.monotonic()
-            with pytest.raises(RuntimeError, match=rf"ROS domain {domain} has 32 of the 32 participant ids "
-                               r".* this run's 6 processes need 5 of them free"):
-                orchestration.run_processes([], {"bag": str(tmp_path / "bag"),
-                                                 "metrics": str(tmp_path / "metrics.json")}, task="coiling")
+    with _crowded(REACHED) as (domain, started):
+        begin = time.monotonic()
+        with pytest.raises(RuntimeError, match=rf"ROS domain {domain} has 32 of the 32 participant ids "
+                           r".* this run's 6 processes need 5 of them free"):
+            orchestration.run_processes([], {"bag": str(tmp_path / "bag"),
+                                             "metrics": str(tmp_path / "metrics.json")}, task="coiling")
     assert started == [] and time.monotonic() - begin < 30.0           # not the bring-up's 60 s
 
 
@@ -147,17 +153,9 @@ def test_a_live_view_on_a_domain_without_room_is_refused_before_it_starts(tmp_pa
     (five nodes and the orchestrator) and the view, with five ids free, would start the view, then
     refuse the run. Refused at once (status 2), naming the domain and the count, before the view's
     process or the run starts."""
-    import subprocess
-
     from soft_arm_experiments.experiment import main
-    started = []
-    domain = os.environ["ROS_DOMAIN_ID"]
-    with ExitStack() as stack:
-        _taking(stack, domain, taken)
-        with pytest.MonkeyPatch.context() as patch:
-            patch.setattr(subprocess, "Popen", lambda *a, **k: started.append(a))
-            code = main(["coiling", *mode, "--quiet", "--live", "127.0.0.1:0",
-                         "--output", str(tmp_path / "run")])
+    with _crowded(taken) as (domain, started):
+        code = main(["coiling", *mode, "--quiet", "--live", "127.0.0.1:0", "--output", str(tmp_path / "run")])
     err = capsys.readouterr().err
     assert code == 2 and started == [], err
     # (another process may bind a port of the domain meanwhile: the count is the kernel's)
