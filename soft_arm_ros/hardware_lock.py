@@ -10,7 +10,9 @@ The other way round, the callbacks wait for a cycle that holds the lock, and a c
 call that lets the other threads run (a bus that does not return, a driver that hangs) would hold
 the executor with it: every service unanswered, the node's release never reached. So a holder
 waits :data:`HOLD_WAIT` at most (or the bound it gives), then :class:`LockTimeout` names the holder
-and how long it held; each callback says what it could not do (a service answers failure, a
+and how long it held; a holder that finds the lock still in the hold that ran out a wait before
+does not wait again (the executor's callbacks answer at once while the cycle stays stuck). Each
+callback says what it could not do (a service answers failure, a
 command is dropped and counted, a release that could not send its zero torque to enabled motors
 fails the node). A publish the middleware holds up is beyond this bound: rclpy publishes holding
 the interpreter lock, which holds every thread of the process
@@ -48,6 +50,7 @@ class HardwareLock:
         self._owner: Optional[int] = None      # the holding thread's ident
         self._depth = 0
         self._holder: Optional[Tuple[str, float]] = None
+        self._stuck: Optional[Tuple[str, float]] = None     # the hold that ran out the latest wait
 
     def acquire(self, blocking: bool = True, timeout: float = -1, what: Optional[str] = None) -> bool:
         """Take the lock as :meth:`threading.RLock.acquire` does; ``what`` names the holder (default:
@@ -87,11 +90,21 @@ class HardwareLock:
             self.release()
 
     def _hold(self, what: str, timeout: float):
-        if not self.acquire(timeout=timeout, what=what):
+        if self._stuck is not None and self._holder is self._stuck:
+            if self.acquire(timeout=0.0, what=what):
+                return
             holder = self._holder                    # read once: it may be released meanwhile
-            held = (f"{holder[0]} for {self._clock() - holder[1]:.3f} s" if holder is not None
-                    else "a holder that released it just then")
-            raise LockTimeout(f"{what} waited {timeout:g} s for the hardware lock, held by {held}")
+            if holder is self._stuck:
+                raise LockTimeout(f"{what} found the hardware lock held by {self._held(holder)}, as "
+                                  "when a wait for it ran out (not waited again)")
+        if self.acquire(timeout=timeout, what=what):     # a hold not seen stuck: waited for
+            return
+        holder = self._stuck = self._holder
+        raise LockTimeout(f"{what} waited {timeout:g} s for the hardware lock, held by {self._held(holder)}")
+
+    def _held(self, holder: Optional[Tuple[str, float]]) -> str:
+        return (f"{holder[0]} for {self._clock() - holder[1]:.3f} s" if holder is not None
+                else "a holder that released it just then")
 
     def holder(self) -> Optional[Tuple[str, float]]:
         """(what holds the lock, since when [s]), or None while it is free; read from any thread."""

@@ -1,6 +1,7 @@
 """The hardware lock names what holds it: the outermost hold of its holding thread, from any
 thread, and nothing once it is free."""
 import threading
+import time
 
 import pytest
 
@@ -42,37 +43,70 @@ def test_the_lock_names_its_outermost_holder_until_it_is_free():
     assert lock.holder() is None
 
 
+def _holding(lock: HardwareLock, what: str, take: threading.Event, held: threading.Event,
+             free: threading.Event) -> threading.Thread:
+    """A thread that holds ``lock`` as ``what`` each time ``take`` is set (then ``held`` is set),
+    until ``free`` is set; it ends when ``take`` has not been set for a second."""
+    def run():
+        while take.wait(1.0):
+            take.clear()
+            with lock.held_by(what):
+                held.set()
+                free.wait(10.0)
+            free.clear()
+    thread = threading.Thread(target=run, daemon=True)
+    thread.start()
+    return thread
+
+
 def test_a_holder_waits_a_bound_then_names_what_holds_the_lock(monkeypatch):
     """A cycle stuck holding the lock: a service's wait ends at its bound with LockTimeout naming
     the service, the bound, the cycle and how long it has held; the service's block never runs and
-    the cycle's record stays. ``with lock:`` waits HOLD_WAIT at most too; once free, both hold."""
-    lock, holding, done = HardwareLock(), threading.Event(), threading.Event()
-
-    def stuck_cycle():
-        with lock.held_by("the motor_driver cycle"):
-            holding.set()
-            done.wait(10.0)
-    thread = threading.Thread(target=stuck_cycle)
-    thread.start()
+    the cycle's record stays. The next holder, finding the same hold, does not wait again (the
+    executor's callbacks answer at once), ``with lock:`` among them; a new hold of the cycle's is
+    waited for again. Once free, both hold."""
+    lock = HardwareLock()
+    take, held, free = threading.Event(), threading.Event(), threading.Event()
+    thread = _holding(lock, "the motor_driver cycle", take, held, free)
+    ran = []
     try:
-        assert holding.wait(5.0)
-        ran = []
+        take.set()
+        assert held.wait(5.0)
         with pytest.raises(LockTimeout, match=r"^the estop service waited 0.05 s for the hardware lock, "
                                               r"held by the motor_driver cycle for [0-9.]+ s$") as waited:
             with lock.held_by("the estop service", timeout=0.05):
                 ran.append(True)
         assert float(str(waited.value).split(" for ")[-1][:-2]) >= 0.05
         assert ran == [] and lock.holder()[0] == "the motor_driver cycle"
-        monkeypatch.setattr(hardware_lock, "HOLD_WAIT", 0.02)
-        with pytest.raises(LockTimeout, match=r"^MainThread waited 0.02 s for the hardware lock, held by "
+        begin = time.monotonic()
+        with pytest.raises(LockTimeout, match=r"^the zero service found the hardware lock held by the "
+                                              r"motor_driver cycle for [0-9.]+ s, as when a wait for it "
+                                              r"ran out \(not waited again\)$"):
+            with lock.held_by("the zero service", timeout=5.0):
+                ran.append(True)
+        with pytest.raises(LockTimeout, match=r"^MainThread found the hardware lock held by the "
+                                              r"motor_driver cycle"):
+            with lock:
+                ran.append(True)
+        assert ran == [] and time.monotonic() - begin < 2.0                  # not the 5 s bound
+        held.clear()
+        free.set()                                         # the cycle lets go, and holds again
+        take.set()
+        assert held.wait(5.0)
+        monkeypatch.setattr(hardware_lock, "HOLD_WAIT", 0.05)
+        begin = time.monotonic()
+        with pytest.raises(LockTimeout, match=r"^MainThread waited 0.05 s for the hardware lock, held by "
                                               r"the motor_driver cycle"):
             with lock:
                 ran.append(True)
-        assert ran == []
+        assert ran == [] and time.monotonic() - begin >= 0.05
     finally:
-        done.set()
-        thread.join(5.0)
-    with lock.held_by("the estop service", timeout=0.05):
+        free.set()
+    deadline = time.monotonic() + 5.0
+    while lock.holder() is not None and time.monotonic() < deadline:       # the cycle lets go
+        time.sleep(0.001)
+    with lock.held_by("the estop service", timeout=5.0):
         assert lock.holder()[0] == "the estop service"
     with lock:
         assert lock.holder()[0] == "MainThread"
+    thread.join(5.0)
