@@ -44,7 +44,7 @@ from .harness import add_setup_arguments, check_targets, load_setup, setup_overr
 from .live_launch import add_live_argument, live_view, parse_address
 from .excitation import Excitation
 from .orchestration import (STOP, exit_failure, feedback_arguments, node_environment, node_processes,
-                            request_stop, roles, run_emulated_hardware, run_processes)
+                            participants, request_stop, roles, run_emulated_hardware, run_processes)
 from .writable import writable_directory
 
 NAMESPACES = ("arm", "control", "plant", "tasks", "graph", "identification", "estimator")
@@ -315,7 +315,7 @@ def main(argv=None) -> int:
                 # the view meets the run's node processes (and this one) on their discovery range,
                 # or this process, whose nodes the composed run holds, on its own
                 apart = args.processes or args.emulated_hardware
-                processes = 1 + len(node_processes(args.task, args.feedback, args.emulated_hardware)) \
+                processes = participants(node_processes(args.task, args.feedback, args.emulated_hardware)) \
                     if apart else 1
                 view = live_view(args.live, ros_args, os.path.join(run_dir, "view.mcap"), stopped=STOP.is_set,
                                  processes=processes, environ=node_environment() if apart else os.environ)

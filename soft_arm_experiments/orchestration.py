@@ -331,16 +331,16 @@ def exit_failure(exits: dict) -> str | None:
 
 
 @contextlib.contextmanager
-def _orchestrating(children: _Children, processes: int):
-    """This process's node (graph queries, service calls) for a run of ``children``, ``processes``
-    node processes in all, once the domain has room for them and this one
+def _orchestrating(children: _Children, nodes: tuple):
+    """This process's node (graph queries, service calls) for a run of ``children``, whose node
+    processes are ``nodes``, once the domain has room for them and this one
     (:func:`soft_arm_ros.localhost_discovery.check_room`: RuntimeError, before anything starts, if
     not); on the way out, whatever happened, the node and rclpy go, then the children are stopped."""
     import rclpy
     from rclpy.signals import SignalHandlerOptions
 
     from soft_arm_ros.localhost_discovery import check_room
-    check_room(processes + 1, children.env)
+    check_room(participants(nodes), children.env)
     rclpy.init(args=["soft-arm-experiment"], signal_handler_options=SignalHandlerOptions.NO)
     try:
         node = rclpy.create_node("soft_arm_experiment", start_parameter_services=False)
@@ -389,6 +389,12 @@ def node_processes(task: str, feedback: str = "mocap", emulated_hardware: bool =
     return ("recorder", *controller, "simulator", runner)
 
 
+def participants(nodes: tuple) -> int:
+    """The processes on ROS of a run whose node processes are ``nodes`` (:func:`node_processes`):
+    theirs and the orchestrator's."""
+    return len(nodes) + 1
+
+
 def feedback_arguments(feedback: str) -> list:
     """The clik's arguments (after ``--ros-args``) that close its loop on ``feedback``: the remapping
     of its mocap/markers, and ``control.clik.feedback``, which puts an estimate under the trust
@@ -423,7 +429,7 @@ def run_processes(ros_args: list, out: dict, task: str = "", feedback: str = "mo
     start = time.monotonic()
     nodes = node_processes(task, feedback)
     plant_side = nodes[:-1]                                      # the runner starts once they are up
-    with _orchestrating(children, len(nodes)) as node:
+    with _orchestrating(children, nodes) as node:
         begin = node.create_client(Trigger, f"/{runner}/start")
         for name in plant_side:
             children.start(name)
@@ -538,7 +544,7 @@ def run_emulated_hardware(ros_args: list, out: dict, duration: float,
                       f"({stamp - enabled_at:.2f} s after the enable): the run ends", file=sys.stderr)
 
     started = node_processes(task, feedback, emulated_hardware=True)
-    with _orchestrating(children, len(started)) as node:
+    with _orchestrating(children, started) as node:
         node.create_subscription(DiagnosticArray, "/diagnostics", on_diagnostics, 10)
         # every client is created, and its server discovered, before the motors are enabled
         zero = node.create_client(Trigger, "/motor_driver/zero")
