@@ -56,6 +56,16 @@ def _controller_and_plant():
     fit_actuation_map(build_model(), (0.0, 5.0), 1, 2)     # thetabar_a, for an inner loop asked to use it
 
 
+def _pendulum():
+    from soft_arm_drivers.sim.pendulum import ArmSurface, Pendulum
+    from soft_arm_experiments.harness import load_setup
+    config = load_setup("pendulum").task.pendulum
+    ball = Pendulum(config, 1.0e5)
+    ball.release()
+    column = config.lowest_point + np.array([[0.0, 0.0, 0.1], [0.0, 0.0, -0.1]])
+    ball.advance(1e-3, ArmSurface(column, np.zeros((2, 3)), np.full(2, 0.01), np.zeros((2, 3, 1))))
+
+
 def _mocap():
     from soft_arm_drivers.mocap.natnet_scan import warm_up
     warm_up()
@@ -66,6 +76,7 @@ STEPS = (("the model's kernels (kinematics to Coriolis, statics, the IMEX and RO
          ("the plant, the inner loop, the actuation map, the CLIK and the shape estimator (a short "
           "coiling run on each of its process models)",
           _controller_and_plant),
+         ("the strike's pendulum and its contact", _pendulum),
          ("the mocap bridge's frame reader", _mocap))
 
 

@@ -17,7 +17,8 @@ ENTRY_KERNELS = [("soft_arm_model.kernels", "evaluate"), ("soft_arm_model.kernel
                  ("soft_arm_control.dynamic_estimator_steps", "predict_step"),
                  ("soft_arm_control.dynamic_estimator_steps", "tendon_rows"),
                  ("soft_arm_control.dynamic_estimator_steps", "gain_update"),
-                 ("soft_arm_model.dynamic_identification", "_simulate_segment")]
+                 ("soft_arm_model.dynamic_identification", "_simulate_segment"),
+                 ("soft_arm_drivers.sim.pendulum", "_swing"), ("soft_arm_drivers.sim.pendulum", "_closest")]
 
 SCRIPT = r"""
 import importlib
@@ -56,6 +57,19 @@ n_markers = len(model.config.marker_positions)
 segment = SegmentData(t_input=np.zeros(1), tension=u[None, :], t_start=0.0, u_start=u, t_s=t[::2],
                       ds=np.zeros((4, 4)), t_m=t[1::2], dp=np.zeros((4, n_markers, 3)))
 simulate_changes(model.config, 0.6, segment, 0.002, q)
+# the strike: the pendulum swung on the simulated rig, its free swing, a closest approach
+from soft_arm_drivers.sim.pendulum import closest_capsule
+from soft_arm_drivers.sim.simulated_rig import SimulatedRig
+from soft_arm_experiments.harness import load_setup
+from soft_arm_experiments.strike import free_swing, marker_backbone
+strike = load_setup("pendulum")
+rig = SimulatedRig(model, strike.plant, np.zeros(4), u, pendulum=strike.task.pendulum)
+rig.release_pendulum()
+for k in range(3):
+    rig.begin_step()
+    rig.end_step(u)
+free_swing(strike.task.pendulum, [0.001])
+closest_capsule(*marker_backbone(strike.arm, marker_positions(model, q)), strike.task.pendulum.lowest_point)
 counts = {f"{m}.{k}": [str(s) for s in getattr(importlib.import_module(m), k).signatures]
           for m, k in json.loads(sys.argv[1])}
 print(json.dumps(counts))

@@ -28,32 +28,58 @@ through it (the ball's contact is stiffer than the arm's step); the arm takes th
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 from soft_arm_control.pendulum_geometry import GRAVITY, PendulumConfig
 
 
+@njit(cache=True, nogil=True)
 def hertz_stiffness(youngs_modulus: float, arm_radius: float, ball_radius: float) -> float:
     """k [N/m^1.5] of a rigid ball of radius ``ball_radius`` [m] pressed into an incompressible
     elastic body of radius ``arm_radius`` [m] and Young's modulus [Pa]."""
     reduced = youngs_modulus / (1.0 - 0.25)
-    return 4.0 / 3.0 * reduced * np.sqrt(arm_radius * ball_radius / (arm_radius + ball_radius))
+    return 4.0 / 3.0 * reduced * math.sqrt(arm_radius * ball_radius / (arm_radius + ball_radius))
 
 
 def closest_capsule(points, radii, centre) -> tuple[int, float, np.ndarray, float]:
     """The capsule of the chain through ``points`` (P, 3) [m] with radii (P,) [m] that ``centre``
     [m] is closest to the surface of: (segment index i between points i and i+1, fraction s along
-    it, the backbone point Q [m], the gap [m] from Q's surface: ``|c - Q| - r(Q)``)."""
-    a, b = points[:-1], points[1:]
-    d = b - a
-    s = np.clip(np.einsum("ij,ij->i", centre - a, d) / np.maximum(np.einsum("ij,ij->i", d, d), 1e-18),
-                0.0, 1.0)
-    q = a + s[:, None] * d
-    gap = np.linalg.norm(centre - q, axis=1) - (radii[:-1] + s * (radii[1:] - radii[:-1]))
-    i = int(np.argmin(gap))
-    return i, float(s[i]), q[i], float(gap[i])
+    it, the backbone point Q [m], the gap [m] from Q's surface: ``|c - Q| - r(Q)``; the first
+    such capsule where several are as close)."""
+    q = np.empty(3)
+    i, s, gap = _closest(np.ascontiguousarray(points, dtype=float), np.ascontiguousarray(radii, dtype=float),
+                         np.ascontiguousarray(centre, dtype=float), q)
+    return i, s, q, gap
+
+
+@njit(cache=True, nogil=True)
+def _closest(points, radii, centre, q):
+    """:func:`closest_capsule` in one compiled pass: (i, s, gap), Q into ``q`` (3,)."""
+    best, best_i, best_s = np.inf, 0, 0.0
+    for k in range(points.shape[0] - 1):
+        along = 0.0
+        length2 = 0.0
+        for j in range(3):
+            d = points[k + 1, j] - points[k, j]
+            along += (centre[j] - points[k, j]) * d
+            length2 += d * d
+        s = min(max(along / max(length2, 1e-18), 0.0), 1.0)
+        distance2 = 0.0
+        for j in range(3):
+            g = centre[j] - (points[k, j] + s * (points[k + 1, j] - points[k, j]))
+            distance2 += g * g
+        gap = math.sqrt(distance2) - (radii[k] + s * (radii[k + 1] - radii[k]))
+        if gap < best or np.isnan(gap):
+            best, best_i, best_s = gap, k, s
+            if np.isnan(gap):
+                break                                   # no number: said, not passed over
+    for j in range(3):
+        q[j] = points[best_i, j] + best_s * (points[best_i + 1, j] - points[best_i, j])
+    return best_i, best_s, best
 
 
 @dataclass(frozen=True)
@@ -99,6 +125,7 @@ class Pendulum:
         self.v = np.zeros(3)
         self.released = False
         self._approach = None               # delta_dot at first touch of the current contact [m/s]
+        self._pivot = np.array(config.pivot, dtype=float)       # as the compiled step takes it
 
     def release(self):
         """Let the ball go (from rest at the held position)."""
@@ -109,81 +136,136 @@ class Pendulum:
         m = self.config.mass
         return float(0.5 * m * self.v @ self.v - m * GRAVITY @ (self.p - self.config.pivot))
 
-    def _contact_force(self, surface: ArmSurface, p, v) -> tuple:
-        """(force on the ball [N], segment, fraction, overlap [m], gap [m]) at ball state (p, v)."""
-        c = self.config
-        i, s, q, gap = surface.closest(p)
-        gap -= c.ball_radius
-        if gap >= 0.0:
-            return np.zeros(3), i, s, 0.0, gap
-        normal = (p - q) / max(np.linalg.norm(p - q), 1e-12)
-        arm_velocity = (1.0 - s) * surface.velocities[i] + s * surface.velocities[i + 1]
-        rate = -float((v - arm_velocity) @ normal)            # d(overlap)/dt
-        if self._approach is None:
-            self._approach = max(rate, 1e-3)
-        radius = surface.radii[i] + s * (surface.radii[i + 1] - surface.radii[i])
-        k = hertz_stiffness(self.youngs_modulus, radius, c.ball_radius)
-        damping = 0.75 * (1.0 - c.restitution ** 2) * rate / self._approach
-        magnitude = max(k * (-gap) ** 1.5 * (1.0 + damping), 0.0)
-        return magnitude * normal, i, s, -gap, gap
-
-    def _acceleration(self, p, v, force) -> np.ndarray:
-        c = self.config
-        r = p - c.pivot
-        r_hat = r / np.linalg.norm(r)
-        pull = GRAVITY + force / c.mass
-        return pull - (pull @ r_hat) * r_hat - (v @ v) / c.length * r_hat
-
     def advance(self, dt: float, surface: ArmSurface | None = None, substeps: int = 4) -> Contact | None:
         """Advance the ball by dt [s] (nothing while held), in ``substeps`` RK4 steps, against the
         arm ``surface`` held over the step (None: no arm). Returns the step's :class:`Contact` (None
         without a surface): its force is the RK4-weighted mean of what the ball felt, so that the
         arm takes the impulse the ball got."""
         far = np.inf
+        in_reach = False
         if surface is not None:
             # broad phase: a ball farther than it and the arm can close in one step feels nothing
             far = surface.closest(self.p)[3] - self.config.ball_radius
             reach = (np.linalg.norm(self.v) + np.linalg.norm(GRAVITY) * dt
                      + np.abs(surface.velocities).sum(axis=1).max()) * dt
-            if not self.released or far > 2.0 * reach + 1e-4:
+            in_reach = self.released and not far > 2.0 * reach + 1e-4
+            if not in_reach:
                 self._approach = None
-                surface_in_reach = None
-            else:
-                surface_in_reach = surface
         if not self.released:
             return None if surface is None else Contact(np.zeros(3), 0, 0.0, 0.0, far)
-        if surface is None or surface_in_reach is None:
-            def evaluate(p, v):
-                return np.zeros(3), 0, 0.0, 0.0, np.inf
-        else:
-            def evaluate(p, v):
-                return self._contact_force(surface, p, v)
-        h = dt / substeps
-        impulse, deepest, gap, where = np.zeros(3), 0.0, far, (0, 0.0)
-
-        def stage(p, v):
-            nonlocal deepest, where
-            f, i, s, overlap, g = evaluate(p, v)
-            if overlap > deepest:
-                deepest, where = overlap, (i, s)
-            return v, self._acceleration(p, v, f), f, overlap, g
-
         c = self.config
-        for _ in range(substeps):
-            p, v = self.p, self.v
-            k1 = stage(p, v)
-            if k1[3] == 0.0:
-                self._approach = None          # out of contact: the next touch starts a new one
-            gap = min(gap, k1[4])
-            k2 = stage(p + 0.5 * h * k1[0], v + 0.5 * h * k1[1])
-            k3 = stage(p + 0.5 * h * k2[0], v + 0.5 * h * k2[1])
-            k4 = stage(p + h * k3[0], v + h * k3[1])
-            p = p + h / 6.0 * (k1[0] + 2 * k2[0] + 2 * k3[0] + k4[0])
-            v = v + h / 6.0 * (k1[1] + 2 * k2[1] + 2 * k3[1] + k4[1])
-            impulse += h / 6.0 * (k1[2] + 2 * k2[2] + 2 * k3[2] + k4[2])
-            self.p = c.pivot + (p - c.pivot) * (c.length / np.linalg.norm(p - c.pivot))
-            r_hat = (self.p - c.pivot) / c.length
-            self.v = v - (v @ r_hat) * r_hat
+        points, velocities, radii = (surface.points, surface.velocities, surface.radii) if in_reach \
+            else _NO_SURFACE
+        impulse = np.zeros(3)
+        p, v = self.p.copy(), self.v.copy()          # new arrays each step, as a reader may keep them
+        approach = np.nan if self._approach is None else self._approach
+        segment, fraction, deepest, gap, approach = _swing(
+            p, v, self._pivot, float(c.length), float(c.mass), float(c.ball_radius),
+            float(c.restitution), self.youngs_modulus, _GRAVITY, float(dt), int(substeps), in_reach,
+            np.ascontiguousarray(points, dtype=float), np.ascontiguousarray(velocities, dtype=float),
+            np.ascontiguousarray(radii, dtype=float), float(far), float(approach), impulse)
+        self.p, self.v = p, v
+        self._approach = None if np.isnan(approach) else approach
         if surface is None:
             return None
-        return Contact(impulse / dt, where[0], where[1], deepest, gap)
+        return Contact(impulse / dt, segment, fraction, deepest, gap)
+
+
+_NO_SURFACE = (np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0))
+_GRAVITY = np.array(GRAVITY, dtype=float)
+
+
+@njit(cache=True, nogil=True)
+def _stage(p, v, pivot, length, mass, ball_radius, restitution, youngs_modulus, gravity, touching,
+           points, velocities, radii, approach, acceleration, force, q):
+    """One RK4 stage of :meth:`Pendulum.advance` at the ball's (p, v): its acceleration and the
+    contact force on it [N] into ``acceleration`` and ``force`` (3,) (``q``: scratch (3,)), and
+    (segment, fraction, overlap [m], gap [m], the approach speed): the approach speed is set at
+    the first touch of a contact (NaN: none yet) and returned as it is otherwise. Without
+    ``touching`` (the surface beyond the step's reach) no contact is evaluated: no force, no
+    overlap, an infinite gap."""
+    segment, fraction, overlap, gap = 0, 0.0, 0.0, np.inf
+    for j in range(3):
+        force[j] = 0.0
+    if touching:
+        segment, fraction, gap = _closest(points, radii, p, q)
+        gap -= ball_radius
+        if gap < 0.0:
+            distance = math.sqrt((p[0] - q[0]) ** 2 + (p[1] - q[1]) ** 2 + (p[2] - q[2]) ** 2)
+            rate = 0.0                                     # d(overlap)/dt along the normal
+            for j in range(3):
+                arm = (1.0 - fraction) * velocities[segment, j] + fraction * velocities[segment + 1, j]
+                rate -= (v[j] - arm) * (p[j] - q[j]) / max(distance, 1e-12)
+            if np.isnan(approach):
+                approach = max(rate, 1e-3)
+            radius = radii[segment] + fraction * (radii[segment + 1] - radii[segment])
+            k = hertz_stiffness(youngs_modulus, radius, ball_radius)
+            damping = 0.75 * (1.0 - restitution ** 2) * rate / approach
+            magnitude = max(k * (-gap) ** 1.5 * (1.0 + damping), 0.0)
+            for j in range(3):
+                force[j] = magnitude * (p[j] - q[j]) / max(distance, 1e-12)
+            overlap = -gap
+    r = math.sqrt((p[0] - pivot[0]) ** 2 + (p[1] - pivot[1]) ** 2 + (p[2] - pivot[2]) ** 2)
+    along = 0.0
+    speed2 = 0.0
+    for j in range(3):
+        along += (gravity[j] + force[j] / mass) * (p[j] - pivot[j]) / r
+        speed2 += v[j] * v[j]
+    for j in range(3):
+        r_hat = (p[j] - pivot[j]) / r
+        acceleration[j] = gravity[j] + force[j] / mass - along * r_hat - speed2 / length * r_hat
+    return segment, fraction, overlap, gap, approach
+
+
+@njit(cache=True, nogil=True)
+def _swing(p, v, pivot, length, mass, ball_radius, restitution, youngs_modulus, gravity, dt, substeps,
+           touching, points, velocities, radii, far, approach, impulse):
+    """:meth:`Pendulum.advance` of a released ball in one compiled call: p and v (3,) [m, m/s]
+    advanced in place by ``substeps`` RK4 steps of dt / substeps, each put back on the sphere and
+    its tangent plane; the RK4-weighted impulse [N s] into ``impulse``. Returns (segment and
+    fraction of the deepest overlap, that overlap [m], the smallest gap seen at a step's start or
+    ``far`` [m], the approach speed: NaN out of contact)."""
+    h = dt / substeps
+    stages = np.empty((4, 3, 3))          # per stage: the rate of p (v), of v (a), the force
+    p_stage = np.empty(3)
+    v_stage = np.empty(3)
+    q = np.empty(3)
+    deepest, where_segment, where_fraction, gap = 0.0, 0, 0.0, far
+    for _ in range(substeps):
+        for n in range(4):
+            for j in range(3):
+                if n == 0:
+                    p_stage[j], v_stage[j] = p[j], v[j]
+                else:
+                    step = h if n == 3 else 0.5 * h
+                    p_stage[j] = p[j] + step * stages[n - 1, 0, j]
+                    v_stage[j] = v[j] + step * stages[n - 1, 1, j]
+                stages[n, 0, j] = v_stage[j]
+            segment, fraction, overlap, g, approach = _stage(
+                p_stage, v_stage, pivot, length, mass, ball_radius, restitution, youngs_modulus,
+                gravity, touching, points, velocities, radii, approach, stages[n, 1], stages[n, 2], q)
+            if overlap > deepest:
+                deepest, where_segment, where_fraction = overlap, segment, fraction
+            if n == 0:
+                if overlap == 0.0:
+                    approach = np.nan           # out of contact: the next touch starts a new one
+                gap = min(gap, g)
+        for j in range(3):
+            p[j] += h / 6.0 * _rk4_sum(stages, 0, j)
+            v[j] += h / 6.0 * _rk4_sum(stages, 1, j)
+            impulse[j] += h / 6.0 * _rk4_sum(stages, 2, j)
+        r = math.sqrt((p[0] - pivot[0]) ** 2 + (p[1] - pivot[1]) ** 2 + (p[2] - pivot[2]) ** 2)
+        for j in range(3):
+            p[j] = pivot[j] + (p[j] - pivot[j]) * (length / r)
+        along = 0.0
+        for j in range(3):
+            along += v[j] * (p[j] - pivot[j]) / length
+        for j in range(3):
+            v[j] -= along * (p[j] - pivot[j]) / length
+    return where_segment, where_fraction, deepest, gap, approach
+
+
+@njit(cache=True, nogil=True)
+def _rk4_sum(stages, m, j):
+    """k1 + 2 k2 + 2 k3 + k4 of component j of the stages' rate ``m`` (:func:`_swing`'s)."""
+    return stages[0, m, j] + 2.0 * stages[1, m, j] + 2.0 * stages[2, m, j] + stages[3, m, j]
