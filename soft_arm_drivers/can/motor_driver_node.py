@@ -224,14 +224,15 @@ class MotorDriverNode(ManagedHardwareNode):
             self.get_logger().error(f"{what} not done, the motors out of motor mode: {exc}")
 
     def _unsent(self, what: str, unsent: list):
-        """Say that the zero-torque or exit-motor-mode frames of ``what`` did not all leave: the
+        """Say that the zero-torque or exit-motor-mode frames of ``what`` did not all leave, or
+        were not sent at all (``unsent``: the frames the bus refused, or why none was sent): the
         motors those frames were for hold their last torque until their own CAN timeout. The node
         has failed its one safety duty whatever a later stop sends: its process exits with status 1
         when it is stopped (:attr:`failure`), so that a run it served is no result."""
         self.failure = self.failure or RuntimeError(f"{what}: zero torque not sent: {'; '.join(unsent)}")
-        self.get_logger().fatal(f"{what}: frames did not leave the bus ({'; '.join(unsent)}): those "
-                                "motors may hold their last torque until their own CAN timeout; cut "
-                                "their power if they do")
+        self.get_logger().fatal(f"{what}: zero torque not sent ({'; '.join(unsent)}): those motors may "
+                                "hold their last torque until their own CAN timeout; cut their power "
+                                "if they do")
 
     def _cycle_failed(self, exc: BaseException):
         """The cycle thread raised: zero torque, out of motor mode, the node's process ends (status 1)."""
