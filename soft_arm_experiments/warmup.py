@@ -1,14 +1,13 @@
 """``soft-arm-warmup``: compile every numba kernel of the package into its cache, once.
 
-The model's, the integrator's, the inner loop's, the actuation map's, the shape estimator's and the
-mocap bridge's kernels
-are compiled on their first call and cached beside their modules (numba's ``cache=True``). On a fresh
-machine that first call takes about a minute, and it would otherwise come in the middle of a run:
-harmless on the simulator, but on the emulated rig (or the rig) a node that compiles while its
-neighbours time out looks like a fault. This command makes the calls a run makes, says what it
-compiles and how long each took, and is quick once the cache is warm. It first clears a cache built
-from other sources (:mod:`.kernel_cache`). Exit status 0, or 1 with the reason when a kernel cannot
-be compiled.
+The model's, the integrator's, the inner loop's, the actuation map's, the shape estimator's, the
+strike pendulum's and the mocap bridge's kernels are compiled on their first call and cached beside
+their modules (numba's ``cache=True``). On a fresh machine that first call takes about a minute, and
+it would otherwise come in the middle of a run: harmless on the simulator, but on the emulated rig
+(or the rig) a node that compiles while its neighbours time out looks like a fault. This command
+makes the calls a run makes, says what it compiles and how long each took, and is quick once the
+cache is warm. It first clears a cache built from other sources (:mod:`.kernel_cache`). Exit status
+0, or 1 with the reason when a kernel cannot be compiled.
 """
 from __future__ import annotations
 

@@ -29,6 +29,7 @@ through it (the ball's contact is stiffer than the arm's step); the arm takes th
 from __future__ import annotations
 
 import math
+import operator
 from dataclasses import dataclass
 
 import numpy as np
@@ -37,10 +38,15 @@ from numba import njit
 from soft_arm_control.pendulum_geometry import GRAVITY, PendulumConfig
 
 
-@njit(cache=True, nogil=True)
 def hertz_stiffness(youngs_modulus: float, arm_radius: float, ball_radius: float) -> float:
     """k [N/m^1.5] of a rigid ball of radius ``ball_radius`` [m] pressed into an incompressible
-    elastic body of radius ``arm_radius`` [m] and Young's modulus [Pa]."""
+    elastic body of radius ``arm_radius`` [m] and Young's modulus [Pa] (scalars)."""
+    return _hertz_stiffness(float(youngs_modulus), float(arm_radius), float(ball_radius))
+
+
+@njit(cache=True, nogil=True)
+def _hertz_stiffness(youngs_modulus, arm_radius, ball_radius):
+    """:func:`hertz_stiffness`, for the compiled contact."""
     reduced = youngs_modulus / (1.0 - 0.25)
     return 4.0 / 3.0 * reduced * math.sqrt(arm_radius * ball_radius / (arm_radius + ball_radius))
 
@@ -49,11 +55,20 @@ def closest_capsule(points, radii, centre) -> tuple[int, float, np.ndarray, floa
     """The capsule of the chain through ``points`` (P, 3) [m] with radii (P,) [m] that ``centre``
     [m] is closest to the surface of: (segment index i between points i and i+1, fraction s along
     it, the backbone point Q [m], the gap [m] from Q's surface: ``|c - Q| - r(Q)``; the first
-    such capsule where several are as close)."""
+    such capsule where several are as close, the first whose gap is NaN where one is). ValueError
+    for a chain of fewer than two points."""
+    points = _writable(points)
+    if points.ndim != 2 or points.shape[0] < 2 or points.shape[1] != 3:
+        raise ValueError(f"a chain of capsules needs (P >= 2, 3) points, got the shape {points.shape}")
     q = np.empty(3)
-    i, s, gap = _closest(np.ascontiguousarray(points, dtype=float), np.ascontiguousarray(radii, dtype=float),
-                         np.ascontiguousarray(centre, dtype=float), q)
+    i, s, gap = _closest(points, _writable(radii), _writable(centre), q)
     return i, s, q, gap
+
+
+def _writable(values) -> np.ndarray:
+    """``values`` as the compiled contact takes them: float, C-ordered and writable (a read-only
+    array would compile the kernels a second time), copied only where it is not."""
+    return np.require(values, dtype=float, requirements=["C", "W"])
 
 
 @njit(cache=True, nogil=True)
@@ -76,7 +91,7 @@ def _closest(points, radii, centre, q):
         if gap < best or np.isnan(gap):
             best, best_i, best_s = gap, k, s
             if np.isnan(gap):
-                break                                   # no number: said, not passed over
+                break                   # returned as it is: the contact turns NaN, not a miss
     for j in range(3):
         q[j] = points[best_i, j] + best_s * (points[best_i + 1, j] - points[best_i, j])
     return best_i, best_s, best
@@ -134,7 +149,7 @@ class Pendulum:
     def energy(self) -> float:
         """Kinetic + gravitational energy [J] (zero height at the pivot)."""
         m = self.config.mass
-        return float(0.5 * m * self.v @ self.v - m * GRAVITY @ (self.p - self.config.pivot))
+        return float(0.5 * m * self.v @ self.v - m * GRAVITY @ (self.p - self._pivot))
 
     def advance(self, dt: float, surface: ArmSurface | None = None, substeps: int = 4) -> Contact | None:
         """Advance the ball by dt [s] (nothing while held), in ``substeps`` RK4 steps, against the
@@ -157,13 +172,14 @@ class Pendulum:
         points, velocities, radii = (surface.points, surface.velocities, surface.radii) if in_reach \
             else _NO_SURFACE
         impulse = np.zeros(3)
-        p, v = self.p.copy(), self.v.copy()          # new arrays each step, as a reader may keep them
+        # new arrays each step, as a reader may keep the last ones
+        p, v = np.array(self.p, dtype=float), np.array(self.v, dtype=float)
         approach = np.nan if self._approach is None else self._approach
         segment, fraction, deepest, gap, approach = _swing(
             p, v, self._pivot, float(c.length), float(c.mass), float(c.ball_radius),
-            float(c.restitution), self.youngs_modulus, _GRAVITY, float(dt), int(substeps), in_reach,
-            np.ascontiguousarray(points, dtype=float), np.ascontiguousarray(velocities, dtype=float),
-            np.ascontiguousarray(radii, dtype=float), float(far), float(approach), impulse)
+            float(c.restitution), self.youngs_modulus, _GRAVITY, float(dt), operator.index(substeps),
+            in_reach, _writable(points), _writable(velocities), _writable(radii), float(far),
+            float(approach), impulse)
         self.p, self.v = p, v
         self._approach = None if np.isnan(approach) else approach
         if surface is None:
@@ -190,7 +206,7 @@ def _stage(p, v, pivot, length, mass, ball_radius, restitution, youngs_modulus, 
     if touching:
         segment, fraction, gap = _closest(points, radii, p, q)
         gap -= ball_radius
-        if gap < 0.0:
+        if not gap >= 0.0:                              # NaN too: the force says it, not a miss
             distance = math.sqrt((p[0] - q[0]) ** 2 + (p[1] - q[1]) ** 2 + (p[2] - q[2]) ** 2)
             rate = 0.0                                     # d(overlap)/dt along the normal
             for j in range(3):
@@ -199,7 +215,7 @@ def _stage(p, v, pivot, length, mass, ball_radius, restitution, youngs_modulus, 
             if np.isnan(approach):
                 approach = max(rate, 1e-3)
             radius = radii[segment] + fraction * (radii[segment + 1] - radii[segment])
-            k = hertz_stiffness(youngs_modulus, radius, ball_radius)
+            k = _hertz_stiffness(youngs_modulus, radius, ball_radius)
             damping = 0.75 * (1.0 - restitution ** 2) * rate / approach
             magnitude = max(k * (-gap) ** 1.5 * (1.0 + damping), 0.0)
             for j in range(3):
@@ -224,7 +240,7 @@ def _swing(p, v, pivot, length, mass, ball_radius, restitution, youngs_modulus, 
     advanced in place by ``substeps`` RK4 steps of dt / substeps, each put back on the sphere and
     its tangent plane; the RK4-weighted impulse [N s] into ``impulse``. Returns (segment and
     fraction of the deepest overlap, that overlap [m], the smallest gap seen at a step's start or
-    ``far`` [m], the approach speed: NaN out of contact)."""
+    ``far`` [m], the approach speed of the contact under way: NaN when none is)."""
     h = dt / substeps
     stages = np.empty((4, 3, 3))          # per stage: the rate of p (v), of v (a), the force
     p_stage = np.empty(3)

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from soft_arm_control.pendulum_geometry import GRAVITY, PendulumConfig
-from soft_arm_drivers.sim.pendulum import ArmSurface, Pendulum, hertz_stiffness
+from soft_arm_drivers.sim.pendulum import ArmSurface, Pendulum, closest_capsule, hertz_stiffness
 
 E = 1.5e5          # Pa, arm.yaml's Young's modulus
 
@@ -79,6 +79,52 @@ def test_a_held_ball_does_not_move():
     contact = pendulum.advance(1e-3, column(0.5, 0.5))
     np.testing.assert_array_equal(pendulum.p, config().held_position)
     assert contact.overlap == 0.0 and contact.gap > 0.3
+
+
+def test_the_closest_capsule_is_the_chains_nearest_the_first_of_equals_and_needs_two_points():
+    """Against every segment's closest point (the projection clipped to the segment), on random
+    chains; of two capsules as close the first; a chain of one point refused."""
+    rng = np.random.default_rng(5)
+    for _ in range(50):
+        points, radii, centre = rng.normal(size=(9, 3)), rng.uniform(0.01, 0.05, 9), rng.normal(size=3)
+        d = points[1:] - points[:-1]
+        s = np.clip(np.einsum("ij,ij->i", centre - points[:-1], d) / np.einsum("ij,ij->i", d, d), 0, 1)
+        q = points[:-1] + s[:, None] * d
+        gaps = np.linalg.norm(centre - q, axis=1) - (radii[:-1] + s * np.diff(radii))
+        i, fraction, point, gap = closest_capsule(points, radii, centre)
+        assert i == np.argmin(gaps) and fraction == pytest.approx(s[i], abs=1e-12)
+        np.testing.assert_allclose(point, q[i], atol=1e-12)
+        assert gap == pytest.approx(gaps.min(), abs=1e-12)
+    corner = np.array([[-1.0, 0.0, 0.0], [0.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    i, fraction, point, gap = closest_capsule(corner, np.full(3, 0.1), np.array([0.0, 1.0, 0.0]))
+    assert (i, fraction, gap) == (0, 1.0, pytest.approx(0.9)) and np.all(point == 0.0)
+    with pytest.raises(ValueError, match="at least|P >= 2"):
+        closest_capsule(corner[:1], np.full(1, 0.1), np.zeros(3))
+
+
+def test_an_arm_surface_that_is_no_number_turns_the_ball_to_no_number_not_to_a_miss():
+    """A NaN in the arm's points is said by the contact and the ball, never taken for an arm out of
+    reach."""
+    c = config()
+    surface = column(c.lowest_point[0], c.lowest_point[1])
+    surface.points[4, 2] = np.nan
+    pendulum = Pendulum(c, E)
+    pendulum.release()
+    contact = pendulum.advance(1e-3, surface)
+    assert np.isnan(contact.gap) and np.isnan(contact.force).any() and np.isnan(pendulum.p).any()
+
+
+def test_each_step_leaves_new_float_arrays():
+    """A reader keeping the ball's position has the one it took; a state given as integers is
+    stepped as numbers, not truncated."""
+    pendulum = Pendulum(config(), E)
+    pendulum.release()
+    before = pendulum.p
+    kept = before.copy()
+    pendulum.v = np.zeros(3, dtype=int)
+    pendulum.advance(1e-3)
+    assert pendulum.p is not before and np.array_equal(before, kept)
+    assert pendulum.v.dtype == float and np.linalg.norm(pendulum.v) > 1e-3
 
 
 def test_a_still_arm_in_the_path_is_struck_when_the_surfaces_meet_and_the_ball_rebounds():
