@@ -8,6 +8,8 @@ Measures, on one core:
 - building the model (the discretisation: basis, quadrature, constant matrices) at each of them;
 - one frame's visibility in the simulated mocap (plant.yaml's cameras, the arm's body blocking
   the lines of sight to its four markers);
+- one step of the simulated rig as the simulator node takes it (sense, then step; its mocap frames
+  at their rate), on the triangle's plant and on the strike's with the ball held and swinging;
 - static equilibrium from rest to 5 N on tendons 1 and 3, and the static balance's tangent at it,
   each with the analytic tangent and with the finite-difference oracle (n + 1 evaluations, the
   solver's before), side by side in the same run;
@@ -82,6 +84,35 @@ def bench_visibility() -> float:
     marker_positions(m, solve_equilibrium(m, [2.0, 0.0, 3.0, 0.0]).q, d)
     occlusions = Occlusions(load_plant_config(arm).occlusion, m.marker_X.size, 1 / 240, 0)
     return 1e6 * best_of(lambda: occlusions.of_arm(m, d), inner=1000)
+
+
+def bench_rig_step(steps=2000) -> dict:
+    """Time [us] of one step of the simulated rig as the simulator node and the harness take it
+    (sense the state, then step it under held tensions: Python between the two compiled halves) on
+    the declared plant: the triangle's rig, and the strike's with its ball held and swinging."""
+    from soft_arm_drivers.sim.simulated_rig import SimulatedRig
+    from soft_arm_experiments.harness import load_setup
+
+    def rig_of(task):
+        setup = load_setup(task)
+        u = np.full(len(setup.arm.tendons), setup.control.tension_min)
+        rig = SimulatedRig(build_model(setup.plant.plant_arm(setup.arm)), setup.plant, np.zeros(len(u)), u,
+                           setup.task.payload, setup.task.pendulum)
+        return rig, u
+
+    def step_time(rig, u):
+        def run():
+            for _ in range(steps):
+                rig.begin_step()
+                rig.end_step(u)
+        return 1e6 * best_of(run, repeats=5, inner=1) / steps
+
+    out = {"no_pendulum_us": step_time(*rig_of("triangle"))}
+    rig, u = rig_of("pendulum")
+    out["ball_held_us"] = step_time(rig, u)
+    rig.release_pendulum()
+    out["ball_swinging_us"] = step_time(rig, u)
+    return out
 
 
 def _best_solve(solve, repeats=7):
@@ -353,6 +384,7 @@ def main(argv=None):
     res["evaluation"] = bench_evaluation()
     res["build_ms"] = bench_build()
     res["mocap_visibility_us"] = bench_visibility()
+    res["rig_step"] = bench_rig_step()
     res["statics"] = {dof: bench_statics(dof) for dof in (16, 20)}
     res["simulation"] = {dof: bench_simulation(dof) for dof in (16, 20)}
     rotor = load_plant_config(load_arm_config()).rotor_mass
@@ -371,6 +403,9 @@ def main(argv=None):
     print("building the model [ms]: "
           + ", ".join(f"{dof} DOF {ms:.1f}" for dof, ms in res["build_ms"].items()))
     print(f"simulated mocap, one frame's visibility (self-occlusion): {res['mocap_visibility_us']:.1f} us")
+    r = res["rig_step"]
+    print(f"simulated rig, one step as the simulator node takes it: {r['no_pendulum_us']:.1f} us; the "
+          f"strike's, its ball held {r['ball_held_us']:.1f} us, swinging {r['ball_swinging_us']:.1f} us")
     for dof, r in res["statics"].items():
         print(f"static equilibrium 0 -> 5 N on tendons 1 and 3, {dof} DOF: {r['ms']:.2f} ms "
               f"[<= 1.5 ms @20] ({r['newton_iterations']} Newton iterations, {r['load_steps']} load steps); "
