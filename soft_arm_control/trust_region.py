@@ -39,9 +39,11 @@ accepts. Times are the caller's [s], coordinates [m] in arm_base.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 
 @dataclass(frozen=True)
@@ -114,48 +116,117 @@ class TrustRegion:
         # three windows, and on a periodic path a period and a quarter window more to average over
         span = 3.0 * c.window + (0.0 if self.period is None else self.period + 0.25 * c.window)
         times, offsets = self._history.append(float(t), offset, t - span - 1e-9)
-        recent = offsets[times >= t - c.window - 1e-9]
-        mean = recent.mean(axis=0)
-        if np.linalg.norm(mean) > c.radius:
-            return (f"the estimate puts the task {np.linalg.norm(mean) * 1e3:.1f} mm from where the model "
+        mean, judged, moved, walked, swing = _judgement(
+            times, offsets, float(t), float(c.window), np.nan if self.period is None else self.period)
+        if mean > c.radius:
+            return (f"the estimate puts the task {mean * 1e3:.1f} mm from where the model "
                     f"puts the reference (trust radius {c.radius * 1e3:.1f} mm): it has left the arm, "
                     "or the arm the model")
-        if self.period is not None:
-            times, offsets = period_means(times, offsets, self.period)
-        if not times.size or times[0] > t - 3.0 * c.window + 1e-9:
-            return None                      # not yet three windows of offsets: no drift to judge
-        # the offset in quarter-window means (the frames' noise averaged out), oldest first: the two
-        # windows before this one (a period of the arm's slowest swing, 0.8 s), then this one
-        edges = t - 3.0 * c.window + 0.25 * c.window * np.arange(13)
-        edges[-1] += 1e-9
-        index = np.digitize(times, edges) - 1
-        inside = (index >= 0) & (index < 12)
-        counts = np.bincount(index[inside], minlength=12)
-        if np.any(counts == 0):
-            return None                      # a gap in the frames: nothing to compare
+        if not judged:
+            return None                  # not yet three windows of offsets, or a gap in the frames
         self.judged += 1
-        means = np.stack([np.bincount(index[inside], offsets[inside, j], minlength=12)
-                          for j in range(offsets.shape[1])], axis=1) / counts[:, None]
-        # the second before as a straight line (the offset's slow trend) and the swing about it
-        # (its peak-to-peak: a walk of the offset is no swing, or a steady walk would excuse itself)
-        k = np.arange(8.0) - 3.5
-        slope = k @ means[:8] / (k @ k)                   # per quarter window
-        before = means[:8] - means[:8].mean(axis=0) - np.outer(k, slope)
-        # half its peak-to-peak: how far a swing takes the offset off its line
-        swing = 0.5 * float(np.sqrt(np.max(np.sum((before[:, None] - before[None]) ** 2, axis=2))))
-        # the latest quarter window against that line carried on to it: a walk that starts
-        moved = float(np.linalg.norm(means[11] - means[:8].mean(axis=0) - 7.5 * slope))
         if moved > c.drift + swing:
             return (f"the estimate moved {moved * 1e3:.1f} mm away from what the reference explains "
                     f"(allowed {c.drift * 1e3:.1f} mm + the arm's swing {swing * 1e3:.1f} mm): a bias, "
                     "or a loop the estimate does not follow")
-        # a steady walk: the line itself moving more than the drift over a window
-        walked = float(np.linalg.norm(4.0 * slope))
         if walked > c.drift + swing:
             return (f"the estimate walks {walked / c.window * 1e3:.1f} mm/s away from what the reference "
                     f"explains (allowed {c.drift * 1e3:.1f} mm + the arm's swing {swing * 1e3:.1f} mm "
                     f"over {c.window:.2f} s): a bias, or a loop the estimate does not follow")
         return None
+
+
+@njit(cache=True, nogil=True)
+def _judgement(times, offsets, t, window, period):
+    """The figures :meth:`TrustRegion.judge` compares, from the kept frames' ``times`` (k,) [s],
+    ascending, and ``offsets`` (k, d) [m], the latest at ``t`` [s]: (the norm of the offset averaged
+    over the last ``window`` [s], whether the drift was judged, then, if it was, how far the
+    latest quarter window moved from the line of the two windows before, how far that line walks
+    over a window, and the swing about it [m]). On a periodic path (``period`` [s]; NaN: none) the
+    drift is judged on the offsets averaged over the period before each frame (:func:`_period_means`).
+    Not judged: fewer than three windows of frames, or a quarter window without one."""
+    k, d = offsets.shape
+    mean = np.zeros(d)
+    count = 0
+    for i in range(k):
+        if times[i] >= t - window - 1e-9:
+            count += 1
+            for j in range(d):
+                mean[j] += offsets[i, j]
+    norm = 0.0
+    for j in range(d):
+        norm += (mean[j] / count) ** 2
+    mean_norm = math.sqrt(norm)
+    if not np.isnan(period):
+        times, offsets = _period_means(times, offsets, period)
+    if times.shape[0] == 0 or times[0] > t - 3.0 * window + 1e-9:
+        return mean_norm, False, 0.0, 0.0, 0.0
+    # the offset in quarter-window means (the frames' noise averaged out), oldest first: the two
+    # windows before this one (a period of the arm's slowest swing, 0.8 s), then this one
+    edges = (t - 3.0 * window) + (0.25 * window) * np.arange(13)
+    edges[-1] += 1e-9
+    means = np.zeros((12, d))
+    counts = np.zeros(12)
+    for i in range(times.shape[0]):
+        b = np.searchsorted(edges, times[i], side="right") - 1
+        if 0 <= b < 12:
+            counts[b] += 1.0
+            for j in range(d):
+                means[b, j] += offsets[i, j]
+    for b in range(12):
+        if counts[b] == 0.0:
+            return mean_norm, False, 0.0, 0.0, 0.0          # a gap in the frames: nothing to compare
+        for j in range(d):
+            means[b, j] /= counts[b]
+    # the two windows before as a straight line (the offset's slow trend) and the swing about it
+    # (its peak-to-peak: a walk of the offset is no swing, or a steady walk would excuse itself)
+    slope = np.zeros(d)                                  # per quarter window
+    centre = np.zeros(d)
+    for j in range(d):
+        for b in range(8):
+            slope[j] += (b - 3.5) * means[b, j]
+            centre[j] += means[b, j]
+        slope[j] /= 42.0                                 # sum of (b - 3.5)^2 over the eight
+        centre[j] /= 8.0
+    before = np.empty((8, d))
+    for b in range(8):
+        for j in range(d):
+            before[b, j] = means[b, j] - centre[j] - (b - 3.5) * slope[j]
+    widest = 0.0
+    for a in range(8):
+        for b in range(a + 1, 8):
+            apart = 0.0
+            for j in range(d):
+                apart += (before[a, j] - before[b, j]) ** 2
+            widest = max(widest, apart)
+    swing = 0.5 * math.sqrt(widest)                      # how far a swing takes the offset off its line
+    moved = 0.0                                          # the latest quarter window against that line
+    walked = 0.0                                         # the line itself over a window
+    for j in range(d):
+        moved += (means[11, j] - centre[j] - 7.5 * slope[j]) ** 2
+        walked += (4.0 * slope[j]) ** 2
+    return mean_norm, True, math.sqrt(moved), math.sqrt(walked), swing
+
+
+@njit(cache=True, nogil=True)
+def _period_means(times, offsets, period):
+    """The offsets (k, d) [m] at ``times`` (k,) [s], ascending, averaged over the ``period`` [s]
+    before each (that frame included), for the frames with a whole period of frames before them:
+    (their times, the means)."""
+    k, d = offsets.shape
+    sums = np.zeros((k + 1, d))
+    for i in range(k):
+        for j in range(d):
+            sums[i + 1, j] = sums[i, j] + offsets[i, j]
+    first = np.searchsorted(times, times[0] + period - 1e-9)      # the first with a whole period
+    out_t = np.empty(k - first)
+    out_x = np.empty((k - first, d))
+    for i in range(first, k):
+        begin = np.searchsorted(times, times[i] - period + 1e-9)
+        out_t[i - first] = times[i]
+        for j in range(d):
+            out_x[i - first, j] = (sums[i + 1, j] - sums[begin, j]) / (i + 1 - begin)
+    return out_t, out_x
 
 
 class _OffsetHistory:
@@ -204,14 +275,3 @@ def defensible_fraction(error, sigma, confidence: float) -> float:
         return 0.0
     bound = confidence * float(np.abs(o) @ np.asarray(sigma, dtype=float))
     return float(np.clip(2.0 * (1.0 - bound / square), 0.0, 1.0))
-
-
-def period_means(times, offsets, period: float) -> tuple[np.ndarray, np.ndarray]:
-    """The offsets (k, d) [m] at ``times`` (k,) [s], ascending, averaged over the ``period`` [s]
-    before each (that frame included), for the frames with a whole period of frames before them:
-    (their times, the means)."""
-    kept = times >= times[0] + period - 1e-9
-    sums = np.vstack([np.zeros(offsets.shape[1]), np.cumsum(offsets, axis=0)])
-    end = np.arange(1, times.size + 1)[kept]
-    begin = np.searchsorted(times, times[kept] - period + 1e-9)
-    return times[kept], (sums[end] - sums[begin]) / (end - begin)[:, None]

@@ -53,6 +53,8 @@ def _controller_and_plant():
         setup = load_setup("coiling", overrides=SHORT_RUN + [f"estimator.process_model={process_model}"])
         run_experiment(setup, estimate=True)
     fit_actuation_map(build_model(), (0.0, 5.0), 1, 2)     # thetabar_a, for an inner loop asked to use it
+    from soft_arm_control.trust_region import TrustRegion       # judges an estimated feedback only
+    TrustRegion(setup.control.trust).judge(0.0, np.zeros(2), np.zeros(2))
 
 
 def _pendulum():
@@ -72,8 +74,8 @@ def _mocap():
 
 STEPS = (("the model's kernels (kinematics to Coriolis, statics, the IMEX and ROS2 steps, the "
           "identification's segment loop)", _model),
-         ("the plant, the inner loop, the actuation map, the CLIK and the shape estimator (a short "
-          "coiling run on each of its process models)",
+         ("the plant, the inner loop, the actuation map, the CLIK, its trust region and the shape "
+          "estimator (a short coiling run on each of its process models)",
           _controller_and_plant),
          ("the strike's pendulum and its contact", _pendulum),
          ("the mocap bridge's frame reader", _mocap))

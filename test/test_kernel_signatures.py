@@ -18,7 +18,8 @@ ENTRY_KERNELS = [("soft_arm_model.kernels", "evaluate"), ("soft_arm_model.kernel
                  ("soft_arm_control.dynamic_estimator_steps", "tendon_rows"),
                  ("soft_arm_control.dynamic_estimator_steps", "gain_update"),
                  ("soft_arm_model.dynamic_identification", "_simulate_segment"),
-                 ("soft_arm_drivers.sim.pendulum", "_swing"), ("soft_arm_drivers.sim.pendulum", "_closest")]
+                 ("soft_arm_drivers.sim.pendulum", "_swing"), ("soft_arm_drivers.sim.pendulum", "_closest"),
+                 ("soft_arm_control.trust_region", "_judgement")]
 
 SCRIPT = r"""
 import importlib
@@ -57,10 +58,17 @@ n_markers = len(model.config.marker_positions)
 segment = SegmentData(t_input=np.zeros(1), tension=u[None, :], t_start=0.0, u_start=u, t_s=t[::2],
                       ds=np.zeros((4, 4)), t_m=t[1::2], dp=np.zeros((4, n_markers, 3)))
 simulate_changes(model.config, 0.6, segment, 0.002, q)
+# the online CLIK's trust region judging an estimate, on a fixed target and along a periodic path
+from soft_arm_control.trust_region import TrustRegion
+from soft_arm_experiments.harness import load_setup
+region = TrustRegion(load_setup("coiling").control.trust)
+for period in (None, 0.5):
+    region.new_goal(period)
+    for k in range(600):
+        region.judge(k / 240, np.full(2, 1e-3), np.zeros(2))
 # the strike: the pendulum swung on the simulated rig, its free swing, a closest approach
 from soft_arm_drivers.sim.pendulum import closest_capsule
 from soft_arm_drivers.sim.simulated_rig import SimulatedRig
-from soft_arm_experiments.harness import load_setup
 from soft_arm_experiments.strike import free_swing, marker_backbone
 strike = load_setup("pendulum")
 rig = SimulatedRig(model, strike.plant, np.zeros(4), u, pendulum=strike.task.pendulum)

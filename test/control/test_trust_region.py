@@ -101,6 +101,54 @@ def test_the_offsets_kept_are_the_frames_of_the_span_through_every_compaction_an
     assert (history._t.size == 64) == (span < 1.0), history._t.size
 
 
+def _judgement_by_definition(times, offsets, t, window, period):
+    """The trust region's figures as the module docstring defines them, with numpy's whole-array
+    operations (the oracle of the compiled judgement): (|mean offset over the window|, judged,
+    moved, walked, swing)."""
+    mean = np.linalg.norm(offsets[times >= t - window - 1e-9].mean(axis=0))
+    if period is not None:          # each frame's offset averaged over the period before it
+        whole = times >= times[0] + period - 1e-9
+        offsets = np.array([offsets[(times >= s - period + 1e-9) & (times <= s)].mean(axis=0)
+                            for s in times[whole]]).reshape(-1, offsets.shape[1])
+        times = times[whole]
+    if not times.size or times[0] > t - 3 * window + 1e-9:
+        return mean, False, 0.0, 0.0, 0.0
+    edges = t - 3 * window + 0.25 * window * np.arange(13)
+    edges[-1] += 1e-9
+    quarter = np.digitize(times, edges) - 1
+    if any(not np.any(quarter == b) for b in range(12)):
+        return mean, False, 0.0, 0.0, 0.0
+    means = np.array([offsets[quarter == b].mean(axis=0) for b in range(12)])
+    line = np.polyfit(np.arange(8.0), means[:8], 1)          # slope, intercept per coordinate
+    before = means[:8] - (np.arange(8.0)[:, None] * line[0] + line[1])
+    swing = 0.5 * max(np.linalg.norm(a - b) for a in before for b in before)
+    moved = np.linalg.norm(means[11] - (11.0 * line[0] + line[1]))
+    return mean, True, moved, np.linalg.norm(4.0 * line[0]), swing
+
+
+@pytest.mark.parametrize("period", [None, 0.3])
+def test_the_judgement_is_the_quarter_window_means_their_line_and_the_swing_about_it(period):
+    """On random histories (uneven frames, gaps, two and three coordinates) the figures the judge
+    compares are the definition's: the window's mean offset, the line through the quarter-window
+    means of the two windows before, the latest quarter's distance from it carried on, the line's
+    walk over a window and half the widest spread about it."""
+    from soft_arm_control.trust_region import _judgement
+    rng = np.random.default_rng(11)
+    judged = 0
+    for trial in range(60):
+        d = 2 + trial % 2
+        gaps = rng.choice([1 / 240, 1 / 120, 0.3], size=800, p=[0.7, 0.295, 0.005])
+        times = np.cumsum(gaps)[-rng.integers(50, 800):]
+        offsets = np.cumsum(rng.normal(scale=1e-4, size=(times.size, d)), axis=0)
+        t, window = times[-1], 0.4
+        got = _judgement(times, offsets, t, window, np.nan if period is None else period)
+        want = _judgement_by_definition(times, offsets, t, window, period)
+        assert got[1] == want[1]
+        np.testing.assert_allclose(got[:1] + got[2:], want[:1] + want[2:], rtol=1e-9, atol=1e-15)
+        judged += got[1]
+    assert 10 < judged < 60                       # both the judged and the refused histories seen
+
+
 def test_a_step_on_the_defended_fraction_never_ends_further_from_the_target_whatever_the_bias():
     """For an estimated error e and any bias b with |b_i| <= confidence sigma_i (the true error
     e + b), a step that moves the task by alpha e leaves a true error no larger than before; the
