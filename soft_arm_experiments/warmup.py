@@ -6,8 +6,8 @@ their modules (numba's ``cache=True``). On a fresh machine that first call takes
 it would otherwise come in the middle of a run: harmless on the simulator, but on the emulated rig
 (or the rig) a node that compiles while its neighbours time out looks like a fault. This command
 makes the calls a run makes, says what it compiles and how long each took, and is quick once the
-cache is warm. It first clears a cache built from other sources (:mod:`.kernel_cache`). Exit status
-0, or 1 with the reason when a kernel cannot be compiled.
+cache is warm. It first clears the kernels that changed sources made stale (:mod:`.kernel_cache`).
+Exit status 0, or 1 with the reason when a kernel cannot be compiled.
 """
 from __future__ import annotations
 
@@ -87,8 +87,8 @@ def main(argv=None) -> int:
     start = time.monotonic()
     removed = clear_stale()
     if removed:
-        print(f"soft-arm-warmup: the sources changed since the kernels were cached: {removed} cached "
-              "kernel files removed", file=sys.stderr)
+        print(f"soft-arm-warmup: sources changed since the kernels were cached: {removed} cached kernel "
+              "files of the modules that reach them removed", file=sys.stderr)
     for what, step in STEPS:
         print(f"soft-arm-warmup: compiling {what} ...", end="", file=sys.stderr, flush=True)
         t0 = time.monotonic()

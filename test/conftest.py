@@ -68,7 +68,8 @@ HEAVIEST_FIRST = ("experiments/test_harness.py", "experiments/test_identificatio
 
 def pytest_configure(config):
     """Before anything compiles, once per pytest run (not in xdist's workers): delete the cached
-    kernels if they were built from other sources (numba misses an edit in another file)."""
+    kernels that sources changed since they were built may have made stale (numba misses an edit
+    in another file)."""
     if not hasattr(config, "workerinput"):
         from soft_arm_experiments.kernel_cache import clear_stale
         clear_stale()
