@@ -7,18 +7,22 @@ code, and tests would pass on it. :func:`clear_stale` keeps a digest of every so
 project's packages beside the cache; where sources no longer match theirs, it deletes the cached
 kernels (``.nbi`` index, ``.nbc`` object code) of every module that reaches a changed source
 through its imports, directly or through other modules, and of the changed modules themselves;
-they recompile on their next call. The kernels of modules that reach no changed source stay: an
-edit of a node's shell or of a command-line tool costs no compilation.
+they recompile on their next call. A kernel file older than a source its module reaches goes too:
+the digests say what changed since the last check, the times what a kernel may have been compiled
+on in between (an edit put back after a process compiled on it). The kernels of modules that
+reach no changed source stay: an edit of a node's shell or of a command-line tool costs no
+compilation.
 
 What a module imports is read from its source, erring towards compiling again: every ``import``
 statement counts (those inside functions too; relative ones resolved, and ``from p import name``
 as importing ``p`` and ``p.name``), and so do the ``__init__`` of its own packages, which run
-before it; a package whose ``__init__`` resolves names on first use (a
-module-level ``__getattr__``, as :mod:`soft_arm_model`'s) counts as importing every module under
-it, and any other module that imports by a name built at run time (``importlib.import_module``,
-``__import__``) as importing every module of the project. A cached kernel whose source file cannot
-be told is deleted, and so is the whole cache when no digest was recorded. ``test/run``'s pytest
-runs and ``soft-arm-warmup`` call it before anything compiles.
+before it; a package whose ``__init__`` resolves names on first use (a module-level
+``__getattr__``, as :mod:`soft_arm_model`'s) or a module that imports a relative name given at run
+time counts as importing every module under its package, and a module that imports any other name
+given at run time (``importlib.import_module``, ``__import__``), or whose source does not parse,
+as importing every module of the project. A cached kernel whose source file cannot be told is
+deleted, and so is the whole cache when no digest was recorded. ``test/run``'s pytest runs and
+``soft-arm-warmup`` call it before anything compiles.
 """
 from __future__ import annotations
 
@@ -33,6 +37,7 @@ PACKAGES = ("soft_arm_model", "soft_arm_ros", "soft_arm_control", "soft_arm_driv
 DIGEST_FILE = "soft_arm_sources.json"
 _CACHE_SUFFIXES = (".nbi", ".nbc")
 _RUN_TIME_IMPORTS = ("import_module", "__import__")
+_IMPORT_FIELDS = {"names", "within", "by_name"}          # of a module's imports (module_imports)
 
 
 def package_roots() -> list[Path]:
@@ -51,11 +56,6 @@ def _sources(roots) -> dict[str, Path]:
     return out
 
 
-def source_digests(roots) -> dict[str, str]:
-    """SHA-256 of the contents of every ``.py`` file under ``roots``, by key (:func:`_sources`)."""
-    return {key: hashlib.sha256(path.read_bytes()).hexdigest() for key, path in _sources(roots).items()}
-
-
 def _module_name(key: str) -> str:
     """The dotted name of the module at ``key``: ``pkg/sub/mod.py`` is ``pkg.sub.mod``,
     ``pkg/sub/__init__.py`` is ``pkg.sub``."""
@@ -63,11 +63,21 @@ def _module_name(key: str) -> str:
     return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
 
 
-def _imported_names(tree: ast.Module, name: str, is_package: bool) -> set[str]:
-    """The dotted names the module ``name`` (a package's ``__init__`` if ``is_package``) may
-    import, each with the packages above it."""
-    names = set()
+def module_imports(path, key: str) -> dict:
+    """What the module at ``path`` (its key ``key``) imports, read from its source: ``names``, the
+    dotted names its ``import`` statements may import (those inside functions too, relative ones
+    resolved, each with the packages above it), ``within`` (it may import any module of its own
+    package: a package ``__init__`` with a module-level ``__getattr__``, or a module calling
+    ``importlib.import_module`` on a relative name) and ``by_name`` (it may import any module: it
+    calls ``import_module`` on another name or ``__import__``, or its source cannot be read)."""
+    try:
+        tree = ast.parse(Path(path).read_bytes(), filename=str(path))
+    except (SyntaxError, ValueError, OSError):
+        return {"names": [], "within": False, "by_name": True}
+    is_package = key.endswith("/__init__.py")
+    name = _module_name(key)
     package = name if is_package else name.rpartition(".")[0]
+    names, within, by_name = set(), False, False
     for node in ast.walk(tree):
         if isinstance(node, ast.Import):
             names.update(alias.name for alias in node.names)
@@ -80,54 +90,63 @@ def _imported_names(tree: ast.Module, name: str, is_package: bool) -> set[str]:
                 base = node.module or ""
             names.add(base)
             names.update(f"{base}.{alias.name}" for alias in node.names)
+        elif isinstance(node, ast.Call) and _calls_an_import(node, tree):
+            relative = node.args and _starts_with_a_dot(node.args[0])
+            within |= bool(relative)
+            by_name |= not relative
     with_parents = set()
     for dotted in names:
         parts = dotted.split(".")
         with_parents.update(".".join(parts[:k]) for k in range(1, len(parts) + 1))
-    return with_parents
+    within |= is_package and any(isinstance(node, ast.FunctionDef) and node.name == "__getattr__"
+                                 for node in tree.body)
+    return {"names": sorted(with_parents), "within": within, "by_name": by_name}
 
 
-def _imports_at_run_time(tree: ast.Module) -> bool:
-    """Whether the module calls ``importlib.import_module`` or ``__import__``."""
+def _calls_an_import(call: ast.Call, tree: ast.Module) -> bool:
+    """Whether ``call`` is ``__import__``, ``importlib.import_module`` or a name the module bound to
+    ``import_module`` (``from importlib import import_module as ...``)."""
+    aliases = {"import_module", "__import__"}
     for node in ast.walk(tree):
-        if isinstance(node, ast.Call):
-            f = node.func
-            called = f.attr if isinstance(f, ast.Attribute) else f.id if isinstance(f, ast.Name) else None
-            if called in _RUN_TIME_IMPORTS:
-                return True
-    return False
+        if isinstance(node, ast.ImportFrom) and node.module == "importlib":
+            aliases.update(a.asname or a.name for a in node.names if a.name == "import_module")
+    f = call.func
+    if isinstance(f, ast.Attribute):
+        return f.attr in _RUN_TIME_IMPORTS
+    return isinstance(f, ast.Name) and f.id in aliases
 
 
-def _resolves_lazily(tree: ast.Module) -> bool:
-    """Whether the module defines a module-level ``__getattr__`` (PEP 562)."""
-    return any(isinstance(node, ast.FunctionDef) and node.name == "__getattr__" for node in tree.body)
+def _starts_with_a_dot(arg: ast.expr) -> bool:
+    """Whether the module name ``arg`` is a relative one: a string, or an f-string whose text
+    starts with a dot."""
+    if isinstance(arg, ast.JoinedStr) and arg.values:
+        arg = arg.values[0]
+    return isinstance(arg, ast.Constant) and isinstance(arg.value, str) and arg.value.startswith(".")
 
 
-def dependencies(roots, removed=()) -> dict[str, set[str]]:
-    """The project modules each module under ``roots`` imports directly, by key (module docstring:
-    what counts), its packages' ``__init__`` among them (they run before it); ``removed``: the keys
-    of modules no longer there, that imports may still name."""
-    sources = _sources(roots)
-    known = set(sources) | set(removed)
+def import_graph(imports: dict, removed=()) -> dict[str, set[str]]:
+    """The project modules each module imports directly, by key, from their :func:`module_imports`
+    (``imports``, by key); its packages' ``__init__`` count (they run before it). ``removed``: the
+    keys of modules no longer there, that imports may still name."""
+    known = set(imports) | set(removed)
     by_name = {_module_name(key): key for key in known}
     out = {}
-    for key, path in sources.items():
-        tree = ast.parse(path.read_bytes(), filename=str(path))
-        is_package = key.endswith("/__init__.py")
-        name = _module_name(key)
-        if is_package and _resolves_lazily(tree):
-            folder = key[:-len("__init__.py")]
-            deps = {k for k in known if k.startswith(folder)}
-        elif _imports_at_run_time(tree):
-            deps = set(known)
-        else:
-            deps = set()
-        parts = name.split(".")
-        names = _imported_names(tree, name, is_package) | {".".join(parts[:k]) for k in range(1, len(parts))}
+    for key, info in imports.items():
+        deps = set(known) if info["by_name"] else set()
+        if info["within"]:
+            folder = key.rpartition("/")[0] + "/"
+            deps.update(k for k in known if k.startswith(folder))
+        parts = _module_name(key).split(".")
+        names = set(info["names"]) | {".".join(parts[:k]) for k in range(1, len(parts))}
         deps.update(by_name[n] for n in names if n in by_name)
         deps.discard(key)
         out[key] = deps
     return out
+
+
+def dependencies(roots, removed=()) -> dict[str, set[str]]:
+    """:func:`import_graph` of every module under ``roots``, each read from its source."""
+    return import_graph({key: module_imports(path, key) for key, path in _sources(roots).items()}, removed)
 
 
 def affected(changed, graph: dict[str, set[str]]) -> set[str]:
@@ -176,42 +195,76 @@ def _cached_kernels(roots, cache_dir: Path | None) -> dict[Path, str | None]:
 
 
 def _recorded(stamp: Path) -> dict | None:
-    """The digests recorded at ``stamp``, None where there are none (no file, or not of this kind)."""
+    """What ``stamp`` records (``sources``: the digests by key; ``imports``: each source's
+    :func:`module_imports`), None where it records nothing of this kind."""
     try:
         recorded = json.loads(stamp.read_text())
     except (OSError, ValueError):
         return None
-    return recorded if isinstance(recorded, dict) else None
+    ok = isinstance(recorded, dict) and isinstance(recorded.get("sources"), dict) \
+        and isinstance(recorded.get("imports"), dict)
+    return recorded if ok else None
+
+
+def _closure(key: str, graph: dict[str, set[str]]) -> set[str]:
+    """``key`` and every module it reaches through its imports."""
+    reached, frontier = {key}, [key]
+    while frontier:
+        for dep in graph.get(frontier.pop(), ()):
+            if dep not in reached:
+                reached.add(dep)
+                frontier.append(dep)
+    return reached
 
 
 def clear_stale(roots=None, cache_dir: str | os.PathLike | None = None) -> int:
-    """Delete the cached kernels of ``roots`` (default: the project's packages) that sources
-    changed since the digests were last recorded may have made stale (module docstring), all of
-    them when none were recorded; record the current digests. The cache is ``cache_dir``, else
-    ``NUMBA_CACHE_DIR`` if set, else the packages' ``__pycache__`` directories (numba's default).
-    Returns the number of files deleted."""
+    """Delete the cached kernels of ``roots`` (default: the project's packages) that may run code
+    older than their sources, and record the sources' digests. A kernel file goes when its module
+    reaches a source whose digest changed since the last record (module docstring), or a source
+    written after the kernel file was (an edit put back, or one a process compiled on without
+    this check; a touched file counts too), or when its source cannot be told; every one goes when
+    nothing was recorded. The cache is ``cache_dir``, else ``NUMBA_CACHE_DIR`` if set, else the
+    packages' ``__pycache__`` directories (numba's default). Returns the number of files deleted."""
     roots = package_roots() if roots is None else [Path(r) for r in roots]
     if cache_dir is None and os.environ.get("NUMBA_CACHE_DIR"):
         cache_dir = os.environ["NUMBA_CACHE_DIR"]
     cache = Path(cache_dir) if cache_dir is not None else None
     stamp = (cache if cache is not None else roots[0] / "__pycache__") / DIGEST_FILE
-    current = source_digests(roots)
+    sources = _sources(roots)
+    current = {key: hashlib.sha256(path.read_bytes()).hexdigest() for key, path in sources.items()}
     recorded = _recorded(stamp)
-    if recorded == current:
-        return 0
+    known = recorded["imports"] if recorded is not None else {}
+    unchanged = recorded is not None and recorded["sources"] == current
+    imports = {key: known[key] if recorded is not None and recorded["sources"].get(key) == digest
+               and isinstance(known.get(key), dict) and known[key].keys() == _IMPORT_FIELDS
+               else module_imports(sources[key], key) for key, digest in current.items()}
     stale = None
     if recorded is not None:
-        changed = {k for k in current.keys() | recorded.keys() if current.get(k) != recorded.get(k)}
-        stale = affected(changed, dependencies(roots, recorded.keys() - current.keys()))
-    removed = 0
+        removed = recorded["sources"].keys() - current.keys()
+        graph = import_graph(imports, removed)
+        changed = {k for k in current.keys() | recorded["sources"].keys()
+                   if current.get(k) != recorded["sources"].get(k)}
+        stale = affected(changed, graph)
+    written = {key: path.stat().st_mtime_ns for key, path in sources.items()}
+    newest = {}
+    removed_files = 0
     for path, source in _cached_kernels(roots, cache).items():
         if stale is not None and source is not None and source not in stale:
-            continue
+            if source not in newest:
+                newest[source] = max(written[k] for k in _closure(source, graph) if k in written)
+            try:
+                if path.stat().st_mtime_ns >= newest[source]:
+                    continue
+            except FileNotFoundError:
+                continue
         try:
             path.unlink()
-            removed += 1
+            removed_files += 1
         except FileNotFoundError:
             pass
-    stamp.parent.mkdir(parents=True, exist_ok=True)
-    stamp.write_text(json.dumps(current, indent=0, sort_keys=True) + "\n")
-    return removed
+    if not unchanged:
+        stamp.parent.mkdir(parents=True, exist_ok=True)
+        partial = stamp.with_name(f"{stamp.name}.{os.getpid()}")
+        partial.write_text(json.dumps({"sources": current, "imports": imports}, sort_keys=True) + "\n")
+        os.replace(partial, stamp)            # a reader sees the old record or the new, never half
+    return removed_files

@@ -5,8 +5,8 @@ import os
 
 import pytest
 
-from soft_arm_experiments.kernel_cache import (DIGEST_FILE, affected, clear_stale, dependencies,
-                                               package_roots, source_digests)
+from soft_arm_experiments.kernel_cache import (DIGEST_FILE, _sources, affected, clear_stale, dependencies,
+                                               package_roots)
 
 # a package of four modules: `low` is imported by `mid` (relatively, inside a function), `mid` by
 # `top` (absolutely); `alone` imports nothing of the project; `lazy`'s __init__ resolves names on
@@ -26,6 +26,12 @@ MODULES = {
 }
 KERNEL_MODULES = ("pkg_a/low.py", "pkg_a/mid.py", "pkg_a/top.py", "pkg_a/alone.py", "pkg_a/lazy_user.py",
                   "pkg_a/by_name.py", "pkg_b/user.py")
+
+
+@pytest.fixture(autouse=True)
+def _no_numba_cache_dir(monkeypatch):
+    """The trees here are the tests' own: a NUMBA_CACHE_DIR of the caller's is not theirs to clear."""
+    monkeypatch.delenv("NUMBA_CACHE_DIR", raising=False)
 
 
 def _tree(tmp_path, cache=None):
@@ -110,6 +116,52 @@ def test_a_new_or_removed_source_clears_its_importers_and_a_kernel_of_no_known_s
     assert _cached(tmp_path) == {"pkg_a/alone.py", "pkg_a/lazy_user.py"}
 
 
+def _age_kernels(tmp_path, seconds):
+    """Every cached kernel file of KERNEL_MODULES written ``seconds`` before its sources were."""
+    newest = max(os.stat(tmp_path / key).st_mtime_ns for key in MODULES)
+    for folder in {_folder(tmp_path, key, None) for key in KERNEL_MODULES}:
+        for path in folder.iterdir():
+            if path.suffix in (".nbi", ".nbc"):
+                os.utime(path, ns=(newest - int(seconds * 1e9),) * 2)
+
+
+def test_a_kernel_older_than_a_source_it_reaches_goes_even_where_the_digests_match(tmp_path):
+    """An edit put back after some process compiled on it (the digests as recorded, the kernel
+    built on the edit), or a source touched: the kernels older than what their module reaches go,
+    those of modules that do not reach it stay."""
+    roots = _tree(tmp_path)
+    clear_stale(roots)
+    for key in KERNEL_MODULES:
+        _compile(tmp_path, key)
+    _age_kernels(tmp_path, 0.0)                                # compiled as the sources were written
+    assert clear_stale(roots) == 0
+    low = tmp_path / "pkg_a" / "low.py"
+    stat = os.stat(low)
+    os.utime(low, ns=(stat.st_atime_ns, stat.st_mtime_ns + 10**9))   # the same text, written later
+    assert clear_stale(roots) == 2 * 5
+    assert _cached(tmp_path) == {"pkg_a/alone.py", "pkg_a/lazy_user.py"}
+
+
+def test_a_source_that_does_not_parse_counts_as_importing_everything_and_stops_nothing(tmp_path):
+    roots = _tree(tmp_path)
+    (tmp_path / "pkg_a" / "alone.py").write_text("def broken(:\n")
+    clear_stale(roots)
+    for key in KERNEL_MODULES:
+        _compile(tmp_path, key)
+    (tmp_path / "pkg_b" / "__init__.py").write_text("# edited\n")
+    clear_stale(roots)
+    assert "pkg_a/alone.py" not in _cached(tmp_path) and "pkg_a/low.py" in _cached(tmp_path)
+
+
+def test_an_aliased_import_module_counts_as_importing_by_name(tmp_path):
+    (tmp_path / "pkg" / "__init__.py").parent.mkdir()
+    (tmp_path / "pkg" / "__init__.py").write_text("")
+    (tmp_path / "pkg" / "a.py").write_text("from importlib import import_module as im\nM = im('pkg.b')\n")
+    (tmp_path / "pkg" / "b.py").write_text("")
+    graph = dependencies([tmp_path / "pkg"])
+    assert graph["pkg/a.py"] == {"pkg/__init__.py", "pkg/b.py"}
+
+
 def test_numba_cache_dir_is_where_the_kernels_and_the_digests_are(tmp_path, monkeypatch):
     cache = tmp_path / "numba-cache"
     roots = _tree(tmp_path, cache)
@@ -126,9 +178,10 @@ def test_numba_cache_dir_is_where_the_kernels_and_the_digests_are(tmp_path, monk
                                                               "pkg_a/by_name.py"}
 
 
-def test_digests_recorded_in_another_form_clear_the_whole_cache(tmp_path):
+@pytest.mark.parametrize("record", ["0123abcd\n", '{"sources": {}}', '{"sources": {"pkg_a/low.py": "', ""])
+def test_digests_recorded_in_another_form_or_cut_clear_the_whole_cache(tmp_path, record):
     roots = _tree(tmp_path)
-    (tmp_path / "pkg_a" / "__pycache__" / DIGEST_FILE).write_text("0123abcd\n")
+    (tmp_path / "pkg_a" / "__pycache__" / DIGEST_FILE).write_text(record)
     assert clear_stale(roots) == 2 * len(KERNEL_MODULES)
 
 
@@ -143,7 +196,7 @@ def test_the_projects_kernels_are_cleared_by_an_edit_of_what_they_call_and_kept_
     after_node = affected({"soft_arm_drivers/can/motor_driver_node.py"}, graph)
     assert not after_node & {"soft_arm_model/kernels.py", "soft_arm_control/trust_region.py",
                              "soft_arm_drivers/sim/pendulum.py"}, after_node
-    assert set(source_digests(package_roots())) == set(graph)
+    assert set(_sources(package_roots())) == set(graph)
 
 
 def test_the_project_packages_are_the_roots():
