@@ -78,6 +78,7 @@ def module_imports(path, key: str) -> dict:
     name = _module_name(key)
     package = name if is_package else name.rpartition(".")[0]
     names, within, by_name = set(), False, False
+    aliases = _import_aliases(tree)
     for node in ast.walk(tree):
         if isinstance(node, ast.Import):
             names.update(alias.name for alias in node.names)
@@ -90,7 +91,7 @@ def module_imports(path, key: str) -> dict:
                 base = node.module or ""
             names.add(base)
             names.update(f"{base}.{alias.name}" for alias in node.names)
-        elif isinstance(node, ast.Call) and _calls_an_import(node, tree):
+        elif isinstance(node, ast.Call) and _calls_an_import(node, aliases):
             relative = node.args and _starts_with_a_dot(node.args[0])
             within |= bool(relative)
             by_name |= not relative
@@ -103,13 +104,18 @@ def module_imports(path, key: str) -> dict:
     return {"names": sorted(with_parents), "within": within, "by_name": by_name}
 
 
-def _calls_an_import(call: ast.Call, tree: ast.Module) -> bool:
-    """Whether ``call`` is ``__import__``, ``importlib.import_module`` or a name the module bound to
-    ``import_module`` (``from importlib import import_module as ...``)."""
+def _import_aliases(tree: ast.Module) -> set[str]:
+    """The names that call an import in the module: ``__import__``, ``import_module`` and what
+    ``from importlib import import_module as ...`` binds."""
     aliases = {"import_module", "__import__"}
     for node in ast.walk(tree):
         if isinstance(node, ast.ImportFrom) and node.module == "importlib":
             aliases.update(a.asname or a.name for a in node.names if a.name == "import_module")
+    return aliases
+
+
+def _calls_an_import(call: ast.Call, aliases: set[str]) -> bool:
+    """Whether ``call`` is ``importlib.import_module``, ``__import__`` or one of ``aliases``."""
     f = call.func
     if isinstance(f, ast.Attribute):
         return f.attr in _RUN_TIME_IMPORTS
