@@ -162,12 +162,17 @@ def affected(changed, graph: dict[str, set[str]]) -> set[str]:
     for key, deps in graph.items():
         for dep in deps:
             importers.setdefault(dep, set()).add(key)
-    reached, frontier = set(changed), list(changed)
+    return _reached(changed, importers)
+
+
+def _reached(starts, edges: dict[str, set[str]]) -> set[str]:
+    """``starts`` and every key that ``edges`` (key -> keys) lead to from them."""
+    reached, frontier = set(starts), list(starts)
     while frontier:
-        for importer in importers.get(frontier.pop(), ()):
-            if importer not in reached:
-                reached.add(importer)
-                frontier.append(importer)
+        for key in edges.get(frontier.pop(), ()):
+            if key not in reached:
+                reached.add(key)
+                frontier.append(key)
     return reached
 
 
@@ -212,17 +217,6 @@ def _recorded(stamp: Path) -> dict | None:
     return recorded if ok else None
 
 
-def _closure(key: str, graph: dict[str, set[str]]) -> set[str]:
-    """``key`` and every module it reaches through its imports."""
-    reached, frontier = {key}, [key]
-    while frontier:
-        for dep in graph.get(frontier.pop(), ()):
-            if dep not in reached:
-                reached.add(dep)
-                frontier.append(dep)
-    return reached
-
-
 def clear_stale(roots=None, cache_dir: str | os.PathLike | None = None) -> int:
     """Delete the cached kernels of ``roots`` (default: the project's packages) that may run code
     older than their sources, and record the sources' digests. A kernel file goes when its module
@@ -257,7 +251,7 @@ def clear_stale(roots=None, cache_dir: str | os.PathLike | None = None) -> int:
     for path, source in _cached_kernels(roots, cache).items():
         if stale is not None and source is not None and source not in stale:
             if source not in newest:
-                newest[source] = max(written[k] for k in _closure(source, graph) if k in written)
+                newest[source] = max(written[k] for k in _reached({source}, graph) if k in written)
             try:
                 if path.stat().st_mtime_ns >= newest[source]:
                     continue
