@@ -471,7 +471,7 @@ FOUND = (r"found the hardware lock held by motor_driver cycle for [0-9.]+ s, as 
 HELD = f"(?:{WAITED}|{FOUND})"
 
 
-def test_a_cycle_stuck_in_its_hardware_holds_no_callback_past_its_bound(rig, monkeypatch):
+def test_a_cycle_stuck_in_its_hardware_holds_no_callback_past_its_bound(rig, monkeypatch, capfd):
     """The cycle stuck in the driver holding the hardware lock (a bus call that never returns)
     while the motors pull: each callback waits HOLD_WAIT at most, then says what it could not do,
     naming the cycle, where it held the executor with it: a command dropped and counted, the zero
@@ -491,9 +491,12 @@ def test_a_cycle_stuck_in_its_hardware_holds_no_callback_past_its_bound(rig, mon
         assert node.trigger_deactivate() == TransitionCallbackReturn.FAILURE
         assert not change(executor, harness, "deactivate")                  # the service's own wait
         assert node.lifecycle_state == "active" and node.failure is None
+        capfd.readouterr()
         node.release()
         assert re.fullmatch("the release: zero torque not sent: the node's release " + HELD,
                             str(node.failure)), node.failure
+        logged = capfd.readouterr().err                    # said as what it is: nothing was sent
+        assert "the release: zero torque not sent (the node's release" in logged, logged
         failure = node.failure
         answer = node.on_estop(Trigger.Request(), Trigger.Response())
         assert not answer.success and re.match("e-stop not sent: the estop service " + HELD, answer.message)
