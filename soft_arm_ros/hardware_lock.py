@@ -39,10 +39,10 @@ class LockTimeout(RuntimeError):
 
 class HardwareLock:
     """A re-entrant lock that knows what holds it: ``with lock.held_by("estop service"): ...``, or
-    ``with lock:``, :meth:`acquire` and :meth:`release` (the holder is then the acquiring thread's
-    name). :meth:`holder` says what holds it and since when [s, ``clock``, default monotonic]; a
-    nested hold keeps the outermost one's name. Its record is written only by the thread that
-    holds it."""
+    ``with lock:``, :meth:`acquire` (with a bound) and :meth:`release` (the holder is then the
+    acquiring thread's name). :meth:`holder` says what holds it and since when [s, ``clock``,
+    default monotonic]; a nested hold keeps the outermost one's name. Its record is written only
+    by the thread that holds it."""
 
     def __init__(self, clock: Callable[[], float] = time.monotonic):
         self._lock = threading.RLock()
@@ -52,10 +52,14 @@ class HardwareLock:
         self._holder: Optional[Tuple[str, float]] = None
         self._stuck: Optional[Tuple[str, float]] = None     # the hold that ran out the latest wait
 
-    def acquire(self, blocking: bool = True, timeout: float = -1, what: Optional[str] = None) -> bool:
-        """Take the lock as :meth:`threading.RLock.acquire` does; ``what`` names the holder (default:
-        the current thread's name)."""
-        if not self._lock.acquire(blocking, timeout):
+    def acquire(self, timeout: float, what: Optional[str] = None) -> bool:
+        """Take the lock within ``timeout`` [s] (0: only if it is free now); False when it was not
+        free in time. Every wait for it has a bound: there is no default, and no waiting for ever
+        (a negative bound is refused). ``what`` names the holder (default: the current thread's
+        name)."""
+        if not timeout >= 0.0:
+            raise ValueError(f"a wait for the hardware lock needs a bound >= 0 s, got {timeout!r}")
+        if not self._lock.acquire(True, timeout):
             return False
         if self._depth == 0:
             self._owner = threading.get_ident()

@@ -43,6 +43,19 @@ def test_the_lock_names_its_outermost_holder_until_it_is_free():
     assert lock.holder() is None
 
 
+def test_every_wait_for_the_lock_has_a_bound():
+    """No wait for ever: acquire takes a bound, >= 0 s, and says when it ran out."""
+    lock = HardwareLock()
+    with pytest.raises(TypeError):
+        lock.acquire()                                      # pylint: disable=no-value-for-parameter
+    for unbounded in (-1.0, float("nan")):
+        with pytest.raises(ValueError, match="needs a bound"):
+            lock.acquire(timeout=unbounded)
+    assert lock.holder() is None
+    assert lock.acquire(timeout=0.0, what="the test") and lock.holder()[0] == "the test"
+    lock.release()
+
+
 def _holding(lock: HardwareLock, what: str, take: threading.Event, held: threading.Event,
              free: threading.Event) -> threading.Thread:
     """A thread that holds ``lock`` as ``what`` each time ``take`` is set (then ``held`` is set),
