@@ -176,11 +176,11 @@ def _reached(starts, edges: dict[str, set[str]]) -> set[str]:
     return reached
 
 
-def _cached_kernels(roots, cache_dir: Path | None) -> dict[Path, str | None]:
+def _cached_kernels(roots, sources: dict[str, Path], cache_dir: Path | None) -> dict[Path, str | None]:
     """Every cached kernel file with the key of its source module (None: not told). numba names a
     module's kernels ``<module file stem>.<function>-...`` in its directory's ``__pycache__``, or
-    with ``NUMBA_CACHE_DIR`` in ``<directory name>_<SHA-1 of its absolute path>`` there."""
-    sources = _sources(roots)
+    with ``NUMBA_CACHE_DIR`` in ``<directory name>_<SHA-1 of its absolute path>`` there (``sources``:
+    :func:`_sources` of ``roots``)."""
     folders = {}                                   # cache folder -> (source folder, its key prefix)
     for key, path in sources.items():
         folder = path.parent
@@ -248,7 +248,7 @@ def clear_stale(roots=None, cache_dir: str | os.PathLike | None = None) -> int:
     written = {key: path.stat().st_mtime_ns for key, path in sources.items()}
     newest = {}
     removed_files = 0
-    for path, source in _cached_kernels(roots, cache).items():
+    for path, source in _cached_kernels(roots, sources, cache).items():
         if stale is not None and source is not None and source not in stale:
             if source not in newest:
                 newest[source] = max(written[k] for k in _reached({source}, graph) if k in written)

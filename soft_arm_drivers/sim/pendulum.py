@@ -207,7 +207,7 @@ def _stage(p, v, pivot, length, mass, ball_radius, restitution, youngs_modulus, 
         segment, fraction, gap = _closest(points, radii, p, q)
         gap -= ball_radius
         if not gap >= 0.0:                              # NaN too: the force says it, not a miss
-            distance = math.sqrt((p[0] - q[0]) ** 2 + (p[1] - q[1]) ** 2 + (p[2] - q[2]) ** 2)
+            distance = _distance(p, q)
             rate = 0.0                                     # d(overlap)/dt along the normal
             for j in range(3):
                 arm = (1.0 - fraction) * velocities[segment, j] + fraction * velocities[segment + 1, j]
@@ -221,7 +221,7 @@ def _stage(p, v, pivot, length, mass, ball_radius, restitution, youngs_modulus, 
             for j in range(3):
                 force[j] = magnitude * (p[j] - q[j]) / max(distance, 1e-12)
             overlap = -gap
-    r = math.sqrt((p[0] - pivot[0]) ** 2 + (p[1] - pivot[1]) ** 2 + (p[2] - pivot[2]) ** 2)
+    r = _distance(p, pivot)
     along = 0.0
     speed2 = 0.0
     for j in range(3):
@@ -270,7 +270,7 @@ def _swing(p, v, pivot, length, mass, ball_radius, restitution, youngs_modulus, 
             p[j] += h / 6.0 * _rk4_sum(stages, 0, j)
             v[j] += h / 6.0 * _rk4_sum(stages, 1, j)
             impulse[j] += h / 6.0 * _rk4_sum(stages, 2, j)
-        r = math.sqrt((p[0] - pivot[0]) ** 2 + (p[1] - pivot[1]) ** 2 + (p[2] - pivot[2]) ** 2)
+        r = _distance(p, pivot)
         for j in range(3):
             p[j] = pivot[j] + (p[j] - pivot[j]) * (length / r)
         along = 0.0
@@ -279,6 +279,12 @@ def _swing(p, v, pivot, length, mass, ball_radius, restitution, youngs_modulus, 
         for j in range(3):
             v[j] -= along * (p[j] - pivot[j]) / length
     return where_segment, where_fraction, deepest, gap, approach
+
+
+@njit(cache=True, nogil=True)
+def _distance(a, b):
+    """|a - b| of two 3-vectors [m]."""
+    return math.sqrt((a[0] - b[0]) ** 2 + (a[1] - b[1]) ** 2 + (a[2] - b[2]) ** 2)
 
 
 @njit(cache=True, nogil=True)
