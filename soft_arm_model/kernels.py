@@ -200,9 +200,19 @@ def _column_rows(Bp, lo, hi, rows):
 
 
 @nonallocating
+def strain_rows(w, B, col_lo, col_hi, rows):
+    """rows[pt] (:func:`_column_rows`) at every point with weight, within its division's columns: what
+    :func:`_elastic` and :func:`_tendons` read (``rows``: :func:`new_force_work`'s fourth array)."""
+    for pt in range(w.shape[0]):
+        if w[pt] != 0.0:
+            lo, hi = _columns(col_lo, col_hi, pt)
+            _column_rows(B[pt], lo, hi, rows[pt])
+
+
+@nonallocating
 def _elastic(w, B, xi, stiff_diag, neo_axial, col_lo, col_hi, Fel, Kt, energies, work):
     """Elastic force F_el = sum w B^T sigma(xi - xi*), tangent K_t, energy; False if stretch <= 0.
-    ``work``: :func:`new_force_work`."""
+    ``work``: :func:`new_force_work`, its strain rows filled (:func:`strain_rows`)."""
     n = Fel.shape[0]
     P = w.shape[0]
     Fel[:] = 0.0
@@ -228,16 +238,19 @@ def _elastic(w, B, xi, stiff_diag, neo_axial, col_lo, col_hi, Fel, Kt, energies,
                 energy += w[pt] * 0.5 * stiff_diag[pt, r] * e * e
         lo, hi = _columns(col_lo, col_hi, pt)      # B is zero outside the point's division
         rows = work[3][pt]
-        _column_rows(B[pt], lo, hi, rows)
-        # one strain mode per coordinate: B^T diag(dsig) B couples only coordinates of one mode
+        # one strain mode per coordinate: B^T diag(dsig) B couples only coordinates of one mode, and
+        # row r of B is zero in the columns of the other modes, so that the row's axpy over all of
+        # them adds exact zeros there (no test per pair: it vectorises)
+        uhi = np.uint64(hi)
         for a in range(lo, hi):
             r = rows[a]
             if r < 0:
                 continue
             Fel[a] += w[pt] * (B[pt, r, a] * sig[r])
-            for b in range(a, hi):
-                if rows[b] == r:
-                    Kt[a, b] += w[pt] * (B[pt, r, a] * dsig[r] * B[pt, r, b])
+            f = B[pt, r, a] * dsig[r]
+            Br = B[pt, r]
+            for b in range(np.uint64(a), uhi):
+                Kt[a, b] += w[pt] * (f * Br[b])
     for a in range(n):
         for b in range(a):
             Kt[a, b] = Kt[b, a]
@@ -269,20 +282,19 @@ def _gravity(lumped, gravity, R, p, J, Fg, energies, work):
 def _tendons(w, B, Bd, xi, q, t_d, t_dp, t_dpp, t_active, t_mu, Q, smoothing, col_lo, col_hi,
              A, A0, Lc, theta, wrap, phi, work):
     """Tendon columns with and without friction, lengths and friction-aware integrals. ``work``:
-    :func:`new_force_work`."""
+    :func:`new_force_work`, its strain rows filled (:func:`strain_rows`)."""
     n_t = t_d.shape[0]
     P = w.shape[0]
     A[:, :] = 0.0
     A0[:, :] = 0.0
     vec, per_point, ntau, rows = work[0], work[1], work[2], work[3]
     tang = per_point[0]
-    # per point, whatever the tendon: the strain's rate of change along the arm xi' = Bd q, and
-    # the one strain row of each coordinate (only the points with weight are read)
+    # per point, whatever the tendon: the strain's rate of change along the arm xi' = Bd q (only
+    # the points with weight are read)
     xid_all = per_point[1]
     for pt in range(P):
         if w[pt] != 0.0:
             _matvec(Bd[pt], q, xid_all[pt])
-            _column_rows(B[pt], col_lo[pt], col_hi[pt], rows[pt])
     tau, taud, tmp, v, phi_w = vec[2][0:3], vec[3][0:3], vec[4][0:3], vec[5][0:3], vec[6]
     for k in range(n_t):
         Lc[k] = 0.0
@@ -544,6 +556,7 @@ def evaluate(w, B, Bd, h, B1, B2, xi_star, lumped, stiff_diag, neo_axial, R0, gr
     if level < 1:
         return True
     forces = work[2]
+    strain_rows(w, B, col_lo, col_hi, forces[3])
     if not _elastic(w, B, xi, stiff_diag, neo_axial, col_lo, col_hi, Fel, Kt, energies, forces):
         return False
     _gravity(lumped, gravity, R, p, J, Fg, energies, forces)

@@ -84,6 +84,7 @@ def new_routing_work(model) -> tuple:
 def _one_tendon(w, B, Bd, xi, q, d, dp, dpp, active, mu, Q, smoothing, col_lo, col_hi, work):
     """Tendon terms of the one tendon in work's arrays (d, dp, dpp given) at strains xi: A, A0 and
     L_c land in work[5], work[6], work[7]; False at a degenerate tendon tangent."""
+    kernels.strain_rows(w, B, col_lo, col_hi, work[11][3])
     return kernels._tendons(w, B, Bd, xi, q, d, dp, dpp, active, mu, Q, smoothing, col_lo, col_hi,
                             work[5], work[6], work[7], work[8], work[9], work[10], work[11])
 
