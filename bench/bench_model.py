@@ -146,18 +146,23 @@ def bench_statics(dof):
             "speed_ratio_jacobian": jac_fd_us / jac_us}
 
 
-def bench_simulation(dof, duration=10.0, rotor_mass=None):
-    """10 s of a tension step at 1 ms steps; ``rotor_mass`` [kg] per tendon as the plant has them
-    (their term is the tendons' rate bias, :func:`kernels.tendon_rate_bias`), or none."""
+def bench_simulation(dof, duration=10.0, rotor_mass=None, repeats=3):
+    """10 s of a tension step at 1 ms steps, the best of ``repeats`` runs as every other figure here
+    (one run on a shared two-core machine varies by a tenth and more from one minute to the next);
+    ``rotor_mass`` [kg] per tendon as the plant has them (their term is the tendons' rate bias,
+    :func:`kernels.tendon_rate_bias`), or none."""
     m = _model(dof)
     q0 = solve_equilibrium(m, np.zeros(4)).q
     step = np.array([5.0, 0.0, 5.0, 0.0])
     simulate(m, q0, np.zeros(m.n), lambda t: step, 0.01, rotor_mass=rotor_mass)
-    t0 = time.perf_counter()
-    tr = simulate(m, q0, np.zeros(m.n), lambda t: step if t >= 1.0 else np.zeros(4), duration,
-                  rotor_mass=rotor_mass)
-    wall = time.perf_counter() - t0
-    return {"dof": dof, "dt_s": 1e-3, "simulated_s": duration, "wall_s": wall,
+    walls = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        tr = simulate(m, q0, np.zeros(m.n), lambda t: step if t >= 1.0 else np.zeros(4), duration,
+                      rotor_mass=rotor_mass)
+        walls.append(time.perf_counter() - t0)
+    wall = min(walls)
+    return {"dof": dof, "dt_s": 1e-3, "simulated_s": duration, "wall_s": wall, "runs_wall_s": walls,
             "real_time_factor": duration / wall, "final_tip_m": tip_frame(m, tr.q[-1]).p.tolist(),
             "rotor_mass_kg": None if rotor_mass is None else list(rotor_mass)}
 
@@ -416,7 +421,9 @@ def main(argv=None):
               f"{r['finite_difference_jacobian_us']:.1f} us: {r['speed_ratio_jacobian']:.1f}x")
     for dof, r in res["simulation"].items():
         print(f"simulation 1 ms steps, 10 s, {dof} DOF: real-time factor {r['real_time_factor']:.1f} "
-              + ("[>= 60]" if dof == 20 else ""))
+              + ("[>= 60] " if dof == 20 else "")
+              + f"(best of {len(r['runs_wall_s'])}; the others "
+              + ", ".join(f"{r['simulated_s'] / w:.1f}" for w in sorted(r['runs_wall_s'])[1:]) + ")")
     r = res["simulation_with_rotors"]
     print(f"  with the plant's rotors ({r['rotor_mass_kg'][0]:g} kg per tendon), 20 DOF: real-time factor "
           f"{r['real_time_factor']:.1f}; their term, the tendons' rate bias: {res['rotor_term_us']:.2f} us")
