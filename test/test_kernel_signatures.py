@@ -19,6 +19,7 @@ ENTRY_KERNELS = [("soft_arm_model.kernels", "evaluate"), ("soft_arm_model.kernel
                  ("soft_arm_control.dynamic_estimator_steps", "gain_update"),
                  ("soft_arm_model.dynamic_identification", "_simulate_segment"),
                  ("soft_arm_drivers.sim.pendulum", "_swing"), ("soft_arm_drivers.sim.pendulum", "_closest"),
+                 ("soft_arm_drivers.sim.simulated_rig", "_surface"),
                  ("soft_arm_control.trust_region", "_judgement")]
 
 SCRIPT = r"""

@@ -146,10 +146,11 @@ def _rings(marker_arcs, arcs, radii) -> tuple[np.ndarray, np.ndarray, np.ndarray
     return marker_arcs - ring, marker_arcs + ring, np.maximum(radii[:-1], radii[1:])
 
 
-def _arc_layout(model) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def arc_layout(model) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The order that sorts the model's points then markers by arc length, their arc lengths in
-    that order (P,) [m] and the cone's radius at each (P,) [m]: what :func:`body` takes from the
-    model, which does not change between frames."""
+    that order (P,) [m] and the cone's radius at each (P,) [m]: what :func:`body` and the contact's
+    surface (:meth:`.simulated_rig.Plant.surface`) take from the model, which does not change
+    between frames."""
     X = np.concatenate([model.X, model.marker_X])
     order = np.argsort(X, kind="stable")
     g = model.config.geometry
@@ -162,7 +163,7 @@ def body(model, data) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The arm's body as the cameras see it, from a workspace ``data`` of ``model`` evaluated with
     its markers: backbone points (P, 3) [m] in arm_base ordered by arc length (the model's points
     and the markers), the cone's radius at each (P,) [m] and their arc lengths (P,) [m]."""
-    order, arcs, radii = _arc_layout(model)
+    order, arcs, radii = arc_layout(model)
     return np.concatenate([data.p, data.marker_p])[order], radii, arcs
 
 
@@ -208,7 +209,7 @@ class Occlusions:
         if t is not None and c.blackout[0] <= t < c.blackout[1]:
             return np.zeros(model.marker_X.size, bool)
         if self._arm is None or self._arm[0] is not model:
-            order, arcs, radii = _arc_layout(model)
+            order, arcs, radii = arc_layout(model)
             self._arm = (model, order, arcs) + _rings(model.marker_X, arcs, radii)
         _, order, arcs, low, high, capsule_radii = self._arm
         cameras, axes, cos_half = _layout(c)

@@ -18,7 +18,7 @@ from numba import njit
 
 from soft_arm_model import ImexStepper, build_model, solve_equilibrium
 
-from .occlusion import Occlusions
+from .occlusion import Occlusions, arc_layout
 from .pendulum import ArmSurface, Contact, Pendulum
 from .plant_config import PlantConfig
 
@@ -36,6 +36,7 @@ class Plant:
         self.stepper = ImexStepper(model, timestep, rotor_mass=np.full(model.n_tendons, rotor_mass))
         self.q = np.zeros(model.n)
         self.qd = np.zeros(model.n)
+        self._layout = None     # (order, radii) of the points and markers by arc length: surface()
 
     @classmethod
     def of(cls, arm, config: PlantConfig) -> "Plant":
@@ -67,16 +68,17 @@ class Plant:
     def surface(self) -> ArmSurface:
         """The arm's backbone at the state sensed with ``markers=True``, as a contact sees it: the
         model's points and the markers by arc length, their velocities, the cone's radius there and
-        their linear Jacobians in arm_base."""
-        d, m = self.stepper.data, self.model
-        X = np.concatenate([m.X, m.marker_X])
-        order = np.argsort(X, kind="stable")
-        R = np.concatenate([d.R, d.marker_R])[order]
-        J = np.concatenate([d.J, d.marker_J])[order][:, 3:]
-        jacobians = np.einsum("pij,pjk->pik", R, J)
-        g = m.config.geometry
-        radii = g.base_radius + (g.tip_radius - g.base_radius) * X[order] / g.length
-        return ArmSurface(np.concatenate([d.p, d.marker_p])[order], jacobians @ self.qd, radii, jacobians)
+        their linear Jacobians in arm_base (new arrays). The order and the radii depend on the
+        model alone and are computed once; the rest in one compiled call (:func:`_surface`), as
+        the pendulum's contact takes it at every plant step of a strike."""
+        if self._layout is None:
+            order, _, radii = arc_layout(self.model)
+            self._layout = order.astype(np.int64), radii
+        order, radii = self._layout
+        d = self.stepper.data
+        points, velocities, jacobians = _surface(order, d.p, d.marker_p, d.R, d.marker_R, d.J, d.marker_J,
+                                                 np.ascontiguousarray(self.qd, dtype=float))
+        return ArmSurface(points, velocities, radii.copy(), jacobians)
 
     def tendons(self) -> tuple[np.ndarray, np.ndarray]:
         """True shortenings L_c(0) - L_c(q) [m] and rates [m/s] of all tendons at the sensed state."""
@@ -89,6 +91,32 @@ class Plant:
         d = self.stepper.data
         v = d.marker_R[-1] @ (d.marker_J[-1][3:] @ self.qd)
         return d.marker_p.copy(), float(np.linalg.norm(v))
+
+
+@njit(cache=True, nogil=True)
+def _surface(order, p, marker_p, R, marker_R, J, marker_J, qd):
+    """The backbone's points (N, 3) [m], velocities (N, 3) [m/s] and linear Jacobians (N, 3, n) in
+    arm_base, in ``order`` (indices into the model's points then markers): jacobian = R J[3:] of
+    each, velocity = jacobian qd (:meth:`Plant.surface`)."""
+    n_points, N, n = p.shape[0], order.shape[0], qd.shape[0]
+    points = np.empty((N, 3))
+    velocities = np.empty((N, 3))
+    jacobians = np.empty((N, 3, n))
+    for i in range(N):
+        k = order[i]
+        if k < n_points:
+            pos, rot, jac = p[k], R[k], J[k]
+        else:
+            pos, rot, jac = marker_p[k - n_points], marker_R[k - n_points], marker_J[k - n_points]
+        for a in range(3):
+            points[i, a] = pos[a]
+            speed = 0.0
+            for c in range(n):
+                acc = rot[a, 0] * jac[3, c] + rot[a, 1] * jac[4, c] + rot[a, 2] * jac[5, c]
+                jacobians[i, a, c] = acc
+                speed += acc * qd[c]
+            velocities[i, a] = speed
+    return points, velocities, jacobians
 
 
 class Encoders:

@@ -253,3 +253,32 @@ def test_a_held_arm_is_struck_in_the_balls_path_and_missed_beside_it(offset):
         assert force.max() == 0
         assert min(rig.strike.gap) == pytest.approx(gaps.min(), abs=2e-4)
         assert gaps.min() == pytest.approx(offset - radius - c.ball_radius, abs=2e-3)
+
+
+def test_the_compiled_surface_is_the_workspace_in_arc_length_order():
+    """Plant.surface against its definition in numpy: the model's points and markers sorted by arc
+    length (stable), their linear Jacobians rotated into arm_base (R J[3:]), their velocities
+    (those Jacobians times qd) and the cone's radius at each, on random states; new arrays each
+    call (a contact keeps what it was given)."""
+    rig, _ = _rig(None)
+    plant, model = rig.plant, rig.plant.model
+    rng = np.random.default_rng(5)
+    X = np.concatenate([model.X, model.marker_X])
+    order = np.argsort(X, kind="stable")
+    g = model.config.geometry
+    for _ in range(5):
+        plant.q, plant.qd = 0.1 * rng.normal(size=model.n), rng.normal(size=model.n)
+        plant.sense(markers=True)
+        d = plant.stepper.data
+        R = np.concatenate([d.R, d.marker_R])[order]
+        jacobians = np.einsum("pij,pjk->pik", R, np.concatenate([d.J, d.marker_J])[order][:, 3:])
+        surface = plant.surface()
+        np.testing.assert_array_equal(surface.points, np.concatenate([d.p, d.marker_p])[order])
+        np.testing.assert_allclose(surface.jacobians, jacobians, rtol=0, atol=1e-14)
+        np.testing.assert_allclose(surface.velocities, jacobians @ plant.qd, rtol=0, atol=1e-13)
+        np.testing.assert_allclose(surface.radii, g.base_radius + (g.tip_radius - g.base_radius)
+                                   * X[order] / g.length, rtol=0, atol=1e-15)
+        again = plant.surface()
+        assert not any(np.shares_memory(a, b) for a, b in zip(
+            (surface.points, surface.velocities, surface.radii, surface.jacobians),
+            (again.points, again.velocities, again.radii, again.jacobians)))
