@@ -45,6 +45,16 @@ def _strain(xi_star, Bx, q, out):
 
 
 @nonallocating
+def _strain_columns(xi_star, Bx, q, lo, hi, out):
+    """out = xi_star + Bx[:, lo:hi] q[lo:hi]: the strain of a basis that is zero outside [lo, hi)."""
+    for r in range(6):
+        acc = xi_star[r]
+        for j in range(lo, hi):
+            acc += Bx[r, j] * q[j]
+        out[r] = acc
+
+
+@nonallocating
 def _matvec(Bx, v, out):
     for r in range(Bx.shape[0]):
         acc = 0.0
@@ -84,8 +94,8 @@ def _magnus_step(q, qd, xi_star, h, B1, B2, lo, hi, R_prev, p_prev, J_prev, R_ou
     JS, Zd, G = mat[2], mat[3], mat[4]
     T, Tdot = sq[TANGENT_SCRATCH], sq[TANGENT_SCRATCH + 1]
     Rs = m3[0]
-    _strain(xi_star, B1, q, xi1)
-    _strain(xi_star, B2, q, xi2)
+    _strain_columns(xi_star, B1, q, ulo, uhi, xi1)      # B1, B2 are zero outside [lo, hi)
+    _strain_columns(xi_star, B2, q, ulo, uhi, xi2)
     ad_apply(xi1, xi2, com)
     for r in range(6):
         omega[r] = 0.5 * h * (xi1[r] + xi2[r]) + c * com[r]
@@ -124,9 +134,14 @@ def _magnus_step(q, qd, xi_star, h, B1, B2, lo, hi, R_prev, p_prev, J_prev, R_ou
         return
     # eta+ = Ad^-1 (eta + V), V = T Omegadot;
     # psi+ = Ad^-1 (psi + ad_eta V + Tdot Omegadot + T Zdot qd), Zdot qd = 2 c ad(xi1d) xi2d
-    _matvec_columns(Z, qd, lo, hi, omega_dot)
+    # Omegadot = Z qd = h/2 (xi1d + xi2d) + c (ad(xi1) xi2d - ad(xi2) xi1d), xi1d = B1 qd, xi2d = B2 qd:
+    # Z's definition applied to qd, without the 6 x n product
     _matvec_columns(B1, qd, lo, hi, xi1d)
     _matvec_columns(B2, qd, lo, hi, xi2d)
+    ad_apply(xi1, xi2d, omega_dot)
+    ad_apply(xi2, xi1d, com)
+    for r in range(6):
+        omega_dot[r] = 0.5 * h * (xi1d[r] + xi2d[r]) + c * (omega_dot[r] - com[r])
     _matvec(T, omega_dot, V)
     for r in range(6):
         tw[r] = eta_prev[r] + V[r]
