@@ -256,7 +256,6 @@ def _elastic(w, B, xi, stiff_diag, neo_axial, col_lo, col_hi, Fel, Kt, energies,
         # one strain mode per coordinate: B^T diag(dsig) B couples only coordinates of one mode, and
         # row r of B is zero in the columns of the other modes, so that the row's axpy over all of
         # them adds exact zeros there (no test per pair: it vectorises)
-        uhi = np.uint64(hi)
         for a in range(lo, hi):
             r = rows[a]
             if r < 0:
@@ -264,7 +263,7 @@ def _elastic(w, B, xi, stiff_diag, neo_axial, col_lo, col_hi, Fel, Kt, energies,
             Fel[a] += w[pt] * (B[pt, r, a] * sig[r])
             f = B[pt, r, a] * dsig[r]
             Br = B[pt, r]
-            for b in range(np.uint64(a), uhi):
+            for b in range(a, hi):              # unsigned bounds (_columns): it vectorises
                 Kt[a, b] += w[pt] * (f * Br[b])
     for a in range(n):
         for b in range(a):
