@@ -66,8 +66,8 @@ def _pendulum():
     column = config.lowest_point + np.array([[0.0, 0.0, 0.1], [0.0, 0.0, -0.1]])
     ball.advance(1e-3, ArmSurface(column, np.zeros((2, 3)), np.full(2, 0.01), np.zeros((2, 3, 1))))
     from soft_arm_drivers.sim.simulated_rig import _surface     # the plant surface a contact takes
-    _surface(np.arange(2), np.zeros((1, 3)), np.zeros((1, 3)), np.zeros((1, 3, 3)), np.zeros((1, 3, 3)),
-             np.zeros((1, 6, 2)), np.zeros((1, 6, 2)), np.zeros(2))
+    _surface(np.arange(2, dtype=np.int64), np.zeros((1, 3)), np.zeros((1, 3)), np.zeros((1, 3, 3)),
+             np.zeros((1, 3, 3)), np.zeros((1, 6, 2)), np.zeros((1, 6, 2)), np.zeros(2))
 
 
 def _mocap():
