@@ -36,17 +36,9 @@ ZANNA = np.sqrt(3.0) / 12.0  # coefficient of the commutator in the 4th-order Ma
 
 
 @nonallocating
-def _strain(xi_star, Bx, q, out):
-    for r in range(6):
-        acc = xi_star[r]
-        for j in range(q.shape[0]):
-            acc += Bx[r, j] * q[j]
-        out[r] = acc
-
-
-@nonallocating
-def _strain_columns(xi_star, Bx, q, lo, hi, out):
-    """out = xi_star + Bx[:, lo:hi] q[lo:hi]: the strain of a basis that is zero outside [lo, hi)."""
+def _strain(xi_star, Bx, q, lo, hi, out):
+    """out = xi_star + Bx[:, lo:hi] q[lo:hi]: the strain of a basis that is zero outside the columns
+    [lo, hi) (unsigned: see :func:`_columns`), or of any basis over [0, n)."""
     for r in range(6):
         acc = xi_star[r]
         for j in range(lo, hi):
@@ -94,8 +86,8 @@ def _magnus_step(q, qd, xi_star, h, B1, B2, lo, hi, R_prev, p_prev, J_prev, R_ou
     JS, Zd, G = mat[2], mat[3], mat[4]
     T, Tdot = sq[TANGENT_SCRATCH], sq[TANGENT_SCRATCH + 1]
     Rs = m3[0]
-    _strain_columns(xi_star, B1, q, ulo, uhi, xi1)      # B1, B2 are zero outside [lo, hi)
-    _strain_columns(xi_star, B2, q, ulo, uhi, xi2)
+    _strain(xi_star, B1, q, ulo, uhi, xi1)      # B1, B2 are zero outside [lo, hi)
+    _strain(xi_star, B2, q, ulo, uhi, xi2)
     ad_apply(xi1, xi2, com)
     for r in range(6):
         omega[r] = 0.5 * h * (xi1[r] + xi2[r]) + c * com[r]
@@ -519,7 +511,7 @@ def _kinematics(B, h, B1, B2, xi_star, R0, col_lo, col_hi, m_point, m_h, m_B1, m
     their rates as ``rates`` asks: see :func:`_magnus_step`), and the markers' if ``markers``."""
     P = xi.shape[0]
     for pt in range(P):
-        _strain(xi_star, B[pt], q, xi[pt])
+        _strain(xi_star, B[pt], q, np.uint64(0), np.uint64(q.shape[0]), xi[pt])
     # element by element: a whole-array assignment may copy its source, which needs the runtime
     for a in range(3):
         p[0, a] = 0.0
