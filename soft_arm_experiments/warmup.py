@@ -1,4 +1,5 @@
-"""``soft-arm-warmup``: compile every numba kernel of the package into its cache, once.
+"""``soft-arm-warmup``: compile every numba kernel of the package into its cache, once, and its
+modules to bytecode.
 
 The model's, the integrator's, the inner loop's, the actuation map's, the shape estimator's, the
 strike pendulum's and the mocap bridge's kernels are compiled on their first call and cached beside
@@ -7,11 +8,19 @@ it would otherwise come in the middle of a run: harmless on the simulator, but o
 (or the rig) a node that compiles while its neighbours time out looks like a fault. This command
 makes the calls a run makes, says what it compiles and how long each took, and is quick once the
 cache is warm. It first clears the kernels that changed sources made stale (:mod:`.kernel_cache`).
+
+Every node is a process of its own, and a run starts ten of them: each imports the package's
+modules, compiled from source at every start where ``PYTHONDONTWRITEBYTECODE`` is set (containers
+often set it), some 0.1 s of CPU each. The warm-up writes their bytecode (``__pycache__``) as it
+writes the kernels' cache, whatever that variable says; a module edited since is compiled from
+source again, as Python checks the source's time stamp.
 Exit status 0, or 1 with the reason when a kernel cannot be compiled.
 """
 from __future__ import annotations
 
 import argparse
+import compileall
+import importlib.util
 import sys
 import time
 
@@ -23,6 +32,27 @@ from .kernel_cache import clear_stale
 # online CLIK and the shape estimator (on each of its process models) all run at least once.
 SHORT_RUN = ["tasks.coiling.phases=[upward]", "tasks.coiling.phase.upward.sequence=[1]",
              "tasks.coiling.phase.upward.window=0.6"]
+
+
+# The packages whose modules a node imports (soft_arm_interfaces: the messages, generated into the
+# environment by soft_arm_interfaces/build_pypi.py).
+PACKAGES = ("soft_arm_model", "soft_arm_control", "soft_arm_drivers", "soft_arm_experiments", "soft_arm_ros",
+            "soft_arm_interfaces")
+
+
+def compile_bytecode(packages=PACKAGES) -> list:
+    """Write the bytecode of every module of ``packages`` (importable names) beside its source; the
+    directories it could not write (read-only installs, whose bytecode their installer wrote), or
+    whose package is not installed."""
+    missed = []
+    for name in packages:
+        spec = importlib.util.find_spec(name)
+        if spec is None or not spec.submodule_search_locations:
+            missed.append(name)
+            continue
+        missed += [path for path in spec.submodule_search_locations
+                   if not compileall.compile_dir(path, quiet=2)]
+    return missed
 
 
 def _model():
@@ -92,6 +122,10 @@ def main(argv=None) -> int:
     if removed:
         print(f"soft-arm-warmup: sources changed since the kernels were cached: {removed} cached kernel "
               "files of the modules that reach them removed", file=sys.stderr)
+    missed = compile_bytecode()
+    if missed:
+        print(f"soft-arm-warmup: no bytecode written in {', '.join(missed)} (not writable or not "
+              "installed): their modules are compiled at each start", file=sys.stderr)
     for what, step in STEPS:
         print(f"soft-arm-warmup: compiling {what} ...", end="", file=sys.stderr, flush=True)
         t0 = time.monotonic()

@@ -43,8 +43,7 @@ SERIAL = ("drivers/sim/test_emulated_rig.py", "drivers/sim/test_emulated_hardwar
           "test_layering.py::test_controller_nodes_start_without_the_plant_file",
           "test_benches.py::test_the_mocap_bench_measures_through_the_bridge_node",
           "graph/test_live_view_node.py::test_a_viewer_that_never_reads_does_not_slow_the_graph",
-          "graph/test_live_view_node.py::test_a_run_with_live_serves_itself_to_a_viewer",
-          "test_benches.py::test_the_pyelastica_timing_leaves_its_compilation_out")
+          "graph/test_live_view_node.py::test_a_run_with_live_serves_itself_to_a_viewer")
 
 
 # Tests that assert a closed-loop figure (an error, an RMS, targets reached, a NEES): `test/variants`

@@ -53,31 +53,39 @@ def test_the_mocap_bench_measures_through_the_bridge_node(bench_path):
     assert 0 < out["to_mocap_markers"]["p50_ms"] <= out["to_mocap_markers"]["p99_ms"], out
 
 
-def test_the_pyelastica_timing_leaves_its_compilation_out(tmp_path):
-    """In a process of its own with an empty numba cache (a fresh clone), the model bench's
-    PyElastica warm-up carries the compilation; the timed runs after it do not: two of them agree,
-    and each is a small part of the cold first run."""
+def test_the_pyelastica_timing_leaves_its_compilation_out():
+    """In a process of its own, the model bench's PyElastica warm-up makes every machine-code
+    overload the timed runs call (compiled, or loaded from numba's cache: a cold cache's
+    compilation falls there); the timed runs after it add none. Counted at numba's dispatchers
+    (an overload added is one compiled or loaded), not timed: a timing test would need an empty
+    cache, some 20 s of compilation, and a quiet machine."""
     import json
-    import os
     import subprocess
     import sys
     script = (
         "import json, sys\n"
+        "from numba.core.dispatcher import Dispatcher\n"
+        "added = []\n"
+        "compile_overload = Dispatcher.compile\n"
+        "def counted(self, sig):\n"
+        "    before = len(self.overloads)\n"
+        "    entry = compile_overload(self, sig)\n"
+        "    added.extend([self.py_func.__qualname__] * (len(self.overloads) - before))\n"
+        "    return entry\n"
+        "Dispatcher.compile = counted\n"
         f"sys.path.insert(0, {str(BENCH)!r})\n"
         "from bench_model import elastica_cantilever, elastica_warm_up\n"
         "from soft_arm_model import load_arm_config\n"
         "config = load_arm_config()\n"
-        "cold = elastica_warm_up(config, 9.81)\n"
-        "runs = [elastica_cantilever(config, 9.81, 0.02, 10, 2e-5)['wall_s'] for _ in range(2)]\n"
-        "print(json.dumps({'cold': cold, 'runs': runs}))\n")
-    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path))
-    out = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True,
-                         timeout=600)
+        "elastica_warm_up(config, 9.81)\n"
+        "warm_up = list(added)\n"
+        "run = elastica_cantilever(config, 9.81, 0.02, 10, 2e-5)\n"
+        "print(json.dumps({'warm_up': warm_up, 'timed': added[len(warm_up):], 'stable': run['stable']}))\n")
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=600)
     assert out.returncode == 0, out.stderr[-2000:]
-    times = json.loads(out.stdout.strip().splitlines()[-1])
-    first, second = times["runs"]
-    assert times["cold"] > 5.0 * max(first, second), times
-    assert max(first, second) < 2.0 * min(first, second) + 0.05, times
+    overloads = json.loads(out.stdout.strip().splitlines()[-1])
+    assert len(overloads["warm_up"]) > 10, overloads          # PyElastica's kernels, not a no-op
+    assert overloads["timed"] == [] and overloads["stable"], overloads
 
 
 def test_the_sensing_draws_judge_the_blind_loop_against_the_worse_of_two_holds(bench_path):
