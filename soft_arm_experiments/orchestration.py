@@ -230,15 +230,23 @@ _PROCESS_NODES = {"emulated_rig": ("motor_driver",)}
 # A node process's first lines: it is sent SIGINT when this process ends (PR_SET_PDEATHSIG, 1), as
 # the Ctrl-C its shutdown answers (the motor driver's: zero torque), so that a killed
 # soft-arm-experiment (SIGKILL, the OOM killer) leaves no node running the rig; one whose parent is
-# gone already ends at once; then the node's module runs as ``python -m`` would run it.
-# Its arguments: -m, the module, the parent's pid, the node's own.
+# gone already ends at once; it answers STACKS_SIGNAL with every thread's Python stack on its stderr
+# (faulthandler: from the signal handler, so also while a thread is stuck in C, the middleware's
+# shutdown), which :meth:`_Children.stop` asks of a node that does not stop; then the node's module
+# runs as ``python -m`` would run it. Its arguments: -m, the module, the parent's pid, the node's own.
+STACKS_SIGNAL = signal.SIGUSR1
 _END_WITH_PARENT = (
-    "import ctypes, os, runpy, signal, sys\n"
+    "import ctypes, faulthandler, os, runpy, signal, sys\n"
     "ctypes.CDLL(None).prctl(1, int(signal.SIGINT))\n"
+    f"faulthandler.register({int(STACKS_SIGNAL)}, all_threads=True)\n"
     "if os.getppid() != int(sys.argv[3]):\n"
     "    sys.exit(0)\n"
     "sys.argv = [sys.argv[2]] + sys.argv[4:]\n"
     "runpy.run_module(sys.argv[0], run_name='__main__', alter_sys=True)\n")
+
+
+STOP_TIMEOUT = 10.0      # s, from the SIGINT to a node until it is killed (exit_failure names it)
+STACKS_WAIT = 1.0        # s, for a node that did not stop to write its stacks before it is killed
 
 
 class _Children:
@@ -305,17 +313,26 @@ class _Children:
             if proc.poll() is not None and not (name in may_end and proc.returncode == 0):
                 raise RuntimeError(f"node {name} exited with status {proc.returncode}")
 
-    def stop(self):
-        """SIGINT to every node still running; SIGKILL to those not gone after 10 s. Keeps each
-        one's exit status in :attr:`exits`: a node whose shutdown failed (a driver whose zero-torque
-        frames did not leave, a recorder that could not close its bag) says so there."""
+    def stop(self, timeout: float = STOP_TIMEOUT):
+        """SIGINT to every node still running; SIGKILL to those not gone ``timeout`` [s] later, once
+        each has written where its threads are (:data:`STACKS_SIGNAL`, at most
+        :data:`STACKS_WAIT` [s]) under a line that names it. Keeps each one's exit status in
+        :attr:`exits`: a node whose shutdown failed (a driver whose zero-torque frames did not
+        leave, a recorder that could not close its bag) says so there."""
         for proc in self.procs.values():
             if proc.poll() is None:
                 proc.send_signal(signal.SIGINT)
         for name, proc in self.procs.items():
             try:
-                proc.wait(timeout=10)
+                proc.wait(timeout=timeout)
             except subprocess.TimeoutExpired:
+                print(f"soft-arm-experiment: node {name} did not stop within {timeout:g} s; its "
+                      "threads as it hangs:", file=sys.stderr, flush=True)
+                proc.send_signal(STACKS_SIGNAL)
+                try:
+                    proc.wait(timeout=STACKS_WAIT)
+                except subprocess.TimeoutExpired:
+                    pass
                 proc.kill()
                 proc.wait()
             self.exits[name] = proc.returncode
@@ -324,8 +341,8 @@ class _Children:
 def exit_failure(exits: dict) -> str | None:
     """What the nodes' exit statuses (name: status, :attr:`_Children.exits`) say went wrong on the
     way out; None when every one is 0."""
-    bad = [f"node {name} " + ("was killed (it did not stop within 10 s)" if code == -signal.SIGKILL
-                              else f"exited with status {code}")
+    bad = [f"node {name} " + (f"was killed (it did not stop within {STOP_TIMEOUT:g} s)"
+                              if code == -signal.SIGKILL else f"exited with status {code}")
            for name, code in exits.items() if code != 0]
     return "; ".join(bad) or None
 
