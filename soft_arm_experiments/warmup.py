@@ -26,7 +26,7 @@ import time
 
 import numpy as np
 
-from .kernel_cache import clear_stale
+from .kernel_cache import PACKAGES as PROJECT_PACKAGES, clear_stale
 
 # One target of coiling for a fraction of a second: the plant, the inner loop, the precomputed and the
 # online CLIK and the shape estimator (on each of its process models) all run at least once.
@@ -34,10 +34,9 @@ SHORT_RUN = ["tasks.coiling.phases=[upward]", "tasks.coiling.phase.upward.sequen
              "tasks.coiling.phase.upward.window=0.6"]
 
 
-# The packages whose modules a node imports (soft_arm_interfaces: the messages, generated into the
+# The packages whose modules a node imports: the project's and its messages (generated into the
 # environment by soft_arm_interfaces/build_pypi.py).
-PACKAGES = ("soft_arm_model", "soft_arm_control", "soft_arm_drivers", "soft_arm_experiments", "soft_arm_ros",
-            "soft_arm_interfaces")
+PACKAGES = PROJECT_PACKAGES + ("soft_arm_interfaces",)
 
 
 def compile_bytecode(packages=PACKAGES) -> list:
