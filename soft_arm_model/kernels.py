@@ -38,7 +38,7 @@ ZANNA = np.sqrt(3.0) / 12.0  # coefficient of the commutator in the 4th-order Ma
 @nonallocating
 def _strain(xi_star, Bx, q, lo, hi, out):
     """out = xi_star + Bx[:, lo:hi] q[lo:hi]: the strain of a basis that is zero outside the columns
-    [lo, hi) (unsigned: see :func:`_columns`), or of any basis over [0, n)."""
+    [lo, hi) (a division's; unsigned: see :func:`_columns`)."""
     for r in range(6):
         acc = xi_star[r]
         for j in range(lo, hi):
@@ -511,7 +511,8 @@ def _kinematics(B, h, B1, B2, xi_star, R0, col_lo, col_hi, m_point, m_h, m_B1, m
     their rates as ``rates`` asks: see :func:`_magnus_step`), and the markers' if ``markers``."""
     P = xi.shape[0]
     for pt in range(P):
-        _strain(xi_star, B[pt], q, np.uint64(0), np.uint64(q.shape[0]), xi[pt])
+        lo, hi = _columns(col_lo, col_hi, pt)      # B is zero outside the point's division
+        _strain(xi_star, B[pt], q, lo, hi, xi[pt])
     # element by element: a whole-array assignment may copy its source, which needs the runtime
     for a in range(3):
         p[0, a] = 0.0
