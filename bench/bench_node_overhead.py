@@ -10,6 +10,10 @@
 - Garbage collector: a full collection (``gc.collect()``) in a process holding the inner-loop and
   CLIK nodes of the coiling task, as the set-up leaves it and after ``gc.freeze()`` (what
   ``run_node`` does once the node is built).
+- Start: the CPU seconds a node's process takes until its node is set up and idle (its CPU time
+  rising by less than 10 ms over half a second), started from a fresh interpreter (``python -m``,
+  as ``ros2 run`` does) and forked from a run's node fork server (what ``soft-arm-experiment``
+  does, :mod:`soft_arm_experiments.fork_server`), median of ``--repeats``; and the server's own.
 """
 from __future__ import annotations
 
@@ -102,13 +106,76 @@ def bench_gc() -> dict:
     return {"objects": objects, "full_collection_ms": 1e3 * before, "after_freeze_ms": 1e3 * after}
 
 
+START_NODES = ("inner_loop", "clik", "recorder")
+
+
+def _cpu_seconds(pid: int) -> float:
+    with open(f"/proc/{pid}/stat", encoding="utf-8") as fh:
+        fields = fh.read().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _idle_cpu(pid: int, timeout: float = 60.0) -> float:
+    """The CPU seconds of process ``pid`` once it has gone idle (less than 10 ms over 0.5 s)."""
+    deadline = time.monotonic() + timeout
+    history = []
+    while time.monotonic() < deadline:
+        history.append(_cpu_seconds(pid))
+        if len(history) > 5 and history[-1] - history[-6] < 0.01:
+            return history[-1]
+        time.sleep(0.1)
+    raise RuntimeError(f"process {pid} did not go idle within {timeout:g} s")
+
+
+def bench_start(repeats: int) -> dict:
+    """CPU seconds to set up each of :data:`START_NODES`, fresh and forked (median of ``repeats``)."""
+    import shutil
+    import signal
+    import statistics
+    import subprocess
+    import sys
+    import tempfile
+
+    from soft_arm_experiments.experiment import _ros_arguments
+    from soft_arm_experiments.fork_server import ForkServer
+    from soft_arm_experiments.orchestration import node_environment, node_module
+    out = {"fresh_s": {}, "forked_s": {}}
+    env = node_environment()
+    with tempfile.TemporaryDirectory() as tmp:
+        args = _ros_arguments("coiling", [], None) + ["-p", f"output:={tmp}/bag"]
+        servers = []
+        for name in START_NODES:
+            fresh, forked = [], []
+            for _ in range(repeats):
+                shutil.rmtree(f"{tmp}/bag", ignore_errors=True)
+                proc = subprocess.Popen([sys.executable, "-m", node_module(name)] + args, env=env,
+                                        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                fresh.append(_idle_cpu(proc.pid))
+                proc.send_signal(signal.SIGINT)
+                proc.wait(30)
+                server = ForkServer(env, output=subprocess.DEVNULL)
+                servers.append(_idle_cpu(server.process.pid))
+                shutil.rmtree(f"{tmp}/bag", ignore_errors=True)
+                child = server.start(name, node_module(name), args)
+                forked.append(_idle_cpu(child.pid))
+                child.send_signal(signal.SIGINT)
+                child.wait(30)
+                server.close()
+            out["fresh_s"][name] = statistics.median(fresh)
+            out["forked_s"][name] = statistics.median(forked)
+        out["server_s"] = statistics.median(servers)
+    return out
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seconds", type=float, default=5.0, help="duration of each executor run [s]")
+    parser.add_argument("--repeats", type=int, default=3, help="starts of each node, each way")
     parser.add_argument("--output", default=results_path("node_overhead.json"))
     args = parser.parse_args()
     executors = [bench_executor(kind, args.seconds) for kind in ("single_threaded", "events")]
     collector = bench_gc()
+    start = bench_start(args.repeats)
     print(f"{'executor':<16} {'CPU':>6} {'per callback':>13} {'callbacks':>10}")
     for r in executors:
         print(f"{r['executor']:<16} {r['cpu_share']:6.1%} {r['cpu_per_callback_us']:10.0f} us "
@@ -116,8 +183,12 @@ def main():
     print(f"\nfull collection with the inner-loop and CLIK nodes built ({collector['objects']} "
           f"objects): {collector['full_collection_ms']:.1f} ms; after gc.freeze(): "
           f"{collector['after_freeze_ms']:.2f} ms")
+    print(f"\n{'node process set up':<20} {'fresh':>7} {'forked':>7}   (CPU s, median of {args.repeats})")
+    for name in START_NODES:
+        print(f"{name:<20} {start['fresh_s'][name]:7.2f} {start['forked_s'][name]:7.2f}")
+    print(f"{'the fork server':<20} {'':>7} {start['server_s']:7.2f}   (once per run)")
     write_results(args.output, {"rate_hz": RATE, "seconds_per_run": args.seconds, "executors": executors,
-                                "gc": collector})
+                                "gc": collector, "start": start})
 
 
 if __name__ == "__main__":

@@ -24,6 +24,7 @@ from soft_arm_drivers.can.loopback_bus import free_udp_ports
 from soft_arm_model.parameters import ConfigError, default_config_dir
 
 from . import realtime
+from .fork_server import STACKS_SIGNAL, STATUS_LOST, ForkServer
 
 STOP = threading.Event()       # set by the first Ctrl-C / SIGTERM: the run loops end at their next turn
 
@@ -227,39 +228,22 @@ def _start(node, client, timeout: float = 10.0):
 _PROCESS_NODES = {"emulated_rig": ("motor_driver",)}
 
 
-# A node process's first lines: it is sent SIGINT when this process ends (PR_SET_PDEATHSIG, 1), as
-# the Ctrl-C its shutdown answers (the motor driver's: zero torque), so that a killed
-# soft-arm-experiment (SIGKILL, the OOM killer) leaves no node running the rig; one whose parent is
-# gone already ends at once; it answers STACKS_SIGNAL with every thread's Python stack on its stderr
-# (faulthandler: from the signal handler, so also while a thread is stuck in C, the middleware's
-# shutdown), which :meth:`_Children.stop` asks of a node that does not stop; then the node's module
-# runs as ``python -m`` would run it. Its arguments: -m, the module, the parent's pid, the node's own.
-STACKS_SIGNAL = signal.SIGUSR1
-_END_WITH_PARENT = (
-    "import ctypes, faulthandler, os, runpy, signal, sys\n"
-    "ctypes.CDLL(None).prctl(1, int(signal.SIGINT))\n"
-    f"faulthandler.register({int(STACKS_SIGNAL)}, all_threads=True)\n"
-    "if os.getppid() != int(sys.argv[3]):\n"
-    "    sys.exit(0)\n"
-    "sys.argv = [sys.argv[2]] + sys.argv[4:]\n"
-    "runpy.run_module(sys.argv[0], run_name='__main__', alter_sys=True)\n")
-
-
 STOP_TIMEOUT = 10.0      # s, from the SIGINT to a node until it is killed (exit_failure names it)
 STACKS_WAIT = 1.0        # s, for a node that did not stop to write its stacks before it is killed
 
 
 class _Children:
     """The node processes of one run (the console scripts' modules with the run's arguments), on
-    loopback; ``realtime``: the SCHED_FIFO priorities of the processes that have one (their CPUs
-    given by :meth:`go_realtime`, once they are set up), the others at ``niceness`` (where
-    permitted)."""
+    loopback, forked from the run's :class:`~.fork_server.ForkServer` (started with the first);
+    ``realtime``: the SCHED_FIFO priorities of the processes that have one (their CPUs given by
+    :meth:`go_realtime`, once they are set up), the others at ``niceness`` (where permitted)."""
 
     def __init__(self, ros_args: list, extra: dict, realtime: dict | None = None, niceness: int = 0):
         self.ros_args, self.extra, self.realtime = ros_args, extra, realtime or {}
         self.niceness = niceness
         self.env = node_environment()
         self.procs: dict = {}
+        self.server = None
         # name: exit status, once stop() has ended them (-9: killed); a run's facts hold this dict
         # itself, which stop() fills after the run returns them (in _orchestrating's way out)
         self.exits: dict = {}
@@ -269,22 +253,15 @@ class _Children:
         return {node for name in self.procs for node in _PROCESS_NODES.get(name, (name,))}
 
     def start(self, name: str):
-        """Start a node in a process group of its own (setsid: a Ctrl-C in the terminal reaches
-        this process only, which stops the nodes in order), under SCHED_FIFO if it has a priority,
-        else at the niceness: set before the interpreter has started a thread, so that every thread
-        of the node inherits it."""
-        proc = subprocess.Popen(
-            [sys.executable, "-c", _END_WITH_PARENT, "-m", node_module(name), str(os.getpid())]
-            + self.ros_args + self.extra.get(name, []),
-            env=self.env, start_new_session=True)
-        self.procs[name] = proc
-        if name in self.realtime:
-            os.sched_setscheduler(proc.pid, os.SCHED_FIFO, os.sched_param(self.realtime[name]))
-        elif self.niceness:
-            try:
-                os.setpriority(os.PRIO_PROCESS, proc.pid, self.niceness)
-            except OSError:
-                pass
+        """Start a node, forked as :mod:`.fork_server` says (a process group of its own, SIGINT
+        when this process ends, its threads' stacks on :data:`STACKS_SIGNAL`), under SCHED_FIFO
+        if it has a priority, else at the niceness: set before the node's module runs, so that
+        every thread of the node inherits it."""
+        if self.server is None:
+            self.server = ForkServer(self.env)
+        self.procs[name] = self.server.start(
+            name, node_module(name), self.ros_args + self.extra.get(name, []), fifo=self.realtime.get(name),
+            niceness=0 if name in self.realtime else self.niceness)
 
     def go_realtime(self):
         """Once the nodes are set up: every thread of the real-time nodes of the motors' loop off
@@ -312,6 +289,8 @@ class _Children:
         for name, proc in self.procs.items():
             if proc.poll() is not None and not (name in may_end and proc.returncode == 0):
                 raise RuntimeError(f"node {name} exited with status {proc.returncode}")
+        if self.server is not None:
+            self.server.check()
 
     def stop(self, timeout: float = STOP_TIMEOUT):
         """SIGINT to every node still running; SIGKILL to those not gone ``timeout`` [s] later, once
@@ -319,6 +298,13 @@ class _Children:
         :data:`STACKS_WAIT` [s]) under a line that names it. Keeps each one's exit status in
         :attr:`exits`: a node whose shutdown failed (a driver whose zero-torque frames did not
         leave, a recorder that could not close its bag) says so there."""
+        try:
+            self._stop(timeout)
+        finally:
+            if self.server is not None:
+                self.server.close()
+
+    def _stop(self, timeout: float):
         for proc in self.procs.values():
             if proc.poll() is None:
                 proc.send_signal(signal.SIGINT)
@@ -342,7 +328,9 @@ def exit_failure(exits: dict) -> str | None:
     """What the nodes' exit statuses (name: status, :attr:`_Children.exits`) say went wrong on the
     way out; None when every one is 0."""
     bad = [f"node {name} " + (f"was killed (it did not stop within {STOP_TIMEOUT:g} s)"
-                              if code == -signal.SIGKILL else f"exited with status {code}")
+                              if code == -signal.SIGKILL else
+                              "ended after the node fork server, its exit status lost" if code == STATUS_LOST
+                              else f"exited with status {code}")
            for name, code in exits.items() if code != 0]
     return "; ".join(bad) or None
 

@@ -72,6 +72,8 @@ def _model():
                           t_s=np.array([0.002, 0.004]), ds=np.zeros((2, 4)), t_m=np.array([0.004]),
                           dp=np.zeros((1, n_markers, 3)))
     simulate_changes(model.config, 0.5, segment, 0.002)
+    from .fork_server import make_target_context      # the node fork server's one kernel call
+    make_target_context()
 
 
 def _controller_and_plant():

@@ -149,38 +149,43 @@ def test_a_node_ends_with_the_orchestrator_even_when_it_is_killed(tmp_path):
             os.kill(node, signal.SIGKILL)                      # not left behind by a failure
 
 
-def test_a_node_that_does_not_stop_writes_where_it_hangs_then_is_killed(tmp_path, capsys):
-    """A node process (started with the orchestrator's first lines) whose shutdown hangs, deaf to
-    the SIGINT as a node's shutdown is: after the stop's timeout its threads' stacks come out on its
-    stderr, under a line naming it, then it is killed, and its exit says so."""
-    import os
+def test_a_node_that_does_not_stop_writes_where_it_hangs_then_is_killed(tmp_path, capfd, monkeypatch):
+    """A node process (forked as every node of a run) whose shutdown hangs, deaf to the SIGINT as a
+    node's shutdown is: after the stop's timeout its threads' stacks come out on its stderr, under a
+    line naming it, then it is killed, and its exit says so."""
     import signal
-    import subprocess
-    import sys
+    import time
 
-    from soft_arm_experiments.orchestration import _END_WITH_PARENT, _Children, exit_failure
+    from soft_arm_experiments import orchestration
+    from soft_arm_experiments.orchestration import _Children, exit_failure
+    closing = tmp_path / "closing"
     (tmp_path / "hung_node.py").write_text(
-        "import signal, time\n"
+        "import pathlib, signal, sys, time\n"
         "signal.signal(signal.SIGINT, signal.SIG_IGN)\n"
         "def stuck_on_its_way_out():\n"
-        "    print('closing', flush=True)\n"
+        "    pathlib.Path(sys.argv[1]).write_text('closing')\n"
         "    time.sleep(60)\n"
         "stuck_on_its_way_out()\n", encoding="utf-8")
-    children = _Children([], {})
-    proc = subprocess.Popen([sys.executable, "-c", _END_WITH_PARENT, "-m", "hung_node", str(os.getpid())],
-                            env=dict(os.environ, PYTHONPATH=str(tmp_path)), stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
-    children.procs["hung"] = proc
+    monkeypatch.setenv("PYTHONPATH", str(tmp_path))
+    monkeypatch.setattr(orchestration, "node_module", lambda name: "hung_node")
+    children = _Children([str(closing)], {})
     try:
-        assert proc.stdout.readline() == "closing\n"
+        children.start("hung")
+        deadline = time.monotonic() + 30.0
+        while not closing.exists() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert closing.exists(), "the node never ran"
         children.stop(timeout=0.5)
     finally:
-        proc.kill()
-        proc.wait()
+        for proc in children.procs.values():
+            proc.kill()
+        if children.server is not None:
+            children.server.close()
     assert children.exits == {"hung": -signal.SIGKILL}
-    stacks = proc.stderr.read()
-    assert "stuck_on_its_way_out" in stacks and "hung_node.py" in stacks, stacks
-    assert "node hung did not stop within 0.5 s; its threads as it hangs:" in capsys.readouterr().err
+    err = capfd.readouterr().err
+    assert "stuck_on_its_way_out" in err and "hung_node.py" in err, err
+    assert "node hung did not stop within 0.5 s; its threads as it hangs:" in err
+    assert err.index("its threads as it hangs") < err.index("stuck_on_its_way_out")
     assert exit_failure(children.exits) == "node hung was killed (it did not stop within 10 s)"
 
 

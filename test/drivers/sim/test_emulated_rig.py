@@ -21,10 +21,11 @@ from lifecycle_msgs.srv import ChangeState
 from rclpy.executors import SingleThreadedExecutor
 
 from soft_arm_drivers.can.driver_config import load_driver_config
+from soft_arm_experiments import realtime
 from soft_arm_experiments.experiment import _ros_arguments, main, run_composed
 from soft_arm_experiments.figures import read_series
 from soft_arm_experiments.identify_cli import write_identified_arm
-from soft_arm_experiments.orchestration import BRINGUP_TIMEOUT, GRAPH_SETTLE, node_module
+from soft_arm_experiments.orchestration import BRINGUP_TIMEOUT, GRAPH_SETTLE
 from soft_arm_drivers.mocap.bridge_config import load_mocap_config
 from soft_arm_drivers.sim.emulated_rig import load_emulator_config, read_emulated_motors
 from soft_arm_model import build_model, load_arm_config, marker_positions, solve_equilibrium, tendon_lengths
@@ -287,20 +288,17 @@ def assert_bag_holds_the_run(state: list, driven: float):
 
 
 def _child(parent: int, name: str) -> int:
-    """The pid of ``parent``'s child process that runs the node ``name`` (its module after ``-m``;
-    another child's arguments may name it, as the emulated rig's name the inner loop's commands)."""
-    module = node_module(name)
-    for entry in os.listdir("/proc"):
-        try:
-            with open(f"/proc/{entry}/stat", encoding="utf-8") as fh:
-                ppid = int(fh.read().rsplit(")", 1)[1].split()[1])
-            with open(f"/proc/{entry}/cmdline", encoding="utf-8") as fh:
-                argv = fh.read().split("\0")
-        except (OSError, ValueError, IndexError):
-            continue
-        if ppid == parent and argv[3:5] == ["-m", module]:           # the orchestrator's start
-            return int(entry)
-    raise LookupError(f"no child of {parent} named {name}")
+    """The pid of the node process ``name`` that ``parent`` started: forked by its node fork server
+    (``parent``'s child), named as the node in the process table (/proc/pid/comm)."""
+    for server in realtime.child_processes(parent):
+        for pid in realtime.child_processes(server):
+            try:
+                with open(f"/proc/{pid}/comm", encoding="utf-8") as fh:
+                    if fh.read().strip() == name:
+                        return pid
+            except OSError:
+                continue
+    raise LookupError(f"no node process of {parent} named {name}")
 
 
 class RigHiccup(UserWarning):
