@@ -199,6 +199,10 @@ class ForkServer:
                 [sys.executable, "-m", __name__, str(os.getpid()), str(requests_r), str(replies_w)],
                 env=env, pass_fds=(requests_r, replies_w), start_new_session=True, stdout=output,
                 stderr=output)
+        except BaseException:
+            os.close(self._requests)
+            os.close(self._replies)
+            raise
         finally:
             os.close(requests_r)
             os.close(replies_w)

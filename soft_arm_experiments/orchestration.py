@@ -285,12 +285,13 @@ class _Children:
             realtime.schedule(pid, realtime.MIDDLEWARE_PRIORITY, named=realtime.MIDDLEWARE_THREADS)
 
     def check(self, may_end=()):
-        """RuntimeError if a node exited (those in ``may_end`` with status 0 may)."""
+        """RuntimeError if a node exited (those in ``may_end`` with status 0 may), or the fork server
+        they were forked from (its nodes end with it)."""
+        if self.server is not None:
+            self.server.check()
         for name, proc in self.procs.items():
             if proc.poll() is not None and not (name in may_end and proc.returncode == 0):
                 raise RuntimeError(f"node {name} exited with status {proc.returncode}")
-        if self.server is not None:
-            self.server.check()
 
     def stop(self, timeout: float = STOP_TIMEOUT):
         """SIGINT to every node still running; SIGKILL to those not gone ``timeout`` [s] later, once

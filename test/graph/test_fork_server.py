@@ -102,9 +102,6 @@ def test_a_child_gets_sigint_when_the_server_ends_and_its_status_is_said_lost(se
     server.close()
     assert _facts(out, 2)[1] == {"interrupted": True}
     assert proc.wait(timeout=10.0) == STATUS_LOST
-    from soft_arm_experiments.orchestration import exit_failure
-    assert exit_failure({"recorder": STATUS_LOST}) == \
-        "node recorder ended after the node fork server, its exit status lost"
 
 
 @pytest.mark.skipif(not realtime.permitted(5), reason="SCHED_FIFO is not permitted here")
@@ -132,3 +129,29 @@ def test_a_server_that_does_not_get_ready_in_time_is_stopped_naming_the_wait(tmp
     with pytest.raises(RuntimeError, match=r"the node fork server did not answer within 0.5 s, waiting "
                                            r"to import what the nodes import"):
         ForkServer(dict(os.environ), timeout=0.5)
+
+
+def test_a_run_whose_fork_server_is_killed_says_so_and_its_nodes_end(tmp_path, monkeypatch):
+    """The orchestrator's check names the server, not a node's lost status; the node got its SIGINT
+    with the server, and its stop keeps the status as lost, which the run's exit names."""
+    from soft_arm_experiments import orchestration
+    from soft_arm_experiments.orchestration import _Children, exit_failure
+    (tmp_path / "stand_in_node.py").write_text(NODE.format(preload=PRELOAD), encoding="utf-8")
+    monkeypatch.setenv("PYTHONPATH", str(tmp_path))
+    monkeypatch.setattr(orchestration, "node_module", lambda name: "stand_in_node")
+    out = tmp_path / "facts"
+    children = _Children([str(out), "-1"], {})
+    try:
+        children.start("recorder")
+        _facts(out)
+        children.check()
+        os.kill(children.server.process.pid, signal.SIGKILL)
+        assert _facts(out, 2)[1] == {"interrupted": True}
+        with pytest.raises(RuntimeError, match=r"the node fork server exited with status -9: its nodes "
+                                               r"stop with it"):
+            children.check()
+    finally:
+        children.stop(timeout=10.0)
+    assert children.exits == {"recorder": STATUS_LOST}
+    assert exit_failure(children.exits) == \
+        "node recorder ended after the node fork server, its exit status lost"
