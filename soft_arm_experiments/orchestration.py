@@ -1,7 +1,7 @@
-"""Running the graph one process per node, as on the rig: the node processes (console scripts,
-each in a process group of its own (setsid), SCHED_FIFO where permitted), waiting until the graph
-is wired, the operator's service calls, and a teardown that always runs (motors disabled, then the
-nodes stopped).
+"""Running the graph one process per node, as on the rig: the node processes (console scripts'
+modules forked from the run's :mod:`.fork_server`, each in a process group of its own (setsid),
+SCHED_FIFO where permitted), waiting until the graph is wired, the operator's service calls, and a
+teardown that always runs (motors disabled, then the nodes stopped).
 
 ``STOP`` is set by the first Ctrl-C / SIGTERM of ``soft-arm-experiment``: the run loops end at their
 next turn.
