@@ -26,14 +26,7 @@ import tempfile
 import threading
 import time
 
-from timing import results_path, write_results
-
-
-def _cpu_seconds(pid: int) -> float:
-    """User + system CPU time [s] of process ``pid`` so far (Linux /proc)."""
-    with open(f"/proc/{pid}/stat", encoding="ascii") as fh:
-        fields = fh.read().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+from timing import process_cpu_seconds, results_path, write_results
 
 
 def _free_port() -> int:
@@ -152,11 +145,11 @@ def first_scene(emulated: bool) -> dict:
 
 
 def _phase(view, sim, seconds: float) -> dict:
-    cpu_view, cpu_sim, wall = _cpu_seconds(view.pid), _cpu_seconds(sim.pid), time.monotonic()
+    cpu_view, cpu_sim, wall = process_cpu_seconds(view.pid), process_cpu_seconds(sim.pid), time.monotonic()
     time.sleep(seconds)
     wall = time.monotonic() - wall
-    return {"live_view_cpu": (_cpu_seconds(view.pid) - cpu_view) / wall,
-            "simulator_cpu": (_cpu_seconds(sim.pid) - cpu_sim) / wall}
+    return {"live_view_cpu": (process_cpu_seconds(view.pid) - cpu_view) / wall,
+            "simulator_cpu": (process_cpu_seconds(sim.pid) - cpu_sim) / wall}
 
 
 def main(argv=None) -> int:

@@ -33,7 +33,7 @@ from soft_arm_ros.contract import QOS  # noqa: E402
 from soft_arm_ros.conversions import joint_state  # noqa: E402
 from soft_arm_ros.runtime import make_executor  # noqa: E402
 
-from timing import results_path, write_results  # noqa: E402
+from timing import process_cpu_seconds, results_path, write_results  # noqa: E402
 
 NAMES = ["tendon_1", "tendon_2", "tendon_3", "tendon_4"]
 RATE = 500.0     # Hz
@@ -109,18 +109,12 @@ def bench_gc() -> dict:
 START_NODES = ("inner_loop", "clik", "recorder")
 
 
-def _cpu_seconds(pid: int) -> float:
-    with open(f"/proc/{pid}/stat", encoding="utf-8") as fh:
-        fields = fh.read().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-
-
 def _idle_cpu(pid: int, timeout: float = 60.0) -> float:
     """The CPU seconds of process ``pid`` once it has gone idle (less than 10 ms over 0.5 s)."""
     deadline = time.monotonic() + timeout
     history = []
     while time.monotonic() < deadline:
-        history.append(_cpu_seconds(pid))
+        history.append(process_cpu_seconds(pid))
         if len(history) > 5 and history[-1] - history[-6] < 0.01:
             return history[-1]
         time.sleep(0.1)

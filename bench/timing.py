@@ -28,6 +28,13 @@ def ticks(period: float):
     return (k * period for k in itertools.count())
 
 
+def process_cpu_seconds(pid: int) -> float:
+    """User + system CPU time [s] of process ``pid`` so far (Linux /proc)."""
+    with open(f"/proc/{pid}/stat", encoding="ascii") as fh:
+        fields = fh.read().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
 def results_path(name: str) -> str:
     """The default output of a benchmark: ``bench/results/<name>``."""
     return os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", name)
