@@ -6,14 +6,19 @@ made at the first compiled call (docs/decisions/0026-node-processes-fork-from-a-
 A run starts up to ten. Its fork server (:class:`ForkServer`, one per run) is an interpreter that
 imports those (:data:`PRELOAD`) and makes the target context, without initialising rclpy or
 starting a thread of its own, then forks one child per node; the child runs the node's module as
-``python -m`` would and pays only for what is its own.
+``python -m`` would and pays only for what is its own. The server has two threads it did not
+start: importing rclpy loads the tracing library its middleware links (LTTng-UST, ros2_tracing's),
+whose two listener threads wait for LTTng's daemon. A fork copies neither: a forked node is not
+traced, even where the daemon runs (the launch files' nodes are).
 
 A forked node is set up as every node process of a run is, before it runs anything: the node's
 name as the process's (what ps, top and pgrep show; its command line stays the server's, and its
 program name, from which rcl names its log file, the interpreter's), a process group of its own (setsid:
 a Ctrl-C in the terminal reaches the orchestrator only, which stops the nodes in order), its
 scheduling (SCHED_FIFO priority or niceness: every thread it starts inherits it), SIGINT when its
-parent ends (PR_SET_PDEATHSIG: the Ctrl-C its shutdown answers, the motor driver's zero torque),
+parent ends (PR_SET_PDEATHSIG: the Ctrl-C its shutdown answers, the motor driver's zero torque; it
+comes as the server's thread that forked it ends, and the server's exit status once its other
+threads have),
 every thread's stack on :data:`STACKS_SIGNAL` (faulthandler: also while a thread is stuck in C).
 The server itself gets SIGKILL when the orchestrator ends, however it ends (its nodes then get
 their SIGINT), and ends with the orchestrator's last request otherwise. It reaps its children and

@@ -63,15 +63,16 @@ def _imex_prepare(model_args, data_args, rotor_mass, q, qd, markers, adot_qd):
 
 
 @nonallocating_strict
-def _imex_advance(model_args, data_args, rotor_mass, adot_qd, M, Cqd, Fg, Fel, Kt, Au, A0, D, work,
-                  q, qd, u, f_ext, h, q_out, qd_out):
+def _imex_advance(rotor_mass, adot_qd, M, Cqd, Fg, Fel, Kt, Au, A0, D, work, q, qd, u, f_ext, h, q_out,
+                  qd_out):
     """The IMEX update from the prepared workspace (M .. A0 at (q, qd); Au: A or A0); f_ext: an
     external generalised force, taken explicitly. ``work``: (the step's matrix and its LU factors
     (2, n, n), its right-hand side (1, n), the pivots (n,) int). False if the step's matrix is
     singular. The system is solved by :func:`~soft_arm_model.statics._lu_solve`, as the statics'
     are: nothing allocated per step, and the same rounding whatever kernels the BLAS picks. The
-    arguments are :func:`_ros2_advance`'s, so that one compiled loop (:func:`_run`) takes either
-    step; the model's and the workspace's (``model_args``, ``data_args``) are not needed here."""
+    arguments are :func:`_ros2_advance`'s but the model's and the workspace's, which this step does
+    not evaluate: a call from Python unboxes each array it is passed, and those two tuples' fifty
+    cost three times the step's own arithmetic (``bench/bench_model.py``'s ``rig_step``)."""
     mats, vecs, piv = work
     lhs, lu, rhs = mats[0], mats[1], vecs[0]
     n = q.shape[0]
@@ -189,7 +190,8 @@ def _run(prepare_args, advance_args, second_order, f_ext, h, u, q, qd):
         if not _imex_prepare(model_args, data_args, rotor_mass, q[i], qd[i], False, adot):
             return i
         if second_order:
-            ok = _ros2_advance(*advance_args, q[i], qd[i], u[i], f_ext, h, q[i + 1], qd[i + 1])
+            ok = _ros2_advance(model_args, data_args, *advance_args, q[i], qd[i], u[i], f_ext, h, q[i + 1],
+                               qd[i + 1])
         else:
             ok = _imex_advance(*advance_args, q[i], qd[i], u[i], f_ext, h, q[i + 1], qd[i + 1])
         if not ok:
@@ -217,9 +219,8 @@ class ImexStepper:
         self._adot = np.zeros(model.n_tendons)
         self._no_force = np.zeros(model.n)
         self._prepare_args = (model.kernel_args, d.kernel_args, rotor)
-        self._advance_args = (model.kernel_args, d.kernel_args, rotor, self._adot, d.M, d.Cqd, d.Fg,
-                              d.Fel, d.Kt, d.A if friction else d.A0, d.A0, model.D,
-                              self._new_work(model.n))
+        self._advance_args = (rotor, self._adot, d.M, d.Cqd, d.Fg, d.Fel, d.Kt, d.A if friction else d.A0,
+                              d.A0, model.D, self._new_work(model.n))
         self._state = None
 
     second_order = False      # the compiled loop's choice of step (:func:`_run`)
@@ -234,7 +235,8 @@ class ImexStepper:
         """(prepare arguments, advance arguments) of the compiled halves of the step,
         ``_imex_prepare(*prepare_args[:3], q, qd, markers, prepare_args[3])`` and
         ``_imex_advance(*advance_args, q, qd, u, f_ext, dt, q_out, qd_out)`` (False: the step's
-        matrix is singular): for a compiled loop that steps without Python in between (the
+        matrix is singular; :class:`Ros2Stepper`'s step is ``_ros2_advance(*prepare_args[:2],
+        *advance_args, ...)``): for a compiled loop that steps without Python in between (the
         workspace is ``data``'s)."""
         return self._prepare_args + (self._adot,), self._advance_args
 
@@ -298,7 +300,8 @@ class Ros2Stepper(ImexStepper):
     def _advance_kernel(self, q, qd, u, f_ext, q_out, qd_out) -> bool:
         """The ROS2 step from the prepared workspace; False if its second stage is outside the
         model's domain or a linear system is singular."""
-        return _ros2_advance(*self._advance_args, q, qd, u, f_ext, self.dt, q_out, qd_out)
+        return _ros2_advance(*self._prepare_args[:2], *self._advance_args, q, qd, u, f_ext, self.dt, q_out,
+                             qd_out)
 
 
 STEPPERS = {"imex": ImexStepper, "ros2": Ros2Stepper}

@@ -53,16 +53,23 @@ FIGURES = ("experiments/test_harness.py", "experiments/test_harness_feedback.py"
            "control/test_dynamic_estimation.py", "graph/test_graph.py", "graph/test_feedback_graph.py")
 
 
-# The heaviest files of the parallel part, heaviest first, by the CPU seconds their tests took
-# (`--durations=0`, one Xeon, 2026-12): `test/run` hands pytest-xdist whole files in collection order
-# (`--no-loadscope-reorder`), and these first, so that no worker starts a minute of work while the
-# other has nothing left; xdist's own order (the files with the most tests first) would put these
-# few-test files last. A hint for the schedule only: a file missing here runs after them.
+# The order in which `test/run` hands pytest-xdist the parallel part's files, whole
+# (`--no-loadscope-reorder`); a file missing here runs after them. First the files whose tests mostly
+# wait (on processes they start, on sockets, on their own time bounds): at the start their waits
+# overlap the real-time part's work, which keeps the cores busy; at the end of the run they would
+# leave a core idle (about twenty seconds of one). Then the heaviest, heaviest first by the CPU seconds
+# their tests took (`--durations=0`, one Xeon, 2026-12), so that no worker starts a minute of work
+# while the other has nothing left; xdist's own order (the files with the most tests first) would
+# put these few-test files last.
+WAITING_FIRST = ("graph/test_orchestration.py", "graph/test_fork_server.py",
+                 "ros/test_localhost_discovery.py", "graph/test_shape_estimator_node.py",
+                 "ros/test_hardware_lock.py", "test_wait_for_output.py")
 HEAVIEST_FIRST = ("experiments/test_harness.py", "experiments/test_identification_run.py",
                   "experiments/test_estimate_in_motion.py", "campaigns/test_campaign_cli.py",
                   "graph/test_identification_graph.py", "experiments/test_harness_feedback.py",
                   "graph/test_graph.py", "control/test_strike_planner.py", "graph/test_nodes.py",
                   "campaigns/test_campaign_engine.py", "model/test_validation.py")
+SCHEDULE = WAITING_FIRST + HEAVIEST_FIRST
 
 
 def pytest_configure(config):
@@ -76,7 +83,7 @@ def pytest_configure(config):
 
 def pytest_collection_modifyitems(config, items):
     """Mark the tests of :data:`SERIAL` ``serial`` and those of :data:`FIGURES` ``figure``; the files
-    of :data:`HEAVIEST_FIRST` first, in its order (each file's tests in theirs)."""
+    of :data:`SCHEDULE` first, in its order (each file's tests in theirs)."""
     root = os.path.dirname(os.path.abspath(__file__))
     rank = {}
     for item in items:
@@ -85,7 +92,7 @@ def pytest_collection_modifyitems(config, items):
             item.add_marker(pytest.mark.serial)
         if path in FIGURES or f"{path}::{item.originalname}" in FIGURES:
             item.add_marker(pytest.mark.figure)
-        rank[item.nodeid] = HEAVIEST_FIRST.index(path) if path in HEAVIEST_FIRST else len(HEAVIEST_FIRST)
+        rank[item.nodeid] = SCHEDULE.index(path) if path in SCHEDULE else len(SCHEDULE)
     items.sort(key=lambda item: rank[item.nodeid])
 
 
