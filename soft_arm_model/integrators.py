@@ -72,7 +72,8 @@ def _imex_advance(rotor_mass, adot_qd, M, Cqd, Fg, Fel, Kt, Au, A0, D, work, q, 
     are: nothing allocated per step, and the same rounding whatever kernels the BLAS picks. The
     arguments are :func:`_ros2_advance`'s but the model's and the workspace's, which this step does
     not evaluate: a call from Python unboxes each array it is passed, and those two tuples' fifty
-    cost three times the step's own arithmetic (``bench/bench_model.py``'s ``rig_step``)."""
+    arrays made a step of the simulated rig a tenth slower (``bench/bench_model.py``'s
+    ``rig_step``)."""
     mats, vecs, piv = work
     lhs, lu, rhs = mats[0], mats[1], vecs[0]
     n = q.shape[0]
