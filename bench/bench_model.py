@@ -1,6 +1,7 @@
 """Benchmarks of the Variable-Strain model's performance. Prints a table, writes JSON.
 
     python bench/bench_model.py [--output bench/results/model.json] [--skip-elastica]
+    python bench/bench_model.py --warm-up     # PyElastica's kernels into numba's cache, then exit
 
 Measures, on one core:
 - one evaluation of all dynamics terms (M, C qd, F_g, F_el/K_t, A with friction, L_c; D and K are
@@ -384,7 +385,13 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--output", default=results_path("model.json"))
     ap.add_argument("--skip-elastica", action="store_true")
+    ap.add_argument("--warm-up", action="store_true",
+                    help="compile PyElastica's kernels into numba's cache and exit (CI's set-up does, as "
+                         "soft-arm-warmup does the package's: the suite's bench test then loads them)")
     args = ap.parse_args(argv)
+    if args.warm_up:
+        print(f"PyElastica's kernels compiled or loaded in {elastica_warm_up(load_arm_config(), 9.81):.1f} s")
+        return
     res = {}
     res["evaluation"] = bench_evaluation()
     res["build_ms"] = bench_build()

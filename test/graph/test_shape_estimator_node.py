@@ -57,6 +57,12 @@ def test_the_node_publishes_estimate_fused_tip_and_diagnostics():
             if k == 100:
                 state.publish(joint_state(names, k * 0.002, position=s + np.array([math.nan, 0, 0, 0]),
                                           velocity=np.zeros(4), effort=u))
+                # the topic keeps only its latest state (best effort, depth 1): the next one would
+                # replace this one if the node had not taken it yet, as a loaded machine lets happen
+                taken = time.monotonic() + 5.0
+                while node.rejected == 0 and time.monotonic() < taken:
+                    executor.spin_once(timeout_sec=0.002)
+                assert node.rejected == 1, "the state with a NaN shortening was not counted within 5 s"
             for _ in range(3):
                 executor.spin_once(timeout_sec=0.002)
 

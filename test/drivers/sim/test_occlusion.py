@@ -54,6 +54,35 @@ def test_a_marker_behind_the_body_from_every_camera_is_occluded_and_one_in_plain
                           ROD_ARCS).tolist() == [8, 8]
 
 
+def test_the_count_is_the_exact_test_on_every_capsule():
+    """The count tests a capsule exactly only where a line of sight passes within its bounding
+    sphere: on bent chains of long thin and short fat capsules, with markers scattered around
+    them so that many lines of sight graze a capsule, it is the exact test's on every capsule."""
+    rng = np.random.default_rng(11)
+    config = _config(field_of_view=math.radians(170))
+    compared = blocked = 0
+    for trial in range(40):
+        P = int(rng.integers(3, 12))
+        steps = rng.normal(size=(P - 1, 3)) * rng.choice([0.02, 0.15])
+        points = np.vstack([np.zeros(3), np.cumsum(steps, axis=0)])
+        radii = rng.uniform(0.005, 0.06, P)
+        arcs = np.concatenate([[0.0], np.cumsum(np.linalg.norm(steps, axis=1))])
+        markers = points[rng.integers(0, P, 30)] + rng.normal(size=(30, 3)) * 0.08
+        count = cameras_seeing(config, markers, np.full(30, 100.0), points, radii, arcs)
+        capsule_radii = np.maximum(radii[:-1], radii[1:])
+        for m, marker in enumerate(markers):
+            exact = 0
+            for camera in np.array(RING):
+                sight = marker - camera
+                hits = [segment_distance(camera, sight, points[k], points[k + 1] - points[k])
+                        < capsule_radii[k] for k in range(P - 1)]
+                exact += not any(hits)
+                blocked += any(hits)
+            assert count[m] == exact, (trial, m)
+            compared += 1
+    assert compared == 1200 and blocked > 1000          # the lines of sight meet the body often
+
+
 def test_the_markers_own_ring_does_not_hide_it():
     """A marker on the rod's axis at arc 0.2 m: the capsules within two radii of it are its ring."""
     config = _config()
