@@ -84,8 +84,9 @@ def _seeing(cameras, axes, cos_half, markers, ring_low, ring_high, points, capsu
     few centimetres long): a capsule is tested exactly (:func:`segment_distance`) only where the
     line of sight passes within its bounding sphere (centre the segment's midpoint, radius half its
     length plus its own, and a nanometre for rounding). Outside that sphere the segments are
-    further apart than the capsule's radius, so the count is the exact test's on every capsule,
-    at a fifth of its cost (``bench/bench_model.py``'s visibility)."""
+    further apart than the capsule's radius, so the count is the exact test's on every capsule;
+    a frame's visibility takes a quarter of the time testing every capsule took
+    (``bench/bench_model.py``)."""
     count = np.zeros(markers.shape[0], np.int64)
     sight = np.empty(3)
     n_capsules = points.shape[0] - 1
