@@ -190,12 +190,13 @@ def _rings(marker_arcs, arcs, radii) -> tuple[np.ndarray, np.ndarray, np.ndarray
 
 
 def arc_layout(model) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The order that sorts the model's points then markers by arc length, their arc lengths in
-    that order (P,) [m] and the cone's radius at each (P,) [m]: what :func:`body` and the contact's
+    """The order that sorts the model's points then markers by arc length ((P,) int64 indices, as
+    the compiled gathers of a frame take them), their arc lengths in that order (P,) [m] and the
+    cone's radius at each (P,) [m]: what :func:`body`, :meth:`Occlusions.of_arm` and the contact's
     surface (:meth:`.simulated_rig.Plant.surface`) take from the model, which does not change
     between frames."""
     X = np.concatenate([model.X, model.marker_X])
-    order = np.argsort(X, kind="stable")
+    order = np.argsort(X, kind="stable").astype(np.int64)
     g = model.config.geometry
     arcs = X[order]
     radii = g.base_radius + (g.tip_radius - g.base_radius) * arcs / g.length
@@ -255,7 +256,7 @@ class Occlusions:
             return np.zeros(model.marker_X.size, bool)
         if self._arm is None or self._arm[0] is not model:
             order, arcs, radii = arc_layout(model)
-            self._arm = (model, order.astype(np.int64), arcs) + _rings(model.marker_X, arcs, radii)
+            self._arm = (model, order, arcs) + _rings(model.marker_X, arcs, radii)
         _, order, arcs, low, high, capsule_radii = self._arm
         cameras, axes, cos_half = _layout(c)
         seen = _seeing_arm(cameras, axes, cos_half, data.p, data.marker_p, order, low, high, capsule_radii,

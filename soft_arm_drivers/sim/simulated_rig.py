@@ -73,7 +73,7 @@ class Plant:
         the pendulum's contact takes it at every plant step of a strike."""
         if self._layout is None:
             order, _, radii = arc_layout(self.model)
-            self._layout = order.astype(np.int64), radii
+            self._layout = order, radii
         order, radii = self._layout
         d = self.stepper.data
         points, velocities, jacobians = _surface(order, d.p, d.marker_p, d.R, d.marker_R, d.J, d.marker_J,
