@@ -33,14 +33,22 @@ while the model carries the rest; the markers when seen, gated as in
 distance the marker travels in ``marker_age`` [s] at its estimated velocity (a frame is a few
 milliseconds old when it arrives).
 
-Where the arm is not the model. The stiffness and friction are learnt from the tendons while the
-arm is at rest (every tendon slower than ``rest_speed`` at that sample), as the static estimate
-learns them, and in motion only with markers seen; on the tendons alone, in motion, they are
-considered (below). A sustained move is where the model's other errors (the tendons' friction
-reversing every half period, the damping) are largest, and the tendons alone cannot tell those
-from the stiffness and friction: learnt through the fast circle (1.5 cm at 0.2 m/s), they walked
-from 1.17 to 1.40 (the plant's 1.15) and 0.10 to 0.00-0.21 in ten seconds, and the tip's estimate
-6-8 mm off with them. The routing and the payload are not
+Where the arm is not the model. The stiffness and friction are learnt from the tendons once the
+arm has settled at a rest, and in motion only with markers seen; on the tendons alone, in motion,
+they are considered (below). A sustained move is where the model's other errors (the tendons'
+friction reversing every half period, the damping) are largest, and the tendons alone cannot tell
+those from the stiffness and friction: learnt through the fast circle (1.5 cm at 0.2 m/s), they
+walked from 1.17 to 1.40 (the plant's 1.15) and 0.10 to 0.00-0.21 in ten seconds, and the tip's
+estimate 6-8 mm off with them. Nor does a rest teach them as soon as the tendons stop (every tendon
+slower than ``rest_speed``): the four tendons fix four of the configuration's directions, and in the
+others the estimate still relaxes towards the balance at the model's own rate; stiffness and friction
+learnt meanwhile take that transient up and keep it, a bias at every rest that the next rests do
+not undo. They are learnt once the tendons have rested :data:`SETTLING` time constants of the
+slowest mode of the model's dynamics linearised at the estimate where the rest began
+(:attr:`settling_time`: 2-8 s at the arm's poses, the longest where it hangs slack). On the blind
+triangle (``bench/bench_sensing.py``'s ``filters``) the tip at rest went from 0.67 to 0.30 mm
+(median; 0.36 mm at two time constants, 0.28 at four), and on a plant that is the model but for
+its damping from 0.62 to 0.10 mm. The routing and the payload are not
 learnt from the tendons at all: four lengths cannot tell a tendon running a few hundredths of a
 radius off its path from a different bend, nor a payload on the last few centimetres that no
 tendon reaches from the shape's own droop. Without markers they are
@@ -117,6 +125,9 @@ from .shape_estimation import (FRICTION_BOUNDS, STIFFNESS_BOUNDS, EstimatorConfi
 ROUTING_BOUNDS = (0.15, 0.15)   # a tendon's offset (fraction of the radius), angles [rad] off the model's
 PAYLOAD_BOUNDS = (0.0, 0.1)     # kg at the tip
 SECOND_OPINION_PERIOD = 1 / 60  # s: in motion the static filter updates at most this often
+# how many time constants of the model's slowest mode a rest lasts before the tendons teach the
+# stiffness and friction: e^-3, 5 % of the transient of the arrival, is left (module docstring)
+SETTLING = 3.0
 # the payload's sigma point, this many standard deviations of prior.payload above the model's tip
 # mass, and its weight: the one point that carries the prior's second moment (PAYLOAD_WEIGHT *
 # PAYLOAD_POINT**2 = 1) on the side a payload can be
@@ -145,7 +156,8 @@ class DynamicShapeEstimator:
     :attr:`P` are the state's configuration, rate and the configuration's covariance (the filter's,
     without the second opinion's :attr:`gap` and the :attr:`payload_spread`, which :meth:`estimate`
     adds), :attr:`routing` the tendons' estimated routing ((3, n_tendons): offset fractions, start
-    and end angles [rad])."""
+    and end angles [rad]), :attr:`settling_time` how long the latest rest must last before the tendons
+    teach the stiffness and friction [s] (infinite before the first rest)."""
 
     def __init__(self, model: ArmModel, config: EstimatorConfig, rotor_mass: float,
                  second_opinion: bool = True):
@@ -234,6 +246,8 @@ class DynamicShapeEstimator:
                                              np.full(2 * nt, sign * ROUTING_BOUNDS[1]), [PAYLOAD_BOUNDS[i]]])
                              for i, sign in ((0, -1.0), (1, 1.0)))
         self._evaluated_at = None    # (q, qd, level) whose terms self.data holds
+        self._rested: float | None = None    # how long the tendons have rested [s] (None: moving)
+        self.settling_time = np.inf          # the current rest's (module docstring) [s]
 
     @property
     def q(self) -> np.ndarray:
@@ -289,6 +303,7 @@ class DynamicShapeEstimator:
         self.z[:n] = solve_equilibrium(self.model, u).q
         self.z[n:2 * n] = 0.0
         self.t, self.u = float(t), u.copy()
+        self._rested = None
 
     # --- the model at the estimated routing -----------------------------------------------------
 
@@ -366,11 +381,12 @@ class DynamicShapeEstimator:
         saved = self.z.copy(), self.Pz.copy(), self._share.copy()
         report = UpdateReport()
         try:
+            settled = self._settled(dt, sd, u)
             steps = int(np.ceil(dt / c.max_substep - 1e-9))
             u_mean = 0.5 * (u + self.u)
             for _ in range(steps):
                 self._predict(dt / steps, u_mean)
-            self._measure(s, sd, markers, report)
+            self._measure(s, sd, markers, report, settled)
             self._clamp_parameters()
             self._set_routing()
             # in the domain; and the next prediction's terms, the state unchanged until then
@@ -394,6 +410,37 @@ class DynamicShapeEstimator:
             self._second_opinion(t, s, sd, u, markers)
         self.counts["updates"] += 1
         return report
+
+    def _settled(self, dt: float, sd, u) -> bool:
+        """Whether the tendons (their rates ``sd`` [m/s]) have rested :attr:`settling_time` [s] by
+        this sample, ``dt`` [s] after the last (the filter's own step, whatever the clock did). A
+        rest's settling time is fixed as it starts, from the estimate then: :data:`SETTLING` time
+        constants of the slowest mode of the model's dynamics linearised there (the mass with the
+        rotors' through the tendons, the damping, the static tangent at the estimated stiffness);
+        infinite where no mode of the linearisation decays."""
+        if not at_rest(sd, self.config.rest_speed):
+            self._rested = None
+            return False
+        if self._rested is not None:
+            self._rested += dt
+            return self._rested >= self.settling_time
+        m, d = self.model, self.data
+        n = m.n
+        q, v = self.q.copy(), self.qd.copy()
+        if not self._holds(q, v, DYNAMICS):
+            self._evaluate(q, v, DYNAMICS, True)
+        kernels.static_tangent(*self.args, q, np.ascontiguousarray(u, dtype=float), True, *d.kernel_args,
+                               self._jac, self._dA_dmu)
+        mass = d.M + (d.A * self.rotor) @ d.A0.T
+        stiffness = self._jac + (self.z[self._k] - 1.0) * d.Kt
+        linear = np.zeros((2 * n, 2 * n))
+        linear[:n, n:] = np.eye(n)
+        linear[n:, :n] = -np.linalg.solve(mass, stiffness)
+        linear[n:, n:] = -np.linalg.solve(mass, m.D)
+        decay = -float(np.max(np.linalg.eigvals(linear).real))      # the slowest mode's [1/s]
+        self.settling_time = SETTLING / decay if decay > 0.0 else np.inf
+        self._rested = 0.0
+        return False
 
     def _second_opinion(self, t, s, sd, u, markers):
         """The static filter's update on the same sample; at rest, where both stand by their
@@ -430,7 +477,7 @@ class DynamicShapeEstimator:
         low, high = self._bounds
         np.clip(self.z[self._k:], low, high, out=self.z[self._k:])
 
-    def _measure(self, s, sd, markers, report):
+    def _measure(self, s, sd, markers, report, settled: bool):
         m, c, d = self.model, self.config, self.data
         n, N = m.n, self.N
         q, v = self.z[:n].copy(), self.z[n:2 * n].copy()
@@ -474,11 +521,11 @@ class DynamicShapeEstimator:
         # moves the tip by centimetres -- so the gain is the filter's as if the payload were its
         # estimate: the covariance without the payload's share, which the Joseph form keeps for
         # this gain; the tendons alone do not tell the routing and the payload from the rest:
-        # considered, not learnt; nor, in motion, the stiffness and friction (module docstring)
+        # considered, not learnt; nor, in motion or before a rest has settled, the stiffness and
+        # friction (module docstring)
         blind = not report.used
         updated, P = gain_update(H, y, r, self.z, self.Pz, self._share, self.config.prior_payload ** 2,
-                                 blind, blind and not at_rest(sd, self.config.rest_speed), self._k,
-                                 self._beta)
+                                 blind, blind and not settled, self._k, self._beta)
         if not updated:
             raise np.linalg.LinAlgError("the innovation covariance is not positive definite")
         self.Pz = P

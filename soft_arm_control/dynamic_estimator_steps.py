@@ -193,20 +193,20 @@ def tendon_rows(A0, v, dL0, dLc, dA0, L0, Lc, s, sd, noise, beta_at, P, H, y, r)
 
 
 @njit(cache=True, nogil=True)
-def gain_update(H, y, r, z, P, share, payload_var, blind, moving, k_at, beta_at):
+def gain_update(H, y, r, z, P, share, payload_var, blind, unsettled, k_at, beta_at):
     """The update with the rows H (m, N), innovations y and noise variances r: ``z`` and the
     payload's ``share`` in place; returns (True, the new covariance), or (False, P) and nothing
     changed where the innovation covariance is not positive definite. ``blind`` (no marker among
     the rows): the gain is the covariance's without the payload's share (``payload_var`` times its
-    outer product) and leaves the routing and payload alone, and ``moving`` the stiffness and
-    friction too (the estimator module's docstring); the covariance is the Joseph form's for that
-    gain."""
+    outer product) and leaves the routing and payload alone, and ``unsettled`` (in motion, or at a
+    rest shorter than the model's settling time) the stiffness and friction too (the estimator
+    module's docstring); the covariance is the Joseph form's for that gain."""
     m, N = H.shape
     gain_P = P
     free = N                                 # the gain's rows from here on are zero
     if blind:
         gain_P = P - payload_var * np.outer(share, share)
-        free = k_at if moving else beta_at
+        free = k_at if unsettled else beta_at
     HP, S, L = np.empty((m, N)), np.empty((m, m)), np.zeros((m, m))
     if not _factor(H, gain_P, r, m, HP, S, L):      # S = H P H^T + diag(r) is not positive definite
         return False, P

@@ -378,21 +378,53 @@ def test_at_rest_the_static_balance_is_a_second_opinion_the_covariance_carries(m
     assert all(np.array_equal(a, b) for a, b in zip(held, wrong.gap))
 
 
-def test_on_the_tendons_alone_the_stiffness_and_friction_are_learnt_at_rest_only(arm, model):
+@pytest.mark.parametrize("tension", [[1.0, 1.0, 1.5, 0.5], [0.3, 0.3, 0.3, 0.3], [4.0, 0.3, 0.3, 3.0]])
+def test_a_rests_settling_time_is_three_time_constants_of_the_models_slowest_mode(model, tension):
+    """The settling time the filter fixes at a rest, against the model's own free response there: the
+    arm kicked at its balance and simulated with the model's step (the rotors on the tendons), its
+    deviation's peaks over one time constant (a third of the settling time) fall by e^-1 once the
+    faster modes have died out, within 15 % (peaks over the second time constant against the fifth).
+    The linearisation without the rotors' mass is 23-34 % off at the first and third poses."""
+    u = np.array(tension)
+    q_rest = solve_equilibrium(model, u).q
+    estimator = DynamicShapeEstimator(model, CONFIG, ROTOR)
+    shortening = tendon_lengths(model, np.zeros(model.n)) - tendon_lengths(model, q_rest)
+    estimator.update(0.0, shortening, np.zeros(4), u)
+    tau = estimator.settling_time / 3
+    assert 0.5 < tau < 3.0
+    h = 1e-3
+    stepper = ImexStepper(model, h, rotor_mass=np.full(4, ROTOR))
+    weight = np.abs(np.diag(model.K)) ** 0.5           # the deviation in units of elastic energy
+    q, qd = q_rest.copy(), 1e-3 / weight * np.random.default_rng(0).normal(size=model.n)
+    deviation = np.empty(int(round(5 * tau / h)))
+    for i in range(deviation.size):
+        q, qd = stepper.step(q, qd, u)
+        deviation[i] = np.linalg.norm((q - q_rest) * weight)
+    t = np.arange(1, deviation.size + 1) * h
+
+    def peak(first: int) -> float:
+        return deviation[(t >= first * tau) & (t < (first + 1) * tau)].max()
+    assert abs(np.log(peak(1) / peak(4)) / 3 - 1.0) < 0.15, np.log(peak(1) / peak(4)) / 3
+
+
+def test_on_the_tendons_alone_the_stiffness_and_friction_are_learnt_at_a_settled_rest_only(arm, model):
     """The declared plant (15 % stiffer than the model, friction 0.12 against 0.1) driven by tensions
     swinging at 2 Hz, then held: on the tendons alone the stiffness scale and the friction offsets
-    stay exactly where they were through the move (what a sustained move leaves unexplained is not
-    theirs to take: the module docstring), and are learnt once the arm rests; with the markers seen
-    they are learnt in the move too."""
+    stay exactly where they were through the move and through the rest's settling time (what a
+    sustained move and the arrival leave unexplained is not theirs to take: the module docstring),
+    and are learnt once the rest has settled; with the markers seen they are learnt in the move
+    too. The settling time is the model's: three time constants of its slowest mode at the rest,
+    two to eight seconds at the arm's poses (the longest where it hangs slack), 4.4 s here."""
     from soft_arm_drivers.sim.plant_config import load_plant_config
     from soft_arm_drivers.sim.simulated_rig import Plant
     plant = Plant.of(arm, load_plant_config(arm, overrides={"mocap.occlusion.enabled": False}))
     u0, swing = np.array([1.0, 1.0, 1.5, 0.5]), np.array([0.6, -0.6, 0.8, -0.3])
 
-    def run(seen: bool, rest: float) -> tuple[list, list]:
+    def run(seen: bool, rest: float) -> tuple[list, list, float]:
         """The change of (k, mu) at each sample of the move (1.5 periods of the swing, 0.75 s) whose
-        tendons move faster than ``rest_speed``, and (k, mu) after each sample of the ``rest`` [s]
-        after it (the arm put at rest at once: on tensions alone it would swing for seconds)."""
+        tendons move faster than ``rest_speed``; (time since the move [s], k, mu) after each sample
+        of the ``rest`` [s] after it (the arm put at rest at once: on tensions alone it would swing
+        for seconds); and the rest's settling time [s]."""
         plant.settle(u0)
         estimator = DynamicShapeEstimator(model, CONFIG, ROTOR)
         estimator.update(0.0, *plant_tendons(), u0)       # started at rest, before the move
@@ -411,19 +443,24 @@ def test_on_the_tendons_alone_the_stiffness_and_friction_are_learnt_at_rest_only
                 if t <= 0.75 and np.max(np.abs(sd)) > CONFIG.rest_speed:     # the sample's change
                     out[0].append((k - before[0], mu - before[1]))
                 elif t > 0.75:
-                    out[1].append((k, mu.copy()))
+                    out[1].append((t - 0.75, k, mu.copy()))
             plant.step(u)
-        return out
+        return out[0], out[1], estimator.settling_time
 
     def plant_tendons():
         plant.sense(markers=True)
         return plant.tendons()
 
-    moving, resting = run(seen=False, rest=0.4)
-    assert len(moving) > 150 and len(resting) > 20
+    moving, resting, settling = run(seen=False, rest=6.0)
+    assert 2.0 < settling < 5.0
+    assert len(moving) > 150 and len(resting) > 1000
     assert all(dk == 0.0 and not np.any(dmu) for dk, dmu in moving)
-    assert abs(resting[-1][0] - resting[0][0]) > 1e-3
-    moving, _ = run(seen=True, rest=0.0)
+    unsettled = [(k, mu) for t, k, mu in resting if t < settling - 0.05]
+    settled = [k for t, k, _ in resting if t > settling + 0.05]
+    assert len(unsettled) > 200 and len(settled) > 200
+    assert all(k == resting[0][1] and np.array_equal(mu, resting[0][2]) for k, mu in unsettled)
+    assert abs(settled[-1] - resting[0][1]) > 1e-3
+    moving, _, _ = run(seen=True, rest=0.0)
     assert sum(abs(dk) for dk, _ in moving) > 1e-3
 
 

@@ -34,9 +34,9 @@ def moves():
 
 def test_through_fast_moves_the_tendons_alone_keep_the_tip_within_5_mm(moves):
     """95 % of the frames in motion within 5 mm; the static estimate's 95th percentile is more than
-    twice that (its balance lags a moving arm). At rest the dynamic one is within 1.5 mm (median);
-    the static balance, exact at rest, is nearer there (1.10 against 1.19 mm on these windows, 0.67
-    against 1.08 mm with 6 s windows, where the arm rests longer)."""
+    twice that (its balance lags a moving arm). At rest the dynamic one is within 1 mm (median) and
+    nearer than the static balance (0.41 against 1.10 mm on these windows, 0.49 against 0.67 mm
+    with 6 s windows, where the arm rests longer)."""
     speed, error, _ = moves["dynamic"]
     moving = speed > REST_SPEED
     assert moving.sum() > 200 and speed.max() > 0.3
@@ -44,7 +44,8 @@ def test_through_fast_moves_the_tendons_alone_keep_the_tip_within_5_mm(moves):
     static = np.linalg.norm(moves["static"][1], axis=1)
     assert np.percentile(dynamic[moving], 95) <= 5e-3, np.percentile(dynamic[moving], 95)
     assert np.percentile(static[moving], 95) > 2 * np.percentile(dynamic[moving], 95)
-    assert (~moving).sum() > 50 and np.median(dynamic[~moving]) <= 1.5e-3
+    assert (~moving).sum() > 50 and np.median(dynamic[~moving]) <= 1e-3
+    assert np.median(dynamic[~moving]) < np.median(static[~moving])
 
 
 @pytest.mark.parametrize("frames", ["moving", "at rest"])
@@ -92,12 +93,13 @@ def test_on_drawn_routings_the_covariance_bounds_the_error_only_if_it_considers_
     """Three plants whose tendons run where the campaign's casting tolerance draws them (offsets
     0.55-0.65 of the radius, angles within 3 deg, friction 0.05-0.2): with the routing considered
     (``prior.tendon_offset``, ``prior.tendon_angle``) the tip's NEES in motion and at rest is within
-    conftest.nees_bounded; the same filter without those states, sure of the drawing's routing,
-    averages more than three times the bound's 99 % quantile in both."""
+    conftest.nees_bounded (means 0.7-1.4); the same filter without those states, sure of the
+    drawing's routing, fails the same bound on its mean alone, in both (means 20-127: on these draws
+    the sure filter's error at rest is 4-12 mm where it reports a millimetre or less)."""
     for nees in routing_nees[seed, True]:
         assert nees.size > 100 and nees_bounded(nees), np.mean(nees)
     for nees in routing_nees[seed, False]:
-        assert np.mean(nees) > 3 * CHI2_3_99, np.mean(nees)
+        assert np.mean(nees) > CHI2_3_99, np.mean(nees)
 
 
 def test_the_fast_circle_closed_on_the_estimate_tracks_as_the_mocap_does():
