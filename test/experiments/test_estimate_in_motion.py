@@ -63,17 +63,18 @@ def test_the_dynamic_estimates_covariance_bounds_its_error(moves, frames):
 
 
 def test_through_the_triangle_the_tendons_alone_keep_the_tip_within_5_mm_moving_and_0_6_mm_at_rest():
-    """The triangle's approach (its three vertices from the hanging arm, 25 s each, the tip at up to
+    """The triangle's approach (its three vertices from the hanging arm, 10 s each, the tip at up to
     0.9 m/s) on the declared plant, every marker hidden, the loop holding its precomputed references
     (on a mocap that sees nothing): the dynamic estimate's tip within 5 mm on 95 % of the frames in
-    motion and within 0.6 mm at rest (median; 2.9 and 0.30 mm on the whole triangle,
-    ``bench/bench_sensing.py``'s ``filters``). In motion its NEES is within conftest.nees_bounded,
+    motion and within 0.6 mm at rest (median; 3.1 and 0.36 mm here, 2.9 and 0.30 mm on the whole
+    triangle, ``bench/bench_sensing.py``'s ``filters``). In motion its NEES is within conftest.nees_bounded,
     and not with the covariance 100 times smaller or larger. At rest it is not overconfident, and
-    would be with the covariance 100 times smaller; it is conservative there (mean NEES about 0.11,
-    below nees_bounded's floor of 0.115): it covers the casting tolerance of the tendons' routing,
+    would be with the covariance 100 times smaller; it is conservative there (mean NEES 0.11-0.13,
+    about nees_bounded's floor of 0.115): it covers the casting tolerance of the tendons' routing,
     which this plant, its tendons on their drawn paths, does not use. On the drawn routings below
     the same covariance is honest at rest (means 0.7-1.0)."""
     speed, error, covariance = _blind_moves(["tasks.triangle.phases=[approach]",
+                                             "tasks.triangle.phase.approach.window=10.0",
                                              "estimator.process_model=dynamic"], task="triangle")
     tip = np.linalg.norm(error, axis=1)
     moving, resting = speed > REST_SPEED, speed <= REST_SPEED
