@@ -196,6 +196,10 @@ class ShapeEstimatorNode(Node):
                   "stiffness_scale": round(stiffness, 4),
                   "friction": [round(float(f), 4) for f in friction],
                   "tip_sigma_mm": round(1e3 * float(estimate.marker_sigma[-1]), 3)}
+        if hasattr(self.core, "settling_time"):
+            # the dynamic filter's: how long the latest rest must last before the tendons teach
+            # the stiffness and friction (inf: no rest yet, or one whose balance the model does not hold)
+            values["rest_settling_time_s"] = round(float(self.core.settling_time), 2)
         status = DiagnosticStatus(level=level, name="shape_estimator", hardware_id="soft_arm",
                                   message=message,
                                   values=[KeyValue(key=k, value=str(v)) for k, v in values.items()])

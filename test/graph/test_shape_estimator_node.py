@@ -179,8 +179,10 @@ def test_a_frame_stamped_far_from_the_state_is_left_out_and_counted_not_fused_as
 def test_configured_dynamic_the_node_runs_the_dynamic_estimate_with_the_controllers_rotors():
     """``estimator.process_model: dynamic`` on the node: the dynamic filter, the rotors' reflected
     mass from ``control.rotor_mass``; at rest on the tendons alone the tip it publishes is within
-    the covariance it publishes (chi-square, 3 degrees of freedom, 0.1 %)."""
+    the covariance it publishes (chi-square, 3 degrees of freedom, 0.1 %), and its diagnostics say
+    how long the rest must last before the tendons teach the stiffness and friction."""
     import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray
     from geometry_msgs.msg import PoseWithCovarianceStamped
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.parameter import Parameter
@@ -204,6 +206,14 @@ def test_configured_dynamic_the_node_runs_the_dynamic_estimate_with_the_controll
         state = peer.create_publisher(JointState, "tendon/state", QOS["tendon/state"])
         tips = []
         peer.create_subscription(PoseWithCovarianceStamped, "estimate/tip", tips.append, QOS["estimate/tip"])
+        settling = []
+
+        def report(msg):
+            for status in msg.status:
+                values = {kv.key: kv.value for kv in status.values}
+                if status.name == "shape_estimator" and int(values["updates"]) > 0:
+                    settling.append(float(values["rest_settling_time_s"]))
+        peer.create_subscription(DiagnosticArray, "/diagnostics", report, QOS["/diagnostics"])
         executor = SingleThreadedExecutor()
         executor.add_node(node)
         executor.add_node(peer)
@@ -224,6 +234,10 @@ def test_configured_dynamic_the_node_runs_the_dynamic_estimate_with_the_controll
         error = np.array([p.x, p.y, p.z]) - marker_positions(model, q)[-1]
         covariance = np.array(tips[-1].pose.covariance).reshape(6, 6)[:3, :3]
         assert error @ np.linalg.solve(covariance, error) <= 16.27, (error, np.diag(covariance))
+        end = time.monotonic() + 3.0                        # the next report, once a second
+        while not settling and time.monotonic() < end:
+            executor.spin_once(timeout_sec=0.01)
+        assert settling and 1.0 < settling[-1] < 10.0, settling
     finally:
         rclpy.try_shutdown()
 
