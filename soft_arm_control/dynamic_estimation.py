@@ -412,8 +412,9 @@ class DynamicShapeEstimator:
         return report
 
     def _settled(self, dt: float, sd, u) -> bool:
-        """Whether the tendons (their rates ``sd`` [m/s]) have rested :attr:`settling_time` [s] by
-        this sample, ``dt`` [s] after the last (the filter's own step, whatever the clock did). A
+        """Whether the tendons (their rates ``sd`` [m/s], under tensions ``u`` [N], both contiguous
+        float arrays as :meth:`update` makes them) have rested :attr:`settling_time` [s] by this
+        sample, ``dt`` [s] after the last (the filter's own step, whatever the clock did). A
         rest's settling time is fixed as it starts, from the estimate then: :data:`SETTLING` time
         constants of the slowest mode of the model's dynamics linearised there (the mass with the
         rotors' through the tendons, the damping, the static tangent at the estimated stiffness);
@@ -429,8 +430,7 @@ class DynamicShapeEstimator:
         q, v = self.q.copy(), self.qd.copy()
         if not self._holds(q, v, DYNAMICS):
             self._evaluate(q, v, DYNAMICS, True)
-        kernels.static_tangent(*self.args, q, np.ascontiguousarray(u, dtype=float), True, *d.kernel_args,
-                               self._jac, self._dA_dmu)
+        kernels.static_tangent(*self.args, q, u, True, *d.kernel_args, self._jac, self._dA_dmu)
         mass = d.M + (d.A * self.rotor) @ d.A0.T
         stiffness = self._jac + (self.z[self._k] - 1.0) * d.Kt
         linear = np.zeros((2 * n, 2 * n))
