@@ -28,7 +28,10 @@ Measures, on one core:
   side, both settled and both warm (compiled before timing; PyElastica's cold first run apart),
   PyElastica at its best settings (the fewest elements reaching this model's accuracy against a
   planar Kirchhoff BVP reference, each at its largest stable and converged time step): tip
-  difference, each against the reference, speed ratio at equal accuracy.
+  difference, each against the reference, speed ratio; and each code's transient against a run of
+  its own at a fine step (this model at the plant's step and ROS2 at 1-20 ms): the speed ratio
+  where this model is as accurate as PyElastica's best in both senses, and where PyElastica is as
+  accurate in its transient as the plant's step.
 """
 from __future__ import annotations
 
@@ -208,6 +211,41 @@ def _convergence_row(ends, orders, u):
             "tip_error_m": float(err)}
 
 
+SAMPLE_S = 0.02          # s: the cantilever's tips compared along the transient, every SAMPLE_S
+OWN_STEPS = (("imex", 1e-3),) + tuple(("ros2", dt) for dt in (1e-3, 2e-3, 5e-3, 1e-2, 2e-2))  # dt <= SAMPLE_S
+OWN_REFERENCE = ("ros2", 1.25e-4)
+ELASTICA_FINE = 16       # PyElastica's own reference steps this many times shorter than its chosen step
+
+
+def transient_error(track, reference) -> float:
+    """The largest distance [m] between two tip tracks (k, 2) sampled at the same times, over the
+    samples both have."""
+    k = min(len(track), len(reference))
+    return float(np.linalg.norm(np.asarray(track)[:k] - np.asarray(reference)[:k], axis=1).max())
+
+
+def cheapest_at_accuracy(runs, transient, settled):
+    """The fastest of ``runs`` (dicts with ``wall_s``, ``transient_error_m`` and
+    ``error_vs_kirchhoff_m``) at least as accurate as (``transient``, ``settled``) [m] in both;
+    None if none is."""
+    accurate = [r for r in runs if r["transient_error_m"] <= transient and r["error_vs_kirchhoff_m"] <= settled]
+    return min(accurate, key=lambda r: r["wall_s"], default=None)
+
+
+def _cantilever_run(m, method, dt, duration, repeats=1) -> dict:
+    """This model's cantilever released from straight: the best wall time [s] of ``repeats`` warm
+    runs and the tip (x, y) [m] every :data:`SAMPLE_S` (the track) and at the end."""
+    simulate(m, np.zeros(m.n), np.zeros(m.n), lambda t: np.zeros(4), 0.01, dt=dt, method=method)
+    wall = np.inf
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        tr = simulate(m, np.zeros(m.n), np.zeros(m.n), lambda t: np.zeros(4), duration, dt=dt, method=method)
+        wall = min(wall, time.perf_counter() - t0)
+    track = np.array([(-p[2], p[0]) for p in (tip_frame(m, q).p for q in tr.q[::int(round(SAMPLE_S / dt))])])
+    tip = tip_frame(m, tr.q[-1]).p
+    return {"wall_s": wall, "track": track, "tip": np.array([-tip[2], tip[0]])}
+
+
 def bench_cantilever(duration=3.0, elastica=True):
     """Horizontal cantilever released from straight under gravity; both codes damped so that they
     settle within ``duration`` (this model: Kelvin-Voigt viscosity 30 kPa s; PyElastica: uniform
@@ -215,40 +253,75 @@ def bench_cantilever(duration=3.0, elastica=True):
     this model's kernels are compiled by a short run first, PyElastica's by :func:`elastica_warm_up`
     (its cold first run, compilation included, reported apart). PyElastica at its best settings for
     this problem (:func:`elastica_settings`): the fewest elements that reach this model's accuracy
-    against the Kirchhoff reference, each at the largest time step it is stable and converged with;
-    the ratios are at equal accuracy (or at PyElastica's best, said so)."""
+    against the Kirchhoff reference, each at the largest time step it is stable and converged with.
+
+    Accuracy in two senses, each code against references of its own: the settled tip's error
+    against the Kirchhoff tip (the space discretisation), and the transient's, the tip's largest
+    distance along the run (every :data:`SAMPLE_S`) from the same code's run at a fine step (the
+    time step: this model's ROS2 at 0.125 ms, PyElastica's chosen step / :data:`ELASTICA_FINE`), as
+    the two codes' transients differ by their damping models, not by their accuracy. Ratios: the
+    plant's step (Euler, 1 ms) against PyElastica's best (``speed_ratio_dynamics``); this model's
+    fastest step (of :data:`OWN_STEPS`) as accurate as PyElastica's best in both senses against
+    it (``speed_ratio_equal_accuracy``); PyElastica's largest step as accurate in its transient as
+    the plant's step against that step (``speed_ratio_plant_step_accuracy``); the static solve
+    against PyElastica's best (``speed_ratio_statics``)."""
     g_acc = 9.81
     m = build_model(load_arm_config(overrides={"gravity": [-g_acc, 0.0, 0.0],
                                                "material.viscosity": 3.0e4}))
     ref = kirchhoff_cantilever_tip(m.config, g_acc)
-    out = {"duration_s": duration, "kirchhoff_tip_m": ref.tolist()}
-    simulate(m, np.zeros(m.n), np.zeros(m.n), lambda t: np.zeros(4), 0.01)
-    t0 = time.perf_counter()
-    tr = simulate(m, np.zeros(m.n), np.zeros(m.n), lambda t: np.zeros(4), duration)
-    wall = time.perf_counter() - t0
-    tip = tip_frame(m, tr.q[-1]).p
-    ours = np.array([-tip[2], tip[0]])
+    out = {"duration_s": duration, "kirchhoff_tip_m": ref.tolist(), "sample_s": SAMPLE_S}
+    own_reference = _cantilever_run(m, *OWN_REFERENCE, duration)["track"]
+    own = []
+    for method, dt in OWN_STEPS:
+        run = _cantilever_run(m, method, dt, duration, repeats=3)
+        own.append({"method": method, "dt_s": dt, "wall_s": run["wall_s"],
+                    "transient_error_m": transient_error(run["track"], own_reference),
+                    "error_vs_kirchhoff_m": float(np.linalg.norm(run["tip"] - ref)), "tip": run["tip"]})
+    plant_step = own[0]
+    wall, ours = plant_step["wall_s"], plant_step["tip"]
+    solve_equilibrium(m, np.zeros(4))                                      # warm, as the runs are
     t0 = time.perf_counter()
     static_tip = tip_frame(m, solve_equilibrium(m, np.zeros(4)).q).p
     static_wall = time.perf_counter() - t0
-    error = float(np.linalg.norm(ours - ref))
+    error = plant_step["error_vs_kirchhoff_m"]
     out["this_model"] = {"dof": m.n, "dt_s": 1e-3, "wall_s": wall, "real_time_factor": duration / wall,
                          "tip_m": ours.tolist(), "error_vs_kirchhoff_m": error,
+                         "transient_error_m": plant_step["transient_error_m"],
                          "static_solve_ms": 1e3 * static_wall,
                          "static_error_vs_kirchhoff_m": float(np.linalg.norm(
                              np.array([-static_tip[2], static_tip[0]]) - ref))}
+    out["this_model_steps"] = [{k: v for k, v in r.items() if k != "tip"} for r in own]
     if not elastica:
         return out
     cold_s = elastica_warm_up(m.config, g_acc)
     settings = elastica_settings(m.config, g_acc, duration, ref, error)
-    run = elastica_cantilever(m.config, g_acc, duration, settings["elements"], settings["dt_s"])
+    n_el, dt = settings["elements"], settings["dt_s"]
+    run = min((elastica_cantilever(m.config, g_acc, duration, n_el, dt, sample=SAMPLE_S) for _ in range(3)),
+              key=lambda r: r["wall_s"])                            # best of three, as this model's
+    fine = elastica_cantilever(m.config, g_acc, duration, n_el, dt / ELASTICA_FINE, sample=SAMPLE_S)["track"]
+    transient = transient_error(run["track"], fine)
+    pe_error = float(np.linalg.norm(run["tip"] - ref))
     out["pyelastica"] = {**settings, "wall_s": run["wall_s"], "real_time_factor": duration / run["wall_s"],
-                         "tip_m": run["tip_m"],
-                         "error_vs_kirchhoff_m": float(np.linalg.norm(run["tip"] - ref)),
+                         "tip_m": run["tip_m"], "error_vs_kirchhoff_m": pe_error,
+                         "transient_error_m": transient, "fine_dt_s": dt / ELASTICA_FINE,
                          "cold_first_run_s": cold_s, "warmed": True}
     out["tip_difference_m"] = float(np.linalg.norm(run["tip"] - ours))
     out["speed_ratio_dynamics"] = run["wall_s"] / wall
     out["speed_ratio_statics"] = run["wall_s"] / static_wall
+    equal = cheapest_at_accuracy(own, transient, pe_error)
+    out["this_model_at_pyelastica_accuracy"] = None if equal is None else \
+        {k: v for k, v in equal.items() if k != "tip"}
+    out["speed_ratio_equal_accuracy"] = None if equal is None else run["wall_s"] / equal["wall_s"]
+    out["pyelastica_at_plant_step_accuracy"] = None
+    out["speed_ratio_plant_step_accuracy"] = None
+    for step in sorted((s for s in ELASTICA_STEPS if dt / ELASTICA_FINE < s < dt), reverse=True):
+        finer = elastica_cantilever(m.config, g_acc, duration, n_el, step, sample=SAMPLE_S)
+        finer_error = transient_error(finer["track"], fine)
+        if finer_error <= plant_step["transient_error_m"]:
+            out["pyelastica_at_plant_step_accuracy"] = {"elements": n_el, "dt_s": step, "wall_s": finer["wall_s"],
+                                                        "transient_error_m": finer_error}
+            out["speed_ratio_plant_step_accuracy"] = finer["wall_s"] / wall
+            break
     return out
 
 
@@ -277,19 +350,24 @@ def _elastica_system(config, g_acc, n_elements, dt):
     return sim, rod, ea.PositionVerlet()
 
 
-def elastica_cantilever(config, g_acc, duration, n_elements, dt) -> dict:
+def elastica_cantilever(config, g_acc, duration, n_elements, dt, sample=None) -> dict:
     """One PyElastica run of ``duration`` [s]: the stepping's wall time [s] (the set-up left out),
-    the settled tip (x, y) [m] and whether it stayed finite and within twice the rod's length."""
+    the settled tip (x, y) [m] and whether it stayed finite and within twice the rod's length; with
+    ``sample`` [s] (a multiple of ``dt``) also the tip every ``sample`` from the start (the track)."""
     sim, rod, stepper = _elastica_system(config, g_acc, n_elements, dt)
+    every = int(round(sample / dt)) if sample else 0
+    track = [rod.position_collection[:2, -1].copy()]
     t0 = time.perf_counter()
     t = 0.0
-    for _ in range(int(round(duration / dt))):
+    for i in range(1, int(round(duration / dt)) + 1):
         t = stepper.step(sim, t, dt)
+        if every and i % every == 0:
+            track.append(rod.position_collection[:2, -1].copy())
     wall = time.perf_counter() - t0
     tip = rod.position_collection[:2, -1].copy()
     stable = bool(np.all(np.isfinite(rod.position_collection))
                   and np.abs(rod.position_collection).max() < 2.0 * config.geometry.length)
-    return {"wall_s": wall, "tip": tip, "tip_m": tip.tolist(), "stable": stable}
+    return {"wall_s": wall, "tip": tip, "tip_m": tip.tolist(), "stable": stable, "track": np.array(track)}
 
 
 def elastica_warm_up(config, g_acc) -> float:
@@ -467,6 +545,19 @@ def main(argv=None):
         for r in pe["tried"]:
             print(f"    {r['elements']:>3} elements: largest converged dt {r['dt_s']:g} s, tip error "
                   f"{1e3 * r['error_vs_kirchhoff_m']:.2f} mm")
+        print(f"  transients, each against its own code at a fine step (largest tip distance, every "
+              f"{1e3 * c['sample_s']:.0f} ms): PyElastica {1e3 * pe['transient_error_m']:.2f} mm; this model:")
+        for r in c["this_model_steps"]:
+            print(f"    {r['method']:>4} {r['dt_s'] * 1e3:4.0f} ms: transient {1e3 * r['transient_error_m']:7.3f} mm, "
+                  f"settled vs Kirchhoff {1e3 * r['error_vs_kirchhoff_m']:.2f} mm, {1e3 * r['wall_s']:6.1f} ms wall")
+        eq = c["this_model_at_pyelastica_accuracy"]
+        if eq is not None:
+            print(f"  as accurate as PyElastica's best in both: {eq['method']} at {eq['dt_s'] * 1e3:g} ms, "
+                  f"{c['speed_ratio_equal_accuracy']:.0f}x [>= 300]")
+        pp = c["pyelastica_at_plant_step_accuracy"]
+        if pp is not None:
+            print(f"  PyElastica as accurate in its transient as the plant's step: dt {pp['dt_s']:g} s, "
+                  f"{pp['wall_s']:.2f} s wall, {c['speed_ratio_plant_step_accuracy']:.0f}x")
     write_results(args.output, res)
 
 
