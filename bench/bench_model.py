@@ -235,13 +235,16 @@ def cheapest_at_accuracy(runs, transient, settled):
 def _cantilever_run(m, method, dt, duration, repeats=1) -> dict:
     """This model's cantilever released from straight: the best wall time [s] of ``repeats`` warm
     runs and the tip (x, y) [m] every :data:`SAMPLE_S` (the track) and at the end."""
+    every = int(round(SAMPLE_S / dt))
+    if abs(every * dt - SAMPLE_S) > 1e-12:
+        raise ValueError(f"a step of {dt} s does not divide the sampling period {SAMPLE_S} s")
     simulate(m, np.zeros(m.n), np.zeros(m.n), lambda t: np.zeros(4), 0.01, dt=dt, method=method)
     wall = np.inf
     for _ in range(repeats):
         t0 = time.perf_counter()
         tr = simulate(m, np.zeros(m.n), np.zeros(m.n), lambda t: np.zeros(4), duration, dt=dt, method=method)
         wall = min(wall, time.perf_counter() - t0)
-    track = np.array([(-p[2], p[0]) for p in (tip_frame(m, q).p for q in tr.q[::int(round(SAMPLE_S / dt))])])
+    track = np.array([(-p[2], p[0]) for p in (tip_frame(m, q).p for q in tr.q[::every])])
     tip = tip_frame(m, tr.q[-1]).p
     return {"wall_s": wall, "track": track, "tip": np.array([-tip[2], tip[0]])}
 
@@ -353,16 +356,20 @@ def _elastica_system(config, g_acc, n_elements, dt):
 def elastica_cantilever(config, g_acc, duration, n_elements, dt, sample=None) -> dict:
     """One PyElastica run of ``duration`` [s]: the stepping's wall time [s] (the set-up left out),
     the settled tip (x, y) [m] and whether it stayed finite and within twice the rod's length; with
-    ``sample`` [s] (a multiple of ``dt``) also the tip every ``sample`` from the start (the track)."""
+    ``sample`` [s] also the tip every ``sample`` from the start (the track; linear between the two
+    steps about a sample time that is not a step's)."""
     sim, rod, stepper = _elastica_system(config, g_acc, n_elements, dt)
-    every = int(round(sample / dt)) if sample else 0
     track = [rod.position_collection[:2, -1].copy()]
     t0 = time.perf_counter()
     t = 0.0
     for i in range(1, int(round(duration / dt)) + 1):
+        due = sample and i * dt >= len(track) * sample - 1e-12      # this step reaches a sample time
+        if due:
+            before = rod.position_collection[:2, -1].copy()
         t = stepper.step(sim, t, dt)
-        if every and i % every == 0:
-            track.append(rod.position_collection[:2, -1].copy())
+        if due:
+            w = (len(track) * sample - (i - 1) * dt) / dt           # of the way through this step
+            track.append(before + w * (rod.position_collection[:2, -1] - before))
     wall = time.perf_counter() - t0
     tip = rod.position_collection[:2, -1].copy()
     stable = bool(np.all(np.isfinite(rod.position_collection))

@@ -92,6 +92,28 @@ def test_the_pyelastica_timing_leaves_its_compilation_out():
     assert track[2][1] < track[1][1] < 0.0, track
 
 
+def test_pyelasticas_track_is_at_the_sample_times_whatever_its_step(bench_path, monkeypatch):
+    """A rod whose tip moves at a constant velocity: its track is the tip at 0, 20, 40 ... ms exactly,
+    also at a step of 0.32 ms, which 20 ms is not a whole number of (sampling at every 62nd step
+    would lag the samples by 0.24 s at the end of a 3 s run)."""
+    import numpy as np
+    import bench_model
+
+    class Rod:
+        position_collection = np.zeros((3, 2))
+
+    class Stepper:
+        def step(self, sim, t, dt):
+            Rod.position_collection[:2, -1] = (t + dt, 2.0 * (t + dt))
+            return t + dt
+    monkeypatch.setattr(bench_model, "_elastica_system", lambda *args: (None, Rod, Stepper()))
+    config = type("Config", (), {"geometry": type("Geometry", (), {"length": 100.0})})
+    run = bench_model.elastica_cantilever(config, 9.81, 3.0, 10, 3.2e-4, sample=0.02)
+    times = 0.02 * np.arange(151)
+    assert run["track"].shape == (151, 2)
+    assert np.allclose(run["track"], np.column_stack([times, 2.0 * times]), atol=1e-9, rtol=0.0)
+
+
 def test_the_cantilevers_ratio_is_taken_where_this_model_is_as_accurate_in_both_senses(bench_path):
     """The fastest of this model's runs as accurate as PyElastica's in its transient and at its
     settled tip, neither alone; a transient's error is over the samples both tracks have; this
