@@ -228,7 +228,8 @@ def cheapest_at_accuracy(runs, transient, settled):
     """The fastest of ``runs`` (dicts with ``wall_s``, ``transient_error_m`` and
     ``error_vs_kirchhoff_m``) at least as accurate as (``transient``, ``settled``) [m] in both;
     None if none is."""
-    accurate = [r for r in runs if r["transient_error_m"] <= transient and r["error_vs_kirchhoff_m"] <= settled]
+    accurate = [r for r in runs
+                if r["transient_error_m"] <= transient and r["error_vs_kirchhoff_m"] <= settled]
     return min(accurate, key=lambda r: r["wall_s"], default=None)
 
 
@@ -321,8 +322,8 @@ def bench_cantilever(duration=3.0, elastica=True):
         finer = elastica_cantilever(m.config, g_acc, duration, n_el, step, sample=SAMPLE_S)
         finer_error = transient_error(finer["track"], fine)
         if finer_error <= plant_step["transient_error_m"]:
-            out["pyelastica_at_plant_step_accuracy"] = {"elements": n_el, "dt_s": step, "wall_s": finer["wall_s"],
-                                                        "transient_error_m": finer_error}
+            out["pyelastica_at_plant_step_accuracy"] = {
+                "elements": n_el, "dt_s": step, "wall_s": finer["wall_s"], "transient_error_m": finer_error}
             out["speed_ratio_plant_step_accuracy"] = finer["wall_s"] / wall
             break
     return out
@@ -553,10 +554,12 @@ def main(argv=None):
             print(f"    {r['elements']:>3} elements: largest converged dt {r['dt_s']:g} s, tip error "
                   f"{1e3 * r['error_vs_kirchhoff_m']:.2f} mm")
         print(f"  transients, each against its own code at a fine step (largest tip distance, every "
-              f"{1e3 * c['sample_s']:.0f} ms): PyElastica {1e3 * pe['transient_error_m']:.2f} mm; this model:")
+              f"{1e3 * c['sample_s']:.0f} ms): PyElastica {1e3 * pe['transient_error_m']:.2f} mm; "
+              "this model:")
         for r in c["this_model_steps"]:
-            print(f"    {r['method']:>4} {r['dt_s'] * 1e3:4.0f} ms: transient {1e3 * r['transient_error_m']:7.3f} mm, "
-                  f"settled vs Kirchhoff {1e3 * r['error_vs_kirchhoff_m']:.2f} mm, {1e3 * r['wall_s']:6.1f} ms wall")
+            print(f"    {r['method']:>4} {r['dt_s'] * 1e3:4.0f} ms: transient "
+                  f"{1e3 * r['transient_error_m']:7.3f} mm, settled vs Kirchhoff "
+                  f"{1e3 * r['error_vs_kirchhoff_m']:.2f} mm, {1e3 * r['wall_s']:6.1f} ms wall")
         eq = c["this_model_at_pyelastica_accuracy"]
         if eq is not None:
             print(f"  as accurate as PyElastica's best in both: {eq['method']} at {eq['dt_s'] * 1e3:g} ms, "

@@ -121,7 +121,8 @@ def test_the_cantilevers_ratio_is_taken_where_this_model_is_as_accurate_in_both_
     import numpy as np
     from bench_model import SAMPLE_S, _cantilever_run, cheapest_at_accuracy, transient_error
     from soft_arm_model import build_model, load_arm_config
-    assert transient_error([[0.0, 0.0], [0.0, 0.3], [9.0, 9.0]], [[0.0, 0.0], [0.4, 0.0]]) == pytest.approx(0.5)
+    track, reference = [[0.0, 0.0], [0.0, 0.3], [9.0, 9.0]], [[0.0, 0.0], [0.4, 0.0]]
+    assert transient_error(track, reference) == pytest.approx(0.5)
     runs = [{"wall_s": 1.0, "transient_error_m": 0.001, "error_vs_kirchhoff_m": 0.002},
             {"wall_s": 0.1, "transient_error_m": 0.005, "error_vs_kirchhoff_m": 0.002},   # transient
             {"wall_s": 0.2, "transient_error_m": 0.001, "error_vs_kirchhoff_m": 0.003},   # settled
