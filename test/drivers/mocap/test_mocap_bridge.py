@@ -436,16 +436,18 @@ class HeldArm:
         return self.now() >= t
 
 
-def lost_as_left_out(bridge, emulator):
+def lost_as_left_out(bridge, emulator) -> tuple:
     """Poll until the bridge has counted as many frames lost as the emulator's stream left out
     (missed or unreached), at most 2 s: one left out after the last frame received shows only
-    with the next (a loaded machine's stream thread may sleep through an exposure at any time)."""
-    def matched():
-        return bridge.counters["lost"] == emulator.counters["missed"] + emulator.counters["unreached"]
+    with the next (a loaded machine's stream thread may sleep through an exposure at any time).
+    Returns the (emulator's, bridge's) counters that matched, copied together."""
     deadline = time.monotonic() + 2.0
-    while not matched():
+    while True:
+        left_out, counted = dict(emulator.counters), dict(bridge.counters)
+        if counted["lost"] == left_out["missed"] + left_out["unreached"]:
+            return left_out, counted
         assert time.monotonic() < deadline, ("the frames lost never matched those the stream left out",
-                                             bridge.counters, emulator.counters)
+                                             counted, left_out)
         bridge.poll(0.01)
 
 
@@ -463,8 +465,7 @@ def _streamed_from(arm, seconds, **emulator_kw):
             end = time.monotonic() + seconds
             frames = pump(bridge, lambda: time.monotonic() > end)
             exposures = np.array([emulator.exposure_time(f.frame_number) for f in frames])
-            lost_as_left_out(bridge, emulator)
-            return frames, exposures, dict(emulator.counters), dict(bridge.counters)
+            return (frames, exposures) + lost_as_left_out(bridge, emulator)
 
 
 def _moved(frames) -> np.ndarray:
@@ -525,8 +526,7 @@ def test_exposures_the_stream_slept_through_take_their_frame_numbers():
             held.append(True)
             end = time.monotonic() + 0.5
             frames = pump(bridge, lambda: time.monotonic() > end)
-            lost_as_left_out(bridge, emulator)
-            counters = dict(emulator.counters)
+            counters, _ = lost_as_left_out(bridge, emulator)
     assert counters["missed"] >= 0.05 * 240 and frames and counters["unreached"] == 0
 
 
