@@ -117,8 +117,8 @@ CONTROL_SCHEMA = {
 # precomputed step; planned: the fastest tension profile planned on the model, followed by the inner
 # loop, soft_arm_control.strike_planner)
 STRIKE_TIMINGS = ("release", "rehearsed", "planned")
-PENDULUM_KEYS = ("pivot", "length", "mass", "ball_radius", "release_angle", "direction", "restitution",
-                 "timing")
+PENDULUM_KEYS = ("pivot", "length", "mass", "ball_radius", "release_angle_deg", "direction",
+                 "restitution", "timing")
 
 TASK_SCHEMA = {
     "*.tendons": ("strs", lambda v: len(v) >= 1 and len(set(v)) == len(v),
@@ -150,8 +150,8 @@ TASK_SCHEMA = {
     "*.pendulum.length": ("float", lambda v: 0 < v <= 2, "a rod length in (0, 2] m"),
     "*.pendulum.mass": ("float", lambda v: 0 < v <= 1, "a ball mass in (0, 1] kg"),
     "*.pendulum.ball_radius": ("float", lambda v: 0 < v <= 0.1, "a ball radius in (0, 0.1] m"),
-    "*.pendulum.release_angle": ("float", lambda v: 0 < v < 180,
-                                 "an angle from the vertical in (0, 180) deg"),
+    "*.pendulum.release_angle_deg": ("float", lambda v: 0 < v < 180,
+                                     "an angle from the vertical in (0, 180) deg"),
     "*.pendulum.direction": ("floats", lambda v: len(v) == 2 and (v[0] ** 2 + v[1] ** 2) > 0,
                              "the held ball's horizontal direction from below the pivot, [x, y] (not zero)"),
     "*.pendulum.restitution": ("float", lambda v: 0 <= v <= 1, "a coefficient of restitution in [0, 1]"),
@@ -382,7 +382,7 @@ def _pendulum(name: str, v: dict) -> tuple:
                           f"{', '.join(PENDULUM_KEYS)})")
     direction = np.array([*given["direction"], 0.0], dtype=float)
     return PendulumConfig(np.array(given["pivot"], dtype=float), given["length"], given["mass"],
-                          given["ball_radius"], np.deg2rad(given["release_angle"]),
+                          given["ball_radius"], np.deg2rad(given["release_angle_deg"]),
                           direction / np.linalg.norm(direction), given["restitution"]), given["timing"]
 
 
