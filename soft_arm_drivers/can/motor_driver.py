@@ -262,13 +262,17 @@ class MotorDriver:
         cycle until :meth:`enable`."""
         self._trip(reason)
 
-    def zero(self):
+    def zero(self) -> list:
         """Set every motor's current angle as its zero: the shortenings read ``zero_shortening`` there
-        from then on. Only with the tendons slack: RuntimeError while enabled."""
+        from then on. Only with the tendons slack: RuntimeError while enabled. Returns the frames
+        that did not leave (``motor <id>: <error>``; empty when every one did): those motors keep
+        their old zero, the driver is not ``zeroed``, and the fault each latched is cleared by the
+        next :meth:`enable`, so the caller must refuse to go on."""
         if self.mode == "enabled":
             raise RuntimeError("zeroing needs slack tendons: disable the motors first")
-        self._send_all(SET_ZERO_POSITION)
-        self.zeroed = True
+        unsent = self._send_all(SET_ZERO_POSITION)
+        self.zeroed = not unsent
+        return unsent
 
     def close(self) -> list:
         """Zero torque and exit motor mode on every motor; shut the bus down if the driver opened it.

@@ -441,7 +441,13 @@ class MotorDriverNode(ManagedHardwareNode):
             response.message = (f"zeroing needs the motors configured and slack: the node is {state} "
                                 f"({'deactivate' if state == 'active' else 'configure'} first)")
             return response
-        self.driver.zero()
+        unsent = self.driver.zero()
+        if unsent:
+            response.success = False
+            response.message = (f"zero not set: the frames to {', '.join(unsent)} did not leave; those "
+                                "motors keep their old zero (call zero again once the bus is back)")
+            self.get_logger().error(response.message)
+            return response
         response.success, response.message = True, "zero set on every motor at the current angle"
         self.get_logger().info(response.message)
         return response

@@ -164,6 +164,29 @@ def test_frames_that_do_not_leave_on_a_stop_are_returned_though_the_fault_names_
         bus.shutdown()
 
 
+def test_a_zero_whose_frames_do_not_leave_is_returned_and_leaves_the_driver_unzeroed():
+    """The bus down for one motor's frame: zero returns that frame and the driver is not zeroed
+    (the fault it latched, which the next enable clears, cannot be the only trace); once every frame
+    leaves, zeroed."""
+    cfg = config(ids=[1, 2, 3, 4])
+    bus = can.Bus(interface="virtual", channel=cfg.channel)
+    try:
+        driver = MotorDriver(cfg, bus, clock=lambda: 0.0)
+        send = bus.send
+
+        def down_for_motor_3(message, *args, **kwargs):
+            if message.arbitration_id == 3:
+                raise can.CanError("No buffer space available")
+            return send(message, *args, **kwargs)
+        bus.send = down_for_motor_3
+        assert driver.zero() == ["motor 3: No buffer space available"] and not driver.zeroed
+        assert "motor 3" in driver.fault
+        bus.send = send
+        assert driver.zero() == [] and driver.zeroed
+    finally:
+        bus.shutdown()
+
+
 @contextlib.contextmanager
 def _driver_and_motors(clock=lambda: 0.0):
     """A driver for motors 1-4 on a virtual channel (the driver's ``clock``), and a second bus on

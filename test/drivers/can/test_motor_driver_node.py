@@ -212,6 +212,27 @@ def test_an_estop_whose_frames_do_not_leave_answers_failure_and_the_node_exits_f
     assert node.failure is failure                                          # the first failure kept
 
 
+def test_a_zero_whose_frames_do_not_leave_answers_failure_naming_the_motors(rig):
+    """The bus refuses the zeroing frames: the zero service answers failure naming the motors that
+    keep their old zero (an activate would clear the fault the refusal latched, so a success here
+    would leave the arm driven from a stale zero); the bus back, zero succeeds."""
+    _, node, _, _ = rig
+    assert node.trigger_configure() == TransitionCallbackReturn.SUCCESS
+    with node.hardware_lock.held_by("the test"):
+        send = node.driver.bus.send
+
+        def down(*args, **kwargs):
+            raise can.CanError("Network is down")
+        node.driver.bus.send = down
+    answer = node.on_zero(Trigger.Request(), Trigger.Response())
+    assert not answer.success and answer.message.startswith("zero not set"), answer.message
+    assert "motor 1: Network is down" in answer.message and not node.driver.zeroed
+    with node.hardware_lock.held_by("the test"):
+        node.driver.bus.send = send
+    answer = node.on_zero(Trigger.Request(), Trigger.Response())
+    assert answer.success and node.driver.zeroed, answer.message
+
+
 def test_a_deactivation_whose_frames_do_not_leave_fails_the_node_though_the_close_succeeds(rig):
     """The bus refuses the deactivation's frames, then comes back: the motors held their torque
     meanwhile (until their own timeout), so the node has failed (exit status 1) though its closing
