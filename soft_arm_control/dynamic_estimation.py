@@ -115,6 +115,7 @@ import numpy as np
 from soft_arm_model import ArmData, ArmModel, build_model, solve_equilibrium
 from soft_arm_model import kernels
 from soft_arm_model.dynamics import DYNAMICS, KINEMATICS, STATICS, OutOfDomainError
+from soft_arm_model.statics import EquilibriumError
 from soft_arm_model.routing import (new_routing_work, routing_arrays, routing_derivatives, routing_of,
                                     tendon_ends)
 
@@ -188,7 +189,7 @@ class DynamicShapeEstimator:
         self.t = None
         self.u = None
         self.counts = {"updates": 0, "markers_used": 0, "markers_gated": 0, "diverged": 0,
-                       "out_of_domain": 0, "restarts": 0, "disagreements": 0}
+                       "out_of_domain": 0, "restarts": 0, "disagreements": 0, "start_failures": 0}
         # the second opinion at rest (module docstring): the static filter on the same samples, and
         # the configuration's difference from it at the latest rest
         self.second = None
@@ -305,6 +306,23 @@ class DynamicShapeEstimator:
         self.t, self.u = float(t), u.copy()
         self._rested = None
 
+    def _begin(self, t: float, u, s) -> bool:
+        """:meth:`start` at this sample; False where the model has no equilibrium at the tensions
+        ``u``: counted (``start_failures``), the filter left unstarted at its prior, :attr:`distrust`
+        saying why; the next sample tries again."""
+        try:
+            self.start(t, u, s)
+            return True
+        except (EquilibriumError, OutOfDomainError, np.linalg.LinAlgError) as exc:
+            self.t = None
+            self.z, self.Pz = (a.copy() for a in self._prior)
+            self._share[:] = 0.0
+            self._share[self._load] = 1.0
+            self._set_routing()
+            self.counts["start_failures"] += 1
+            self._lost.unstarted(f"no start at the measured tensions: {exc}")
+            return False
+
     # --- the model at the estimated routing -----------------------------------------------------
 
     def _set_routing(self):
@@ -372,8 +390,8 @@ class DynamicShapeEstimator:
         and ``markers`` (n_markers, 3) [m] in arm_base with NaN rows for the unseen (None: no
         frame). Returns what was used."""
         s, sd, u = (np.ascontiguousarray(v, dtype=float) for v in (shortening, rate, tension))
-        if not self.started:
-            self.start(t, u, s)
+        if not self.started and not self._begin(t, u, s):
+            return UpdateReport()
         c = self.config
         dt = float(t) - self.t
         if not 0.0 <= dt <= c.max_time_step:
@@ -404,8 +422,8 @@ class DynamicShapeEstimator:
             self.z, self.Pz = (a.copy() for a in self._prior)
             self._share[:] = 0.0
             self._share[self._load] = 1.0
-            self.start(t, u, s)
             self._lost.restarted()
+            self._begin(t, u, s)
         if self.second is not None:
             self._second_opinion(t, s, sd, u, markers)
         self.counts["updates"] += 1

@@ -55,6 +55,7 @@ import numpy as np
 
 from soft_arm_model import ArmData, ArmModel, evaluate, solve_equilibrium
 from soft_arm_model.dynamics import KINEMATICS, STATICS, OutOfDomainError
+from soft_arm_model.statics import EquilibriumError
 from soft_arm_model.parameters import (ConfigError, check_value, default_config_dir, load_section,
                                        read_parameters)
 
@@ -297,6 +298,10 @@ class LostRule:
         self.bad += 1
         self.distrust = "the update left the model's domain"
 
+    def unstarted(self, reason: str):
+        """No start at this sample (``reason``): nothing to stand by until a start succeeds."""
+        self.distrust = reason
+
     @property
     def lost(self) -> bool:
         return self.bad >= RESTART_AFTER
@@ -323,7 +328,7 @@ class ShapeEstimator:
                                           np.full(nt, config.prior_friction ** 2)]))
         self.t = None
         self.counts = {"updates": 0, "markers_used": 0, "markers_gated": 0, "diverged": 0,
-                       "out_of_domain": 0, "restarts": 0}
+                       "out_of_domain": 0, "restarts": 0, "start_failures": 0}
         self._prior = self.z.copy(), self.Pz.copy()
         self._lost = LostRule()
         self._gate = MarkerGate(model.marker_X.size, config.gate, config.regate)
@@ -367,6 +372,21 @@ class ShapeEstimator:
                 self._tendon_update(np.ascontiguousarray(shortening, dtype=float), u, np.zeros(u.size))
                 self._clamp_parameters()
 
+    def _begin(self, t: float, u, s) -> bool:
+        """:meth:`start` at this sample; False where it cannot (no equilibrium of the model at the
+        tensions ``u``, or a refinement left the model's domain): counted (``start_failures``), the
+        filter left unstarted at its prior, :attr:`distrust` saying why; the next sample tries
+        again."""
+        try:
+            self.start(t, u, s)
+            return True
+        except (EquilibriumError, OutOfDomainError, np.linalg.LinAlgError) as exc:
+            self.t, self._linear = None, None
+            self.z, self.Pz = (a.copy() for a in self._prior)
+            self.counts["start_failures"] += 1
+            self._lost.unstarted(f"no start at the measured tensions: {exc}")
+            return False
+
     @property
     def started(self) -> bool:
         return self.t is not None
@@ -381,8 +401,8 @@ class ShapeEstimator:
         and ``markers`` (n_markers, 3) [m] in arm_base with NaN rows for the unseen (None: no
         frame). Returns what was used."""
         s, sd, u = (np.ascontiguousarray(v, dtype=float) for v in (shortening, rate, tension))
-        if not self.started:
-            self.start(t, u, s)
+        if not self.started and not self._begin(t, u, s):
+            return UpdateReport()
         saved = self.z.copy(), self.Pz.copy(), self._linear
         dt = max(0.0, float(t) - self.t)
         self.t = float(t)
@@ -402,8 +422,8 @@ class ShapeEstimator:
             self._clamp_parameters()
             # shortenings that disagree count only at rest: a move outruns the static balance
             self._lost.judge(stiffness, shortening_nis, s.size, disagreement_counts=at_rest(sd, c.rest_speed))
-        except OutOfDomainError:                  # the update left the model's domain: not taken
-            self.counts["out_of_domain"] += 1
+        except (OutOfDomainError, np.linalg.LinAlgError):   # left the model's domain, or a
+            self.counts["out_of_domain"] += 1                   # singular innovation: not taken
             self.z, self.Pz, self._linear = saved
             self.Pz[np.diag_indices(self.model.n)] += (c.tension_change * self.scale) ** 2 * 1e-2
             self._lost.out_of_domain()
@@ -411,8 +431,8 @@ class ShapeEstimator:
             self.counts["restarts"] += 1
             self.z, self.Pz = (a.copy() for a in self._prior)
             self._linear = None
-            self.start(t, u, s)
             self._lost.restarted()
+            self._begin(t, u, s)
         self.counts["updates"] += 1
         return report
 

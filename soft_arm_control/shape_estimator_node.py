@@ -175,21 +175,25 @@ class ShapeEstimatorNode(Node):
 
     def publish_diagnostics(self, stamp: float, estimate):
         counts = self.core.counts
-        new = {k: counts[k] - self._reported_counts[k] for k in ("diverged", "out_of_domain", "restarts")}
+        new = {k: counts[k] - self._reported_counts[k]
+               for k in ("diverged", "out_of_domain", "restarts", "start_failures")}
         stiffness, friction = self.core.parameters
         stale = self.stale_frames - self._reported_stale
         warn = any(new.values()) or self.undefended or stale
         level = DiagnosticStatus.WARN if warn else DiagnosticStatus.OK
         message = "estimating" if not warn else (
             f"{new['diverged']} marker divergences, {new['out_of_domain']} updates left out of the "
-            f"model's domain, {new['restarts']} restarts (the estimate was lost), {self.undefended} "
+            f"model's domain, {new['restarts']} restarts (the estimate was lost), "
+            f"{new['start_failures']} samples with no start (no equilibrium at their tensions), "
+            f"{self.undefended} "
             "updates with markers not stood by"
             + (f" (last: {self.distrust})" if self.distrust else "")
             + f", {stale} mocap frames left out as stamped too far from the states since the last report")
         values = {"updates": counts["updates"], "markers_used": self.used, "markers_gated": self.gated,
                   "marker_nis_mean": float(np.mean(self.nis)) if self.nis else "",
                   "diverged": counts["diverged"], "out_of_domain": counts["out_of_domain"],
-                  "restarts": counts["restarts"], "undefended": self.undefended,
+                  "restarts": counts["restarts"], "start_failures": counts["start_failures"],
+                  "undefended": self.undefended,
                   "distrust": self.distrust or "",
                   "rejected": self.rejected, "stale_frames": self.stale_frames,
                   "clock_steps": self.clock.steps,

@@ -481,3 +481,28 @@ def test_an_update_whose_innovation_covariance_is_not_positive_definite_changes_
     assert not updated and np.array_equal(out, P) and np.array_equal(z, z0) and np.array_equal(share, share0)
     updated, out = gain_update(H, y, np.full(m, 0.1), z, P, share, 0.0, False, False, 2, 4)
     assert updated and not np.array_equal(z, z0) and np.all(np.linalg.eigvalsh(out) > 0)
+
+
+@pytest.mark.parametrize("process_model", ["static", "dynamic"])
+def test_tensions_without_an_equilibrium_leave_the_filter_unstarted_and_say_why(model, process_model):
+    """Either filter's first sample at tensions the model holds no equilibrium for (1e5 N on one
+    tendon): the update starts nothing and returns, where the start's error went out of it (and
+    ended the estimator node's process); counted, the estimate stood by nowhere, the reason given.
+    The next sample at tensions the model holds starts it, and the same samples after a restart
+    (the estimate lost at such tensions) start it again."""
+    estimator = shape_estimator(model, replace(CONFIG, process_model=process_model), ROTOR)
+    u = np.array([1.0, 0.5, 1.0, 0.5])
+    q = solve_equilibrium(model, u).q
+    s, sd = model.rest_tendon_lengths - tendon_lengths(model, q), np.zeros(4)
+    report = estimator.update(0.0, s, sd, [1e5, 0.0, 0.0, 0.0])
+    assert not estimator.started and estimator.counts["start_failures"] == 1 and not report.used
+    assert estimator.distrust.startswith("no start at the measured tensions"), estimator.distrust
+    assert np.all(np.isnan(estimator.estimate().defended(1.0)))
+    estimator.update(PERIOD, s, sd, u)
+    assert estimator.started and estimator.distrust is None and estimator.counts["updates"] == 1
+    for k in range(2, 60):                        # lost at such tensions: restarts that cannot start
+        estimator.update(k * PERIOD, s, sd, [1e5, 0.0, 0.0, 0.0])
+    assert estimator.counts["start_failures"] > 1 and estimator.distrust is not None, estimator.counts
+    for k in range(60, 70):
+        estimator.update(k * PERIOD, s, sd, u)
+    assert estimator.started and estimator.distrust is None, estimator.distrust

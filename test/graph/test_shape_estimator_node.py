@@ -128,6 +128,44 @@ def test_a_stepped_state_clock_is_counted_and_neither_stops_the_updates_nor_infl
         rclpy.try_shutdown()
 
 
+def test_states_at_tensions_without_an_equilibrium_are_said_on_diagnostics_not_a_crash():
+    """Tensions the model holds no equilibrium for (1e5 N on one tendon, a torque reading gone
+    wrong) before the first start: the node goes on (its start's error ended the process), publishes
+    no marker it stands by, and its diagnostics warn with the samples that could not start; states
+    at sane tensions then start the estimate."""
+    import rclpy
+    from diagnostic_msgs.msg import DiagnosticStatus
+
+    from soft_arm_control.shape_estimator_node import ShapeEstimatorNode
+    from soft_arm_ros.conversions import joint_state
+
+    model = build_model()
+    u = np.array([0.5, 2.0, 1.5, 0.3])
+    s = model.rest_tendon_lengths - tendon_lengths(model, solve_equilibrium(model, u).q)
+    rclpy.init()
+    try:
+        node = ShapeEstimatorNode()
+        published = []
+        node.diagnostics_pub.publish = published.append
+        for k in range(20):
+            node.on_state(joint_state(model.tendon_names, k * 0.002, position=s, velocity=np.zeros(4),
+                                      effort=[1e5, 0.0, 0.0, 0.0]))
+        assert not node.core.started and node.core.counts["start_failures"] >= 5
+        assert node.undefended >= 5 and "no start" in node.distrust, node.distrust
+        node.publish_diagnostics(0.04, node.core.estimate())
+        status = published[-1].status[0]
+        values = {v.key: v.value for v in status.values}
+        assert status.level == DiagnosticStatus.WARN and int(values["start_failures"]) >= 5
+        assert "with no start" in status.message, status.message
+        for k in range(20, 40):
+            node.on_state(joint_state(model.tendon_names, k * 0.002, position=s, velocity=np.zeros(4),
+                                      effort=u))
+        assert node.core.started and node.core.distrust is None
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown()
+
+
 def test_a_frame_stamped_far_from_the_state_is_left_out_and_counted_not_fused_as_measured():
     """A frame stamped 0.3 s before the state it would be weighed with (queued behind a stall of
     the mocap bridge), or 0.3 s after it (a clock that disagrees): the estimate does not take its
