@@ -521,8 +521,8 @@ def run_emulated_hardware(ros_args: list, out: dict, duration: float,
         "mocap_bridge": files + (["--params-file", os.path.abspath(arm_file)] if arm_file else [])
         + ["-p", f"rig.mocap.command_port:={port}", "-p", "rig.mocap.data_port:=0"]},
         _REALTIME if fifo else None, _NICENESS if fifo else 0)
-    faults = []
-    enabled_at = math.inf                  # system time [s] from which a fault counts
+    watch = DriverFaultWatch()
+    faults = watch.faults
     start = time.monotonic()
 
     settling = {}                          # s from the drivers' set-up: own endpoints quiet, settled, enabled
@@ -531,23 +531,19 @@ def run_emulated_hardware(ros_args: list, out: dict, duration: float,
         return {"wall_s": time.monotonic() - start, "emulated_hardware": True, "realtime": fifo,
                 "driver_faults": faults, **settling, "node_exits": children.exits}
 
-    driving = False                        # the task runs on active motors
-
     def on_diagnostics(msg):
-        """Keep and print the motor driver's faults latched while the motors are enabled, and its
-        leaving the active state while the task runs (``ros2 lifecycle set`` from elsewhere)."""
+        """Print the motor driver's faults latched while the motors are enabled, and its leaving the
+        active state while the task runs (``ros2 lifecycle set`` from elsewhere):
+        :class:`DriverFaultWatch`."""
         stamp = stamp_to_seconds(msg.header.stamp)
         for status in msg.status:
-            if status.name != "motor_driver" or stamp < enabled_at:
+            if status.name != "motor_driver":
                 continue
             state = next((kv.value for kv in status.values if kv.key == "lifecycle_state"), "active")
-            message = status.message if status.level == DiagnosticStatus.ERROR else (
-                f"left the active state ({state}) while the task ran" if driving and state != "active"
-                else None)
-            if message is not None and all(f["message"] != message for f in faults):
-                faults.append({"message": message, "time_s": round(stamp - enabled_at, 3)})
-                print(f"\nsoft-arm-experiment: motor_driver {message} "
-                      f"({stamp - enabled_at:.2f} s after the enable): the run ends", file=sys.stderr)
+            fault = watch.status(stamp, status.level == DiagnosticStatus.ERROR, status.message, state)
+            if fault is not None:
+                print(f"\nsoft-arm-experiment: motor_driver {fault['message']} "
+                      f"({fault['time_s']:.2f} s after the enable): the run ends", file=sys.stderr)
 
     started = node_processes(task, feedback, emulated_hardware=True)
     with _orchestrating(children, started) as node:
@@ -581,32 +577,80 @@ def run_emulated_hardware(ros_args: list, out: dict, duration: float,
         _call(node, zero, Trigger.Request(), timeout=min(10.0, left()))
         try:
             _change_state(node, driver, "activate", timeout=min(10.0, left()))
-            enabled_at = time.time()
+            watch.enabled(time.time(), time.monotonic())
             settling["motors_enabled_s"] = round(time.monotonic() - drivers_up, 3)
-            driving = True
+            watch.driving = True
             _start(node, begin)
             _await_result(node, children, out["metrics"], duration + 60.0,
                           f"the {runner} node wrote no result within {duration + 60.0:g} s",
                           until=lambda: bool(faults), period=0.1)
         finally:
-            driving = False
-            _deactivate_at_end(node, driver, faults, enabled_at)
+            watch.driving = False
+            _deactivate_at_end(node, driver, watch)
     return facts()
 
 
-def _deactivate_at_end(node, driver, faults: list, enabled_at: float):
+class DriverFaultWatch:
+    """What the motor driver's ``/diagnostics`` say of a run on the emulated rig (ROS-free): a fault
+    it latches while the motors are enabled, or its leaving the active state while the task runs
+    (:attr:`driving`), each kept once in :attr:`faults` (``message``, ``time_s`` after the enable on
+    this process's monotonic clock): a faulted run is no result.
+
+    A status counts once the motors are enabled: stamped (the driver's clock, the system time on
+    this computer) at or after the enable's system time, or coming after a status of the active
+    driver that came after the enable. The stamp alone would let a system clock stepped back after
+    the enable hide every fault for the step's length; the active driver's status alone would miss
+    a fault that deactivates the driver before it reports itself active. A status of before the
+    enable (queued, the fault the enable cleared) is neither."""
+
+    def __init__(self):
+        self.faults: list = []
+        self.driving = False               # the task runs on active motors
+        self._enabled_at = math.inf        # system time [s] of the enable
+        self._enabled_mono = math.inf      # this process's monotonic time [s] of the enable
+        self._armed = False                # a status of the active driver came after the enable
+
+    def enabled(self, system_time: float, monotonic: float):
+        """The motors were enabled (the driver's activate answered) at these times [s]."""
+        self._enabled_at, self._enabled_mono = float(system_time), float(monotonic)
+
+    @property
+    def was_enabled(self) -> bool:
+        return math.isfinite(self._enabled_mono)
+
+    def since_enabled(self) -> float:
+        """Seconds since the enable on this process's monotonic clock."""
+        return time.monotonic() - self._enabled_mono
+
+    def status(self, stamp: float, error: bool, message: str, lifecycle_state: str):
+        """One ``motor_driver`` status, stamped ``stamp`` [s, the driver's clock]: ``error`` its
+        level, ``message``, the node's ``lifecycle_state``. The fault it adds (a dict) or None."""
+        if self.was_enabled and lifecycle_state == "active":
+            self._armed = True
+        if not (self._armed or stamp >= self._enabled_at):
+            return None
+        text = message if error else (f"left the active state ({lifecycle_state}) while the task ran"
+                                      if self.driving and lifecycle_state != "active" else None)
+        if text is None or any(f["message"] == text for f in self.faults):
+            return None
+        fault = {"message": text, "time_s": round(self.since_enabled(), 3)}
+        self.faults.append(fault)
+        return fault
+
+
+def _deactivate_at_end(node, driver, watch: DriverFaultWatch):
     """Deactivate the motor driver (through its change_state ``driver`` client) at a run's end.
     Refused after a fault the run recorded, it is expected: the fault deactivated the driver. Refused
     or unanswered otherwise, the motors' end is unknown to the run (a fault it has not yet heard of,
-    a driver that hangs): once the motors were enabled (``enabled_at`` [s, system time] finite) that is
-    recorded in ``faults`` (a faulted run is no result)."""
+    a driver that hangs): once the motors were enabled that is recorded in ``watch.faults`` (a
+    faulted run is no result)."""
     try:
         _change_state(node, driver, "deactivate", timeout=2.0)
     except RuntimeError as exc:
         print(f"soft-arm-experiment: motor_driver deactivate: {exc}", file=sys.stderr)
-        if not faults and math.isfinite(enabled_at):
-            faults.append({"message": f"not deactivated at the run's end: {exc}",
-                           "time_s": round(time.time() - enabled_at, 3)})
+        if not watch.faults and watch.was_enabled:
+            watch.faults.append({"message": f"not deactivated at the run's end: {exc}",
+                                 "time_s": round(watch.since_enabled(), 3)})
 
 
 # Real time on a shared computer: the processes the loop closes through (the motor driver, in

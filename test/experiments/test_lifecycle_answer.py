@@ -2,6 +2,7 @@
 discovery matched the client): a transition is judged by the node's state, the bring-up going on
 when the node is where the transition leads and failing naming the transition otherwise; a start is
 asked again, and the runner's "already started" says the first call took effect."""
+import time
 from types import SimpleNamespace
 
 import pytest
@@ -112,18 +113,52 @@ def test_a_deactivation_refused_or_unanswered_at_the_runs_end_is_a_fault_of_the_
     transition; after a fault the run recorded (which deactivated the driver) the refusal is expected;
     before the enable, or answered, nothing is recorded."""
     monkeypatch.setattr(orchestration, "_call", _deactivation(answer))
-    faults = []
-    orchestration._deactivate_at_end(_Node(), _client(), faults, enabled_at=1.0)
-    assert len(faults) == 1 and faults[0]["message"].startswith(
-        "not deactivated at the run's end: deactivate of motor_driver failed"), faults
-    assert faults[0]["time_s"] > 0
-    recorded = [{"message": "stale command", "time_s": 2.0}]
-    orchestration._deactivate_at_end(_Node(), _client(), recorded, enabled_at=1.0)
-    assert recorded == [{"message": "stale command", "time_s": 2.0}]
-    before_enable = []
-    orchestration._deactivate_at_end(_Node(), _client(), before_enable, enabled_at=float("inf"))
-    assert before_enable == []
+
+    def watch(enabled: bool, faults=()):
+        out = orchestration.DriverFaultWatch()
+        out.faults.extend(faults)
+        if enabled:
+            out.enabled(1.0, time.monotonic() - 0.5)
+        return out
+    enabled = watch(True)
+    orchestration._deactivate_at_end(_Node(), _client(), enabled)
+    assert len(enabled.faults) == 1 and enabled.faults[0]["message"].startswith(
+        "not deactivated at the run's end: deactivate of motor_driver failed"), enabled.faults
+    assert enabled.faults[0]["time_s"] >= 0.5
+    recorded = watch(True, [{"message": "stale command", "time_s": 2.0}])
+    orchestration._deactivate_at_end(_Node(), _client(), recorded)
+    assert recorded.faults == [{"message": "stale command", "time_s": 2.0}]
+    before_enable = watch(False)
+    orchestration._deactivate_at_end(_Node(), _client(), before_enable)
+    assert before_enable.faults == []
     monkeypatch.setattr(orchestration, "_call", _deactivation((True, "")))
-    answered = []
-    orchestration._deactivate_at_end(_Node(), _client(), answered, enabled_at=1.0)
-    assert answered == []
+    answered = watch(True)
+    orchestration._deactivate_at_end(_Node(), _client(), answered)
+    assert answered.faults == []
+
+
+def test_the_drivers_faults_count_from_the_enable_whatever_the_system_clock_does():
+    """A status stamped before the enable (the fault the enable cleared) is not the run's; after it a
+    fault counts once, timed on the monotonic clock. With the system clock stepped back 5 s after the
+    enable, a fault stamped before the enable's time still counts once the active driver has
+    reported; and leaving the active state counts only while the task runs."""
+    watch = orchestration.DriverFaultWatch()
+    assert watch.status(90.0, True, "motor 2 silent", "inactive") is None        # before any enable
+    watch.enabled(100.0, time.monotonic())
+    assert watch.status(99.9, True, "motor 2 silent", "inactive") is None         # queued from before
+    assert watch.faults == []
+    stepped = watch.status(95.0, False, "ok", "active")         # the clock stepped back 5 s: armed
+    assert stepped is None and watch.faults == []
+    fault = watch.status(95.1, True, "watchdog: no command for 0.05 s", "active")
+    assert fault == watch.faults[0] and fault["message"].startswith("watchdog")
+    assert 0.0 <= fault["time_s"] < 1.0
+    assert watch.status(95.2, True, "watchdog: no command for 0.05 s", "inactive") is None   # kept once
+    assert watch.status(95.3, False, "ok", "inactive") is None              # not driving: no fault
+    watch.driving = True
+    left = watch.status(95.4, False, "ok", "inactive")
+    assert left["message"] == "left the active state (inactive) while the task ran" and len(watch.faults) == 2
+    unarmed = orchestration.DriverFaultWatch()
+    unarmed.enabled(100.0, time.monotonic())
+    # a fault that deactivates the driver before it reports itself active: its stamp counts
+    assert unarmed.status(100.01, True, "motor 1 over temperature", "inactive")["message"] == (
+        "motor 1 over temperature")
