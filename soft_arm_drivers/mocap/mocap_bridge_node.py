@@ -82,6 +82,9 @@ class MocapBridgeNode(ManagedHardwareNode):
         self._stop = threading.Event()
         self._publishing = threading.Event()
         self._thread: threading.Thread | None = None
+        # the receive thread's end by an error, or its not stopping when released: the process then
+        # exits with status 1 (run_node), so that a run it served is no result
+        self.failure: BaseException | None = None
         self.get_logger().info(f"mocap_bridge unconfigured: NatNet server {self.config.server_address}:"
                                f"{self.config.command_port} (configure opens the sockets)")
 
@@ -89,6 +92,9 @@ class MocapBridgeNode(ManagedHardwareNode):
     @transition
     def on_configure(self, state):
         c = self.config
+        if self._thread is not None:            # released, but its receive thread never stopped
+            return self.refuse("configure", "the last receive thread has not stopped (held in the "
+                                            "middleware?): restart the node")
         try:
             bridge = MocapBridge(c, clock=self.now, timer=time.monotonic)
         except OSError as exc:
@@ -135,7 +141,16 @@ class MocapBridgeNode(ManagedHardwareNode):
 
     def _receive(self):
         """The receive thread: wait for datagrams, publish each frame. It ends with :meth:`close`
-        or, quietly, when the context is shut down under it (Ctrl-C)."""
+        or, quietly, when the context is shut down under it (Ctrl-C); an error ends it as the node's
+        :attr:`failure` (and on /diagnostics) before it is raised into the thread's log."""
+        try:
+            self._receive_frames()
+        except BaseException as exc:
+            self.failure = self.failure or RuntimeError(
+                f"the receive thread stopped: {type(exc).__name__}: {exc}")
+            raise
+
+    def _receive_frames(self):
         while not self._stop.is_set():
             for frame in self.bridge.poll(_POLL_TIMEOUT):
                 self.received += 1
@@ -197,7 +212,11 @@ class MocapBridgeNode(ManagedHardwareNode):
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout=2.0)
-            self._thread = None
+            if self._thread.is_alive():         # kept: a configure refuses to start a second one
+                self.failure = self.failure or RuntimeError("the receive thread did not stop within 2 s")
+                self.get_logger().error("the receive thread did not stop within 2 s: the node has failed")
+            else:
+                self._thread = None
         bridge, self.bridge = self.bridge, None
         if bridge is not None:
             bridge.close()

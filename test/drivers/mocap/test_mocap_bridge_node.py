@@ -179,6 +179,44 @@ def test_configure_fails_on_a_data_port_in_use_and_without_a_server(ros, plant):
         bridge.destroy_node()
 
 
+@pytest.mark.filterwarnings("ignore::pytest.PytestUnhandledThreadExceptionWarning")   # raised by design
+def test_a_receive_thread_that_raises_or_does_not_stop_is_the_nodes_failure(ros, plant, monkeypatch):
+    """The receive thread ends on an error: the node's failure names it (the process exits with
+    status 1, a run it served is no result) and /diagnostics say ERROR. A receive thread that does not
+    stop within its bound when released: a failure too, and no second one is started beside it."""
+    port = free_udp_ports(1)[0]
+    overrides = [Parameter("rig.mocap.command_port", value=port), Parameter("rig.mocap.data_port", value=0)]
+    with NatNetEmulator(plant_markers(plant), command_port=port) as emulator:
+        emulator.start()
+        bridge = MocapBridgeNode(parameter_overrides=overrides)
+        try:
+            assert bridge.trigger_configure() == TransitionCallbackReturn.SUCCESS
+
+            def broken(timeout):
+                raise OSError("socket gone")
+            bridge.bridge.poll = broken
+            bridge._thread.join(timeout=2.0)
+            assert not bridge._thread.is_alive()
+            assert "the receive thread stopped: OSError: socket gone" in str(bridge.failure)
+            assert bridge.status(0).level == DiagnosticStatus.ERROR
+            assert bridge.trigger_cleanup() == TransitionCallbackReturn.SUCCESS
+        finally:
+            bridge.close()
+            bridge.destroy_node()
+        bridge = MocapBridgeNode(parameter_overrides=overrides)
+        try:
+            assert bridge.trigger_configure() == TransitionCallbackReturn.SUCCESS and bridge.failure is None
+            receive = bridge._thread              # held (in the middleware, say): it does not end
+            monkeypatch.setattr(receive, "join", lambda timeout=None: None)
+            monkeypatch.setattr(receive, "is_alive", lambda: True)
+            assert bridge.trigger_cleanup() == TransitionCallbackReturn.SUCCESS
+            assert "did not stop within 2 s" in str(bridge.failure) and bridge._thread is receive
+            assert bridge.trigger_configure() == TransitionCallbackReturn.FAILURE
+        finally:
+            bridge.close()
+            bridge.destroy_node()
+
+
 def test_bad_parameter_exits_with_status_2(capfd):
     params = os.path.join(default_config_dir(), "mocap.yaml")
     code = main(["mocap_bridge", "--ros-args", "--params-file", params,
