@@ -134,7 +134,7 @@ class Diagnostics:
     clock (inf without), and counters: watchdog trips, rejected commands, frames that are no reply of
     a motor of ours, CAN error frames, cycles later than 1.5 periods, cycles; whether zero() was
     called; per motor; replies refused for a receive time that is no number (their motor's silence
-    counts on)."""
+    counts on); commands with a tension above ``max_tension``, clipped to it."""
     mode: str
     fault: Optional[str]
     command_age: float
@@ -147,6 +147,7 @@ class Diagnostics:
     zeroed: bool
     motors: tuple
     unstamped_frames: int = 0
+    clipped_commands: int = 0
 
 
 @dataclass(frozen=True)
@@ -207,7 +208,7 @@ class MotorDriver:
         self._replies = [0] * n
         self._velocity = VelocityScaleCheck([m.model for m in c.motors], [m.limits for m in c.motors])
         self.stale_commands = self.rejected_commands = self.foreign_frames = self.error_frames = 0
-        self.unstamped_frames = 0
+        self.unstamped_frames = self.clipped_commands = 0
         self.late_cycles = self.cycles = 0
         self._periods = np.zeros(PERIOD_WINDOW)       # ring buffer of the last periods [s]
         self._closed = False
@@ -217,9 +218,11 @@ class MotorDriver:
     def command(self, tensions: Sequence[float], stamp: Optional[float] = None):
         """Set the tensions [N] to apply from the next cycle on. The watchdog counts the command's
         age from now on the driver's clock; ``stamp`` [s], the time the command carries (any clock),
-        is only checked: NaN or infinity is refused. Tensions are clipped to [0, max_tension]; a
-        wrong length, a non-finite tension or stamp raises ValueError, counted in
-        ``rejected_commands``, and leaves the previous command (and its age) in place."""
+        is only checked: NaN or infinity is refused. Tensions are clipped to [0, max_tension] (a
+        command above it counted in ``clipped_commands``: a controller that believes it can pull
+        harder winds up against the clip); a wrong length, a non-finite tension or stamp raises
+        ValueError, counted in ``rejected_commands``, and leaves the previous command (and its age)
+        in place."""
         u = np.asarray(tensions, dtype=float)
         if u.shape != self._target.shape:
             self.rejected_commands += 1
@@ -230,6 +233,8 @@ class MotorDriver:
         if stamp is not None and not math.isfinite(stamp):
             self.rejected_commands += 1
             raise ValueError(f"a command's time stamp must be finite, got {stamp!r}")
+        if np.any(u > self.config.max_tension):
+            self.clipped_commands += 1
         self._target = np.clip(u, 0.0, self.config.max_tension)
         self._command_time = self.clock()
 
@@ -364,7 +369,7 @@ class MotorDriver:
         age = math.inf if self._command_time is None else now - self._command_time
         return Diagnostics(self.mode, self.fault, age, self.stale_commands, self.rejected_commands,
                            self.foreign_frames, self.error_frames, self.late_cycles, self.cycles,
-                           self.zeroed, motors, self.unstamped_frames)
+                           self.zeroed, motors, self.unstamped_frames, self.clipped_commands)
 
     def cycle_statistics(self) -> CycleStatistics:
         """The timing of the last cycles (not computed per cycle: call it when reporting)."""

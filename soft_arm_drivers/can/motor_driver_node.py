@@ -350,11 +350,16 @@ class MotorDriverNode(ManagedHardwareNode):
         driver = DiagnosticStatus(name="motor_driver", hardware_id=bus)
         driver.level = DiagnosticStatus.ERROR if diag.fault else DiagnosticStatus.OK
         driver.message = f"fault: {diag.fault}" if diag.fault else diag.mode
+        if not diag.fault and diag.clipped_commands:      # the controller pulls past the driver's clip
+            driver.level = DiagnosticStatus.WARN
+            driver.message += (f": {diag.clipped_commands} commands above rig.motors.max_tension "
+                               f"{self.config.max_tension:g} N clipped to it (control.tension_max above it?)")
         driver.values = _values(mode=diag.mode, fault=diag.fault or "", command_age=diag.command_age,
                                 stale_commands=diag.stale_commands, rejected_commands=diag.rejected_commands,
                                 malformed_commands=self.malformed_commands,
                                 foreign_frames=diag.foreign_frames, error_frames=diag.error_frames,
                                 unstamped_frames=diag.unstamped_frames,
+                                clipped_commands=diag.clipped_commands,
                                 late_cycles=diag.late_cycles, incomplete_cycles=self.incomplete_cycles,
                                 lock_waits=self.lock_waits, lock_dropped_commands=self.lock_dropped_commands,
                                 cycles=diag.cycles, zeroed=diag.zeroed, lifecycle_state=self.lifecycle_state,

@@ -276,13 +276,19 @@ def test_stale_commands_trip_the_watchdog_and_latch_until_enable(make_rig):
 
 
 def test_commands_are_clipped_to_the_range_and_rate_limited(make_rig):
+    """Tensions are clipped to [0, max_tension] and rate-limited; a command above max_tension is
+    counted (a controller that believes it can pull harder winds up against the clip), one below
+    zero is not (a slack tendon's)."""
     rig = make_rig(overrides={"tension_rate_limit": 250.0})     # 0.5 N per cycle at 500 Hz
     rig.driver.enable()
     rig.step(1)
+    rig.driver.command([4.0, -3.0, 2.2, 0.0])
+    assert rig.driver.diagnostics().clipped_commands == 0
     sent = []
     for _ in range(14):
         sent.append(rig.step(1, [10.0, -3.0, 2.2, 0.0]).state.command)
         assert np.all(pull(rig.emulator) >= 0)
+    assert rig.driver.diagnostics().clipped_commands == 14
     sent = np.array(sent)
     assert np.all(np.abs(np.diff(sent, axis=0)) <= 0.5 + 1e-12)
     np.testing.assert_allclose(sent[:4, 0], [0.5, 1.0, 1.5, 2.0])

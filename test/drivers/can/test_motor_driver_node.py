@@ -366,6 +366,19 @@ def test_configure_fails_when_the_motors_do_not_answer(context):
         node.destroy_node()
 
 
+def test_commands_above_the_drivers_limit_are_clipped_and_said_on_diagnostics(rig):
+    """A command above rig.motors.max_tension (an inner loop whose control.tension_max is set above
+    it) is applied clipped, and /diagnostics say so with a warning and the count."""
+    _, node, _, _ = rig
+    assert node.trigger_configure() == TransitionCallbackReturn.SUCCESS
+    assert node.trigger_activate() == TransitionCallbackReturn.SUCCESS
+    node.driver.command([node.config.max_tension + 3.0, 0.0, 0.0, 0.0])
+    status = node.diagnostic_array(node.driver.diagnostics()).status[0]
+    values = {v.key: v.value for v in status.values}
+    assert status.level == DiagnosticStatus.WARN and values["clipped_commands"] == "1"
+    assert "clipped" in status.message and "rig.motors.max_tension" in status.message, status.message
+
+
 def test_malformed_commands_are_rejected_by_the_node(rig):
     executor, node, harness, emulator = rig
     assert change(executor, harness, "configure") and change(executor, harness, "activate")
