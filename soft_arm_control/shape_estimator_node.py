@@ -90,6 +90,7 @@ class ShapeEstimatorNode(Node):
         self.create_subscription(JointState, TOPICS["state"], self.on_state, QOS["tendon/state"])
         self.create_timer(REPORT_PERIOD, self._heartbeat)
         self._last = None                # (stamp [s], estimate) of the last update
+        self._updated_at = None          # monotonic time [s] of the last update
         self.get_logger().info(f"shape estimator ready: {self.config.rate:g} Hz on tendon/state")
 
     def on_markers(self, msg: PoseArray):
@@ -151,7 +152,7 @@ class ShapeEstimatorNode(Node):
         self.fused_tip_pub.publish(tip_message(*fused_tip(frame, estimate), t))
         self.shape_pub.publish(self._shape(t))
         self.frame = None
-        self._last = (t, estimate)
+        self._last, self._updated_at = (t, estimate), time.monotonic()
         if time.monotonic() >= self._reported_at + REPORT_PERIOD:
             self.publish_diagnostics(t, estimate)
 
@@ -179,9 +180,12 @@ class ShapeEstimatorNode(Node):
                for k in ("diverged", "out_of_domain", "restarts", "start_failures")}
         stiffness, friction = self.core.parameters
         stale = self.stale_frames - self._reported_stale
-        warn = any(new.values()) or self.undefended or stale
+        silent = time.monotonic() - self._updated_at if self._updated_at is not None else 0.0
+        warn = any(new.values()) or self.undefended or stale or silent > REPORT_PERIOD
         level = DiagnosticStatus.WARN if warn else DiagnosticStatus.OK
         message = "estimating" if not warn else (
+            f"no update for {silent:.1f} s (no tendon/state?): the estimate is that of then; "
+            if silent > REPORT_PERIOD else "") + (
             f"{new['diverged']} marker divergences, {new['out_of_domain']} updates left out of the "
             f"model's domain, {new['restarts']} restarts (the estimate was lost), "
             f"{new['start_failures']} samples with no start (no equilibrium at their tensions), "
@@ -193,6 +197,7 @@ class ShapeEstimatorNode(Node):
                   "marker_nis_mean": float(np.mean(self.nis)) if self.nis else "",
                   "diverged": counts["diverged"], "out_of_domain": counts["out_of_domain"],
                   "restarts": counts["restarts"], "start_failures": counts["start_failures"],
+                  "since_update_s": round(silent, 3),
                   "undefended": self.undefended,
                   "distrust": self.distrust or "",
                   "rejected": self.rejected, "stale_frames": self.stale_frames,

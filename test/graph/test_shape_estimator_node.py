@@ -166,6 +166,40 @@ def test_states_at_tensions_without_an_equilibrium_are_said_on_diagnostics_not_a
         rclpy.try_shutdown()
 
 
+def test_tendon_states_that_stop_coming_are_said_on_diagnostics():
+    """The states stop (the inner loop or the driver gone): the heartbeat's diagnostics warn that
+    the estimate is that of the last update, and how long ago, where they said OK."""
+    import rclpy
+    from diagnostic_msgs.msg import DiagnosticStatus
+
+    from soft_arm_control.shape_estimator_node import REPORT_PERIOD, ShapeEstimatorNode
+    from soft_arm_ros.conversions import joint_state
+
+    model = build_model()
+    u = np.array([0.5, 2.0, 1.5, 0.3])
+    s = model.rest_tendon_lengths - tendon_lengths(model, solve_equilibrium(model, u).q)
+    rclpy.init()
+    try:
+        node = ShapeEstimatorNode()
+        published = []
+        node.diagnostics_pub.publish = published.append
+        for k in range(10):
+            node.on_state(joint_state(model.tendon_names, k * 0.002, position=s, velocity=np.zeros(4),
+                                      effort=u))
+        node.publish_diagnostics(*node._last)
+        assert published[-1].status[0].level == DiagnosticStatus.OK
+        node._updated_at -= 3 * REPORT_PERIOD                  # three report periods without a state
+        node._reported_at -= REPORT_PERIOD
+        node._heartbeat()
+        status = published[-1].status[0]
+        values = {v.key: v.value for v in status.values}
+        assert status.level == DiagnosticStatus.WARN and float(values["since_update_s"]) >= 3 * REPORT_PERIOD
+        assert status.message.startswith("no update for 3"), status.message
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown()
+
+
 def test_a_frame_stamped_far_from_the_state_is_left_out_and_counted_not_fused_as_measured():
     """A frame stamped 0.3 s before the state it would be weighed with (queued behind a stall of
     the mocap bridge), or 0.3 s after it (a clock that disagrees): the estimate does not take its
