@@ -194,9 +194,10 @@ def fused_markers(mocap, estimate) -> np.ndarray:
 
 
 def fused_tip(mocap, estimate: "ShapeEstimate") -> tuple[np.ndarray, np.ndarray]:
-    """The tip of :func:`fused_markers` [m] and its position covariance (3, 3) [m^2]: the mocap's
-    where it saw the tip, taken as a measurement (zero: the online CLIK steps on all of the error
-    it shows, as on the mocap), the estimate's otherwise (``mocap`` None: the estimate's)."""
+    """The fused tip [m] and its position covariance (3, 3) [m^2]: the mocap's where it saw the tip,
+    taken as a measurement (zero: the online CLIK steps on all of the error it shows, as on the
+    mocap), the estimate's otherwise (``mocap`` None: the estimate's), whether the estimator stands
+    by it or not (:func:`fused_markers` with the defended estimate leaves that tip invalid)."""
     if mocap is not None and np.all(np.isfinite(np.asarray(mocap, dtype=float)[-1])):
         return np.array(mocap[-1], dtype=float), np.zeros((3, 3))
     return np.array(estimate.markers[-1], dtype=float), np.array(estimate.marker_covariance[-1])

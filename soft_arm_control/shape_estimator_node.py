@@ -11,18 +11,22 @@ with that state's stamp:
   deviation exceeds ``estimator.max_sigma``; :meth:`~.shape_estimation.ShapeEstimate.defended`);
 - ``fused/markers`` (the same layout): the frame's markers where the mocap saw them, the estimate's
   elsewhere (the estimate's alone when no frame came since the last update);
-- ``estimate/tip`` (PoseWithCovarianceStamped): the tip and its position covariance [m^2];
-- ``fused/tip`` (the same): the tip of ``fused/markers``, with a zero covariance where the mocap saw
-  it (a measurement) and the estimate's elsewhere: what the online CLIK on ``fused/markers`` reads
-  its uncertainty from (:mod:`soft_arm_control.trust_region`);
+- ``estimate/tip`` (PoseWithCovarianceStamped): the estimate's tip and its position covariance
+  [m^2], whether the estimator stands by it or not (a consumer of positions takes
+  ``estimate/markers``, whose tip is invalid where it does not);
+- ``fused/tip`` (the same): the mocap's tip where it saw it, with a zero covariance (a
+  measurement), the estimate's tip and covariance elsewhere: the uncertainty the online CLIK on
+  ``fused/markers`` reads (:mod:`soft_arm_control.trust_region`). Where the estimator does not stand
+  by its estimate, ``fused/markers``' unseen tip is invalid and this one is the estimate's;
 - ``estimate/shape`` (MarkerArray): the estimated backbone, for RViz;
 - once a second of wall time ``/diagnostics`` (status ``shape_estimator``, from the first update):
   markers used and gated, the
   innovations' mean normalised squares, divergences, updates left out of the model's domain,
-  restarts, the updates whose markers went out invalid (``undefended``, with the last reason), the
-  estimated stiffness scale and friction coefficients, the tip's standard deviation.
-  WARN when a marker diverged, an update was left out, the estimate restarted or was not stood by
-  since the last report.
+  restarts, samples at which the filter could not start (``start_failures``), the updates whose
+  markers went out invalid (``undefended``, with the last reason), the estimated stiffness scale
+  and friction coefficients, the tip's standard deviation, the time since the last update.
+  WARN when a marker diverged, an update was left out, the estimate restarted, could not start or
+  was not stood by since the last report, or no update came for a report period.
 
 The online CLIK closes its loop on either topic by remapping its ``mocap/markers`` (``soft-arm-
 experiment --feedback fused|estimate``). A state whose stamp is no number, or any field no number,
