@@ -1,7 +1,9 @@
 """Playing an experiment of ``tasks.yaml`` against a stream of mocap frames, ROS-free.
 
-The schedule starts at the first frame; at each window start the runner issues the goal (target
-coordinates and the phase's mode). It keeps the measured task coordinates and tip positions of
+The schedule starts at the first frame and runs on the frames' times on the runner's own clock
+(the node's :class:`~soft_arm_control.loop_clock.LoopClock` over their stamps), so that a step of
+the stamps' clock neither skips windows nor holds them; at each window start the runner issues the
+goal (target coordinates and the phase's mode). It keeps the measured task coordinates and tip positions of
 every frame and, at the end, computes the paper's metrics (the peak tip speed from differences of
 the measured tip positions over at least 10 ms, as on the rig) and what became of each goal: the
 closest and the last measured task error, with the clik node's report of it (infeasible and held
@@ -53,7 +55,8 @@ class TaskRunner:
         self.tip = tip_marker
         self.tip_axes = [a for k, a in zip(task.space.markers, task.space.axes) if k == tip_marker] \
             or [0, 1, 2]
-        self.t0 = None
+        self.t0 = None             # the schedule's start [s]: on the frames' stamps, on the runner's clock
+        self._loop0 = None
         self.index = -1
         self.starts = np.cumsum([0.0] + [w[3] for w in self.windows])
         self.samples = []          # (t, window, x, x_d, tip, tip position)
@@ -67,13 +70,17 @@ class TaskRunner:
     def done(self) -> bool:
         return self.t0 is not None and self.index >= len(self.windows)
 
-    def frame(self, t: float, markers) -> Goal | None:
-        """A mocap frame at time t [s] (markers (n, 3) [m]); returns the :class:`Goal` when a new
-        window starts with this frame, else None."""
+    def frame(self, t: float, markers, loop_t: float | None = None) -> Goal | None:
+        """A mocap frame stamped t [s] (markers (n, 3) [m]), at ``loop_t`` [s] on the runner's own
+        clock (None: t); returns the :class:`Goal` when a new window starts with this frame, else
+        None. The windows and the metrics' times run on ``loop_t``; the release and the strike's
+        frames on the stamps, which the simulator and the ball's frames share."""
+        loop_t = t if loop_t is None else float(loop_t)
         if self.t0 is None:
-            self.t0 = t + (RELEASE_LEAD if self.plan is not None else 0.0)
+            lead = RELEASE_LEAD if self.plan is not None else 0.0
+            self.t0, self._loop0 = t + lead, loop_t + lead
         goal = None
-        rel = t - self.t0
+        rel = loop_t - self._loop0
         while self.index < len(self.windows) and rel >= self.starts[self.index + 1] - 1e-9:
             self.index += 1
             self._deferred = None

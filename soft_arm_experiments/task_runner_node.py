@@ -30,6 +30,7 @@ from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 
 from soft_arm_control.config import control_of, task_of
+from soft_arm_control.loop_clock import LoopClock
 from soft_arm_ros.contract import ALREADY_STARTED, FRAME, QOS, TOPICS
 from soft_arm_ros.conversions import markers_of, seconds_to_stamp, stamp_to_seconds, task_goal
 from soft_arm_ros.parameters import NodeParameters
@@ -38,6 +39,9 @@ from soft_arm_ros.runtime import run_node
 from .metrics import format_table, to_json
 from .strike import strike_plan_for
 from .task_runner import TaskRunner
+
+
+MAX_FRAME_GAP = 1.0      # s: the longest gap between two frames' stamps taken as time that passed
 
 
 class TaskRunnerNode(Node):
@@ -57,6 +61,10 @@ class TaskRunnerNode(Node):
                     f"{plan.rehearsed_gap * 1e3:.1f} mm away): the strike will miss on the model")
         self.core = TaskRunner(task, len(params.arm.marker_positions) - 1, plan, params.arm)
         self.release_sent = False
+        # the schedule's clock over the frames' stamps: a frame more than MAX_FRAME_GAP after the
+        # last, or before it, is the stamps' clock stepping (counted, written with the metrics)
+        self.clock = LoopClock(MAX_FRAME_GAP)
+        self.rejected_frames = 0
         self.output = params.run_option("output")
         self.wait_for_start = params.run_option("wait_for_start")
         self.started = not self.wait_for_start
@@ -82,7 +90,17 @@ class TaskRunnerNode(Node):
         if not self.started or self.finished:
             return
         t = stamp_to_seconds(msg.header.stamp)
-        goal = self.core.frame(t, markers_of(msg))
+        try:
+            advance = self.clock.check(t)
+        except ValueError as exc:
+            self.rejected_frames += 1
+            self.get_logger().warning(f"frame left out: {exc}", throttle_duration_sec=1.0)
+            return
+        loop_t = self.clock.commit(t, advance)
+        if advance.step is not None:
+            self.get_logger().warning(f"the frames' clock stepped, the windows go on at the arm's pace: "
+                                      f"{self.clock.describe()}", throttle_duration_sec=1.0)
+        goal = self.core.frame(t, markers_of(msg), loop_t)
         if goal is not None:
             self.pub.publish(task_goal(t, goal.target, goal.mode, goal.phase, goal.window,
                                        self.task.space.labels()))
@@ -127,6 +145,7 @@ class TaskRunnerNode(Node):
                     tracking = [asdict(r) for r in self.core.tracking()]
                     json.dump({"task": task.name, "paper_peak_speed": task.paper_peak_speed,
                                "complete": self.core.done,      # every window played (not stopped early)
+                               "frame_clock_steps": self.clock.steps, "rejected_frames": self.rejected_frames,
                                **to_json(rows, summary), "goals": self.core.goals(),
                                **({"strike": strike} if strike else {}),
                                **({"tracking": tracking} if tracking else {})}, fh, indent=2)

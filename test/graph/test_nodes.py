@@ -461,6 +461,43 @@ def test_task_runner_waits_for_start_and_stays_up_after_the_last_window(tmp_path
         rclpy.try_shutdown()
 
 
+def test_the_task_runners_windows_go_on_at_the_arms_pace_through_steps_of_the_frames_clock(tmp_path):
+    """The frames' stamps step 100 s forward, later 50 s back (NTP, a re-anchored mocap clock): no
+    window is skipped or held, each goal goes out at its window's start counted in frames, and the
+    metrics say how many steps the clock took. On the stamps alone the forward step ended the task
+    at once, the second window's goal never sent."""
+    import rclpy
+    from rclpy.parameter import Parameter
+
+    from soft_arm_experiments.task_runner_node import TaskRunnerNode
+    from soft_arm_ros.conversions import pose_array
+    out = tmp_path / "metrics.json"
+    rclpy.init()
+    try:
+        node = TaskRunnerNode(parameter_overrides=[
+            Parameter("graph.task", value="coiling"), Parameter("output", value=str(out)),
+            Parameter("tasks.coiling.phases", value=["upward"]),
+            Parameter("tasks.coiling.phase.upward.sequence", value=[1, 2]),
+            Parameter("tasks.coiling.phase.upward.window", value=0.5)])
+        sent = []
+        node.pub.publish = sent.append
+        markers = [[0.0, 0.0, -0.1 * k] for k in range(1, 5)]
+        stamp, at = 20.0, []
+        for k in range(60):                                    # 1.2 s of frames at 50 Hz
+            stamp += 100.0 if k == 10 else (-50.0 if k == 35 else 0.02)
+            before = len(sent)
+            node.on_markers(pose_array(markers, stamp))
+            at += [k] * (len(sent) - before)
+            if node.finished:
+                break
+        assert at == [0, 25] and node.finished and k == 50, (at, k)
+        metrics = json.loads(out.read_text())
+        assert metrics["frame_clock_steps"] == 2 and metrics["complete"] is True
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown()
+
+
 @pytest.mark.parametrize("param, message", [
     ("rig.motors.interface:=socketcan", "rig.motors.interface = 'socketcan' is not valid for the "
                                         "emulated rig"),
