@@ -41,18 +41,25 @@ def request_stop(signum, frame):
 BRINGUP_TIMEOUT = 60.0
 # s: the run's own endpoints unchanged this long before the motors are enabled (their discovery over)
 GRAPH_SETTLE = 2.0
+# s: how long nodes of the run's names from another process may stay before the bring-up gives up:
+# a process that ended without saying goodbye (killed) stays in the graph until its participant's
+# lease runs out (Fast DDS: 20 s)
+TWIN_GRACE = 30.0
 
 
 def _wait_for_graph(node, children, flowing: tuple = (), settle: float = 0.0,
                     timeout: float = BRINGUP_TIMEOUT,
-                    published: tuple = ("command", "reference", "state", "markers")):
+                    published: tuple = ("command", "reference", "state", "markers"),
+                    twin_grace: float = TWIN_GRACE):
     """Until the graph is wired: a publisher of the run's own nodes on each of the ``published``
     topics (names of ``TOPICS``: by default the controller's and the plant's; a node creates them
     once its set-up is done), the run's recorder, messages arriving on the ``flowing``
     topics (names of ``TOPICS``: e.g. the controller answering the motors' state), and, with
     ``settle`` [s], no endpoint of the run's own nodes appearing or going for that long (their
     discovery over; other nodes on the domain, a ``ros2 topic echo`` or an RViz coming and going,
-    are not waited for). The probe
+    are not waited for). Nodes of the run's names in the root namespace from another process
+    (:func:`_twins`) are waited out for ``twin_grace`` [s] (a process killed just before stays in
+    the graph until its lease runs out), then the bring-up fails naming them. The probe
     subscriptions on the ``flowing`` topics leave the graph as soon as their messages have
     arrived, before it settles: kept, they would cost this process a callback per message for the
     whole run (tendon/command at the inner loop's rate and the mocap frames: a quarter of a core on
@@ -74,8 +81,17 @@ def _wait_for_graph(node, children, flowing: tuple = (), settle: float = 0.0,
     deadline = time.monotonic() + timeout
     graph, since, changed = None, time.monotonic(), []
     names = children.node_names()
+    twins_since = None
     while not STOP.is_set():
         children.check()
+        twins = _twins(node, names)
+        twins_since = None if not twins else (twins_since or time.monotonic())
+        if twins and time.monotonic() - twins_since > twin_grace:
+            raise RuntimeError(
+                f"another process has nodes named {', '.join('/' + n for n in twins)} on this ROS domain "
+                f"(ROS_DOMAIN_ID {os.environ.get('ROS_DOMAIN_ID', '0')}: another run, or nodes left "
+                f"over, for {twin_grace:g} s): the run cannot tell its own from them; stop them, or run "
+                "on another domain")
         # the run's own nodes' publishers and recorder: another process on the domain (a bag of an
         # earlier run played, a recorder left running) wires nothing of this run
         now = _endpoints(node, names)
@@ -88,6 +104,8 @@ def _wait_for_graph(node, children, flowing: tuple = (), settle: float = 0.0,
             if graph is not None:
                 changed = sorted(set(now.items()) ^ set(graph.items()))
             graph, since = now, time.monotonic()
+        if twins:
+            missing.append(f"the leaving of the other nodes named {twins}")
         if not missing and (probes or time.monotonic() - since >= settle):
             break
         if time.monotonic() > deadline:
@@ -128,15 +146,25 @@ def _nameless_publishers(node, topics) -> str:
 
 
 def _endpoints(node, names) -> dict:
-    """{node name: its publishers, subscriptions and services} of the run's own nodes ``names`` as
-    this process has discovered them (the domain's other nodes are left out)."""
+    """{node name: its publishers, subscriptions and services} of the run's own nodes ``names`` (in
+    the root namespace, where the run starts them) as this process has discovered them (the
+    domain's other nodes are left out, those of the same names in other namespaces too)."""
     out = {}
     for name, namespace in node.get_node_names_and_namespaces():
-        if name in names:
+        if name in names and namespace == "/":
             out[name] = tuple(tuple(sorted(t for t, _ in query(name, namespace))) for query in (
                 node.get_publisher_names_and_types_by_node, node.get_subscriber_names_and_types_by_node,
                 node.get_service_names_and_types_by_node))
     return out
+
+
+def _twins(node, names) -> list:
+    """The run's node names ``names`` that more than one node on the domain has in the root
+    namespace: the run's own and another process's (another run, or a node left over), which the
+    run cannot tell apart, nor the services it calls by name."""
+    seen = [name for name, namespace in node.get_node_names_and_namespaces()
+            if name in names and namespace == "/"]
+    return sorted({name for name in seen if seen.count(name) > 1})
 
 
 class _NoAnswer(RuntimeError):

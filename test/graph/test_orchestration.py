@@ -1,5 +1,7 @@
 """The orchestrator's bring-up judges the run's own nodes: what other processes on the same ROS
 domain publish wires nothing of the run."""
+import time
+
 import pytest
 
 
@@ -40,6 +42,38 @@ def test_the_bring_up_does_not_take_another_processs_publishers_for_the_runs():
             _wait_for_graph(orchestrator, _OwnNodes({"recorder", "inner_loop", "clik", "simulator"}),
                             timeout=3.0)
         assert orchestrator.count_publishers("/" + TOPICS["command"]) == 1 and recorder.get_name()
+    finally:
+        rclpy.try_shutdown()
+
+
+def test_a_node_of_the_runs_name_from_another_process_stops_the_bring_up_naming_it():
+    """A recorder left over on the domain beside the run's own: the bring-up waits for it to leave
+    (a killed process's nodes stay until their lease runs out), then stops naming it, where it took
+    whichever it saw for the run's (and the run's service calls would reach both).
+    Nodes of the same names in another namespace (another robot's graph) are not the run's: their
+    publishers on every topic wire nothing of it."""
+    import rclpy
+    from geometry_msgs.msg import PoseArray
+    from sensor_msgs.msg import JointState
+
+    from soft_arm_experiments.orchestration import _wait_for_graph
+    from soft_arm_ros.contract import QOS, TOPICS
+    rclpy.init()
+    try:
+        elsewhere = [rclpy.create_node(name, namespace="/robot_2") for name in ("recorder", "simulator")]
+        for key, kind in (("command", JointState), ("reference", JointState), ("state", JointState),
+                          ("markers", PoseArray)):
+            elsewhere[1].create_publisher(kind, "/" + TOPICS[key], QOS[TOPICS[key]])
+        orchestrator = rclpy.create_node("soft_arm_experiment")
+        own = _OwnNodes({"recorder", "inner_loop", "clik", "simulator"})
+        with pytest.raises(RuntimeError, match=r"the graph is not up after 2 s: nothing on .*the recorder"):
+            _wait_for_graph(orchestrator, own, timeout=2.0)
+        twins = [rclpy.create_node("recorder"), rclpy.create_node("recorder")]
+        started = time.monotonic()
+        with pytest.raises(RuntimeError, match=r"another process has nodes named /recorder on this ROS "
+                                               r"domain .*stop them, or run on another domain"):
+            _wait_for_graph(orchestrator, own, timeout=30.0, twin_grace=1.0)
+        assert time.monotonic() - started < 10.0 and all(n.get_name() for n in elsewhere + twins)
     finally:
         rclpy.try_shutdown()
 
