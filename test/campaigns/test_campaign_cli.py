@@ -159,9 +159,11 @@ def _campaign(args, **kwargs):
 
 def test_ctrl_c_keeps_what_finished_and_the_restart_runs_only_the_rest(tmp_path):
     moduli = "[1.2e5,1.4e5,1.6e5,1.8e5]"
-    # runs of 256 equilibria (seconds each) on two workers: the signal lands at the first record,
-    # while the third and fourth run
-    args = ["sweep", "--outcome", "workspace", "--levels", "0", "1", "2", "3",
+    # runs of 8^4 = 4096 equilibria (1.6 s each on this project's machine; 4^4 took 0.12 s, all four
+    # done before the signal landed) on two workers: the signal lands at the first record, while the
+    # third and fourth run
+    levels = ["0", "0.4", "0.8", "1.2", "1.6", "2.0", "2.4", "2.8"]
+    args = ["sweep", "--outcome", "workspace", "--levels", *levels,
             "--vary", f"arm.material.youngs_modulus={moduli}", "--workers", "2", "--output", str(tmp_path)]
     # a terminal's Ctrl-C goes to the whole process group: the command and its cluster's workers
     proc = _campaign(args, start_new_session=True)
