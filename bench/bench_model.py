@@ -5,7 +5,8 @@
 
 Measures, on one core:
 - one evaluation of all dynamics terms (M, C qd, F_g, F_el/K_t, A with friction, L_c; D and K are
-  constant) at 12/16/20/24 DOF (the paper arm with Legendre orders 1..4 on the tendon span);
+  constant) at 12/16/20/24 DOF (the paper arm with Legendre orders 1..4 on the tendon span), and
+  of its kinematics alone (the frames and Jacobians);
 - building the model (the discretisation: basis, quadrature, constant matrices) at each of them;
 - one frame's visibility in the simulated mocap (plant.yaml's cameras, the arm's body blocking
   the lines of sight to its four markers);
@@ -70,6 +71,8 @@ def bench_evaluation():
                      "points": int(m.X.size)}
         args3 = (*m.kernel_args, q, qd, 3, False, *d.kernel_args)
         rows[dof]["with_coriolis_matrix_us"] = 1e6 * best_of(lambda: kernels.evaluate(*args3))
+        args0 = (*m.kernel_args, q, qd, 0, False, *d.kernel_args)      # the frames and Jacobians alone
+        rows[dof]["kinematics_us"] = 1e6 * best_of(lambda: kernels.evaluate(*args0))
     return rows
 
 
@@ -494,10 +497,11 @@ def main(argv=None):
     res["cantilever"] = bench_cantilever(elastica=not args.skip_elastica)
 
     print("\nsoft_arm_model benchmarks (one core; targets in brackets)")
-    print(f"{'DOF':>4} {'points':>6} {'dynamics terms [us] (<=50 @16)':>32} {'+ Coriolis matrix [us]':>24}")
+    print(f"{'DOF':>4} {'points':>6} {'dynamics terms [us] (<=50 @16)':>32} {'+ Coriolis matrix [us]':>24} "
+          f"{'of which kinematics [us]':>26}")
     for dof, r in res["evaluation"].items():
         print(f"{dof:>4} {r['points']:>6} {r['dynamics_terms_us']:>32.1f} "
-              f"{r['with_coriolis_matrix_us']:>24.1f}")
+              f"{r['with_coriolis_matrix_us']:>24.1f} {r['kinematics_us']:>26.1f}")
     print("building the model [ms]: "
           + ", ".join(f"{dof} DOF {ms:.1f}" for dof, ms in res["build_ms"].items()))
     print(f"simulated mocap, one frame's visibility (self-occlusion): {res['mocap_visibility_us']:.1f} us")
