@@ -165,8 +165,11 @@ def test_ctrl_c_keeps_what_finished_and_the_restart_runs_only_the_rest(tmp_path)
     levels = ["0", "0.4", "0.8", "1.2", "1.6", "2.0", "2.4", "2.8"]
     args = ["sweep", "--outcome", "workspace", "--levels", *levels,
             "--vary", f"arm.material.youngs_modulus={moduli}", "--workers", "2", "--output", str(tmp_path)]
-    # a terminal's Ctrl-C goes to the whole process group: the command and its cluster's workers
-    proc = _campaign(args, start_new_session=True)
+    # a terminal's Ctrl-C goes to the whole process group: the command and its cluster's workers,
+    # started with SIGINT at its default whatever this process inherited (a shell's background job
+    # ignores it, and Python then never turns it into KeyboardInterrupt)
+    proc = _campaign(args, start_new_session=True,
+                     preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline and len(engine.read_records(tmp_path)) < 1:
         time.sleep(0.05)
