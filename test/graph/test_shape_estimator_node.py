@@ -128,76 +128,75 @@ def test_a_stepped_state_clock_is_counted_and_neither_stops_the_updates_nor_infl
         rclpy.try_shutdown()
 
 
-def test_states_at_tensions_without_an_equilibrium_are_said_on_diagnostics_not_a_crash():
-    """Tensions the model holds no equilibrium for (1e5 N on one tendon, a torque reading gone
-    wrong) before the first start: the node goes on (its start's error ended the process), publishes
-    no marker it stands by, and its diagnostics warn with the samples that could not start; states
-    at sane tensions then start the estimate."""
+@pytest.fixture
+def reporting_node():
+    """A shape_estimator node on real rclpy whose diagnostics are kept in a list, and a function
+    that gives it the states of samples k0..k1 (500 Hz) at the tensions ``u`` [N] with the
+    shortenings of the model's equilibrium under [0.5, 2, 1.5, 0.3] N."""
     import rclpy
-    from diagnostic_msgs.msg import DiagnosticStatus
 
     from soft_arm_control.shape_estimator_node import ShapeEstimatorNode
     from soft_arm_ros.conversions import joint_state
 
     model = build_model()
-    u = np.array([0.5, 2.0, 1.5, 0.3])
-    s = model.rest_tendon_lengths - tendon_lengths(model, solve_equilibrium(model, u).q)
+    held = np.array([0.5, 2.0, 1.5, 0.3])
+    s = model.rest_tendon_lengths - tendon_lengths(model, solve_equilibrium(model, held).q)
     rclpy.init()
     try:
         node = ShapeEstimatorNode()
         published = []
         node.diagnostics_pub.publish = published.append
-        for k in range(20):
-            node.on_state(joint_state(model.tendon_names, k * 0.002, position=s, velocity=np.zeros(4),
-                                      effort=[1e5, 0.0, 0.0, 0.0]))
-        assert not node.core.started and node.core.counts["start_failures"] >= 5
-        assert node.undefended >= 5 and "no start" in node.distrust, node.distrust
-        node.publish_diagnostics(0.04, node.core.estimate())
-        status = published[-1].status[0]
-        values = {v.key: v.value for v in status.values}
-        assert status.level == DiagnosticStatus.WARN and int(values["start_failures"]) >= 5
-        assert "with no start" in status.message, status.message
-        for k in range(20, 40):
-            node.on_state(joint_state(model.tendon_names, k * 0.002, position=s, velocity=np.zeros(4),
-                                      effort=u))
-        assert node.core.started and node.core.distrust is None
+
+        def states(k0, k1, u=held):
+            for k in range(k0, k1):
+                node.on_state(joint_state(model.tendon_names, k * 0.002, position=s, velocity=np.zeros(4),
+                                          effort=u))
+        yield node, published, states
         node.destroy_node()
     finally:
         rclpy.try_shutdown()
 
 
-def test_tendon_states_that_stop_coming_are_said_on_diagnostics():
+def _status(published):
+    """The last diagnostics' status and its values."""
+    status = published[-1].status[0]
+    return status, {v.key: v.value for v in status.values}
+
+
+def test_states_at_tensions_without_an_equilibrium_are_said_on_diagnostics_not_a_crash(reporting_node):
+    """Tensions the model holds no equilibrium for (1e5 N on one tendon, a torque reading gone
+    wrong) before the first start: the node goes on (its start's error ended the process), publishes
+    no marker it stands by, and its diagnostics warn with the samples that could not start; states
+    at sane tensions then start the estimate."""
+    from diagnostic_msgs.msg import DiagnosticStatus
+    node, published, states = reporting_node
+    states(0, 20, [1e5, 0.0, 0.0, 0.0])
+    assert not node.core.started and node.core.counts["start_failures"] >= 5
+    assert node.undefended >= 5 and "no start" in node.distrust, node.distrust
+    node.publish_diagnostics(0.04, node.core.estimate())
+    status, values = _status(published)
+    assert status.level == DiagnosticStatus.WARN and int(values["start_failures"]) >= 5
+    assert "with no start" in status.message, status.message
+    states(20, 40)
+    assert node.core.started and node.core.distrust is None
+
+
+def test_tendon_states_that_stop_coming_are_said_on_diagnostics(reporting_node):
     """The states stop (the inner loop or the driver gone): the heartbeat's diagnostics warn that
     the estimate is that of the last update, and how long ago, where they said OK."""
-    import rclpy
     from diagnostic_msgs.msg import DiagnosticStatus
 
-    from soft_arm_control.shape_estimator_node import REPORT_PERIOD, ShapeEstimatorNode
-    from soft_arm_ros.conversions import joint_state
-
-    model = build_model()
-    u = np.array([0.5, 2.0, 1.5, 0.3])
-    s = model.rest_tendon_lengths - tendon_lengths(model, solve_equilibrium(model, u).q)
-    rclpy.init()
-    try:
-        node = ShapeEstimatorNode()
-        published = []
-        node.diagnostics_pub.publish = published.append
-        for k in range(10):
-            node.on_state(joint_state(model.tendon_names, k * 0.002, position=s, velocity=np.zeros(4),
-                                      effort=u))
-        node.publish_diagnostics(*node._last)
-        assert published[-1].status[0].level == DiagnosticStatus.OK
-        node._updated_at -= 3 * REPORT_PERIOD                  # three report periods without a state
-        node._reported_at -= REPORT_PERIOD
-        node._heartbeat()
-        status = published[-1].status[0]
-        values = {v.key: v.value for v in status.values}
-        assert status.level == DiagnosticStatus.WARN and float(values["since_update_s"]) >= 3 * REPORT_PERIOD
-        assert status.message.startswith("no update for 3"), status.message
-        node.destroy_node()
-    finally:
-        rclpy.try_shutdown()
+    from soft_arm_control.shape_estimator_node import REPORT_PERIOD
+    node, published, states = reporting_node
+    states(0, 10)
+    node.publish_diagnostics(*node._last)
+    assert _status(published)[0].level == DiagnosticStatus.OK
+    node._updated_at -= 3 * REPORT_PERIOD                  # three report periods without a state
+    node._reported_at -= REPORT_PERIOD
+    node._heartbeat()
+    status, values = _status(published)
+    assert status.level == DiagnosticStatus.WARN and float(values["since_update_s"]) >= 3 * REPORT_PERIOD
+    assert status.message.startswith("no update for 3"), status.message
 
 
 def test_a_frame_stamped_far_from_the_state_is_left_out_and_counted_not_fused_as_measured():

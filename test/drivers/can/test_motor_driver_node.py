@@ -190,6 +190,19 @@ def test_the_cycle_runs_apart_from_the_executor(rig):
     assert node.driver.fault.startswith("stale command") and node.lifecycle_state == "inactive"
 
 
+def _bus_down(node, down: bool = True):
+    """Every send on the node's bus raises "Network is down" (``down``), or sends again; under the
+    hardware lock, which the driver's cycle thread holds for its sends."""
+    with node.hardware_lock.held_by("the test"):
+        if not down:
+            del node.driver.bus.send            # the bus's own method again
+            return
+
+        def refused(*args, **kwargs):
+            raise can.CanError("Network is down")
+        node.driver.bus.send = refused
+
+
 def test_an_estop_whose_frames_do_not_leave_answers_failure_and_the_node_exits_failed(rig):
     """The bus goes down while the motors are enabled: the cycle's sends fail (a fault), and the
     e-stop service says that its frames did not leave (success false, the motors named) where it
@@ -197,11 +210,7 @@ def test_an_estop_whose_frames_do_not_leave_answers_failure_and_the_node_exits_f
     _, node, _, _ = rig
     assert node.trigger_configure() == TransitionCallbackReturn.SUCCESS
     assert node.trigger_activate() == TransitionCallbackReturn.SUCCESS
-
-    def down(*args, **kwargs):
-        raise can.CanError("Network is down")
-    with node.hardware_lock.held_by("the test"):
-        node.driver.bus.send = down
+    _bus_down(node)
     answer = node.on_estop(Trigger.Request(), Trigger.Response())
     assert not answer.success and "did not leave the bus" in answer.message
     assert "motor 1: Network is down" in answer.message
@@ -218,17 +227,11 @@ def test_a_zero_whose_frames_do_not_leave_answers_failure_naming_the_motors(rig)
     would leave the arm driven from a stale zero); the bus back, zero succeeds."""
     _, node, _, _ = rig
     assert node.trigger_configure() == TransitionCallbackReturn.SUCCESS
-    with node.hardware_lock.held_by("the test"):
-        send = node.driver.bus.send
-
-        def down(*args, **kwargs):
-            raise can.CanError("Network is down")
-        node.driver.bus.send = down
+    _bus_down(node)
     answer = node.on_zero(Trigger.Request(), Trigger.Response())
     assert not answer.success and answer.message.startswith("zero not set"), answer.message
     assert "motor 1: Network is down" in answer.message and not node.driver.zeroed
-    with node.hardware_lock.held_by("the test"):
-        node.driver.bus.send = send
+    _bus_down(node, down=False)
     answer = node.on_zero(Trigger.Request(), Trigger.Response())
     assert answer.success and node.driver.zeroed, answer.message
 
@@ -242,14 +245,10 @@ def test_a_deactivation_whose_frames_do_not_leave_fails_the_node_though_the_clos
     assert node.trigger_activate() == TransitionCallbackReturn.SUCCESS
     assert node.trigger_deactivate() == TransitionCallbackReturn.SUCCESS and node.failure is None
     assert node.trigger_activate() == TransitionCallbackReturn.SUCCESS
-    with node.hardware_lock.held_by("the test"):
-        send = node.driver.bus.send
-
-        def down(*args, **kwargs):
-            raise can.CanError("Network is down")
-        node.driver.bus.send = down
+    with node.hardware_lock.held_by("the test"):          # no cycle between: the lock is re-entrant
+        _bus_down(node)
         node.trigger_deactivate()
-        node.driver.bus.send = send
+        _bus_down(node, down=False)
     assert isinstance(node.failure, RuntimeError), node.failure
     assert "deactivate: zero torque not sent" in str(node.failure) and "motor 1" in str(node.failure)
     node.close()
