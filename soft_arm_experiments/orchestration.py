@@ -58,7 +58,7 @@ def _wait_for_graph(node, children, flowing: tuple = (), settle: float = 0.0,
     ``settle`` [s], no endpoint of the run's own nodes appearing or going for that long (their
     discovery over; other nodes on the domain, a ``ros2 topic echo`` or an RViz coming and going,
     are not waited for). Nodes of the run's names in the root namespace from another process
-    (:func:`_twins`) are waited out for ``twin_grace`` [s] (a process killed just before stays in
+    (:func:`_own_nodes`) are waited out for ``twin_grace`` [s] (a process killed just before stays in
     the graph until its lease runs out), then the bring-up fails naming them. The probe
     subscriptions on the ``flowing`` topics leave the graph as soon as their messages have
     arrived, before it settles: kept, they would cost this process a callback per message for the
@@ -84,7 +84,7 @@ def _wait_for_graph(node, children, flowing: tuple = (), settle: float = 0.0,
     twins_since = None
     while not STOP.is_set():
         children.check()
-        twins = _twins(node, names)
+        now, twins = _own_nodes(node, names)
         twins_since = None if not twins else (twins_since or time.monotonic())
         if twins and time.monotonic() - twins_since > twin_grace:
             raise RuntimeError(
@@ -94,7 +94,6 @@ def _wait_for_graph(node, children, flowing: tuple = (), settle: float = 0.0,
                 "on another domain")
         # the run's own nodes' publishers and recorder: another process on the domain (a bag of an
         # earlier run played, a recorder left running) wires nothing of this run
-        now = _endpoints(node, names)
         published_here = {t for publishers, _, _ in now.values() for t in publishers}
         missing = [t for t in topics if t not in published_here]
         missing += [f"{t} (no messages yet)" for t, n in counts.items() if n < 10]
@@ -145,26 +144,19 @@ def _nameless_publishers(node, topics) -> str:
             f"run again")
 
 
-def _endpoints(node, names) -> dict:
-    """{node name: its publishers, subscriptions and services} of the run's own nodes ``names`` (in
-    the root namespace, where the run starts them) as this process has discovered them (the
-    domain's other nodes are left out, those of the same names in other namespaces too)."""
-    out = {}
-    for name, namespace in node.get_node_names_and_namespaces():
-        if name in names and namespace == "/":
-            out[name] = tuple(tuple(sorted(t for t, _ in query(name, namespace))) for query in (
-                node.get_publisher_names_and_types_by_node, node.get_subscriber_names_and_types_by_node,
-                node.get_service_names_and_types_by_node))
-    return out
-
-
-def _twins(node, names) -> list:
-    """The run's node names ``names`` that more than one node on the domain has in the root
-    namespace: the run's own and another process's (another run, or a node left over), which the
-    run cannot tell apart, nor the services it calls by name."""
+def _own_nodes(node, names) -> tuple:
+    """The run's own nodes ``names`` (in the root namespace, where the run starts them) as this
+    process has discovered them, from one look at the graph: ({node name: its publishers,
+    subscriptions and services}, the names more than one node has there). The domain's other nodes
+    are left out, those of the same names in other namespaces too; a name two nodes have is the
+    run's and another process's (another run, or a node left over), which the run cannot tell
+    apart, nor the services it calls by name."""
     seen = [name for name, namespace in node.get_node_names_and_namespaces()
             if name in names and namespace == "/"]
-    return sorted({name for name in seen if seen.count(name) > 1})
+    endpoints = {name: tuple(tuple(sorted(t for t, _ in query(name, "/"))) for query in (
+        node.get_publisher_names_and_types_by_node, node.get_subscriber_names_and_types_by_node,
+        node.get_service_names_and_types_by_node)) for name in set(seen)}
+    return endpoints, sorted({name for name in seen if seen.count(name) > 1})
 
 
 class _NoAnswer(RuntimeError):
